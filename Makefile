@@ -1,0 +1,52 @@
+# Image2Sim — the two commands a newcomer needs are `make demo` and `make test`.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(VENV)/bin/pip
+# Keep the machine-wide cap (if any) and pin torch for every install, also inside sdist builds.
+PIP_CONSTRAINT := $(CURDIR)/constraints.txt $(wildcard /etc/xdg/pip/constraints.txt)
+export PIP_CONSTRAINT
+export PIP_DISABLE_PIP_VERSION_CHECK := 1
+export HF_HUB_OFFLINE := 1
+export TRANSFORMERS_OFFLINE := 1
+export DVC_NO_ANALYTICS := 1
+export WANDB_MODE ?= offline
+
+PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/eval
+STAMP := $(VENV)/.image2sim-setup
+SETUP_INPUTS := constraints.txt requirements-dev.txt $(addsuffix /pyproject.toml,$(PACKAGES))
+
+.PHONY: setup test test-slow demo lint bench clean help
+
+help:  ## list targets
+	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
+
+setup: $(STAMP)  ## create .venv: torch 2.13.0 CPU first, then the four packages (editable)
+
+$(STAMP): $(SETUP_INPUTS)
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade "pip>=24"
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q $(addprefix -e ,$(PACKAGES)) -r requirements-dev.txt
+	$(PY) -c "import importlib.util as u, sys; sys.exit(u.find_spec('torchvision') is not None)" \
+	  || (echo "torchvision got installed: it breaks transformers on this CPU stack" && exit 1)
+	touch $(STAMP)
+
+test: setup  ## fast test suite (CPU, a few minutes)
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: setup  ## slow tests only
+	$(PY) -m pytest -q -m slow
+
+demo: setup  ## the main job on the embedded default data
+	$(PY) -m image2sim.demo
+
+bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports/)
+	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+
+lint: setup
+	$(VENV)/bin/ruff check packages tests benchmarks
+
+clean:
+	rm -rf $(VENV) .pytest_cache outputs

@@ -1,0 +1,3 @@
+"""Image2Sim dataengine package."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,7 @@
+"""``image2sim data``: capture inspection, fusion, ingest and procedural synthesis."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(help="Data: inspect, fuse and ingest captures; synthesise procedural scenes.", no_args_is_help=True)

@@ -1,0 +1,3 @@
+"""Image2Sim navpolicy package."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,34 @@
+"""The single ``image2sim`` command. Packages contribute subcommand groups through the
+``image2sim.cli`` entry-point group (``data``, ``sim``, ``nav``, ``eval``); nothing is imported
+until the command runs."""
+
+from __future__ import annotations
+
+from importlib.metadata import entry_points
+
+import typer
+
+sim_app = typer.Typer(help="Simulator tools: scenes, rendering, navigation.", no_args_is_help=True)
+
+
+@sim_app.command("cameras")
+def sim_cameras() -> None:
+    """Print the camera and frame conventions in force."""
+    from image2sim.simulator import conventions
+
+    typer.echo(conventions.__doc__)
+
+
+def build_app() -> typer.Typer:
+    app = typer.Typer(
+        help="Image2Sim: posed RGB-D captures -> neural simulators -> navigation data and policies.",
+        no_args_is_help=True,
+        add_completion=False,
+    )
+    for ep in sorted(entry_points(group="image2sim.cli"), key=lambda e: e.name):
+        app.add_typer(ep.load(), name=ep.name)
+    return app
+
+
+def main() -> None:
+    build_app()()

@@ -1,0 +1,1 @@
+"""Capture readers: typed Frame/Capture records and `open_capture` with format auto-detection."""
