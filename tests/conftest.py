@@ -1,0 +1,34 @@
+"""Session-wide test configuration.
+
+Real data lives outside the repository in ``../shared/data`` (or ``$IMAGE2SIM_SHARED_DATA``) and is
+read in place; tests that need it use the ``hm3d_scene_dir`` fixture, which skips when it is absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import HealthCheck, settings
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("IMAGE2SIM_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+HM3D_SCENE = SHARED_DATA / "hm3d_360" / "00000-kfPV7w3FaU5"
+
+settings.register_profile(
+    "image2sim", deadline=None, max_examples=200, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile("image2sim")
+
+# Two cores: keep torch from oversubscribing when pytest runs alongside other work.
+torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+
+@pytest.fixture(scope="session")
+def hm3d_scene_dir() -> Path:
+    """The real HM3D panoramic sample, read in place; skips the test when it is absent."""
+    if not HM3D_SCENE.is_dir():
+        pytest.skip(f"real sample data not found at {HM3D_SCENE}")
+    return HM3D_SCENE
