@@ -56,7 +56,9 @@ class Capture(Sequence):
     """A lazily loaded sequence of :class:`Frame`s; ``capture[i]`` reads frame ``i`` from disk.
 
     Readers build it from a list of frame ids and a loader; ``skipped`` lists ``(frame_id, reason)``
-    for frames the reader found unusable while indexing (e.g. non-finite poses).
+    for frames the reader found unusable while indexing (e.g. non-finite poses). Readers that
+    parse poses while indexing pass ``poses`` ((N, 4, 4) float64, our conventions) so that tools
+    can use them without decoding images; ``camera`` is the shared camera when known up front.
     """
 
     def __init__(
@@ -69,6 +71,8 @@ class Capture(Sequence):
         scene_id: str | None = None,
         skipped: Sequence[tuple[str, str]] = (),
         metadata: dict | None = None,
+        poses: np.ndarray | None = None,
+        camera: Camera | None = None,
     ) -> None:
         self.root = Path(root)
         self.format = format
@@ -77,6 +81,10 @@ class Capture(Sequence):
         self.scene_id = scene_id or self.root.name
         self.skipped = list(skipped)
         self.metadata = dict(metadata or {})
+        self.poses = None if poses is None else np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        if self.poses is not None and len(self.poses) != len(self.frame_ids):
+            raise ValueError(f"{len(self.poses)} poses for {len(self.frame_ids)} frames ({self.root})")
+        self.camera = camera
 
     def __len__(self) -> int:
         return len(self.frame_ids)

@@ -1,0 +1,99 @@
+"""Image file I/O for capture readers/writers, with errors that name the file and the problem.
+
+OpenCV decodes silently-partial images (a truncated JPEG comes back with a grey bottom and only a
+warning on stderr), so before decoding we check that the file ends with its format's end marker
+(PNG ``IEND`` chunk, JPEG ``EOI``). Colour arrays are RGB (OpenCV's BGR is swapped here, once).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from image2sim.simulator.io.records import CaptureError
+
+__all__ = ["read_rgb", "read_uint16", "write_rgb_png", "write_uint16_png", "image_size"]
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"
+_JPEG_MAGIC = b"\xff\xd8"
+_JPEG_END = b"\xff\xd9"
+
+
+def _read_bytes(path: Path, what: str) -> bytes:
+    """Raw file content; a missing or empty file is a :class:`CaptureError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{path}: missing {what} file")
+    data = path.read_bytes()
+    if not data:
+        raise CaptureError(f"{path}: {what} file is empty")
+    return data
+
+
+def _check_complete(path: Path, data: bytes, what: str) -> None:
+    """Reject files whose format end marker is missing (truncated downloads/copies)."""
+    if data.startswith(_PNG_MAGIC):
+        if not data.rstrip(b"\x00").endswith(_PNG_END):
+            raise CaptureError(f"{path}: {what} PNG is truncated (no IEND chunk at the end)")
+    elif data.startswith(_JPEG_MAGIC):
+        # Some writers pad after EOI; tolerate trailing zero bytes only.
+        if not data.rstrip(b"\x00").endswith(_JPEG_END):
+            raise CaptureError(f"{path}: {what} JPEG is truncated (no end-of-image marker)")
+
+
+def _decode(path: Path, what: str, flags: int) -> np.ndarray:
+    data = _read_bytes(path, what)
+    _check_complete(path, data, what)
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    if image is None or image.size == 0:
+        raise CaptureError(f"{path}: cannot decode {what} image (unreadable or corrupt file)")
+    return image
+
+
+def read_rgb(path: Path, what: str = "colour") -> np.ndarray:
+    """Read an 8-bit colour (or greyscale, expanded) image as (H, W, 3) uint8 RGB."""
+    image = _decode(path, what, cv2.IMREAD_UNCHANGED)
+    if image.dtype != np.uint8:
+        raise CaptureError(f"{path}: {what} image must be 8-bit, got {image.dtype}")
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise CaptureError(f"{path}: {what} image has unsupported shape {image.shape}")
+    return np.ascontiguousarray(image[:, :, 2::-1])  # BGR(A) -> RGB, alpha dropped
+
+
+def read_uint16(path: Path, what: str = "depth") -> np.ndarray:
+    """Read a single-channel 16-bit PNG as (H, W) uint16."""
+    image = _decode(path, what, cv2.IMREAD_UNCHANGED)
+    if image.ndim != 2:
+        raise CaptureError(f"{path}: {what} image must be single-channel, got shape {image.shape}")
+    if image.dtype != np.uint16:
+        raise CaptureError(f"{path}: {what} image must be 16-bit (uint16), got {image.dtype}")
+    return image
+
+
+def image_size(path: Path, what: str = "image") -> tuple[int, int]:
+    """(height, width) of an image file (decodes it; used once per capture)."""
+    image = _decode(path, what, cv2.IMREAD_UNCHANGED)
+    return int(image.shape[0]), int(image.shape[1])
+
+
+def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
+    """Write (H, W, 3) uint8 RGB as PNG."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise CaptureError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1])):
+        raise CaptureError(f"{path}: OpenCV could not write the PNG")
+
+
+def write_uint16_png(path: Path, image: np.ndarray) -> None:
+    """Write (H, W) uint16 as a 16-bit greyscale PNG."""
+    image = np.asarray(image)
+    if image.dtype != np.uint16 or image.ndim != 2:
+        raise CaptureError(f"{path}: expected (H, W) uint16, got {image.shape} {image.dtype}")
+    if not cv2.imwrite(str(path), image):
+        raise CaptureError(f"{path}: OpenCV could not write the PNG")
