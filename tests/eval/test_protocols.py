@@ -7,7 +7,6 @@ import json
 import math
 
 import pytest
-
 from image2sim.eval.protocols import (
     IMAGE2SIM,
     PROTOCOLS,
@@ -26,9 +25,11 @@ def test_published_values() -> None:
     assert (IMAGE2SIM.max_steps, IMAGE2SIM.turn_angle_deg, IMAGE2SIM.forward_step_m) == (300, 15.0, 0.25)
     assert (IMAGE2SIM.camera.width, IMAGE2SIM.camera.height, IMAGE2SIM.camera.hfov_deg) == (336, 336, 90.0)
     assert IMAGE2SIM.allow_sliding and IMAGE2SIM.success_distance_m == 3.0
-    assert (VLNCE.max_steps, VLNCE.turn_angle_deg, VLNCE.camera.width, VLNCE.camera.hfov_deg) == (500, 15.0, 224, 90.0)
+    assert (VLNCE.max_steps, VLNCE.turn_angle_deg, VLNCE.forward_step_m) == (500, 15.0, 0.25)
+    assert (VLNCE.camera.width, VLNCE.camera.height, VLNCE.camera.hfov_deg) == (224, 224, 90.0)
     assert (VLNCE.agent_height_m, VLNCE.agent_radius_m, VLNCE.success_distance_m) == (1.5, 0.1, 3.0)
-    assert (RXR_HABITAT.turn_angle_deg, RXR_HABITAT.camera.width, RXR_HABITAT.camera.height) == (30.0, 640, 480)
+    cam = RXR_HABITAT.camera
+    assert (RXR_HABITAT.turn_angle_deg, cam.width, cam.height) == (30.0, 640, 480)
     assert RXR_HABITAT.camera.hfov_deg == 79.0 and not RXR_HABITAT.allow_sliding
     assert set(PROTOCOLS) == {"image2sim", "vlnce", "rxr-habitat"}
     assert get_protocol("rxr-habitat") is RXR_HABITAT

@@ -129,12 +129,16 @@ class Protocol:
         if not self.name:
             raise ProtocolError("protocol.name: must be a non-empty string")
         if not isinstance(self.max_steps, int) or isinstance(self.max_steps, bool) or self.max_steps <= 0:
-            raise ProtocolError(f"protocol {self.name}: max_steps must be a positive int, got {self.max_steps!r}")
+            raise ProtocolError(
+                f"protocol {self.name}: max_steps must be a positive int, got {self.max_steps!r}"
+            )
         for field in ("turn_angle_deg", "forward_step_m", "agent_height_m", "agent_radius_m",
                       "success_distance_m", "ndtw_threshold_m"):
             value = getattr(self, field)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ProtocolError(f"protocol {self.name}: {field} must be a finite positive number, got {value!r}")
+                raise ProtocolError(
+                    f"protocol {self.name}: {field} must be a finite positive number, got {value!r}"
+                )
         if not isinstance(self.allow_sliding, bool):
             raise ProtocolError(f"protocol {self.name}: allow_sliding must be a bool")
         if self.dtw != "exact":
@@ -219,7 +223,9 @@ def protocol_of(record: Protocol | Mapping[str, Any], where: str = "result") -> 
     if isinstance(record, Protocol):
         return record
     if not isinstance(record, Mapping) or PROTOCOL_KEY not in record:
-        raise ProtocolError(f"{where}: has no {PROTOCOL_KEY!r} record; results without a protocol are refused")
+        raise ProtocolError(
+            f"{where}: has no {PROTOCOL_KEY!r} record; results without a protocol are refused"
+        )
     value = record[PROTOCOL_KEY]
     return value if isinstance(value, Protocol) else Protocol.from_dict(value, f"{where}.{PROTOCOL_KEY}")
 

@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-
 from image2sim.eval.protocols import Protocol, ensure_same_protocol
 from image2sim.simulator.conventions import Action
 
@@ -435,7 +434,11 @@ class EpisodeResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready record (protocol by full value)."""
-        return {"episode_id": self.episode_id, "metrics": dict(self.metrics), "protocol": self.protocol.to_dict()}
+        return {
+            "episode_id": self.episode_id,
+            "metrics": dict(self.metrics),
+            "protocol": self.protocol.to_dict(),
+        }
 
 
 def evaluate_episode(
@@ -445,7 +448,10 @@ def evaluate_episode(
     protocol: Protocol,
     measures: Iterable[type[Measure]] = DEFAULT_MEASURES,
 ) -> EpisodeResult:
-    """Run the measures over a finished trajectory: ``states[0]`` is the start, ``states[t+1]`` follows ``actions[t]``."""
+    """Run the measures over a finished trajectory.
+
+    ``states[0]`` is the start state and ``states[t + 1]`` the state ``actions[t]`` led to.
+    """
     if len(states) != len(actions) + 1:
         raise ValueError(f"episode {episode.episode_id}: need len(states) == len(actions) + 1, "
                          f"got {len(states)} states and {len(actions)} actions")
@@ -493,7 +499,9 @@ class AggregateReport:
         return {
             "protocol": self.protocol.to_dict(),
             "num_episodes": self.num_episodes,
-            "metrics": {k: {"mean": s.mean, "count": s.count, "missing": s.missing} for k, s in self.metrics.items()},
+            "metrics": {
+                k: {"mean": s.mean, "count": s.count, "missing": s.missing} for k, s in self.metrics.items()
+            },
         }
 
 
