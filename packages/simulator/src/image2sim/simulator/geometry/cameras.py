@@ -9,6 +9,7 @@ Leading batch dimensions broadcast freely.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Union
 
@@ -83,6 +84,8 @@ class EquirectCamera:
         lat = torch.atan2(-y, torch.sqrt(x * x + z * z))
         u, v = self.lonlat_to_pixel(lon, lat)
         u = torch.remainder(u, float(self.width))
+        # remainder(-tiny, W) rounds to exactly W; fold it back so u stays in [0, W).
+        u = torch.where(u >= self.width, u - self.width, u)
         return torch.stack((u, v), dim=-1), rng, rng > 0
 
     def unproject(self, depth: torch.Tensor) -> torch.Tensor:
@@ -206,15 +209,29 @@ Camera = Union[EquirectCamera, PinholeCamera]
 
 def camera_from_dict(data: dict) -> Camera:
     """Inverse of ``camera.to_dict()``; raises ``ValueError`` naming the bad field."""
-    try:
-        model = data["model"]
-        if model == "equirect":
-            return EquirectCamera(int(data["height"]), int(data["width"]))
-        if model == "pinhole":
-            return PinholeCamera(
-                float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
-                int(data["height"]), int(data["width"]),
-            )
-    except KeyError as err:
-        raise ValueError(f"camera description is missing field {err.args[0]!r}: {data}") from None
-    raise ValueError(f"unknown camera model {model!r} (expected 'equirect' or 'pinhole')")
+    if not isinstance(data, dict):
+        raise ValueError(f"camera description must be a dict, got {type(data).__name__}")
+    if "model" not in data:
+        raise ValueError(f"camera description is missing field 'model': {data}")
+    model = data["model"]
+    if model == "equirect":
+        fields = {"height": int, "width": int}
+    elif model == "pinhole":
+        fields = {"fx": float, "fy": float, "cx": float, "cy": float, "height": int, "width": int}
+    else:
+        raise ValueError(f"unknown camera model {model!r} (expected 'equirect' or 'pinhole')")
+    unknown = sorted(set(data) - set(fields) - {"model"})
+    if unknown:
+        raise ValueError(f"{model} camera description has unknown field(s) {unknown}: {data}")
+    values = {}
+    for name, kind in fields.items():
+        if name not in data:
+            raise ValueError(f"{model} camera description is missing field {name!r}: {data}")
+        raw = data[name]
+        # bool is an int subclass and a float height (e.g. 2.5) would be truncated silently.
+        if isinstance(raw, bool) or not isinstance(raw, numbers.Real) or (kind is int and raw != int(raw)):
+            raise ValueError(f"{model} camera field {name!r} must be {kind.__name__}, got {raw!r}")
+        values[name] = kind(raw)
+    if model == "equirect":
+        return EquirectCamera(values["height"], values["width"])
+    return PinholeCamera(**values)

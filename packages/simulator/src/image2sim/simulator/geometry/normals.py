@@ -1,0 +1,152 @@
+"""Surface normals from depth maps.
+
+Two estimators with different jobs:
+
+* :func:`sobel_normals` is the paper's ``SurfaceNormalEstimator`` (appendix, Stage 1): a cheap,
+  image-space geometric prior fed to the encoder. Depth is smoothed by a 3x3 average pool, its
+  gradients are taken with 5x5 Sobel filters scaled by 1/48, and ``(-dD/du, -dD/dv, 0.5)`` is
+  L2-normalised. It is *not* a metric normal (it ignores the camera model); the constant z-bias
+  damps lateral noise on flat regions.
+* :func:`point_normals` gives true camera-frame surface normals: the depth map is back-projected
+  to a point map, smoothed by the same 3x3 average, differentiated by the same 5x5 Sobel filters
+  along u and v (two tangents) and crossed. For a plane this is exact (averages and differences of
+  coplanar points stay in the plane), whatever the camera model. Normals face the camera; pixels
+  whose 7x7 receptive field touches invalid depth get 0. Navigation uses these to find floors.
+
+Border handling: images are edge-replicated; panoramas (``circular=True`` / an
+:class:`EquirectCamera`) wrap across the longitude seam and, for even widths, continue across the
+poles (row -1-k at column u is row k at column u + W/2, the true spherical neighbour), see
+:func:`pad_equirect`.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
+
+__all__ = ["sobel_kernels", "pad_equirect", "pad_image", "sobel_normals", "point_normals"]
+
+SOBEL_SCALE = 1.0 / 48.0
+"""The paper's scale of the 5x5 Sobel filters (sum of |weights| on one side of the kernel)."""
+
+Z_BIAS = 0.5
+"""The paper's constant z component appended before normalisation."""
+
+_SMOOTH = 1  # 3x3 average pool -> 1 pixel of padding
+_SOBEL = 2  # 5x5 Sobel -> 2 pixels of padding
+
+
+def sobel_kernels(dtype: torch.dtype = torch.float32, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 5x5 Sobel kernels (S_u, S_v), each (5, 5), scaled by 1/48.
+
+    S_u = outer([1, 4, 6, 4, 1], [-1, -2, 0, 2, 1]) / 48 responds positively to values increasing
+    with the column u (cross-correlation, as ``F.conv2d`` computes); S_v = S_u^T for the row v.
+    On a linear ramp f = a*u the response is (128/48) * a.
+    """
+    smooth = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=dtype, device=device)
+    diff = torch.tensor([-1.0, -2.0, 0.0, 2.0, 1.0], dtype=dtype, device=device)
+    su = torch.outer(smooth, diff) * SOBEL_SCALE
+    return su, su.t().contiguous()
+
+
+def pad_equirect(x: torch.Tensor, pad: int) -> torch.Tensor:
+    """Pad equirectangular maps (B, C, H, W) by ``pad`` pixels on every side, spherically.
+
+    Columns wrap around the longitude seam. Rows continue over the poles when W is even: the row
+    -1-k above the top is row k shifted by half a turn (W/2 columns), which is where the great
+    circle through the pole continues; the same for the bottom. For odd W (no pixel half a turn
+    away) rows are edge-replicated instead. Requires pad <= W and pad <= H.
+    """
+    if pad == 0:
+        return x
+    H, W = x.shape[-2:]
+    if pad > W or pad > H:
+        raise ValueError(f"pad_equirect: pad {pad} exceeds the map size {H}x{W}")
+    def wrap_columns(m: torch.Tensor) -> torch.Tensor:
+        return torch.cat((m[..., W - pad :], m, m[..., :pad]), dim=-1)
+
+    wide = wrap_columns(x)
+    if W % 2 == 0:
+        # Half a turn first, then the same column wrap, so the corners are true neighbours too.
+        turned = wrap_columns(torch.roll(x, shifts=W // 2, dims=-1))
+        top = turned[..., :pad, :].flip(-2)
+        bottom = turned[..., H - pad :, :].flip(-2)
+        return torch.cat((top, wide, bottom), dim=-2)
+    return F.pad(wide, (0, 0, pad, pad), mode="replicate")
+
+
+def pad_image(x: torch.Tensor, pad: int, circular: bool) -> torch.Tensor:
+    """Pad (B, C, H, W) maps: spherical (:func:`pad_equirect`) if ``circular`` else edge-replicate."""
+    if circular:
+        return pad_equirect(x, pad)
+    return F.pad(x, (pad, pad, pad, pad), mode="replicate")
+
+
+def _check_depth(depth: torch.Tensor, name: str) -> None:
+    if depth.ndim != 4 or depth.shape[1] != 1:
+        raise ValueError(f"{name}: depth must be (B, 1, H, W), got shape {tuple(depth.shape)}")
+    if not depth.is_floating_point():
+        raise ValueError(f"{name}: depth must be a floating-point tensor, got {depth.dtype}")
+
+
+def _smooth_and_sobel(x: torch.Tensor, circular: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """3x3 average pool then the two 5x5 Sobel filters, per channel; returns (d/du, d/dv), same size."""
+    C = x.shape[1]
+    smoothed = F.avg_pool2d(pad_image(x, _SMOOTH, circular), kernel_size=3, stride=1)
+    su, sv = sobel_kernels(x.dtype, x.device)
+    weight = torch.stack((su, sv)).unsqueeze(1).repeat(C, 1, 1, 1)  # (2C, 1, 5, 5), grouped per channel
+    grads = F.conv2d(pad_image(smoothed, _SOBEL, circular), weight, groups=C)
+    return grads[:, 0::2], grads[:, 1::2]
+
+
+def sobel_normals(depth: torch.Tensor, circular: bool = False) -> torch.Tensor:
+    """The paper's surface-normal estimator: depth (B, 1, H, W) -> unit "normals" (B, 3, H, W).
+
+    ``n = normalize(-S_u * avg3(D), -S_v * avg3(D), 0.5)`` with the 1/48-scaled 5x5 Sobel filters
+    of :func:`sobel_kernels`. Gradients are in depth units per pixel (times 128/48), so the output
+    is an image-space feature, not a metric normal (use :func:`point_normals` for that). Invalid
+    (zero) depth is not masked, exactly as in the paper. ``circular=True`` pads panoramas
+    spherically (seam wrap, pole continuation for even W); otherwise borders are edge-replicated.
+    """
+    _check_depth(depth, "sobel_normals")
+    gu, gv = _smooth_and_sobel(depth, circular)
+    n = torch.cat((-gu, -gv, torch.full_like(gu, Z_BIAS)), dim=1)
+    return F.normalize(n, dim=1)
+
+
+def point_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Camera-frame unit surface normals (B, 3, H, W) from depth (B, 1, H, W), facing the camera.
+
+    The depth is back-projected with ``camera`` (range for an :class:`EquirectCamera`, z for a
+    pinhole), the point map is smoothed by a 3x3 average, the 5x5 Sobel filters give the tangents
+    dP/du and dP/dv, and n = dP/du x dP/dv is normalised and flipped so that n . P < 0 (towards
+    the camera). A pixel gets n = 0 when any depth in its 7x7 receptive field is 0 or non-finite,
+    or when the tangents are degenerate. Panoramas are padded spherically (see
+    :func:`pad_equirect`).
+    """
+    _check_depth(depth, "point_normals")
+    B, _, H, W = depth.shape
+    if (H, W) != (camera.height, camera.width):
+        raise ValueError(f"point_normals: depth is {H}x{W} but the camera is {camera.height}x{camera.width}")
+    circular = isinstance(camera, EquirectCamera)
+    valid = torch.isfinite(depth) & (depth > 0)
+    clean = torch.where(valid, depth, torch.zeros_like(depth))
+    points = camera.unproject(clean[:, 0]).permute(0, 3, 1, 2)  # (B, 3, H, W)
+    tu, tv = _smooth_and_sobel(points, circular)
+    n = torch.linalg.cross(tu, tv, dim=1)
+    norm = torch.linalg.vector_norm(n, dim=1, keepdim=True)
+    # Degenerate tangents (e.g. all points equal) give no normal; the threshold is relative to the
+    # tangent lengths so it is scale-free.
+    scale = torch.linalg.vector_norm(tu, dim=1, keepdim=True) * torch.linalg.vector_norm(tv, dim=1, keepdim=True)
+    ok = norm > 1e3 * torch.finfo(depth.dtype).eps * scale
+    n = n / norm.clamp_min(torch.finfo(depth.dtype).tiny)
+    facing = (n * points).sum(dim=1, keepdim=True)
+    n = torch.where(facing > 0, -n, n)
+    # Invalid if any input of the 3x3-then-5x5 receptive field is invalid (padded the same way).
+    invalid = (~valid).to(depth.dtype)
+    invalid = F.max_pool2d(pad_image(invalid, _SMOOTH, circular), kernel_size=3, stride=1)
+    invalid = F.max_pool2d(pad_image(invalid, _SOBEL, circular), kernel_size=5, stride=1)
+    keep = (invalid == 0) & ok & torch.isfinite(n).all(dim=1, keepdim=True)
+    return torch.where(keep, n, torch.zeros_like(n))
