@@ -1,0 +1,10 @@
+"""Differentiable feature-Gaussian splatting into equirectangular and pinhole cameras.
+
+``splat(...) -> SplatOutput`` is the single entry point every renderer path calls; backends:
+``reference`` (dense, ground truth), ``torch`` (tile-binned, any device), ``cpu`` (compiled C++
+kernel with OpenMP, hand-written backward), ``auto`` (best available).
+"""
+
+from image2sim.simulator.splatting.api import SplatOutput, available_backends, splat
+
+__all__ = ["SplatOutput", "splat", "available_backends"]

@@ -1,0 +1,235 @@
+"""Public entry point: ``splat`` feature Gaussians into equirectangular or pinhole cameras.
+
+Semantics (shared exactly by every backend; the dense reference in
+:mod:`.backends.reference` is the ground truth):
+
+* Inputs: ``means`` (N, 3) world metres, ``scales`` (N, 3) standard deviations in metres,
+  ``quats`` (N, 4) (w, x, y, z) (normalised internally), ``opacities`` (N,), ``colors`` (N, 3),
+  ``features`` (N, C) (C = 0 allowed, ``None`` means C = 0); ``camera`` an
+  :class:`EquirectCamera` or :class:`PinholeCamera`; ``cam_to_world`` (4, 4) or (B, 4, 4).
+* Covariance Sigma = R diag(s^2) R^T, moved into the camera frame with cam_to_world^-1. Screen
+  covariance by EWA, J W Sigma W^T J^T + 0.3 I, with the perspective Jacobian (pinhole) or the
+  analytic (lon, lat) Jacobian scaled to pixels (equirect); see :mod:`.project`.
+* Pixel centres at (i + 0.5, j + 0.5). Per pixel the Gaussians are composited front to back by
+  camera-space range (pinhole: z), ties by input index; alpha_i = min(0.99, o_i exp(-q/2)) with
+  q = d^T Sigma_2D^-1 d; a Gaussian contributes only where q <= 3.5^2 (footprint cut at 3.5 sigma)
+  and alpha_i >= 1/255; w_i = alpha_i T_i, T_i = prod_{j<i} (1 - alpha_j); after compositing a
+  Gaussian the pixel is finished once T < 1e-4 (that Gaussian still counts).
+* Outputs: rgb = sum w_i c_i + (1 - alpha) background, depth = sum w_i rho_i (range for panoramas,
+  z for pinhole; *not* normalised, see :meth:`SplatOutput.normalized_depth`), alpha = sum w_i,
+  features = sum w_i f_i.
+* Culling: depth below ``near`` (includes all points behind a pinhole camera), beyond ``far``,
+  opacity below 1/255, footprints off the image. Non-finite inputs raise ``ValueError`` (default)
+  or, with ``nonfinite="cull"``, drop the offending Gaussians.
+* Equirect: footprints crossing the +-180 degree seam appear on both edges (horizontal offsets are
+  wrapped); near the poles the footprint is clamped to at most the full image width.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+from image2sim.simulator.splatting.backends import reference as _reference
+from image2sim.simulator.splatting.backends import torch_tiles as _torch_tiles
+from image2sim.simulator.splatting.project import project_gaussians
+
+__all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend", "BACKENDS"]
+
+
+@dataclass
+class SplatOutput:
+    """Splatted image planes for B cameras."""
+
+    rgb: torch.Tensor
+    """(B, 3, H, W) composited colour (plus background where alpha < 1)."""
+    depth: torch.Tensor
+    """(B, 1, H, W) alpha-weighted depth sum_i w_i rho_i (range for equirect, z for pinhole)."""
+    alpha: torch.Tensor
+    """(B, 1, H, W) accumulated opacity sum_i w_i."""
+    features: torch.Tensor
+    """(B, C, H, W) alpha-weighted features (C may be 0)."""
+    backend: str = ""
+    """Name of the backend that produced this output."""
+
+    def normalized_depth(self) -> torch.Tensor:
+        """Expected depth depth / alpha where alpha > 0, else 0 (the invalid-depth marker)."""
+        pos = self.alpha > 0
+        return torch.where(pos, self.depth / torch.where(pos, self.alpha, torch.ones_like(self.alpha)),
+                           torch.zeros_like(self.depth))
+
+
+RasterizeFn = Callable[..., tuple[torch.Tensor, torch.Tensor]]
+
+
+def _cpu_kernel_rasterize(*args, **kwargs):
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    return cpu_kernel.rasterize(*args, **kwargs)
+
+
+BACKENDS: dict[str, RasterizeFn] = {
+    "reference": _reference.rasterize,
+    "torch": _torch_tiles.rasterize,
+    "cpu": _cpu_kernel_rasterize,
+}
+"""Rasterisers by name. A GPU kernel registers here (and in :func:`resolve_backend`)."""
+_ALIASES = {"torch_tiles": "torch", "dense": "reference", "cpp": "cpu", "cpu_kernel": "cpu"}
+
+
+def available_backends() -> list[str]:
+    """Backends usable on this machine (the compiled CPU kernel only if it builds/loads)."""
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    names = ["reference", "torch"]
+    if cpu_kernel.available():
+        names.append("cpu")
+    return names
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """Map a requested backend (or ``"auto"``) to a concrete name for ``device``.
+
+    ``auto``: the compiled kernel on CPU, falling back (with a warning) to ``torch`` if it cannot
+    be built; ``torch`` on other devices until a device kernel is registered.
+    """
+    name = _ALIASES.get(backend, backend)
+    if name == "auto":
+        if device.type != "cpu":
+            return "torch"
+        from image2sim.simulator.splatting.backends import cpu_kernel
+
+        if cpu_kernel.available():
+            return "cpu"
+        warnings.warn(
+            f"splat: compiled CPU kernel unavailable ({cpu_kernel.load_error()}); using the slower "
+            "'torch' backend", RuntimeWarning, stacklevel=3,
+        )
+        return "torch"
+    if name not in BACKENDS:
+        raise ValueError(f"splat: unknown backend {backend!r}; choose from auto, {', '.join(BACKENDS)}")
+    if name == "cpu" and device.type != "cpu":
+        raise ValueError(f"splat: backend 'cpu' needs CPU tensors, got device {device}")
+    return name
+
+
+def _check(name: str, t: torch.Tensor, shape: tuple, n: int | None) -> None:
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"splat: {name} must be a torch.Tensor, got {type(t).__name__}")
+    if not t.is_floating_point():
+        raise TypeError(f"splat: {name} must be floating point, got {t.dtype}")
+    if t.dim() != len(shape) or any(s is not None and t.shape[i] != s for i, s in enumerate(shape)):
+        want = "(" + ", ".join("N" if s is None and i == 0 else ("C" if s is None else str(s))
+                               for i, s in enumerate(shape)) + ")"
+        raise ValueError(f"splat: {name} must have shape {want}, got {tuple(t.shape)}")
+    if n is not None and t.shape[0] != n:
+        raise ValueError(f"splat: {name} has {t.shape[0]} rows but means has {n}")
+
+
+def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor:
+    return ~torch.isfinite(t.detach()).reshape(t.shape[0], -1).all(dim=1)
+
+
+def splat(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    quats: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    features: torch.Tensor | None,
+    camera: EquirectCamera | PinholeCamera,
+    cam_to_world: torch.Tensor,
+    *,
+    near: float = 0.05,
+    far: float | None = None,
+    background: torch.Tensor | float | None = None,
+    backend: str = "auto",
+    nonfinite: str = "raise",
+) -> SplatOutput:
+    """Render N feature Gaussians into B views of ``camera``; see the module docstring for semantics.
+
+    Differentiable w.r.t. means, scales, quats, opacities, colors, features (and cam_to_world,
+    background) with every backend.
+    """
+    if not isinstance(camera, (EquirectCamera, PinholeCamera)):
+        raise TypeError(f"splat: camera must be EquirectCamera or PinholeCamera, got {type(camera).__name__}")
+    _check("means", means, (None, 3), None)
+    n = means.shape[0]
+    if features is None:
+        features = means.new_zeros(n, 0)
+    _check("scales", scales, (None, 3), n)
+    _check("quats", quats, (None, 4), n)
+    _check("opacities", opacities, (None,), n)
+    _check("colors", colors, (None, 3), n)
+    _check("features", features, (None, None), n)
+    dtype, device = means.dtype, means.device
+    for name, t in (("scales", scales), ("quats", quats), ("opacities", opacities), ("colors", colors),
+                    ("features", features)):
+        if t.dtype != dtype or t.device != device:
+            raise TypeError(f"splat: {name} is {t.dtype} on {t.device} but means is {dtype} on {device}")
+    if not torch.is_tensor(cam_to_world):
+        cam_to_world = torch.as_tensor(cam_to_world)
+    if cam_to_world.shape[-2:] != (4, 4) or cam_to_world.dim() not in (2, 3):
+        raise ValueError(f"splat: cam_to_world must be (4, 4) or (B, 4, 4), got {tuple(cam_to_world.shape)}")
+    if not torch.isfinite(cam_to_world).all():
+        raise ValueError("splat: cam_to_world contains NaN or inf")
+    if not (near >= 0) or (far is not None and not far > near):
+        raise ValueError(f"splat: need 0 <= near < far, got near={near}, far={far}")
+    if nonfinite not in ("raise", "cull"):
+        raise ValueError(f"splat: nonfinite must be 'raise' or 'cull', got {nonfinite!r}")
+
+    bad = torch.zeros(n, dtype=torch.bool, device=device)
+    for name, t in (("means", means), ("scales", scales), ("quats", quats), ("opacities", opacities),
+                    ("colors", colors), ("features", features)):
+        rows = _nonfinite_rows(t) if n else bad
+        if rows.any():
+            if nonfinite == "raise":
+                first = int(torch.nonzero(rows)[0])
+                raise ValueError(
+                    f"splat: {name} has non-finite values (NaN/inf) in {int(rows.sum())} of {n} Gaussians "
+                    f"(first at index {first}); pass nonfinite='cull' to drop them"
+                )
+            bad = bad | rows
+    if bad.any():  # replace culled rows by finite stand-ins so no NaN reaches any gradient
+        keep = ~bad
+        means = torch.where(keep[:, None], means, torch.zeros_like(means))
+        scales = torch.where(keep[:, None], scales, torch.ones_like(scales))
+        quats = torch.where(keep[:, None], quats, torch.ones_like(quats))
+        opacities = torch.where(keep, opacities, torch.zeros_like(opacities))
+        colors = torch.where(keep[:, None], colors, torch.zeros_like(colors))
+        features = torch.where(keep[:, None], features, torch.zeros_like(features))
+
+    if background is None:
+        bg = torch.zeros(3, dtype=dtype, device=device)
+    else:
+        bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(-1)
+        if bg.numel() == 1:
+            bg = bg.expand(3)
+        if bg.numel() != 3:
+            raise ValueError(f"splat: background must be a scalar or 3 values, got {bg.numel()}")
+    c = features.shape[1]
+    bg_all = torch.cat((bg, torch.zeros(1 + c, dtype=dtype, device=device)))
+
+    name = resolve_backend(backend, device)
+    raster = BACKENDS[name]
+    poses = cam_to_world.unsqueeze(0) if cam_to_world.dim() == 2 else cam_to_world
+    images, alphas = [], []
+    for pose in poses:
+        proj = project_gaussians(means, scales, quats, opacities, camera, pose, near=near, far=far,
+                                 finite_mask=~bad if bad.any() else None)
+        idx = torch.nonzero(proj.valid).squeeze(1)
+        idx = idx[torch.argsort(proj.depths.detach()[idx], stable=True)]
+        values = torch.cat((colors, proj.depths.unsqueeze(1), features), dim=1)[idx]
+        kwargs = {"radii": proj.radii[idx]} if name in ("torch", "cpu") else {}
+        image, alpha = raster(proj.means2d[idx], proj.conics[idx], opacities[idx], values, bg_all,
+                              camera.height, camera.width, proj.wrap_width, **kwargs)
+        images.append(image)
+        alphas.append(alpha)
+    image = torch.stack(images)
+    return SplatOutput(
+        rgb=image[:, :3], depth=image[:, 3:4], alpha=torch.stack(alphas), features=image[:, 4:], backend=name
+    )

@@ -1,0 +1,245 @@
+"""Gaussians -> screen: camera-frame means/covariances, EWA screen covariances, conics, footprints.
+
+Every backend rasterises the output of :func:`project_gaussians`, so the projection is shared,
+differentiable through torch autograd, and computed in float64 (cast back to the input dtype at
+the end): float32 inputs of magnitude 1e4, scales of 1e3 and near-singular 2x2 covariances then
+stay finite and positive definite.
+
+Screen covariance (EWA): ``Sigma_2D = J W Sigma W^T J^T + 0.3 I`` with ``W`` the world-to-camera
+rotation and ``J`` the 2x3 pixel Jacobian of the camera at the camera-frame mean.
+
+* Pinhole: ``J`` is :meth:`PinholeCamera.pixel_jacobian` (perspective Jacobian).
+* Equirect: ``J`` is the analytic Jacobian of (longitude, latitude) scaled to pixels; it equals
+  :meth:`EquirectCamera.pixel_jacobian` away from the poles but is written in the (lon, lat)
+  tangent basis so it stays defined *at* the poles (where lon = atan2(0, 0) := 0). The longitude
+  row grows like 1/cos(lat); after dilation the u-standard deviation is clamped so that the
+  3.5-sigma footprint spans at most the full image width (half-width W/2), shrinking the u row and
+  column of ``Sigma_2D`` by the same factor, which keeps it positive definite. That clamp is also
+  what makes the wrapped horizontal offset of a pixel unique (see :func:`wrap_offset`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+
+__all__ = [
+    "CUTOFF_SIGMA",
+    "DILATION",
+    "ALPHA_MIN",
+    "ALPHA_MAX",
+    "T_MIN",
+    "ProjectedGaussians",
+    "quat_to_rotmat",
+    "covariance_3d",
+    "world_to_camera",
+    "equirect_jacobian",
+    "project_gaussians",
+    "wrap_offset",
+]
+
+CUTOFF_SIGMA = 3.5
+"""A Gaussian's footprint is the ellipse d^T Sigma_2D^-1 d <= CUTOFF_SIGMA^2."""
+DILATION = 0.3
+"""Low-pass dilation added to the diagonal of every screen covariance (pixels^2)."""
+ALPHA_MIN = 1.0 / 255.0
+"""Contributions with alpha below this are skipped."""
+ALPHA_MAX = 0.99
+"""Per-Gaussian alpha is clamped to at most this value."""
+T_MIN = 1e-4
+"""A pixel is finished once its transmittance drops below this (the last Gaussian still counts)."""
+
+_COS_LAT_MIN = 1e-9  # keeps 1/cos(lat) finite exactly at the poles; the width clamp does the rest
+_RHO_MIN = 1e-30  # below this horizontal distance the longitude is undefined and set to 0
+
+
+@dataclass
+class ProjectedGaussians:
+    """Screen-space Gaussians for one camera (all tensors have length N, the input count).
+
+    Culled Gaussians keep harmless finite placeholder values and ``valid = False``; rasterisers
+    must ignore them.
+    """
+
+    means2d: torch.Tensor
+    """(N, 2) continuous pixel coordinates (u, v) of the projected mean; u in [0, W) for equirect."""
+    conics: torch.Tensor
+    """(N, 3) (A, B, C) of the inverse screen covariance [[A, B], [B, C]]."""
+    cov2d: torch.Tensor
+    """(N, 3) (a, b, c) of the dilated (and, for equirect, clamped) screen covariance."""
+    depths: torch.Tensor
+    """(N,) sort and depth-map key: camera-frame range (equirect) or z (pinhole)."""
+    radii: torch.Tensor
+    """(N, 2) detached half-extents (pixels) of the 3.5-sigma footprint's bounding box."""
+    valid: torch.Tensor
+    """(N,) bool: survives culling (near/far/behind, non-finite, opacity, off-image)."""
+    wrap_width: float
+    """Image width for horizontal wrap-around (equirect) or 0.0 (pinhole: no wrap)."""
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """(N, 4) quaternions (w, x, y, z), normalised here, -> (N, 3, 3) rotation matrices."""
+    q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        (
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ),
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)
+
+
+def covariance_3d(scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
+    """World covariances R diag(s^2) R^T, (N, 3, 3), from standard deviations and quaternions."""
+    rot = quat_to_rotmat(quats)
+    rs = rot * scales.unsqueeze(-2)  # R @ diag(s)
+    return rs @ rs.transpose(-1, -2)
+
+
+def world_to_camera(
+    means: torch.Tensor, cov: torch.Tensor, cam_to_world: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """World means (N, 3) and covariances (N, 3, 3) into the camera frame of a 4x4 camera-to-world.
+
+    The camera translation is subtracted before rotating, so large world coordinates near the
+    camera lose no precision.
+    """
+    rot = cam_to_world[:3, :3]
+    t = cam_to_world[:3, 3]
+    # p_cam = R^T (m - t)  <=>  row form (m - t) @ R
+    p = (means - t) @ rot
+    c = rot.transpose(0, 1) @ cov @ rot
+    return p, c
+
+
+def equirect_jacobian(points: torch.Tensor, camera: EquirectCamera) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pole-safe d(u, v)/d(x, y, z) at camera-frame points (N, 3) -> (uv (N, 2), J (N, 2, 3)).
+
+    With d = (cos lat sin lon, -sin lat, cos lat cos lon):
+    du/dp = W/(2 pi) * (cos lon, 0, -sin lon) / (r cos lat),
+    dv/dp = -H/pi * (-sin lat sin lon, -cos lat, -sin lat cos lon) / r.
+    ``u`` is wrapped into [0, W). Gradients are finite at the poles (double-``where`` guards).
+    """
+    x, y, z = points.unbind(-1)
+    rho2 = x * x + z * z
+    at_pole = rho2 < _RHO_MIN * _RHO_MIN
+    xs = torch.where(at_pole, torch.zeros_like(x), x)
+    zs = torch.where(at_pole, torch.ones_like(z), z)
+    lon = torch.atan2(xs, zs)
+    rho = torch.sqrt(torch.where(at_pole, torch.ones_like(rho2), rho2))
+    rho = torch.where(at_pole, torch.zeros_like(rho), rho)
+    lat = torch.atan2(-y, rho)
+    r = torch.sqrt(rho2 + y * y)
+    su = camera.width / (2.0 * math.pi)
+    sv = -camera.height / math.pi
+    cl, sl = torch.cos(lat), torch.sin(lat)
+    co, so = torch.cos(lon), torch.sin(lon)
+    zero = torch.zeros_like(x)
+    ju = torch.stack((co, zero, -so), dim=-1) * (su / (r * cl.clamp_min(_COS_LAT_MIN))).unsqueeze(-1)
+    jv = torch.stack((-sl * so, -cl, -sl * co), dim=-1) * (sv / r).unsqueeze(-1)
+    u = torch.remainder((lon + math.pi) * su, float(camera.width))
+    v = (0.5 * math.pi - lat) * (camera.height / math.pi)
+    return torch.stack((u, v), dim=-1), torch.stack((ju, jv), dim=-2)
+
+
+def wrap_offset(du: torch.Tensor, wrap_width: float) -> torch.Tensor:
+    """Horizontal pixel offset folded into [-W/2, W/2) for panoramas (identity when W == 0)."""
+    if wrap_width <= 0:
+        return du
+    half = 0.5 * wrap_width
+    return du - wrap_width * torch.floor((du + half) / wrap_width)
+
+
+def project_gaussians(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    quats: torch.Tensor,
+    opacities: torch.Tensor,
+    camera: EquirectCamera | PinholeCamera,
+    cam_to_world: torch.Tensor,
+    *,
+    near: float = 0.05,
+    far: float | None = None,
+    finite_mask: torch.Tensor | None = None,
+) -> ProjectedGaussians:
+    """Project N world Gaussians into one camera (differentiable w.r.t. all tensor inputs).
+
+    Culling (``valid = False``): depth (range or z) below ``near`` (this includes everything
+    behind a pinhole camera), depth above ``far``, ``finite_mask`` False, opacity below
+    :data:`ALPHA_MIN` (it could never reach the alpha threshold), a non-finite or non-positive
+    definite screen covariance, or a footprint box that misses the image.
+    """
+    out_dtype = means.dtype
+    dt = torch.float64
+    n = means.shape[0]
+    m = means.to(dt)
+    c2w = cam_to_world.to(dtype=dt, device=means.device)
+    cov = covariance_3d(scales.to(dt), quats.to(dt))
+    p, cov_c = world_to_camera(m, cov, c2w)
+
+    equirect = isinstance(camera, EquirectCamera)
+    depth = torch.linalg.vector_norm(p, dim=-1) if equirect else p[:, 2]
+    valid = torch.isfinite(depth) & (depth > 0) & (depth >= near)
+    if far is not None:
+        valid = valid & (depth <= far)
+    if finite_mask is not None:
+        valid = valid & finite_mask
+    valid = valid & (opacities.detach().to(dt) >= ALPHA_MIN)
+
+    # Culled points get a safe stand-in so no inf/NaN reaches values or gradients.
+    safe_point = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=means.device)
+    p_s = torch.where(valid.unsqueeze(-1), p, safe_point)
+    cov_s = torch.where(valid[:, None, None], cov_c, torch.eye(3, dtype=dt, device=means.device))
+
+    if equirect:
+        uv, jac = equirect_jacobian(p_s, camera)
+    else:
+        uv, _, _ = camera.project(p_s)
+        jac = camera.pixel_jacobian(p_s)
+    cov2 = jac @ cov_s @ jac.transpose(-1, -2)
+    a = cov2[:, 0, 0] + DILATION
+    b = cov2[:, 0, 1]
+    c = cov2[:, 1, 1] + DILATION
+    if equirect:
+        # Clamp the u extent to the full width: 3.5 * sigma_u <= W / 2 (scale u row/col by k).
+        max_sigma_u = 0.5 * camera.width / CUTOFF_SIGMA
+        k = torch.clamp(max_sigma_u / torch.sqrt(a.clamp_min(1e-300)), max=1.0)
+        a = a * k * k
+        b = b * k
+    det = a * c - b * b
+    ok = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c) & (det > 0)
+    valid = valid & ok
+    one = torch.ones_like(a)
+    zero = torch.zeros_like(a)
+    a = torch.where(valid, a, one)
+    b = torch.where(valid, b, zero)
+    c = torch.where(valid, c, one)
+    det = a * c - b * b
+    conics = torch.stack((c / det, -b / det, a / det), dim=-1)
+    cov2d = torch.stack((a, b, c), dim=-1)
+    radii = CUTOFF_SIGMA * torch.sqrt(torch.stack((a, c), dim=-1).detach())
+
+    # Footprint boxes that miss the image are culled (rows always; columns only for pinhole).
+    uvd = uv.detach()
+    on_image = (uvd[:, 1] + radii[:, 1] > 0) & (uvd[:, 1] - radii[:, 1] < camera.height)
+    if not equirect:
+        on_image = on_image & (uvd[:, 0] + radii[:, 0] > 0) & (uvd[:, 0] - radii[:, 0] < camera.width)
+    valid = valid & on_image & torch.isfinite(uvd).all(dim=-1)
+    uv = torch.where(valid.unsqueeze(-1), uv, torch.zeros_like(uv))
+    depth = torch.where(valid, depth, torch.zeros_like(depth))
+
+    return ProjectedGaussians(
+        means2d=uv.to(out_dtype),
+        conics=conics.to(out_dtype),
+        cov2d=cov2d.to(out_dtype),
+        depths=depth.to(out_dtype),
+        radii=radii.to(out_dtype),
+        valid=valid,
+        wrap_width=float(camera.width) if equirect else 0.0,
+    )
