@@ -1,0 +1,189 @@
+"""Rendering metrics in torch: PSNR, SSIM (Wang et al. 2004), depth AbsRel / RMSE / δ<1.25.
+
+Image tensors are ``(..., C, H, W)`` (a 2-D ``(H, W)`` tensor is one single-channel image); every
+metric reduces over ``(C, H, W)`` and returns a float64 tensor with the leading shape (a 0-d tensor
+for a single image). Metrics are computed in float64 so that they do not depend on the input dtype.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW = 11
+"""Gaussian window size of SSIM (Wang et al. 2004)."""
+SSIM_SIGMA = 1.5
+"""Gaussian window standard deviation in pixels."""
+SSIM_K1 = 0.01
+"""Luminance stabiliser: C1 = (K1 * data_range)^2."""
+SSIM_K2 = 0.03
+"""Contrast stabiliser: C2 = (K2 * data_range)^2."""
+
+
+def _as_images(x: torch.Tensor, name: str) -> torch.Tensor:
+    """Validate an image tensor and return it as float64 ``(..., C, H, W)``."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if x.ndim < 2:
+        raise ValueError(f"{name}: expected (..., C, H, W) or (H, W), got shape {tuple(x.shape)}")
+    if x.ndim == 2:
+        x = x[None]
+    if x.numel() == 0:
+        raise ValueError(f"{name}: is empty (shape {tuple(x.shape)})")
+    x = x.detach().to(torch.float64)
+    if not torch.isfinite(x).all():
+        raise ValueError(f"{name}: contains NaN or inf")
+    return x
+
+
+def _pair(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    p, t = _as_images(pred, "pred"), _as_images(target, "target")
+    if p.shape != t.shape:
+        raise ValueError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
+    return p, t
+
+
+def _check_range(data_range: float) -> float:
+    if not (math.isfinite(data_range) and data_range > 0):
+        raise ValueError(f"data_range: must be a finite positive number, got {data_range!r}")
+    return float(data_range)
+
+
+def _as_mask(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """Broadcast a boolean mask (``(..., 1 or C, H, W)`` or ``(H, W)``) to ``like``'s shape."""
+    m = mask if mask.ndim != 2 else mask[None]
+    if m.dtype != torch.bool:
+        raise TypeError(f"mask: expected a bool tensor, got {m.dtype}")
+    try:
+        return torch.broadcast_to(m, like.shape)
+    except RuntimeError:
+        shapes = f"{tuple(mask.shape)} does not broadcast to {tuple(like.shape)}"
+        raise ValueError(f"mask: shape {shapes}") from None
+
+
+def psnr(
+    pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, data_range: float = 1.0
+) -> torch.Tensor:
+    """Peak signal-to-noise ratio ``10 log10(data_range^2 / MSE)`` in dB per image.
+
+    With ``mask`` the MSE is taken over the selected pixels (all channels) only; an image whose mask
+    selects nothing is an error. Identical images give ``+inf``.
+    """
+    data_range = _check_range(data_range)
+    p, t = _pair(pred, target)
+    sq = (p - t) ** 2
+    if mask is None:
+        mse = sq.mean(dim=(-3, -2, -1))
+    else:
+        m = _as_mask(mask, p).to(torch.float64)
+        n = m.sum(dim=(-3, -2, -1))
+        if bool((n == 0).any()):
+            bad = torch.nonzero(n == 0)[0].tolist()
+            raise ValueError(f"mask: selects no pixel in image {bad}")
+        mse = (sq * m).sum(dim=(-3, -2, -1)) / n
+    return 10.0 * torch.log10(data_range**2 / mse)
+
+
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torch.Tensor:
+    """Normalised 2-D Gaussian window ``(size, size)`` (outer product of the 1-D kernel), float64."""
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    g = torch.exp(-(x**2) / (2.0 * sigma**2))
+    g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+def ssim_map(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
+    """Local SSIM ``(..., C, H-10, W-10)``: 11×11 Gaussian σ 1.5 statistics, valid region only.
+
+    Population (biased) local variances, as in Wang et al.'s reference code; the output covers the
+    positions where the whole window lies inside the image (no padding artefacts).
+    """
+    data_range = _check_range(data_range)
+    p, t = _pair(pred, target)
+    h, w = p.shape[-2:]
+    if h < SSIM_WINDOW or w < SSIM_WINDOW:
+        raise ValueError(f"ssim: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {h}x{w}")
+    lead = p.shape[:-2]
+    x = p.reshape(-1, 1, h, w)
+    y = t.reshape(-1, 1, h, w)
+    win = gaussian_window().to(x)[None, None]
+    # One conv over the five stacked moments instead of five convs.
+    stats = F.conv2d(torch.cat([x, y, x * x, y * y, x * y], dim=1).reshape(-1, 1, h, w), win)
+    stats = stats.reshape(x.shape[0], 5, h - SSIM_WINDOW + 1, w - SSIM_WINDOW + 1)
+    mx, my, exx, eyy, exy = stats.unbind(dim=1)
+    vx, vy, cxy = exx - mx * mx, eyy - my * my, exy - mx * my
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return s.reshape(*lead, *s.shape[-2:])
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
+    """Mean SSIM per image (Wang et al. 2004), averaged over the valid region and then over channels."""
+    return ssim_map(pred, target, data_range).mean(dim=(-3, -2, -1))
+
+
+@dataclass(frozen=True)
+class DepthMetrics:
+    """Per-image depth errors over valid pixels (target > 0 and finite, and inside the mask)."""
+
+    abs_rel: torch.Tensor
+    """mean(|pred - target| / target)."""
+    rmse: torch.Tensor
+    """sqrt(mean((pred - target)^2)) in metres."""
+    delta1: torch.Tensor
+    """Fraction of pixels with max(pred/target, target/pred) < threshold (1.25); pred <= 0 never counts."""
+    count: torch.Tensor
+    """Number of valid pixels per image."""
+
+
+def depth_metrics(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    delta_threshold: float = 1.25,
+) -> DepthMetrics:
+    """AbsRel, RMSE and δ<``delta_threshold`` per image on valid pixels.
+
+    Depth is ``(..., 1, H, W)`` or ``(H, W)`` in metres with 0 marking invalid pixels (see
+    :mod:`image2sim.simulator.conventions`). A valid pixel is one where the target is finite and > 0
+    and ``mask`` (if given) is true. A non-finite prediction on a valid pixel, or an image without any
+    valid pixel, is an error naming the image index.
+    """
+    for name, x in (("pred", pred), ("target", target)):
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if pred.shape != target.shape:
+        raise ValueError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
+    p = pred.detach().to(torch.float64)
+    t = target.detach().to(torch.float64)
+    if p.ndim == 2:
+        p, t = p[None], t[None]
+    if p.ndim < 3 or p.numel() == 0:
+        raise ValueError(f"depth: expected (..., 1, H, W) or (H, W), got shape {tuple(pred.shape)}")
+    valid = torch.isfinite(t) & (t > 0)
+    if mask is not None:
+        valid = valid & _as_mask(mask, p)
+    dims = (-3, -2, -1)
+    count = valid.sum(dim=dims)
+    if bool((count == 0).any()):
+        raise ValueError(f"depth: image {torch.nonzero(count == 0)[0].tolist()} has no valid target pixel")
+    bad = valid & ~torch.isfinite(p)
+    if bool(bad.any()):
+        raise ValueError(f"depth: pred is NaN/inf on a valid pixel at index {torch.nonzero(bad)[0].tolist()}")
+    # Zero out invalid pixels so that NaN/0 there cannot leak into the sums.
+    t_safe = torch.where(valid, t, torch.ones_like(t))
+    p_safe = torch.where(valid, p, torch.ones_like(p))
+    err = p_safe - t_safe
+    n = count.to(torch.float64)
+    abs_rel = torch.where(valid, err.abs() / t_safe, 0.0).sum(dim=dims) / n
+    rmse = torch.sqrt(torch.where(valid, err * err, 0.0).sum(dim=dims) / n)
+    # max(p/t, t/p); a non-positive prediction is infinitely wrong.
+    ratio = torch.where(
+        p_safe > 0, torch.maximum(p_safe / t_safe, t_safe / p_safe.clamp_min(1e-300)), math.inf
+    )
+    delta1 = (valid & (ratio < delta_threshold)).sum(dim=dims).to(torch.float64) / n
+    return DepthMetrics(abs_rel, rmse, delta1, count)
