@@ -1,0 +1,373 @@
+"""Typed configuration of the pixel-flow renderer (sizes ``tiny`` and ``paper``).
+
+Every field carries a docstring. :func:`renderer_config_from_dict` / :func:`load_renderer_config`
+build a :class:`RendererConfig` from plain data (e.g. YAML), starting from a named preset and
+rejecting unknown keys with the dotted path of the offending field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+__all__ = [
+    "AlignerConfig",
+    "DecoderConfig",
+    "MeanFlowConfig",
+    "LossConfig",
+    "DistillConfig",
+    "AblationConfig",
+    "CurriculumConfig",
+    "RendererConfig",
+    "tiny",
+    "paper",
+    "PRESETS",
+    "renderer_config_from_dict",
+    "load_renderer_config",
+    "config_to_dict",
+]
+
+CONDITION_FEATURES = 16
+"""Number of splatted feature channels in the condition C_p."""
+CONDITION_CHANNELS = CONDITION_FEATURES + 3 + 1 + 1 + 3
+"""C_p = [features (16), RGB (3), depth (1), alpha (1), target ray map (3)] = 24 channels."""
+STATE_CHANNELS = 4
+"""The flow state is the panoramic RGB-D observation: RGB (3) + normalised depth (1)."""
+
+
+@dataclass
+class AlignerConfig:
+    """SemanticAligner: strided PanoConv2d stem to H/16, then transformer blocks on tokens."""
+
+    stem_widths: tuple[int, ...] = (32, 64, 96, 128)
+    """Channels after each stride-2 PanoConv2d; four entries reach H/16."""
+    token_dim: int = 128
+    """Width of the aligned tokens (1024 in the paper, the DINOv3 ViT-L width)."""
+    depth: int = 2
+    """Number of transformer blocks refining the tokens."""
+    heads: int = 4
+    """Attention heads per block (token_dim must be divisible by it)."""
+    mlp_ratio: float = 4.0
+    """Hidden width of the block MLP as a multiple of token_dim."""
+    target_dim: int | None = None
+    """Channels of the semantic backbone's tokens; a linear head maps token_dim to it when they
+    differ. None: the tokens are compared directly (dims must match)."""
+
+
+@dataclass
+class DecoderConfig:
+    """RenderingDecoder: conv encoder to H/16, transformer bottleneck, alpha-gated PixelShuffle decoder."""
+
+    widths: tuple[int, ...] = (32, 48, 64, 96)
+    """Channels of the four full-to-H/8 levels (H, H/2, H/4, H/8); the bottleneck sits at H/16."""
+    blocks_per_level: int = 1
+    """PanoBlocks per encoder and per decoder level."""
+    bottleneck_dim: int = 128
+    """Token width of the transformer bottleneck at H/16."""
+    bottleneck_depth: int = 2
+    """Number of transformer blocks in the bottleneck (8 in the paper)."""
+    heads: int = 4
+    """Attention heads per bottleneck block."""
+    mlp_ratio: float = 4.0
+    """Hidden width of the bottleneck MLP as a multiple of bottleneck_dim."""
+    time_dim: int = 128
+    """Width of each sinusoidal time embedding (t and h = t - r) and of the fused embedding."""
+    time_scale: float = 1000.0
+    """t and h are multiplied by this before the sinusoidal embedding (DiT convention)."""
+    kernel_size: int = 7
+    """Depth-wise kernel size of the PanoBlocks."""
+    gate_bias: float = 2.0
+    """Initial bias of the zero-initialised skip gate (sigmoid(2.0) = 0.88: trust the projection)."""
+    depth_bias: float = 0.3
+    """Initial bias of the depth head (normalised units) so the ReLU starts in its active range."""
+
+
+@dataclass
+class MeanFlowConfig:
+    """Alpha-gated source, linear path, x-prediction MeanFlow objective and samplers."""
+
+    sigma_small: tuple[float, float] = (0.02, 0.02)
+    """Noise scale where the projection is reliable (alpha = 1), per group (RGB, depth)."""
+    sigma_large: tuple[float, float] = (1.0, 1.0)
+    """Noise scale where nothing was projected (alpha = 0), per group (RGB, depth)."""
+    t_eps: float = 1e-2
+    """epsilon in u = (z_t - x) / max(t, epsilon); bounds 1/t near the target end of the path."""
+    p_r_equals_t: float = 0.5
+    """Probability that a training pair has r = t (instantaneous flow matching)."""
+    tangent: Literal["target", "model"] = "target"
+    """Tangent for dz/dt in the JVP: the conditional velocity z_src - X ("target") or the model's
+    own instantaneous velocity u(z_t, t, t) without gradient ("model")."""
+    weight_k: float = 4.0
+    """Opacity-adaptive weight W(A) = 1 + k (1 - A) of the flow loss (stage-2 spatial focus)."""
+    norm_c: float = 1e-3
+    """Adaptive loss normalisation loss / sg(loss + c)."""
+    norm_power: float = 1.0
+    """Power p of the adaptive normalisation loss / sg(loss + c)^p (0 disables it)."""
+    depth_scale: float = 10.0
+    """Metres per unit of the state's depth channel (state depth = metres / depth_scale)."""
+    sample_steps: int = 1
+    """Default number of sampler steps at inference (1 = one-step rendering)."""
+
+
+@dataclass
+class LossConfig:
+    """Loss weights of the full objective (per-stage weights live in CurriculumConfig)."""
+
+    lambda_rec: float = 0.1
+    """Weight of the reconstruction loss (L1 of the denoised prediction vs the target)."""
+    lambda_align: float = 0.1
+    """Weight of the semantic alignment (cosine) loss."""
+    lambda_flow: float = 1.0
+    """Weight of the MeanFlow loss."""
+    saturation: float = 0.2
+    """Coefficient of the saturation penalty on the flow's implied clean RGB (paper: 0.2)."""
+    lpips_weights: str | None = None
+    """Path of user-supplied LPIPS (VGG16 + linear heads) weights (.safetensors); None or missing:
+    one warning and lambda_perc = 0. Nothing is ever downloaded."""
+    rgb_weight_in_rec: float = 1.0
+    """Relative weight of RGB in the reconstruction loss."""
+    depth_weight_in_rec: float = 1.0
+    """Relative weight of (valid) depth in the reconstruction loss."""
+
+
+@dataclass
+class DistillConfig:
+    """Momentum self-distillation from an EMA teacher fed the privileged (ground-truth) source."""
+
+    ema_decay: float = 0.999
+    """Teacher update theta_T <- decay * theta_T + (1 - decay) * theta_S."""
+    beta: float = 0.1
+    """Weight of the squared-L2 term next to the cosine term."""
+    level_weights: tuple[float, ...] = (4.0, 3.0, 2.0, 1.0)
+    """Unnormalised weights per decoder level, deepest (H/8) first; normalised to sum to 1."""
+
+
+@dataclass
+class AblationConfig:
+    """Switches of the paper's Table 4."""
+
+    no_pixel_flow: bool = False
+    """Splat only: the renderer returns the projected RGB-D prior without any network."""
+    no_semantic: bool = False
+    """No SemanticAligner / SemanticInjector and no alignment loss."""
+    no_alpha_gate: bool = False
+    """Plain additive skips instead of AlphaGatedSkip."""
+    no_distill: bool = False
+    """No EMA teacher and no distillation loss."""
+
+
+@dataclass
+class CurriculumConfig:
+    """Three-stage schedule (stage boundaries in optimiser steps) and per-stage loss weights."""
+
+    stage2_start: int = 100_000
+    """First step of stage 2 (flow + distillation with spatial focus)."""
+    stage3_start: int = 300_000
+    """First step of stage 3 (high-frequency refinement, backbone frozen)."""
+    total_steps: int = 400_000
+    """Total optimiser steps."""
+    lambda_perc: tuple[float, float, float] = (1.0, 2.0, 4.0)
+    """Perceptual-loss weight per stage."""
+    lambda_distill: tuple[float, float, float] = (0.0, 2.0, 2.0)
+    """Distillation weight per stage (0 in stage 1: no teacher yet)."""
+    lr: float = 1e-4
+    """AdamW learning rate."""
+    min_lr: float = 1e-6
+    """Cosine schedule floor."""
+    weight_decay: float = 1e-4
+    """AdamW weight decay."""
+    grad_clip: float = 1.0
+    """Gradient-norm clip."""
+    batch_size: int = 2
+    """Per-device batch size."""
+
+
+@dataclass
+class RendererConfig:
+    """Complete pixel-flow renderer configuration."""
+
+    name: str = "tiny"
+    """Preset name this configuration started from."""
+    height: int = 128
+    """Panorama height in pixels (width = 2 * height); must be divisible by 16."""
+    width: int = 256
+    """Panorama width in pixels; must be divisible by 16."""
+    aligner: AlignerConfig = field(default_factory=AlignerConfig)
+    """SemanticAligner."""
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    """RenderingDecoder."""
+    meanflow: MeanFlowConfig = field(default_factory=MeanFlowConfig)
+    """MeanFlow maths."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """Loss weights."""
+    distill: DistillConfig = field(default_factory=DistillConfig)
+    """Self-distillation."""
+    ablation: AblationConfig = field(default_factory=AblationConfig)
+    """Table-4 ablation switches."""
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    """Training schedule."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the field when the configuration is inconsistent."""
+        if self.height <= 0 or self.width <= 0 or self.height % 16 or self.width % 16:
+            raise ValueError(f"renderer height/width must be positive multiples of 16, got {self.height}x{self.width}")
+        if len(self.decoder.widths) != 4:
+            raise ValueError(f"decoder.widths needs 4 levels (H..H/8), got {self.decoder.widths}")
+        if len(self.aligner.stem_widths) != 4:
+            raise ValueError(f"aligner.stem_widths needs 4 stride-2 stages, got {self.aligner.stem_widths}")
+        if self.decoder.bottleneck_dim % self.decoder.heads:
+            raise ValueError("decoder.bottleneck_dim must be divisible by decoder.heads")
+        if self.aligner.token_dim % self.aligner.heads:
+            raise ValueError("aligner.token_dim must be divisible by aligner.heads")
+        if self.decoder.bottleneck_dim % 4 or self.aligner.token_dim % 4 or self.decoder.time_dim % 2:
+            raise ValueError("bottleneck_dim and token_dim must be multiples of 4, time_dim even")
+        if len(self.distill.level_weights) != 4 or any(w < 0 for w in self.distill.level_weights):
+            raise ValueError(f"distill.level_weights needs 4 non-negative values, got {self.distill.level_weights}")
+        if sum(self.distill.level_weights) <= 0:
+            raise ValueError("distill.level_weights must not all be zero")
+        if not 0.0 <= self.distill.ema_decay <= 1.0:
+            raise ValueError(f"distill.ema_decay must lie in [0, 1], got {self.distill.ema_decay}")
+        mf = self.meanflow
+        if len(mf.sigma_small) != 2 or len(mf.sigma_large) != 2:
+            raise ValueError("meanflow.sigma_small/sigma_large need (rgb, depth) pairs")
+        if min(*mf.sigma_small, *mf.sigma_large) < 0:
+            raise ValueError("meanflow sigmas must be non-negative")
+        if not mf.t_eps > 0:
+            raise ValueError(f"meanflow.t_eps must be positive, got {mf.t_eps}")
+        if not 0.0 <= mf.p_r_equals_t <= 1.0:
+            raise ValueError(f"meanflow.p_r_equals_t must lie in [0, 1], got {mf.p_r_equals_t}")
+        if mf.tangent not in ("target", "model"):
+            raise ValueError(f"meanflow.tangent must be 'target' or 'model', got {mf.tangent!r}")
+        if mf.depth_scale <= 0:
+            raise ValueError(f"meanflow.depth_scale must be positive, got {mf.depth_scale}")
+        if mf.sample_steps < 1:
+            raise ValueError(f"meanflow.sample_steps must be >= 1, got {mf.sample_steps}")
+        cur = self.curriculum
+        if not 0 <= cur.stage2_start <= cur.stage3_start <= cur.total_steps:
+            raise ValueError("curriculum needs 0 <= stage2_start <= stage3_start <= total_steps")
+
+
+def tiny() -> RendererConfig:
+    """CPU-sized renderer at 128 x 256 (a few hundred thousand parameters), short curriculum."""
+    return RendererConfig(
+        name="tiny",
+        height=128,
+        width=256,
+        aligner=AlignerConfig(stem_widths=(16, 32, 48, 64), token_dim=64, depth=2, heads=4),
+        decoder=DecoderConfig(
+            widths=(16, 24, 32, 48), bottleneck_dim=64, bottleneck_depth=2, heads=4, time_dim=64,
+        ),
+        curriculum=CurriculumConfig(stage2_start=1000, stage3_start=3000, total_steps=4000, lr=1e-3, min_lr=1e-5),
+    )
+
+
+def paper() -> RendererConfig:
+    """The paper's renderer at 512 x 1024: 1024-d aligned tokens, an 8-block bottleneck, 400k steps."""
+    return RendererConfig(
+        name="paper",
+        height=512,
+        width=1024,
+        aligner=AlignerConfig(stem_widths=(64, 128, 256, 512), token_dim=1024, depth=2, heads=16, target_dim=1024),
+        decoder=DecoderConfig(
+            widths=(64, 128, 256, 512), blocks_per_level=2, bottleneck_dim=768, bottleneck_depth=8, heads=12,
+            time_dim=256,
+        ),
+        curriculum=CurriculumConfig(),
+    )
+
+
+PRESETS: dict[str, typing.Callable[[], RendererConfig]] = {"tiny": tiny, "paper": paper}
+
+
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    """Convert YAML data to the annotated type (nested dataclasses, tuples), naming ``where``."""
+    origin = typing.get_origin(annotation)
+    if dataclasses.is_dataclass(annotation):
+        return _merge(annotation(), value, where) if not isinstance(value, annotation) else value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{where}: expected a list, got {type(value).__name__}")
+        args = typing.get_args(annotation)
+        item = args[0] if args else Any
+        if len(args) == 2 and args[1] is Ellipsis or len(args) == 1:
+            return tuple(_coerce(v, item, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ValueError(f"{where}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if annotation is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if annotation in (int, float, bool, str) and not isinstance(value, annotation):
+        raise ValueError(f"{where}: expected {annotation.__name__}, got {value!r}")
+    return value
+
+
+def _merge(base: Any, data: Any, where: str) -> Any:
+    """Return a copy of dataclass ``base`` with ``data`` (a mapping) applied, rejecting unknown keys."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(type(base))
+    names = {f.name for f in dataclasses.fields(base)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise ValueError(f"unknown config key(s) {[prefix + k for k in unknown]}; allowed: {sorted(names)}")
+    updates = {}
+    for key, value in data.items():
+        sub = f"{where}.{key}" if where else key
+        current = getattr(base, key)
+        if dataclasses.is_dataclass(current):
+            updates[key] = _merge(current, value, sub)
+        else:
+            updates[key] = _coerce(value, hints[key], sub)
+    try:
+        return dataclasses.replace(base, **updates)
+    except ValueError as exc:
+        raise ValueError(f"{where or 'config'}: {exc}") from exc
+
+
+def renderer_config_from_dict(data: dict | None, preset: str | None = None) -> RendererConfig:
+    """Build a config from ``data`` on top of ``preset`` (default: ``data['name']`` or ``tiny``)."""
+    data = dict(data or {})
+    name = preset or data.get("name", "tiny")
+    if name not in PRESETS:
+        raise ValueError(f"unknown renderer preset {name!r}; choose from {sorted(PRESETS)}")
+    data.setdefault("name", name)
+    return _merge(PRESETS[name](), data, "")
+
+
+def load_renderer_config(path_or_name: str | Path) -> RendererConfig:
+    """A preset name (``tiny``/``paper``) or a YAML file with a mapping of overrides."""
+    if str(path_or_name) in PRESETS:
+        return PRESETS[str(path_or_name)]()
+    path = Path(path_or_name)
+    if not path.is_file():
+        raise FileNotFoundError(f"renderer config {path} does not exist (and is not one of {sorted(PRESETS)})")
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: invalid YAML: {exc}") from exc
+    try:
+        return renderer_config_from_dict(data)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+
+
+def config_to_dict(cfg: RendererConfig) -> dict:
+    """Plain nested dict (tuples as lists) suitable for YAML/JSON."""
+
+    def convert(obj: Any) -> Any:
+        if isinstance(obj, tuple):
+            return [convert(v) for v in obj]
+        if isinstance(obj, dict):
+            return {k: convert(v) for k, v in obj.items()}
+        return obj
+
+    return convert(dataclasses.asdict(cfg))
