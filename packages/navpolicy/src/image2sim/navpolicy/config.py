@@ -1,0 +1,325 @@
+"""Typed configuration of Image2Nav (model, observations, data, training, agent).
+
+Two presets: ``tiny`` (a from-scratch Qwen3-VL of ~0.2M parameters with an offline tokenizer, for CPU
+tests and demos) and ``paper`` (Qwen3-VL-4B-Instruct loaded from a *local* folder, 336x336 pinhole
+observations, DeepSpeed ZeRO-2, bf16, gradient checkpointing). Configs load from YAML or dicts and
+reject unknown keys, naming the offending key path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A config file or dict has an unknown key, a wrong type or a bad value."""
+
+
+@dataclass
+class TinyModelConfig:
+    """Sizes of the from-scratch tiny Qwen3-VL (used when ``ModelConfig.source == "tiny"``)."""
+
+    text_hidden_size: int = 64
+    """Language-model width (also the vision merger's output width)."""
+    text_layers: int = 2
+    """Number of decoder layers."""
+    text_heads: int = 4
+    """Attention heads of the language model."""
+    text_kv_heads: int = 2
+    """Key/value heads (grouped-query attention)."""
+    text_head_dim: int = 16
+    """Per-head width; M-RoPE sections must sum to half of it."""
+    text_intermediate_size: int = 128
+    """MLP width of the language model."""
+    mrope_section: list[int] = field(default_factory=lambda: [2, 3, 3])
+    """M-RoPE split of the rotary frequencies into (t, h, w); sum == text_head_dim / 2."""
+    vision_hidden_size: int = 32
+    """Vision-tower width."""
+    vision_layers: int = 2
+    """Vision-tower depth."""
+    vision_heads: int = 2
+    """Vision attention heads."""
+    vision_intermediate_size: int = 64
+    """Vision MLP width."""
+    patch_size: int = 8
+    """Vision patch size in pixels (Qwen3-VL: 16)."""
+    num_position_embeddings: int = 64
+    """Learned vision position table size; must be a perfect square."""
+    deepstack_visual_indexes: list[int] = field(default_factory=lambda: [0])
+    """Vision layers whose features are added to the first decoder layers (DeepStack)."""
+    tokenizer_vocab_size: int = 512
+    """Target BPE vocabulary of the offline tokenizer."""
+
+
+@dataclass
+class LoraSettings:
+    """Optional LoRA adapters on the language model only (the vision tower is never adapted)."""
+
+    enabled: bool = False
+    """Wrap the language model's projections with LoRA and train only the adapters (+ merger)."""
+    r: int = 16
+    """LoRA rank."""
+    alpha: int = 32
+    """LoRA scaling numerator (scale = alpha / r)."""
+    dropout: float = 0.05
+    """Dropout on the LoRA input."""
+    target_modules: str = r".*language_model.*\.(q_proj|k_proj|v_proj|o_proj|gate_proj|up_proj|down_proj)"
+    """Regex (peft full-match semantics) selecting the adapted linear layers."""
+
+
+@dataclass
+class ModelConfig:
+    """Which Qwen3-VL to build and which parts of it train."""
+
+    source: str = "tiny"
+    """``"tiny"`` to build from scratch, or a local folder with a Qwen3-VL checkpoint (never a hub id)."""
+    tiny: TinyModelConfig = field(default_factory=TinyModelConfig)
+    """Sizes used when ``source == "tiny"``."""
+    freeze_vision: bool = True
+    """Freeze the vision tower (patch embedding, blocks). The paper trains only LLM + projector."""
+    train_merger: bool = True
+    """Keep the vision-language merger/projector (and DeepStack mergers) trainable."""
+    lora: LoraSettings = field(default_factory=LoraSettings)
+    """LoRA on the language model."""
+    gradient_checkpointing: bool = False
+    """Recompute activations in the backward pass (memory for compute)."""
+    dtype: str = "float32"
+    """Parameter dtype: float32 (CPU) or bfloat16 (GPU)."""
+    attn_implementation: str = "sdpa"
+    """transformers attention backend: sdpa, eager or flash_attention_2 (GPU only)."""
+
+
+@dataclass
+class ObservationConfig:
+    """The rendered observation fed to the policy."""
+
+    camera: str = "pinhole"
+    """``pinhole`` (paper: 336x336 at 90 deg HFOV/VFOV) or ``equirect`` (512x336 at 180x118 deg)."""
+    height: int = 64
+    """Image height in pixels (a multiple of patch_size * merge_size avoids resampling)."""
+    width: int = 64
+    """Image width in pixels."""
+    hfov_deg: float = 90.0
+    """Horizontal field of view in degrees."""
+    vfov_deg: float = 90.0
+    """Vertical field of view in degrees."""
+    image_mean: list[float] = field(default_factory=lambda: [0.5, 0.5, 0.5])
+    """Per-channel mean for normalisation (Qwen3-VL uses 0.5)."""
+    image_std: list[float] = field(default_factory=lambda: [0.5, 0.5, 0.5])
+    """Per-channel std for normalisation (Qwen3-VL uses 0.5)."""
+
+
+@dataclass
+class DataConfig:
+    """Training samples drawn from trajectory shards."""
+
+    shards: list[str] = field(default_factory=list)
+    """Shard folders (see :mod:`image2sim.navpolicy.data` for the format)."""
+    max_observations: int = 32
+    """Observations sampled uniformly along a trajectory per sample (paper: 32)."""
+    max_action_labels: int = 64
+    """Action labels per sample (paper: 64 = two per observation)."""
+    jitter: bool = True
+    """Stratified random sampling inside each uniform bin (False: bin centres, deterministic)."""
+    num_workers: int = 0
+    """DataLoader worker processes."""
+
+
+@dataclass
+class TrainConfig:
+    """Stage 1 behaviour cloning (Lightning)."""
+
+    seed: int = 0
+    """Seed of model init (tiny), data order and sampling."""
+    batch_size: int = 2
+    """Samples per device and step."""
+    accumulate_grad_batches: int = 1
+    """Gradient accumulation."""
+    max_steps: int = 20
+    """Optimizer steps."""
+    lr: float = 1e-3
+    """Peak AdamW learning rate."""
+    weight_decay: float = 0.0
+    """AdamW weight decay."""
+    warmup_steps: int = 2
+    """Linear warm-up steps before cosine decay."""
+    min_lr_ratio: float = 0.1
+    """Final learning rate as a fraction of the peak."""
+    grad_clip: float = 1.0
+    """Gradient norm clip (0 disables)."""
+    precision: str = "32-true"
+    """Lightning precision (``bf16-mixed`` / ``bf16-true`` on GPU)."""
+    strategy: str = "auto"
+    """``auto``, ``ddp`` or ``deepspeed_zero2`` (CPU runs use the CPU DeepSpeed subclass)."""
+    deepspeed_config: str = "configs/zero2.json"
+    """DeepSpeed JSON used by ``deepspeed_zero2`` (relative to the repository root or absolute)."""
+    accelerator: str = "cpu"
+    """Lightning accelerator: cpu or gpu."""
+    devices: int = 1
+    """Processes/devices."""
+    log_every: int = 1
+    """Log every N steps."""
+    checkpoint_every: int = 10
+    """Save a resumable checkpoint every N optimizer steps."""
+    wandb: bool = False
+    """Log to Weights & Biases (offline unless WANDB_MODE says otherwise) besides CSV."""
+    wandb_project: str = "image2nav"
+    """W&B project name."""
+
+
+@dataclass
+class AgentConfig:
+    """Streaming inference."""
+
+    sparse_frames: int = 24
+    """History frames sampled uniformly over the whole episode (global memory)."""
+    dense_frames: int = 8
+    """Most recent frames kept densely (local context)."""
+    constrained: bool = True
+    """Decode only token sequences that spell actions (a trie over the action encodings)."""
+    max_new_tokens: int = 8
+    """Generation budget per step when unconstrained."""
+    fallback_action: int = 3
+    """Action used when the output cannot be parsed (default TURN_RIGHT: safe and explores)."""
+    reuse_cache: bool = True
+    """Reuse the KV cache of the unchanged context prefix between steps."""
+
+
+@dataclass
+class NavPolicyConfig:
+    """Everything an Image2Nav run needs; saved beside every run's outputs."""
+
+    name: str = "tiny"
+    """Preset or run name."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Model construction and trainable parts."""
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    """Observation images."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Training data."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Behaviour cloning."""
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    """Inference."""
+    system_prompt: str = (
+        "You are a navigation agent in an indoor environment. Follow the instruction. "
+        "Actions: STOP, FORWARD (move 0.25 m), LEFT (turn 15 degrees), RIGHT (turn 15 degrees). "
+        "After each observation reply with the next two actions, separated by a space."
+    )
+    """System prompt; the instruction is appended as ``Instruction: ...``."""
+
+    def validate(self) -> NavPolicyConfig:
+        """Check cross-field constraints; raise :class:`ConfigError` naming the field."""
+        t = self.model.tiny
+        if sum(t.mrope_section) * 2 != t.text_head_dim:
+            raise ConfigError(f"model.tiny.mrope_section {t.mrope_section} must sum to text_head_dim/2")
+        if round(t.num_position_embeddings**0.5) ** 2 != t.num_position_embeddings:
+            raise ConfigError("model.tiny.num_position_embeddings must be a perfect square")
+        if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
+            raise ConfigError("data.max_observations and data.max_action_labels must be positive")
+        if self.observation.camera not in ("pinhole", "equirect"):
+            raise ConfigError(f"observation.camera must be pinhole or equirect, not {self.observation.camera!r}")
+        if self.agent.sparse_frames < 0 or self.agent.dense_frames < 1:
+            raise ConfigError("agent.dense_frames must be >= 1 and agent.sparse_frames >= 0")
+        if self.train.strategy not in ("auto", "ddp", "deepspeed_zero2"):
+            raise ConfigError(f"train.strategy {self.train.strategy!r} is not auto, ddp or deepspeed_zero2")
+        if self.model.dtype not in ("float32", "bfloat16", "float16"):
+            raise ConfigError(f"model.dtype {self.model.dtype!r} is not float32, bfloat16 or float16")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _strip_optional(tp):
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return args[0] if len(args) == 1 else tp
+    return tp
+
+
+def from_dict(cls, data: dict[str, Any], where: str = ""):
+    """Build dataclass ``cls`` from ``data`` recursively, rejecting unknown keys and wrong types."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"{where or cls.__name__}: unknown key(s) {unknown}; valid keys are {sorted(names)}")
+    kwargs = {}
+    for key, value in data.items():
+        tp = _strip_optional(hints[key])
+        path = f"{where}.{key}" if where else key
+        if dataclasses.is_dataclass(tp):
+            kwargs[key] = from_dict(tp, value, path)
+            continue
+        origin = typing.get_origin(tp) or tp
+        if origin is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if origin in (int, float, str, bool, list, dict) and not isinstance(value, origin):
+            raise ConfigError(f"{path}: expected {origin.__name__}, got {type(value).__name__} ({value!r})")
+        if origin is int and isinstance(value, bool):
+            raise ConfigError(f"{path}: expected int, got bool")
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def tiny_config() -> NavPolicyConfig:
+    """CPU preset: tiny from-scratch model, 64x64 pinhole observations."""
+    return NavPolicyConfig(name="tiny").validate()
+
+
+def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPolicyConfig:
+    """The paper's setting: Qwen3-VL-4B-Instruct (local folder), 336x336 pinhole at 90 deg,
+    32 observations / 64 labels, DeepSpeed ZeRO-2, bf16, gradient checkpointing, 70K BC steps."""
+    return NavPolicyConfig(
+        name="paper",
+        model=ModelConfig(source=checkpoint, gradient_checkpointing=True, dtype="bfloat16"),
+        observation=ObservationConfig(camera="pinhole", height=336, width=336, hfov_deg=90.0, vfov_deg=90.0),
+        data=DataConfig(max_observations=32, max_action_labels=64, num_workers=8),
+        train=TrainConfig(
+            batch_size=1, max_steps=70_000, lr=2e-5, weight_decay=0.0, warmup_steps=500, precision="bf16-mixed",
+            strategy="deepspeed_zero2", accelerator="gpu", devices=8, log_every=10, checkpoint_every=1000,
+            wandb=True,
+        ),
+    ).validate()
+
+
+PRESETS = {"tiny": tiny_config, "paper": paper_config}
+
+
+def load_config(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> NavPolicyConfig:
+    """A preset name (``tiny``/``paper``) or a YAML file (which may set ``base: tiny|paper``),
+    with optional nested ``overrides``; unknown keys raise :class:`ConfigError`."""
+    s = str(name_or_path)
+    if s in PRESETS:
+        data = PRESETS[s]().to_dict()
+    else:
+        import yaml
+
+        p = Path(s)
+        if not p.is_file():
+            raise ConfigError(f"config {s!r} is neither a preset {sorted(PRESETS)} nor an existing YAML file")
+        loaded = yaml.safe_load(p.read_text()) or {}
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{p}: top level must be a mapping")
+        base = loaded.pop("base", "tiny")
+        if base not in PRESETS:
+            raise ConfigError(f"{p}: base {base!r} is not one of {sorted(PRESETS)}")
+        data = _merge(PRESETS[base]().to_dict(), loaded)
+    if overrides:
+        data = _merge(data, overrides)
+    return from_dict(NavPolicyConfig, data).validate()

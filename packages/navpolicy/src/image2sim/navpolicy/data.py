@@ -1,0 +1,438 @@
+"""Training data for Image2Nav: trajectory records, an on-disk shard format, samples and the collator.
+
+Shard format ``image2sim-navshard`` v1 (one folder; what the data engine writes)::
+
+    <shard>/manifest.json        {"format": "image2sim-navshard", "version": 1, "num_trajectories": N,
+                                  "action_ids": {"STOP": 0, ...}, "observation": {...free-form camera info}}
+    <shard>/trajectories.jsonl   one JSON object per line, in order:
+                                   {"episode_id": str, "scene_id": str, "instruction": str,
+                                    "actions": [int, ...],        # T actions; action t is taken at step t
+                                    "frame_steps": [int, ...],    # steps whose observation is stored
+                                    "frames": "frames/000000.npz", "extra": {...}}
+    <shard>/frames/NNNNNN.npz    key "rgb": (len(frame_steps), H, W, 3) uint8, frame i observed at step
+                                 frame_steps[i] (before action frame_steps[i] is taken); no pickles.
+
+Step ``t`` means "the agent is at state t, sees frame t and takes actions[t]"; the last action of a
+finished trajectory is STOP. The frames may be a subset of the steps (the data engine can pre-render
+only the frames it will ever sample). Every file is written to a temp name and renamed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from image2sim.navpolicy.actions import ACTIONS_PER_STEP
+from image2sim.navpolicy.model import MERGE_SIZE
+from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder, Turn
+from image2sim.simulator.conventions import Action
+
+SHARD_FORMAT = "image2sim-navshard"
+SHARD_VERSION = 1
+
+
+class ShardError(ValueError):
+    """A shard file is missing or malformed; the message names the file and the problem."""
+
+
+@dataclass
+class Trajectory:
+    """One expert trajectory with (some of) its rendered observations.
+
+    Attributes:
+        instruction: natural-language instruction.
+        actions: the T action ids taken at steps 0..T-1 (ends with STOP when the episode finished).
+        frames: (N, H, W, 3) uint8 observations.
+        frame_steps: the N strictly increasing steps (in [0, T-1]) at which ``frames`` were observed.
+        episode_id: identifier of the episode.
+        scene_id: identifier of the scene.
+        extra: free-form JSON-able metadata (camera, start pose, ...).
+    """
+
+    instruction: str
+    actions: list[int]
+    frames: np.ndarray
+    frame_steps: list[int]
+    episode_id: str = ""
+    scene_id: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def validate(self, where: str = "trajectory") -> Trajectory:
+        """Raise :class:`ShardError` naming ``where`` if the record is inconsistent."""
+        valid = {int(a) for a in Action}
+        if not self.actions:
+            raise ShardError(f"{where}: empty action list")
+        bad = [a for a in self.actions if int(a) not in valid]
+        if bad:
+            raise ShardError(f"{where}: unknown action ids {sorted(set(bad))}")
+        f = np.asarray(self.frames)
+        if f.ndim != 4 or f.shape[-1] != 3 or f.dtype != np.uint8:
+            raise ShardError(f"{where}: frames must be (N, H, W, 3) uint8, got {f.shape} {f.dtype}")
+        steps = list(self.frame_steps)
+        if len(steps) != f.shape[0] or not steps:
+            raise ShardError(f"{where}: {f.shape[0]} frames but {len(steps)} frame_steps")
+        if any(b <= a for a, b in zip(steps, steps[1:])) or steps[0] < 0 or steps[-1] >= len(self.actions):
+            raise ShardError(f"{where}: frame_steps must increase strictly inside [0, {len(self.actions) - 1}]")
+        return self
+
+
+@dataclass
+class NavSample:
+    """One training sample: up to 32 observations of a trajectory and two action labels each.
+
+    Attributes:
+        instruction: the instruction.
+        observations: (n, H, W, 3) uint8 images, in trajectory order.
+        steps: the step of each observation.
+        executed: for each observation, the actions executed since the previous one (empty first).
+        targets: for each observation, the next two actions (labels).
+        episode_id: source episode.
+    """
+
+    instruction: str
+    observations: np.ndarray
+    steps: list[int]
+    executed: list[tuple[int, ...]]
+    targets: list[tuple[int, ...]]
+    episode_id: str = ""
+
+    @property
+    def num_labels(self) -> int:
+        return sum(len(t) for t in self.targets)
+
+
+def uniform_indices(n: int, k: int, rng: np.random.Generator | None = None) -> list[int]:
+    """``min(n, k)`` sorted distinct indices in ``[0, n)`` spread uniformly; index 0 always included.
+
+    Without ``rng``: evenly spaced including both ends. With ``rng``: stratified — ``[0, n)`` is cut
+    into ``k`` equal bins and one index is drawn per bin (the first bin always yields 0, the start).
+    """
+    if n <= 0 or k <= 0:
+        return []
+    if n <= k:
+        return list(range(n))
+    if rng is None:
+        return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
+    edges = np.linspace(0, n, k + 1)
+    out = [0]
+    for i in range(1, k):
+        lo, hi = int(np.ceil(edges[i])), int(np.ceil(edges[i + 1]))
+        out.append(int(rng.integers(lo, max(lo + 1, hi))))
+    return out
+
+
+def next_actions(actions: Sequence[int], step: int, count: int = ACTIONS_PER_STEP) -> tuple[int, ...]:
+    """The ``count`` actions from ``step`` on; past the end of the trajectory the label is STOP."""
+    return tuple(int(actions[t]) if t < len(actions) else int(Action.STOP) for t in range(step, step + count))
+
+
+def make_sample(
+    traj: Trajectory,
+    max_observations: int = 32,
+    max_action_labels: int = 64,
+    rng: np.random.Generator | None = None,
+) -> NavSample:
+    """Sample observations uniformly along ``traj`` and pair each with its next two actions."""
+    n_obs = min(max_observations, max_action_labels // ACTIONS_PER_STEP)
+    if n_obs < 1:
+        raise ValueError(f"max_action_labels={max_action_labels} leaves room for no observation")
+    idx = uniform_indices(len(traj.frame_steps), n_obs, rng)
+    steps = [int(traj.frame_steps[i]) for i in idx]
+    executed, prev = [], None
+    for s in steps:
+        executed.append(() if prev is None else tuple(int(a) for a in traj.actions[prev:s]))
+        prev = s
+    return NavSample(
+        instruction=traj.instruction,
+        observations=np.asarray(traj.frames)[idx],
+        steps=steps,
+        executed=executed,
+        targets=[next_actions(traj.actions, s) for s in steps],
+        episode_id=traj.episode_id,
+    )
+
+
+# ----------------------------------------------------------------------------------------------- shards
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class ShardWriter:
+    """Writes trajectories into a shard folder; use as a context manager.
+
+    Frames go to ``frames/NNNNNN.npz`` as they come; ``trajectories.jsonl`` and ``manifest.json`` are
+    written atomically on :meth:`close`, so a reader never sees a shard that lists missing frames.
+    """
+
+    def __init__(self, root: str | Path, observation: dict | None = None, compress: bool = True) -> None:
+        self.root = Path(root)
+        if (self.root / "manifest.json").exists():
+            raise ShardError(f"{self.root}: a shard already exists here")
+        (self.root / "frames").mkdir(parents=True, exist_ok=True)
+        self.observation = dict(observation or {})
+        self.compress = compress
+        self._lines: list[str] = []
+
+    def add(self, traj: Trajectory) -> None:
+        k = len(self._lines)
+        traj.validate(f"{self.root} trajectory {k} ({traj.episode_id})")
+        rel = f"frames/{k:06d}.npz"
+        import io
+
+        buf = io.BytesIO()
+        (np.savez_compressed if self.compress else np.savez)(buf, rgb=np.ascontiguousarray(traj.frames))
+        _atomic_write_bytes(self.root / rel, buf.getvalue())
+        rec = {
+            "episode_id": traj.episode_id,
+            "scene_id": traj.scene_id,
+            "instruction": traj.instruction,
+            "actions": [int(a) for a in traj.actions],
+            "frame_steps": [int(s) for s in traj.frame_steps],
+            "frames": rel,
+            "extra": traj.extra,
+        }
+        self._lines.append(json.dumps(rec))
+
+    def close(self) -> Path:
+        _atomic_write_bytes(self.root / "trajectories.jsonl", ("\n".join(self._lines) + "\n").encode())
+        manifest = {
+            "format": SHARD_FORMAT,
+            "version": SHARD_VERSION,
+            "num_trajectories": len(self._lines),
+            "action_ids": {a.name: int(a) for a in Action},
+            "observation": self.observation,
+        }
+        _atomic_write_bytes(self.root / "manifest.json", json.dumps(manifest, indent=2).encode())
+        return self.root
+
+    def __enter__(self) -> ShardWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+
+
+def write_shard(root: str | Path, trajectories: Sequence[Trajectory], observation: dict | None = None) -> Path:
+    """Write ``trajectories`` as one shard at ``root``."""
+    with ShardWriter(root, observation) as w:
+        for t in trajectories:
+            w.add(t)
+    return Path(root)
+
+
+class ShardReader:
+    """Random access to the trajectories of one shard."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        mpath = self.root / "manifest.json"
+        if not mpath.is_file():
+            raise ShardError(f"{mpath}: missing (not a {SHARD_FORMAT} folder)")
+        self.manifest = json.loads(mpath.read_text())
+        if self.manifest.get("format") != SHARD_FORMAT or self.manifest.get("version") != SHARD_VERSION:
+            raise ShardError(f"{mpath}: format {self.manifest.get('format')!r} v{self.manifest.get('version')} "
+                             f"is not {SHARD_FORMAT} v{SHARD_VERSION}")
+        ids = self.manifest.get("action_ids", {})
+        if ids and ids != {a.name: int(a) for a in Action}:
+            raise ShardError(f"{mpath}: action_ids {ids} disagree with the conventions")
+        jpath = self.root / "trajectories.jsonl"
+        try:
+            self.records = [json.loads(line) for line in jpath.read_text().splitlines() if line.strip()]
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ShardError(f"{jpath}: {exc}") from exc
+        if len(self.records) != self.manifest.get("num_trajectories"):
+            raise ShardError(f"{jpath}: {len(self.records)} records but the manifest says "
+                             f"{self.manifest.get('num_trajectories')}")
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, i: int) -> Trajectory:
+        rec = self.records[i]
+        fpath = self.root / rec["frames"]
+        try:
+            with np.load(fpath, allow_pickle=False) as z:
+                frames = z["rgb"]
+        except (OSError, KeyError, ValueError) as exc:
+            raise ShardError(f"{fpath}: cannot read frames ({exc})") from exc
+        return Trajectory(
+            instruction=rec["instruction"],
+            actions=list(rec["actions"]),
+            frames=frames,
+            frame_steps=list(rec["frame_steps"]),
+            episode_id=rec.get("episode_id", ""),
+            scene_id=rec.get("scene_id", ""),
+            extra=rec.get("extra", {}),
+        ).validate(f"{self.root} line {i + 1}")
+
+
+class NavShardDataset(torch.utils.data.Dataset):
+    """Samples over one or more shards; item ``i`` of epoch ``e`` is reproducible from (seed, e, i)."""
+
+    def __init__(
+        self,
+        shards: Sequence[str | Path],
+        max_observations: int = 32,
+        max_action_labels: int = 64,
+        jitter: bool = True,
+        seed: int = 0,
+    ) -> None:
+        if not shards:
+            raise ShardError("no shard folders given")
+        self.readers = [ShardReader(s) for s in shards]
+        self.index = [(r, i) for r in range(len(self.readers)) for i in range(len(self.readers[r]))]
+        self.max_observations = max_observations
+        self.max_action_labels = max_action_labels
+        self.jitter = jitter
+        self.seed = seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: int) -> NavSample:
+        r, j = self.index[i]
+        rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
+        return make_sample(self.readers[r][j], self.max_observations, self.max_action_labels, rng)
+
+
+class InMemoryNavDataset(torch.utils.data.Dataset):
+    """Samples over trajectories held in memory (tests, DAgger's online buffer)."""
+
+    def __init__(self, trajectories: Sequence[Trajectory], max_observations: int = 32,
+                 max_action_labels: int = 64, jitter: bool = True, seed: int = 0) -> None:
+        self.trajectories = list(trajectories)
+        self.max_observations, self.max_action_labels = max_observations, max_action_labels
+        self.jitter, self.seed, self.epoch = jitter, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.trajectories)
+
+    def __getitem__(self, i: int) -> NavSample:
+        rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
+        return make_sample(self.trajectories[i], self.max_observations, self.max_action_labels, rng)
+
+
+# -------------------------------------------------------------------------------------------- collator
+
+
+def image_token_counts(image_grid_thw: torch.Tensor, merge_size: int = MERGE_SIZE) -> list[int]:
+    """``<|image_pad|>`` tokens per image: t*h*w patches merged ``merge_size``^2 to one token."""
+    return [int(v) for v in (image_grid_thw.prod(-1) // (merge_size**2)).tolist()]
+
+
+class NavCollator:
+    """Turns :class:`NavSample` lists into padded Qwen3-VL batches with action-only labels.
+
+    Output keys: ``input_ids``, ``attention_mask``, ``labels``, ``mm_token_type_ids`` (B, L), right
+    padded with the pad token; ``pixel_values`` (all patches of all images, sample-major) and
+    ``image_grid_thw`` (num_images, 3).
+    """
+
+    def __init__(self, prompt_builder: PromptBuilder, image_processor) -> None:
+        self.prompts = prompt_builder
+        self.image_processor = image_processor
+        self.pad_id = int(prompt_builder.tokenizer.pad_token_id)
+
+    def process_images(self, images: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pixel patches and grids of ``images`` through the (PIL) Qwen image processor."""
+        out = self.image_processor(images=[np.asarray(im) for im in images], return_tensors="pt")
+        return out["pixel_values"], out["image_grid_thw"]
+
+    def __call__(self, samples: Sequence[NavSample]) -> dict[str, torch.Tensor]:
+        if not samples:
+            raise ValueError("cannot collate an empty list of samples")
+        images = [im for s in samples for im in s.observations]
+        pixel_values, grid = self.process_images(images)
+        counts = image_token_counts(grid, self.image_processor.merge_size)
+        encs, k = [], 0
+        for s in samples:
+            turns = []
+            for j in range(len(s.observations)):
+                turns.append(Turn(frame_key=s.steps[j], num_image_tokens=counts[k],
+                                  executed=tuple(s.executed[j]), target=tuple(s.targets[j])))
+                k += 1
+            encs.append(self.prompts.encode(s.instruction, turns))
+        length = max(len(e) for e in encs)
+        b = len(encs)
+        input_ids = torch.full((b, length), self.pad_id, dtype=torch.long)
+        labels = torch.full((b, length), IGNORE_INDEX, dtype=torch.long)
+        mm = torch.zeros((b, length), dtype=torch.long)
+        attn = torch.zeros((b, length), dtype=torch.long)
+        for i, e in enumerate(encs):
+            n = len(e)
+            input_ids[i, :n] = torch.tensor(e.input_ids)
+            labels[i, :n] = torch.tensor(e.labels)
+            mm[i, :n] = torch.tensor(e.mm_token_type_ids)
+            attn[i, :n] = 1
+        # Belt and braces: no label may ever sit on an image token.
+        labels[mm != 0] = IGNORE_INDEX
+        return {
+            "input_ids": input_ids,
+            "attention_mask": attn,
+            "labels": labels,
+            "mm_token_type_ids": mm,
+            "pixel_values": pixel_values,
+            "image_grid_thw": grid,
+        }
+
+
+# ------------------------------------------------------------------------------------ synthetic data
+
+_ACTION_COLOURS = np.array([[230, 230, 230], [40, 200, 60], [50, 80, 220], [220, 60, 50]], dtype=np.float32)
+
+
+def synthetic_trajectories(
+    n: int, min_len: int = 6, max_len: int = 40, height: int = 64, width: int = 64, seed: int = 0
+) -> list[Trajectory]:
+    """Toy trajectories whose frames reveal the action to take (for tests and CPU smoke runs only).
+
+    Actions are runs of FORWARD with occasional LEFT/RIGHT turns, ending with STOP. Frame t is tinted
+    with the colour of action t (STOP white, FORWARD green, LEFT blue, RIGHT red) plus a gradient and
+    noise, so a policy can learn the first label from the image and the second from the sequence.
+    """
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    ramp = (0.35 * (yy / max(1, height - 1)) + 0.15 * (xx / max(1, width - 1)))[..., None]
+    out = []
+    for k in range(n):
+        T = int(rng.integers(min_len, max_len + 1))
+        acts: list[int] = []
+        while len(acts) < T - 1:
+            if rng.random() < 0.3:
+                turn = int(rng.choice([Action.TURN_LEFT, Action.TURN_RIGHT]))
+                acts.extend([turn] * int(rng.integers(1, 4)))
+            else:
+                acts.extend([int(Action.MOVE_FORWARD)] * int(rng.integers(2, 6)))
+        acts = acts[: T - 1] + [int(Action.STOP)]
+        base = _ACTION_COLOURS[np.array(acts)][:, None, None, :]
+        noise = rng.normal(0.0, 12.0, size=(T, height, width, 3)).astype(np.float32)
+        frames = np.clip(base * (0.65 + ramp[None]) + noise, 0, 255).astype(np.uint8)
+        out.append(Trajectory(instruction=f"synthetic episode {k}: follow the coloured cues and stop on white",
+                              actions=acts, frames=frames, frame_steps=list(range(T)),
+                              episode_id=f"synthetic-{seed}-{k:05d}", scene_id="synthetic"))
+    return out

@@ -1,0 +1,254 @@
+"""Build the Image2Nav policy: a Qwen3-VL model, its tokenizer and a torchvision-free image processor.
+
+``source == "tiny"`` builds a small Qwen3-VL from scratch with the offline tokenizer; anything else
+must be a local folder holding a Qwen3-VL checkpoint (config, safetensors, tokenizer,
+``preprocessor_config.json``) — hub ids are refused, nothing is downloaded. The vision tower is
+frozen; the vision-language merger (projector, incl. DeepStack mergers) and the language model train,
+or only LoRA adapters on the language model when enabled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from image2sim.navpolicy.actions import ActionCodec
+from image2sim.navpolicy.config import ModelConfig, NavPolicyConfig, ObservationConfig
+from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
+
+MERGE_SIZE = 2
+"""Qwen3-VL merges 2x2 patches into one language token."""
+
+TEMPORAL_PATCH_SIZE = 2
+"""Qwen3-VL patches are 2 frames deep; a still image is repeated."""
+
+_PROJECTOR_PREFIXES = ("merger.", "deepstack_merger_list.")
+
+
+@dataclass
+class NavPolicy:
+    """The pieces of one policy that always travel together."""
+
+    model: torch.nn.Module
+    """``Qwen3VLForConditionalGeneration`` (possibly wrapped by peft)."""
+    tokenizer: object
+    """A ``PreTrainedTokenizerFast`` with the Qwen special tokens."""
+    image_processor: object
+    """``Qwen2VLImageProcessorPil`` (no torchvision)."""
+    codec: ActionCodec
+    """Action <-> token sequences for ``tokenizer``."""
+
+    @property
+    def patch_size(self) -> int:
+        return int(self.image_processor.patch_size)
+
+
+def tiny_qwen3vl_config(tiny, tokenizer):
+    """A ``Qwen3VLConfig`` of the given tiny sizes, wired to ``tokenizer``'s special token ids."""
+    from transformers import Qwen3VLConfig
+
+    ids = check_special_tokens(tokenizer)
+    return Qwen3VLConfig(
+        text_config=dict(
+            vocab_size=len(tokenizer),
+            hidden_size=tiny.text_hidden_size,
+            intermediate_size=tiny.text_intermediate_size,
+            num_hidden_layers=tiny.text_layers,
+            num_attention_heads=tiny.text_heads,
+            num_key_value_heads=tiny.text_kv_heads,
+            head_dim=tiny.text_head_dim,
+            max_position_embeddings=32768,
+            rope_parameters={
+                "rope_type": "default",
+                "rope_theta": 10000.0,
+                "mrope_section": list(tiny.mrope_section),
+                "mrope_interleaved": True,
+            },
+            pad_token_id=ids["<|endoftext|>"],
+        ),
+        vision_config=dict(
+            depth=tiny.vision_layers,
+            hidden_size=tiny.vision_hidden_size,
+            intermediate_size=tiny.vision_intermediate_size,
+            num_heads=tiny.vision_heads,
+            patch_size=tiny.patch_size,
+            spatial_merge_size=MERGE_SIZE,
+            temporal_patch_size=TEMPORAL_PATCH_SIZE,
+            out_hidden_size=tiny.text_hidden_size,
+            num_position_embeddings=tiny.num_position_embeddings,
+            deepstack_visual_indexes=list(tiny.deepstack_visual_indexes),
+        ),
+        image_token_id=ids["<|image_pad|>"],
+        video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"],
+        vision_end_token_id=ids["<|vision_end|>"],
+        tie_word_embeddings=False,
+    )
+
+
+def make_image_processor(obs: ObservationConfig, patch_size: int):
+    """PIL-based Qwen image processor that keeps ``obs.height x obs.width`` (rounded to the patch grid).
+
+    Fixing min == max pixels to the observation area makes ``smart_resize`` keep the aspect ratio
+    and snap each side to a multiple of ``patch_size * 2`` (a no-op for conforming sizes).
+    """
+    from transformers.models.qwen2_vl.image_processing_pil_qwen2_vl import Qwen2VLImageProcessorPil
+
+    factor = patch_size * MERGE_SIZE
+    h = max(factor, round(obs.height / factor) * factor)
+    w = max(factor, round(obs.width / factor) * factor)
+    return Qwen2VLImageProcessorPil(
+        patch_size=patch_size,
+        merge_size=MERGE_SIZE,
+        temporal_patch_size=TEMPORAL_PATCH_SIZE,
+        size={"shortest_edge": h * w, "longest_edge": h * w},
+        image_mean=list(obs.image_mean),
+        image_std=list(obs.image_std),
+    )
+
+
+def load_image_processor(path: str | Path):
+    """The PIL image processor from a local checkpoint's ``preprocessor_config.json``."""
+    from transformers.models.qwen2_vl.image_processing_pil_qwen2_vl import Qwen2VLImageProcessorPil
+
+    p = Path(path) / "preprocessor_config.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"{p} not found: a local Qwen3-VL checkpoint needs its preprocessor config")
+    raw = json.loads(p.read_text())
+    keep = {"patch_size", "merge_size", "temporal_patch_size", "size", "image_mean", "image_std",
+            "min_pixels", "max_pixels", "do_rescale", "rescale_factor", "do_normalize", "do_convert_rgb"}
+    return Qwen2VLImageProcessorPil(**{k: v for k, v in raw.items() if k in keep})
+
+
+def _torch_dtype(name: str) -> torch.dtype:
+    return {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[name]
+
+
+def freeze_for_training(model: torch.nn.Module, cfg: ModelConfig) -> None:
+    """Freeze the vision tower (keeping the merger/projector trainable when ``cfg.train_merger``)."""
+    visual = base_qwen(model).model.visual
+    for name, p in visual.named_parameters():
+        is_projector = name.startswith(_PROJECTOR_PREFIXES)
+        p.requires_grad_(not cfg.freeze_vision or (cfg.train_merger and is_projector))
+
+
+def base_qwen(model: torch.nn.Module):
+    """The ``Qwen3VLForConditionalGeneration`` inside a possible peft wrapper."""
+    from transformers import Qwen3VLForConditionalGeneration
+
+    m = model
+    for _ in range(4):
+        if isinstance(m, Qwen3VLForConditionalGeneration):
+            return m
+        m = getattr(m, "base_model", None) or getattr(m, "model", None)
+        if m is None:
+            break
+    raise TypeError(f"{type(model).__name__} does not wrap a Qwen3VLForConditionalGeneration")
+
+
+def apply_lora(model: torch.nn.Module, cfg: ModelConfig) -> torch.nn.Module:
+    """Wrap the language model's projections with LoRA; keep the projector trainable if asked.
+
+    peft freezes every non-adapter weight; the merger is re-enabled through ``modules_to_save``
+    semantics by simply flipping ``requires_grad`` back (it is saved with the full weights anyway).
+    """
+    from peft import LoraConfig, get_peft_model
+
+    lcfg = LoraConfig(
+        r=cfg.lora.r,
+        lora_alpha=cfg.lora.alpha,
+        lora_dropout=cfg.lora.dropout,
+        target_modules=cfg.lora.target_modules,
+        bias="none",
+    )
+    peft_model = get_peft_model(model, lcfg)
+    if cfg.train_merger:
+        for name, p in base_qwen(peft_model).model.visual.named_parameters():
+            if name.startswith(_PROJECTOR_PREFIXES):
+                p.requires_grad_(True)
+    return peft_model
+
+
+def build_policy(cfg: NavPolicyConfig, seed: int | None = None) -> NavPolicy:
+    """Model + tokenizer + image processor + action codec for ``cfg`` (frozen parts applied)."""
+    from transformers import Qwen3VLForConditionalGeneration
+
+    mc = cfg.model
+    if mc.source == "tiny":
+        tokenizer = build_tiny_tokenizer(mc.tiny.tokenizer_vocab_size)
+        if seed is not None:
+            torch.manual_seed(seed)
+        qcfg = tiny_qwen3vl_config(mc.tiny, tokenizer)
+        qcfg._attn_implementation = mc.attn_implementation
+        model = Qwen3VLForConditionalGeneration(qcfg).to(_torch_dtype(mc.dtype))
+        image_processor = make_image_processor(cfg.observation, mc.tiny.patch_size)
+    else:
+        path = Path(mc.source)
+        if not path.is_dir():
+            raise FileNotFoundError(
+                f"model.source {mc.source!r} is not 'tiny' nor a local checkpoint folder (hub ids are refused)"
+            )
+        tokenizer = load_tokenizer(path)
+        model = Qwen3VLForConditionalGeneration.from_pretrained(
+            str(path), local_files_only=True, dtype=_torch_dtype(mc.dtype), attn_implementation=mc.attn_implementation
+        )
+        image_processor = make_image_processor(cfg.observation, int(model.config.vision_config.patch_size))
+        pre = load_image_processor(path)
+        image_processor.image_mean, image_processor.image_std = pre.image_mean, pre.image_std
+    freeze_for_training(model, mc)
+    if mc.gradient_checkpointing:
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+        model.config.use_cache = False
+    if mc.lora.enabled:
+        model = apply_lora(model, mc)
+    codec = ActionCodec.from_tokenizer(tokenizer)
+    return NavPolicy(model=model, tokenizer=tokenizer, image_processor=image_processor, codec=codec)
+
+
+def trainable_summary(model: torch.nn.Module) -> dict[str, int]:
+    """Parameter counts: total, trainable, and trainable inside the vision tower proper."""
+    total = sum(p.numel() for p in model.parameters())
+    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    vis = base_qwen(model).model.visual
+    vis_trainable = sum(
+        p.numel() for n, p in vis.named_parameters() if p.requires_grad and not n.startswith(_PROJECTOR_PREFIXES)
+    )
+    return {"total": total, "trainable": trainable, "vision_tower_trainable": vis_trainable}
+
+
+def merged_model(model: torch.nn.Module) -> torch.nn.Module:
+    """Fold LoRA adapters into the base weights; returns the plain Qwen3-VL model."""
+    if hasattr(model, "merge_and_unload"):
+        return model.merge_and_unload()
+    return model
+
+
+def export_policy(policy: NavPolicy, out_dir: str | Path) -> Path:
+    """Write merged weights (safetensors), config, tokenizer and image processor to ``out_dir``.
+
+    The folder reloads with ``build_policy`` (``model.source = out_dir``) or directly with
+    ``Qwen3VLForConditionalGeneration.from_pretrained``. Written to a temp folder and renamed, so a
+    crash never leaves a half-written export behind.
+    """
+    out = Path(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        model = merged_model(policy.model)
+        model.save_pretrained(str(tmp), safe_serialization=True)
+        policy.tokenizer.save_pretrained(str(tmp))
+        # The processor object cannot save itself without a video processor; write its config alone.
+        policy.image_processor.save_pretrained(str(tmp))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

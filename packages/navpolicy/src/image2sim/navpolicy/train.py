@@ -1,0 +1,313 @@
+"""Stage 1 behaviour cloning of Image2Nav with Lightning (+ DeepSpeed ZeRO-2).
+
+The same code path runs on 64 GPUs (``strategy="deepspeed_zero2"``, bf16, gradient checkpointing,
+``configs/zero2.json``) and on this 2-core CPU in the tests: Lightning's ``DeepSpeedStrategy`` refuses
+CPU, so :class:`CPUDeepSpeedStrategy` overrides only device validation (DeepSpeed itself runs on its
+CPU accelerator with gloo).
+
+Data order is a pure function of (seed, global sample position): :class:`StepSampler` starts at the
+position implied by the restored ``global_step``, so a resumed run sees exactly the batches the
+uninterrupted run would have seen.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+
+from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
+from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, NavShardDataset, make_sample
+from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
+from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
+
+REPO_ROOT = Path(__file__).resolve().parents[5]
+
+
+# ------------------------------------------------------------------------------------------ data order
+
+
+def epoch_permutation(n: int, seed: int, epoch: int) -> np.ndarray:
+    """The order of the ``n`` samples in ``epoch`` (deterministic in ``seed`` and ``epoch``)."""
+    return np.random.default_rng([seed, epoch, 7919]).permutation(n)
+
+
+class PositionDataset(torch.utils.data.Dataset):
+    """Maps a global sample position ``p`` to sample ``perm_e[p % n]`` of epoch ``e = p // n``.
+
+    The per-sample sampling randomness (which observations) is seeded by ``(seed, e, index)``.
+    """
+
+    def __init__(self, base: NavShardDataset | InMemoryNavDataset, seed: int) -> None:
+        self.base, self.seed = base, seed
+        self._perms: dict[int, np.ndarray] = {}
+
+    def locate(self, position: int) -> tuple[int, int]:
+        """(epoch, dataset index) of a global position."""
+        n = len(self.base)
+        epoch = position // n
+        if epoch not in self._perms:
+            self._perms = {epoch: epoch_permutation(n, self.seed, epoch)}
+        return epoch, int(self._perms[epoch][position % n])
+
+    def __len__(self) -> int:
+        return 1 << 62  # positions are unbounded; the sampler decides how many are drawn
+
+    def __getitem__(self, position: int):
+        epoch, i = self.locate(int(position))
+        if isinstance(self.base, NavShardDataset):
+            r, j = self.base.index[i]
+            traj = self.base.readers[r][j]
+        else:
+            traj = self.base.trajectories[i]
+        rng = np.random.default_rng([self.seed, epoch, i]) if self.base.jitter else None
+        sample = make_sample(traj, self.base.max_observations, self.base.max_action_labels, rng)
+        sample.episode_id = sample.episode_id or f"#{i}"
+        return sample
+
+
+class StepSampler(torch.utils.data.Sampler):
+    """Yields global positions ``start, start + stride, ...`` up to ``stop`` (one per rank).
+
+    ``start`` already includes the rank offset; with ``world_size`` ranks, rank r reads positions
+    ``r, r + W, r + 2W, ...`` so the ranks' batches together cover the global order.
+    """
+
+    def __init__(self, start: int, stop: int, rank: int = 0, world_size: int = 1) -> None:
+        self.start, self.stop, self.rank, self.world_size = start, stop, rank, world_size
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(range(self.start * self.world_size + self.rank, self.stop * self.world_size, self.world_size))
+
+    def __len__(self) -> int:
+        return max(0, self.stop - self.start)
+
+
+# ------------------------------------------------------------------------------------ DeepSpeed on CPU
+
+
+def cpu_deepspeed_strategy(config: dict | str | Path, **kwargs):
+    """Lightning's DeepSpeed strategy, minimally patched to accept the CPU accelerator.
+
+    Only the device checks change: DeepSpeed's own CPU accelerator (gloo) does the work. Use it for
+    tests and CPU smoke runs; GPU runs use the stock ``DeepSpeedStrategy``.
+    """
+    os.environ.setdefault("DS_ACCELERATOR", "cpu")
+    from lightning.pytorch.strategies import DDPStrategy, DeepSpeedStrategy
+
+    class CPUDeepSpeedStrategy(DeepSpeedStrategy):
+        def setup_environment(self) -> None:
+            DDPStrategy.setup_environment(self)  # skip the CUDA-only check, keep DDP's env setup
+
+        @property
+        def root_device(self) -> torch.device:
+            return torch.device("cpu", 0)
+
+        def setup_distributed(self) -> None:
+            from lightning.fabric.utilities.seed import reset_seed
+
+            reset_seed()
+            self.set_world_ranks()
+            self._init_deepspeed_distributed()
+
+    return CPUDeepSpeedStrategy(config=config, process_group_backend="gloo", **kwargs)
+
+
+def make_strategy(tc: TrainConfig):
+    """The Lightning strategy object/name for ``tc``."""
+    if tc.strategy != "deepspeed_zero2":
+        return tc.strategy
+    path = Path(tc.deepspeed_config)
+    if not path.is_absolute():
+        path = REPO_ROOT / path
+    if not path.is_file():
+        raise FileNotFoundError(f"train.deepspeed_config {path} not found")
+    config = json.loads(path.read_text())
+    if config.get("zero_optimization", {}).get("stage") != 2:
+        raise ValueError(f"{path}: zero_optimization.stage must be 2 for deepspeed_zero2")
+    if tc.accelerator == "cpu":
+        return cpu_deepspeed_strategy(config)
+    from lightning.pytorch.strategies import DeepSpeedStrategy
+
+    return DeepSpeedStrategy(config=config)
+
+
+# ----------------------------------------------------------------------------------- Lightning module
+
+
+def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float:
+    """LR multiplier: linear warm-up to 1, then cosine to ``min_ratio`` at ``total``."""
+    if step < warmup:
+        return (step + 1) / max(1, warmup)
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def action_accuracy(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Greedy next-token accuracy on the labelled (action) positions."""
+    pred = logits[:, :-1].argmax(-1)
+    tgt = labels[:, 1:]
+    mask = tgt != IGNORE_INDEX
+    if not mask.any():
+        return logits.new_zeros(())
+    return (pred[mask] == tgt[mask]).float().mean()
+
+
+class NavBCModule(L.LightningModule):
+    """Behaviour cloning: cross-entropy on the action tokens of interleaved image/action prompts."""
+
+    def __init__(self, policy: NavPolicy, cfg: NavPolicyConfig, dataset=None) -> None:
+        super().__init__()
+        self.model = policy.model
+        self.policy = policy
+        self.cfg = cfg
+        self.dataset = dataset
+        self.collator = NavCollator(PromptBuilder(policy.tokenizer, policy.codec, cfg.system_prompt),
+                                    policy.image_processor)
+        self.seen: list[list[str]] = []
+        """Episode ids per training batch (lets tests check the data order across resumes)."""
+        self.losses: list[float] = []
+
+    def train_dataloader(self):
+        tc = self.cfg.train
+        if self.dataset is None:
+            self.dataset = NavShardDataset(self.cfg.data.shards, self.cfg.data.max_observations,
+                                           self.cfg.data.max_action_labels, self.cfg.data.jitter, tc.seed)
+        per_step = tc.batch_size * tc.accumulate_grad_batches
+        start = self.trainer.global_step * per_step
+        stop = tc.max_steps * per_step
+        sampler = StepSampler(start, stop, self.global_rank, self.trainer.world_size)
+        return torch.utils.data.DataLoader(
+            PositionDataset(self.dataset, tc.seed),
+            batch_size=tc.batch_size,
+            sampler=sampler,
+            collate_fn=self._collate,
+            num_workers=self.cfg.data.num_workers,
+        )
+
+    def _collate(self, samples):
+        batch = self.collator(samples)
+        batch["episode_ids"] = [s.episode_id for s in samples]
+        return batch
+
+    def forward(self, batch):
+        inputs = {k: v for k, v in batch.items() if k != "episode_ids"}
+        return self.model(**inputs)
+
+    def training_step(self, batch, batch_idx):
+        out = self(batch)
+        bsz = batch["input_ids"].shape[0]
+        self.seen.append(list(batch["episode_ids"]))
+        self.losses.append(float(out.loss.detach()))
+        self.log("train/loss", out.loss, prog_bar=True, batch_size=bsz)
+        self.log("train/action_acc", action_accuracy(out.logits.detach(), batch["labels"]), batch_size=bsz)
+        return out.loss
+
+    def configure_optimizers(self):
+        tc = self.cfg.train
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        if not params:
+            raise RuntimeError("no trainable parameters (check model.freeze_vision / lora settings)")
+        opt = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay)
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda s: warmup_cosine(s, tc.warmup_steps, tc.max_steps, tc.min_lr_ratio)
+        )
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+
+# ---------------------------------------------------------------------------------------- entry point
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train_bc` produced."""
+
+    out_dir: Path
+    """Run folder (config, logs, checkpoints)."""
+    module: NavBCModule
+    """The trained module (its ``losses``/``seen`` record the run)."""
+    global_step: int
+    """Optimizer steps done in total (including before a resume)."""
+    last_checkpoint: Path | None
+    """Resumable checkpoint (file, or folder for DeepSpeed)."""
+    export_dir: Path | None
+    """Merged weights for ``from_pretrained`` (when exported)."""
+
+
+def train_bc(
+    cfg: NavPolicyConfig,
+    out_dir: str | Path,
+    dataset=None,
+    resume: str | Path | None = None,
+    export: bool = True,
+    max_steps: int | None = None,
+    policy: NavPolicy | None = None,
+) -> TrainResult:
+    """Run (or resume) behaviour cloning; writes ``config.json``, CSV logs, checkpoints, export.
+
+    Args:
+        cfg: the run config (``cfg.data.shards`` is used when ``dataset`` is None).
+        out_dir: run folder.
+        dataset: optional in-memory dataset (``InMemoryNavDataset``) instead of shards.
+        resume: checkpoint to resume from (``"last"`` = ``out_dir/checkpoints/last.ckpt``).
+        export: write merged weights to ``out_dir/export`` at the end.
+        max_steps: stop after this global step (the LR schedule still uses ``cfg.train.max_steps``);
+            lets a test interrupt a run and resume it.
+        policy: an already built policy (default: built from ``cfg`` with ``cfg.train.seed``).
+    """
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
+
+    tc = cfg.train
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / ".config.json.tmp"
+    tmp.write_text(json.dumps(cfg.to_dict(), indent=2))
+    os.replace(tmp, out / "config.json")
+
+    L.seed_everything(tc.seed, workers=True, verbose=False)
+    policy = policy or build_policy(cfg, seed=tc.seed)
+    module = NavBCModule(policy, cfg, dataset)
+    loggers = [CSVLogger(str(out), name="logs", version="")]
+    if tc.wandb:
+        from lightning.pytorch.loggers import WandbLogger
+
+        os.environ.setdefault("WANDB_MODE", "offline")
+        loggers.append(WandbLogger(project=tc.wandb_project, save_dir=str(out), config=cfg.to_dict()))
+    ckpt = ModelCheckpoint(dirpath=str(out / "checkpoints"), every_n_train_steps=tc.checkpoint_every,
+                           save_last=True, save_top_k=-1, filename="step{step:06d}", auto_insert_metric_name=False)
+    strategy = make_strategy(tc)
+    trainer = L.Trainer(
+        accelerator=tc.accelerator,
+        devices=tc.devices,
+        strategy=strategy,
+        precision=tc.precision,
+        max_steps=max_steps if max_steps is not None else tc.max_steps,
+        accumulate_grad_batches=tc.accumulate_grad_batches,
+        gradient_clip_val=tc.grad_clip if tc.grad_clip > 0 else None,
+        log_every_n_steps=tc.log_every,
+        logger=loggers,
+        callbacks=[ckpt],
+        enable_progress_bar=True,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        default_root_dir=str(out),
+    )
+    ckpt_path = None
+    if resume is not None:
+        ckpt_path = str(out / "checkpoints" / "last.ckpt") if str(resume) == "last" else str(resume)
+        if not Path(ckpt_path).exists():
+            raise FileNotFoundError(f"resume checkpoint {ckpt_path} not found")
+    trainer.fit(module, ckpt_path=ckpt_path)
+    last = out / "checkpoints" / "last.ckpt"
+    export_dir = None
+    if export and trainer.is_global_zero:
+        export_dir = export_policy(policy, out / "export")
+    return TrainResult(out, module, int(trainer.global_step), last if last.exists() else None, export_dir)
