@@ -166,7 +166,9 @@ class EpisodeSpec:
     episode_id: str
     """Episode identifier, used in every error message."""
     reference_path: np.ndarray | None = None
-    """Ground-truth path (K, 3) for nDTW/sDTW; ``None`` makes them n/a for this episode."""
+    """Ground-truth path (K, 3) for nDTW/sDTW; ``None`` makes them n/a for this episode. VLN-CE
+    scores nDTW against the dense ``locations`` of ``{split}_gt.json.gz``, not the sparse
+    ``reference_path`` of the episode file: pass those for comparable numbers."""
 
 
 class MeasureError(RuntimeError):
@@ -291,7 +293,11 @@ class SPL(Measure):
 
 
 class NDTW(Measure):
-    """nDTW of the (consecutively de-duplicated) visited positions against the reference path."""
+    """nDTW of the (consecutively de-duplicated) visited positions against the reference path.
+
+    The start position is part of the path (VLN-CE's measure only records positions after the
+    first action; the two agree whenever the first action does not move the agent).
+    """
 
     uuid = "ndtw"
 
