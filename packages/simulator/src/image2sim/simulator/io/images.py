@@ -76,7 +76,15 @@ def read_uint16(path: Path, what: str = "depth") -> np.ndarray:
 
 
 def image_size(path: Path, what: str = "image") -> tuple[int, int]:
-    """(height, width) of an image file (decodes it; used once per capture)."""
+    """(height, width) of an image file; PNGs are answered from the header, others decoded."""
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{path}: missing {what} file")
+    with path.open("rb") as fh:
+        head = fh.read(24)
+    # PNG: 8-byte magic, then the IHDR chunk (length, b"IHDR", width, height as big-endian uint32).
+    if head.startswith(_PNG_MAGIC) and head[12:16] == b"IHDR":
+        return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
     image = _decode(path, what, cv2.IMREAD_UNCHANGED)
     return int(image.shape[0]), int(image.shape[1])
 

@@ -1,0 +1,134 @@
+"""Back-project capture frames into the world and fuse them into one voxel-averaged coloured cloud.
+
+Fusion streams: each frame is reduced to per-voxel sums (position, colour, count) with
+:func:`image2sim.simulator.geometry.voxel.voxel_groups`, and the sums are merged across frames by
+voxel key. The result equals :func:`~image2sim.simulator.geometry.voxel.voxel_downsample` of all
+points at once (the mean of every voxel over every frame), without holding every point in memory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from image2sim.simulator.geometry.voxel import voxel_groups
+from image2sim.simulator.io.records import Capture, Frame
+
+__all__ = ["backproject_frame", "fuse_frames", "select_indices", "VoxelAccumulator"]
+
+_KEY_BITS = 21  # per axis; +-2^20 voxels = +-52 km at 5 cm
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+def backproject_frame(frame: Frame, dtype: torch.dtype = torch.float64) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) float64 and colours (N, 3) uint8 of every valid (depth > 0) pixel."""
+    depth = torch.from_numpy(np.ascontiguousarray(frame.depth)).to(dtype)
+    valid = (depth > 0).numpy()
+    cam_points = frame.camera.unproject(depth)[torch.from_numpy(valid)]  # (N, 3) camera frame
+    pose = torch.from_numpy(np.asarray(frame.cam_to_world, dtype=np.float64)).to(dtype)
+    world = cam_points @ pose[:3, :3].T + pose[:3, 3]
+    return world.to(torch.float64).numpy(), np.asarray(frame.rgb)[valid]
+
+
+def _pack(keys: torch.Tensor) -> torch.Tensor:
+    """(M, 3) int64 voxel keys -> (M,) int64, injective while every |key| < 2^20."""
+    if keys.numel() and int(keys.abs().amax()) >= _KEY_OFFSET:
+        raise ValueError(f"fusion: voxel coordinates exceed +-{_KEY_OFFSET} voxels; use a larger voxel size")
+    k = keys + _KEY_OFFSET
+    return (k[:, 0] << (2 * _KEY_BITS)) | (k[:, 1] << _KEY_BITS) | k[:, 2]
+
+
+class VoxelAccumulator:
+    """Running per-voxel sums of position and colour; add point batches, then :meth:`result`."""
+
+    def __init__(self, voxel_size: float, merge_rows: int = 4_000_000) -> None:
+        if not (float(voxel_size) > 0 and np.isfinite(voxel_size)):
+            raise ValueError(f"voxel_size must be a positive finite number, got {voxel_size}")
+        self.voxel_size = float(voxel_size)
+        self.merge_rows = int(merge_rows)
+        self._keys: list[torch.Tensor] = []
+        self._sums: list[torch.Tensor] = []  # (M, 7): sum x, y, z, r, g, b, count
+        self.num_points = 0
+
+    def add(self, points: np.ndarray, colors: np.ndarray) -> None:
+        """Add world points (N, 3) and colours (N, 3) uint8."""
+        if len(points) == 0:
+            return
+        pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float64))
+        keys, inverse, counts = voxel_groups(pts, self.voxel_size)
+        sums = torch.zeros((keys.shape[0], 7), dtype=torch.float64)
+        sums[:, :3].index_add_(0, inverse, pts)
+        sums[:, 3:6].index_add_(0, inverse, torch.from_numpy(np.asarray(colors, dtype=np.float64)))
+        sums[:, 6] = counts.to(torch.float64)
+        self._keys.append(_pack(keys))
+        self._sums.append(sums)
+        self.num_points += len(points)
+        if sum(len(k) for k in self._keys) > self.merge_rows:
+            self._merge()
+
+    def _merge(self) -> None:
+        if len(self._keys) <= 1:
+            return
+        keys = torch.cat(self._keys)
+        sums = torch.cat(self._sums)
+        uniq, inverse = torch.unique(keys, sorted=True, return_inverse=True)
+        merged = torch.zeros((uniq.shape[0], 7), dtype=torch.float64)
+        merged.index_add_(0, inverse, sums)
+        self._keys, self._sums = [uniq], [merged]
+
+    def __len__(self) -> int:
+        self._merge()
+        return int(self._keys[0].shape[0]) if self._keys else 0
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """(points (M, 3) float64 voxel means, colours (M, 3) uint8 rounded means), ordered by voxel key."""
+        self._merge()
+        if not self._keys:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+        sums = self._sums[0]
+        mean = sums[:, :6] / sums[:, 6:7]
+        colors = torch.clamp(torch.round(mean[:, 3:6]), 0, 255).to(torch.uint8)
+        return mean[:, :3].numpy(), colors.numpy()
+
+
+def select_indices(n: int, stride: int = 1, max_frames: int | None = None) -> list[int]:
+    """Frame indices ``0, stride, 2*stride, ...`` capped at ``max_frames``."""
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames must be >= 1, got {max_frames}")
+    idx = list(range(0, n, stride))
+    return idx[:max_frames] if max_frames is not None else idx
+
+
+def fuse_frames(
+    capture: Capture | Sequence[Frame],
+    voxel_size: float,
+    indices: Sequence[int] | None = None,
+    *,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Fuse frames (all, or ``indices``) into ``(points (M, 3), colours (M, 3) uint8, input point count)``."""
+    indices = list(range(len(capture))) if indices is None else list(indices)
+    acc = VoxelAccumulator(voxel_size)
+
+    def step(i: int) -> None:
+        points, colors = backproject_frame(capture[i])
+        acc.add(points, colors)
+
+    if progress:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        columns = (TextColumn("fusing"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+        with Progress(*columns) as bar:
+            task = bar.add_task("fuse", total=len(indices))
+            for i in indices:
+                step(i)
+                bar.advance(task)
+    else:
+        for i in indices:
+            step(i)
+    points, colors = acc.result()
+    return points, colors, acc.num_points

@@ -1,0 +1,162 @@
+"""Reader for ``realsee`` scenes (Realsee-style panoramic RGB-D viewpoints).
+
+Layout: ``viewpoints.txt`` (one id per line) and ``viewpoints/<id>/`` with ``panoImage_1600.jpg``
+(equirect colour), ``depth_image.png`` (uint16 range; metres = value / ``depth_scale.txt``, 0 =
+invalid; ``depth_scale.txt`` is looked up in the viewpoint folder, then the scene folder) and
+``extrinsics.txt`` (4x4 row-major camera-to-world).
+
+Conversions:
+
+* World: Realsee is Y-down; ours is Z-up: (x, y, z) -> (x, z, -y), i.e. ``T_ours = M @ T_realsee``
+  with ``M = Y_DOWN_TO_Z_UP_WORLD`` (a proper rotation). The camera frame (x right, y down,
+  z forward) already is OpenCV, so nothing changes on the camera side.
+* Pixels: Realsee maps pixel *index* (u, v) to ``lon = (u/W - 0.5) 2 pi``, ``lat = (v/H - 0.5) pi``
+  (latitude positive down), i.e. its sample ``u`` sits where our continuous coordinate is ``u`` -
+  half a pixel away from our pixel centre ``u + 0.5``. Left alone this rotates every panorama by
+  half a pixel (0.11 deg at 1600 px; a 6 mm error at 3 m, much more on small images). We therefore
+  **resample** colour and depth onto our grid (the grid of the depth image): our pixel centre
+  ``(j + 0.5, i + 0.5)`` reads the Realsee image at index ``(j + 0.5) W_src / W`` (wrapping across the
+  seam) and ``(i + 0.5) H_src / H`` (clamped at the bottom pole). Colour is bilinear; depth is
+  edge-aware (:func:`image2sim.simulator.io.resample.sample_depth`). Each frame's ``notes`` say so.
+  ``half_pixel="ignore"`` skips the resampling (colour must then already match the depth size) and
+  records the uncorrected offset in the notes instead.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from image2sim.simulator.conventions import Y_DOWN_TO_Z_UP_WORLD
+from image2sim.simulator.geometry.cameras import EquirectCamera
+from image2sim.simulator.io.images import image_size, read_rgb, read_uint16
+from image2sim.simulator.io.records import Capture, CaptureError, Frame
+from image2sim.simulator.io.resample import planar_rel_tol, sample_depth, sample_rgb
+from image2sim.simulator.io.validation import check_equirect_size, check_pose, check_same_size, read_matrix_txt
+
+__all__ = ["FORMAT", "is_realsee", "read_realsee", "realsee_pose_to_cam_to_world", "realsee_pixel_direction"]
+
+FORMAT = "realsee"
+RGB_NAME = "panoImage_1600.jpg"
+DEPTH_NAME = "depth_image.png"
+EXTRINSICS_NAME = "extrinsics.txt"
+DEPTH_SCALE_NAME = "depth_scale.txt"
+HALF_PIXEL_MODES = ("resample", "ignore")
+
+
+def realsee_pixel_direction(u: np.ndarray, v: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The format's own mapping: pixel index (u, v) -> unit direction (..., 3) in its camera frame."""
+    lon = (np.asarray(u, dtype=np.float64) / width - 0.5) * 2.0 * np.pi
+    lat = (np.asarray(v, dtype=np.float64) / height - 0.5) * np.pi
+    return np.stack((np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)), axis=-1)
+
+
+def realsee_pose_to_cam_to_world(extrinsics: np.ndarray, source: str | Path) -> np.ndarray:
+    """Realsee camera-to-world (Y-down world) -> ours (Z-up world), checked."""
+    pose = check_pose(extrinsics, source)
+    world = np.eye(4)
+    world[:3, :3] = Y_DOWN_TO_Z_UP_WORLD
+    return check_pose(world @ pose, source)
+
+
+def is_realsee(path: Path) -> bool:
+    """A folder with ``viewpoints.txt`` and a ``viewpoints/`` subfolder."""
+    path = Path(path)
+    return (path / "viewpoints.txt").is_file() and (path / "viewpoints").is_dir()
+
+
+def _read_depth_scale(root: Path, vp_dir: Path) -> float:
+    path = vp_dir / DEPTH_SCALE_NAME
+    if not path.is_file():
+        path = root / DEPTH_SCALE_NAME
+    if not path.is_file():
+        raise CaptureError(f"{vp_dir / DEPTH_SCALE_NAME}: missing depth scale file (also not in {root})")
+    scale = float(read_matrix_txt(path, (1,), "depth scale")[0])
+    if not np.isfinite(scale) or scale <= 0:
+        raise CaptureError(f"{path}: depth scale must be a positive finite number, got {scale}")
+    return scale
+
+
+@lru_cache(maxsize=8)
+def _source_coords(dst_h: int, dst_w: int, src_h: int, src_w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous source coordinates (u, v) (centres at +0.5) read by each pixel of our grid."""
+    j = np.arange(dst_w, dtype=np.float64) + 0.5
+    i = np.arange(dst_h, dtype=np.float64) + 0.5
+    index_u = j * (src_w / dst_w)  # Realsee pixel index with the same longitude as our centre j + 0.5
+    index_v = i * (src_h / dst_h)
+    uu, vv = np.meshgrid(index_u + 0.5, index_v + 0.5)  # index -> continuous coordinate
+    return uu, vv
+
+
+def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "resample") -> Capture:
+    """Open a Realsee scene folder; poses are parsed and checked now, images load lazily.
+
+    ``half_pixel``: ``"resample"`` (default; see the module docstring) or ``"ignore"``.
+    With ``strict=False`` viewpoints with a missing file or a bad pose/scale go to ``Capture.skipped``.
+    """
+    if half_pixel not in HALF_PIXEL_MODES:
+        raise CaptureError(f"realsee option half_pixel={half_pixel!r}: expected one of {HALF_PIXEL_MODES}")
+    root = Path(path)
+    list_path = root / "viewpoints.txt"
+    if not list_path.is_file():
+        raise CaptureError(f"{list_path}: missing viewpoint list")
+    vp_ids = [line.strip() for line in list_path.read_text(encoding="utf-8", errors="replace").splitlines()]
+    vp_ids = [v for v in vp_ids if v]
+    if len(set(vp_ids)) != len(vp_ids):
+        raise CaptureError(f"{list_path}: duplicate viewpoint ids")
+    ids, poses, scales, skipped = [], [], {}, []
+    for vid in vp_ids:
+        vp_dir = root / "viewpoints" / vid
+        try:
+            if not vp_dir.is_dir():
+                raise CaptureError(f"{vp_dir}: missing viewpoint folder (listed in {list_path.name})")
+            for name in (RGB_NAME, DEPTH_NAME):
+                if not (vp_dir / name).is_file():
+                    raise CaptureError(f"{vp_dir / name}: missing file")
+            ext_path = vp_dir / EXTRINSICS_NAME
+            pose = realsee_pose_to_cam_to_world(read_matrix_txt(ext_path, (4, 4), "extrinsics"), ext_path)
+            scales[vid] = _read_depth_scale(root, vp_dir)
+        except CaptureError as err:
+            if strict:
+                raise
+            skipped.append((vid, str(err)))
+            continue
+        ids.append(vid)
+        poses.append(pose)
+    if not ids:
+        raise CaptureError(f"{root}: no usable realsee viewpoints" + (f" ({len(skipped)} skipped)" if skipped else ""))
+    first_depth = root / "viewpoints" / ids[0] / DEPTH_NAME
+    height, width = image_size(first_depth, "depth")
+    check_equirect_size(height, width, first_depth)
+    camera = EquirectCamera(height, width)
+    pose_of = dict(zip(ids, poses))
+
+    def load(vid: str) -> Frame:
+        vp_dir = root / "viewpoints" / vid
+        rgb = read_rgb(vp_dir / RGB_NAME)
+        raw = read_uint16(vp_dir / DEPTH_NAME)
+        check_equirect_size(*rgb.shape[:2], vp_dir / RGB_NAME)
+        if raw.shape != (height, width):
+            raise CaptureError(
+                f"{vp_dir / DEPTH_NAME}: image is {raw.shape[1]}x{raw.shape[0]}, other viewpoints are {width}x{height}"
+            )
+        depth = raw.astype(np.float32) / np.float32(scales[vid])
+        notes = []
+        if half_pixel == "resample":
+            src_h, src_w = rgb.shape[:2]
+            uu, vv = _source_coords(height, width, height, width)
+            depth = sample_depth(depth, uu, vv, wrap_u=True, rel_tol=planar_rel_tol(2 * np.pi / width))
+            cu, cv = _source_coords(height, width, src_h, src_w)
+            rgb = sample_rgb(rgb, cu, cv, wrap_u=True)
+            notes.append(
+                "resampled by half a pixel onto our pixel-centre grid (Realsee samples at integer indices): "
+                f"depth edge-aware, colour bilinear from {src_w}x{src_h} to {width}x{height}"
+            )
+        else:
+            check_same_size(rgb, depth, vp_dir / RGB_NAME)
+            notes.append("half-pixel offset NOT corrected: samples sit 0.5 px left/up of our pixel centres")
+        return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[vid].copy(), frame_id=vid, notes=notes)
+
+    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack(poses), camera=camera)
