@@ -15,6 +15,7 @@ from image2sim.eval.metrics.nav import (
     AggregationError,
     EpisodeResult,
     EpisodeSpec,
+    IncrementalNDTW,
     Measure,
     MeasureError,
     Measurements,
@@ -22,6 +23,7 @@ from image2sim.eval.metrics.nav import (
     dedupe_consecutive,
     dtw,
     dtw_from_costs,
+    dtw_from_costs_antidiagonal,
     evaluate_episode,
     ndtw,
     path_length,
@@ -64,7 +66,16 @@ def _paths(dim: int) -> st.SearchStrategy[np.ndarray]:
 @given(st.integers(2, 3).flatmap(lambda d: st.tuples(_paths(d), _paths(d))))
 def test_dtw_matches_memoised_reference(pair: tuple[np.ndarray, np.ndarray]) -> None:
     path, ref = pair
-    assert dtw(path, ref) == pytest.approx(reference_dtw(path, ref), rel=1e-12, abs=1e-9)
+    expected = reference_dtw(path, ref)
+    assert dtw(path, ref) == pytest.approx(expected, rel=1e-12, abs=1e-9)
+    cost = np.linalg.norm(path[:, None] - ref[None], axis=-1)
+    assert dtw_from_costs_antidiagonal(cost) == pytest.approx(expected, rel=1e-12, abs=1e-9)
+    # Growing the path point by point gives the same DTW at every prefix.
+    inc = IncrementalNDTW(ref, threshold=2.0)
+    for k in range(len(path)):
+        inc.append(path[k])
+    assert inc.dtw == pytest.approx(expected, rel=1e-12, abs=1e-9)
+    assert inc.value == pytest.approx(ndtw(path, ref, threshold=2.0), rel=1e-12)
     # DTW with symmetric steps is symmetric in its arguments.
     assert dtw(ref, path) == pytest.approx(dtw(path, ref), rel=1e-12, abs=1e-9)
 
@@ -87,6 +98,12 @@ def test_dtw_rejects_degenerate_inputs() -> None:
         dtw([[0, 0, 0]], [[0, np.nan, 0]])
     with pytest.raises(ValueError, match="dimensions differ"):
         dtw([[0, 0, 0]], [[0, 0]])
+    with pytest.raises(ValueError, match="non-negative"):
+        dtw_from_costs([[1.0, -1.0]])
+    with pytest.raises(ValueError, match="non-empty 2-D"):
+        dtw_from_costs(np.zeros((0, 2)))
+    with pytest.raises(ValueError, match="no point appended"):
+        IncrementalNDTW([[0, 0, 0]]).value  # noqa: B018
 
 
 @given(_paths(3))

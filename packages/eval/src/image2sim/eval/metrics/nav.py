@@ -55,16 +55,57 @@ def pairwise_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
 
 
-def dtw_from_costs(cost: np.ndarray) -> float:
-    """Exact DTW cost of a local cost matrix ``(n, m)`` (steps (1,0), (0,1), (1,1), all weight 1).
-
-    ``D[i, j] = cost[i, j] + min(D[i-1, j], D[i, j-1], D[i-1, j-1])``, ``D[0, 0] = cost[0, 0]``.
-    Cells on one anti-diagonal ``i + j = k`` depend only on diagonals ``k-1`` and ``k-2``, so each
-    diagonal is one vectorised numpy update: O(n + m) Python steps, O(nm) work.
-    """
+def _check_costs(cost: Any) -> np.ndarray:
     cost = np.asarray(cost, dtype=np.float64)
     if cost.ndim != 2 or cost.shape[0] == 0 or cost.shape[1] == 0:
         raise ValueError(f"cost: expected a non-empty 2-D matrix, got shape {cost.shape}")
+    return cost
+
+
+def dtw_next_row(prev: np.ndarray | None, cost_row: np.ndarray) -> np.ndarray:
+    """One row of the DTW accumulator: ``D[i, :]`` from ``D[i-1, :]`` (``None`` for ``i = 0``).
+
+    The in-row recurrence ``x_j = c_j + min(a_j, x_{j-1})`` with ``a_j = min(D[i-1, j],
+    D[i-1, j-1])`` unrolls to ``x_j = C_j + min_{k <= j}(a_k - C_{k-1})`` where ``C`` is the
+    cumulative sum of ``c`` (costs are non-negative), i.e. one ``cumsum`` and one running minimum.
+    """
+    csum = np.cumsum(cost_row)
+    if prev is None:
+        return csum
+    a = np.empty_like(cost_row)
+    a[0] = prev[0]
+    np.minimum(prev[1:], prev[:-1], out=a[1:])
+    shifted = np.empty_like(csum)
+    shifted[0] = 0.0
+    shifted[1:] = csum[:-1]
+    return csum + np.minimum.accumulate(a - shifted)
+
+
+def dtw_from_costs(cost: Any) -> float:
+    """Exact DTW cost of a non-negative local cost matrix ``(n, m)`` (steps (1,0), (0,1), (1,1)).
+
+    ``D[i, j] = cost[i, j] + min(D[i-1, j], D[i, j-1], D[i-1, j-1])``, ``D[0, 0] = cost[0, 0]``,
+    computed row by row with :func:`dtw_next_row` along the longer axis (DTW is symmetric under
+    transposition), so there are min(n, m) vectorised Python steps and O(nm) work.
+    """
+    cost = _check_costs(cost)
+    if np.any(cost < 0):
+        raise ValueError("cost: DTW needs non-negative local costs")
+    if cost.shape[0] > cost.shape[1]:
+        cost = cost.T
+    row = None
+    for c in cost:
+        row = dtw_next_row(row, c)
+    return float(row[-1])
+
+
+def dtw_from_costs_antidiagonal(cost: Any) -> float:
+    """Same as :func:`dtw_from_costs`, one vectorised update per anti-diagonal (n + m - 1 steps).
+
+    Independent second implementation (no cumulative sums); used as a cross-check and in the
+    benchmark.
+    """
+    cost = _check_costs(cost)
     n, m = cost.shape
     # Padded accumulator: row/column 0 are +inf borders except the (0, 0) seed.
     acc = np.full((n + 1, m + 1), np.inf)
@@ -75,6 +116,36 @@ def dtw_from_costs(cost: np.ndarray) -> float:
         best = np.minimum(np.minimum(acc[i - 1, j], acc[i, j - 1]), acc[i - 1, j - 1])
         acc[i, j] = cost[i - 1, j - 1] + best
     return float(acc[n, m])
+
+
+class IncrementalNDTW:
+    """nDTW of a growing path against a fixed reference, O(len(reference)) per appended point.
+
+    Keeps the last accumulator row, so an episode of T steps costs O(T m) in total instead of
+    recomputing DTW from scratch after every step (O(T^2 m)).
+    """
+
+    def __init__(self, reference: Any, threshold: float = 3.0) -> None:
+        self.reference = _as_points(reference, "reference")
+        self.threshold = _check_threshold(threshold)
+        self._row: np.ndarray | None = None
+
+    def append(self, point: Any) -> None:
+        """Extend the path by one point."""
+        p = np.asarray(point, dtype=np.float64).reshape(1, -1)
+        self._row = dtw_next_row(self._row, pairwise_distances(p, self.reference)[0])
+
+    @property
+    def dtw(self) -> float:
+        """DTW distance so far (error before the first point)."""
+        if self._row is None:
+            raise ValueError("IncrementalNDTW: no point appended yet")
+        return float(self._row[-1])
+
+    @property
+    def value(self) -> float:
+        """nDTW so far."""
+        return float(math.exp(-self.dtw / (len(self.reference) * self.threshold)))
 
 
 def dtw(path: Any, reference: Any) -> float:
@@ -302,22 +373,21 @@ class NDTW(Measure):
     uuid = "ndtw"
 
     def reset(self, episode: EpisodeSpec, state: AgentState, deps: Mapping[str, Measure]) -> None:
-        self._reference = None if episode.reference_path is None else _as_points(
-            episode.reference_path, f"episode {episode.episode_id}: reference_path"
-        )
-        self._positions = [np.asarray(state.position, dtype=np.float64)]
+        self._last = np.asarray(state.position, dtype=np.float64)
         self._value = None
-        self._refresh()
+        self._acc: IncrementalNDTW | None = None
+        if episode.reference_path is not None:
+            ref = _as_points(episode.reference_path, f"episode {episode.episode_id}: reference_path")
+            self._acc = IncrementalNDTW(ref, self.protocol.ndtw_threshold_m)
+            self._acc.append(self._last)
+            self._value = self._acc.value
 
     def update(self, action: int, state: AgentState, deps: Mapping[str, Measure]) -> None:
         pos = np.asarray(state.position, dtype=np.float64)
-        if not np.array_equal(pos, self._positions[-1]):
-            self._positions.append(pos)
-            self._refresh()
-
-    def _refresh(self) -> None:
-        if self._reference is not None:
-            self._value = ndtw(np.stack(self._positions), self._reference, self.protocol.ndtw_threshold_m)
+        if self._acc is not None and not np.array_equal(pos, self._last):
+            self._acc.append(pos)
+            self._value = self._acc.value
+        self._last = pos
 
 
 class SDTW(Measure):
