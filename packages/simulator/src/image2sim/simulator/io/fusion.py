@@ -9,11 +9,13 @@ points at once (the mean of every voxel over every frame), without holding every
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numpy as np
 import torch
 
 from image2sim.simulator.geometry.voxel import voxel_groups
+from image2sim.simulator.geometry.cameras import Camera
 from image2sim.simulator.io.records import Capture, Frame
 
 __all__ = ["backproject_frame", "fuse_frames", "select_indices", "VoxelAccumulator"]
@@ -22,14 +24,29 @@ _KEY_BITS = 21  # per axis; +-2^20 voxels = +-52 km at 5 cm
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
-def backproject_frame(frame: Frame, dtype: torch.dtype = torch.float64) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) float64 and colours (N, 3) uint8 of every valid (depth > 0) pixel."""
-    depth = torch.from_numpy(np.ascontiguousarray(frame.depth)).to(dtype)
-    valid = (depth > 0).numpy()
-    cam_points = frame.camera.unproject(depth)[torch.from_numpy(valid)]  # (N, 3) camera frame
-    pose = torch.from_numpy(np.asarray(frame.cam_to_world, dtype=np.float64)).to(dtype)
+@lru_cache(maxsize=4)
+def _unit_depth_points(camera: Camera) -> np.ndarray:
+    """Camera-frame points at depth 1 for every pixel, (H, W, 3) float64.
+
+    Unprojection is linear in depth for both camera models (range x unit ray; z x K^-1 ray), so
+    one cached map per camera turns every frame's back-projection into a multiply.
+    """
+    ones = torch.ones((camera.height, camera.width), dtype=torch.float64)
+    return camera.unproject(ones).numpy()
+
+
+def backproject_frame(frame: Frame, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) float64 and colours (N, 3) uint8 of the valid (depth > 0) pixels.
+
+    ``pixels`` optionally restricts to flat pixel indices (row-major); invalid ones are dropped.
+    """
+    depth = np.asarray(frame.depth).reshape(-1)
+    idx = np.flatnonzero(depth > 0) if pixels is None else np.asarray(pixels)[depth[pixels] > 0]
+    rays = _unit_depth_points(frame.camera).reshape(-1, 3)[idx]
+    cam_points = rays * depth[idx, None].astype(np.float64)
+    pose = np.asarray(frame.cam_to_world, dtype=np.float64)
     world = cam_points @ pose[:3, :3].T + pose[:3, 3]
-    return world.to(torch.float64).numpy(), np.asarray(frame.rgb)[valid]
+    return world, np.asarray(frame.rgb).reshape(-1, 3)[idx]
 
 
 def _pack(keys: torch.Tensor) -> torch.Tensor:

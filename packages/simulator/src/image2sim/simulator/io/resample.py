@@ -76,7 +76,7 @@ def sample_depth(
 ) -> np.ndarray:
     """Edge-aware depth sampling (0 = invalid in and out); returns float32 of shape ``u.shape``."""
     values, weights = _gather(np.asarray(depth, dtype=np.float32), u, v, wrap_u)
-    valid = values > 0
+    valid = (values > 0) & (weights > 0)  # zero-weight taps (exact hits, clamped borders) do not vote
     w = np.where(valid, weights, 0.0)
     wsum = w.sum(axis=0)
     mean = np.divide((w * values).sum(axis=0), wsum, out=np.zeros_like(wsum), where=wsum > 0)
