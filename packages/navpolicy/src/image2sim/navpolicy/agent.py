@@ -1,0 +1,215 @@
+"""Streaming Image2Nav inference with KV-cache reuse.
+
+Each call to :meth:`Image2NavAgent.act` adds one observation, builds the sparse-dense context (up to
+``sparse_frames`` history frames on a uniform stride grid over the episode plus the ``dense_frames``
+most recent frames), and greedily decodes the next two actions. The KV cache keeps the longest prefix
+of the previous step's tokens (system prompt, history turns, the previous reply) that the new context
+shares — compared token by token, images by frame identity — and only the rest is run through the
+model. Positions (Qwen3-VL's 3-D M-RoPE) are computed for the whole context every time, so the cached
+and recomputed paths see identical inputs; ``reuse_cache=False`` recomputes everything (the
+reference the tests compare against).
+
+The history grid uses a power-of-two stride, so the history part of the context changes only when
+the stride doubles or a new grid frame enters; while the episode has at most
+``sparse_frames + dense_frames`` observations, the context only grows and is reused entirely.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from image2sim.navpolicy.actions import ACTIONS_PER_STEP, parse_actions
+from image2sim.navpolicy.config import AgentConfig
+from image2sim.navpolicy.data import image_token_counts
+from image2sim.navpolicy.model import NavPolicy, base_qwen
+from image2sim.navpolicy.prompting import IMAGE_TOKEN, PromptBuilder, Turn, common_prefix_length
+from image2sim.simulator.conventions import Action
+
+
+def select_context_frames(n: int, sparse: int, dense: int) -> list[int]:
+    """Frame indices (sorted) of the context for an episode with ``n`` observations.
+
+    All frames while ``n <= sparse + dense``; otherwise the ``dense`` latest frames plus every
+    ``stride``-th earlier frame (0, s, 2s, ...), with ``stride`` the smallest power of two giving at
+    most ``sparse`` of them.
+    """
+    if n <= 0:
+        return []
+    if n <= sparse + dense:
+        return list(range(n))
+    history = n - dense
+    stride = 1
+    while -(-history // stride) > sparse:
+        stride *= 2
+    sparse_idx = list(range(0, history, stride)) if sparse > 0 else []
+    return sparse_idx + list(range(history, n))
+
+
+@dataclass
+class StepInfo:
+    """Diagnostics of one :meth:`Image2NavAgent.act` call."""
+
+    actions: list[Action]
+    generated_ids: list[int]
+    context_tokens: int
+    reused_tokens: int
+    fallback: bool
+    step_logits: list[torch.Tensor] = field(default_factory=list)
+
+
+class Image2NavAgent:
+    """Greedy streaming policy: ``reset(instruction)``, then ``act(rgb)`` -> two actions per step."""
+
+    def __init__(self, policy: NavPolicy, cfg: AgentConfig, system_prompt: str) -> None:
+        self.policy = policy
+        self.cfg = cfg
+        self.qwen = base_qwen(policy.model)
+        self.prompts = PromptBuilder(policy.tokenizer, policy.codec, system_prompt)
+        self.im_end_id = self.prompts.im_end_id
+        self.history: list[StepInfo] = []
+        self.reset("")
+
+    # ---------------------------------------------------------------------------------------- state
+    def reset(self, instruction: str, seed: int = 0) -> None:
+        """Start a new episode (clears frames, replies and the KV cache)."""
+        self.instruction = instruction
+        self.seed = seed
+        self.frames: list[np.ndarray] = []
+        self.executed: list[tuple[int, ...]] = []  # executed[k]: actions between frame k-1 and frame k
+        self.replies: list[tuple[int, ...]] = []
+        self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._cache = None
+        self._cache_keys: list[tuple] = []
+        self.history = []
+
+    def _image(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if k not in self._pixels:
+            out = self.policy.image_processor(images=[self.frames[k]], return_tensors="pt")
+            self._pixels[k] = (out["pixel_values"], out["image_grid_thw"])
+        return self._pixels[k]
+
+    def _context(self):
+        n = len(self.frames)
+        idx = select_context_frames(n, self.cfg.sparse_frames, self.cfg.dense_frames)
+        turns, prev = [], None
+        for k in idx:
+            executed = () if prev is None else tuple(a for j in range(prev + 1, k + 1) for a in self.executed[j])
+            n_tok = image_token_counts(self._image(k)[1], self.policy.image_processor.merge_size)[0]
+            target = self.replies[k] if k < n - 1 else None
+            turns.append(Turn(frame_key=k, num_image_tokens=n_tok, executed=executed, target=target))
+            prev = k
+        return idx, turns
+
+    # ------------------------------------------------------------------------------------ model I/O
+    def _positions(self, ids: list[int], mm: list[int], grids: torch.Tensor | None) -> torch.Tensor:
+        """(4, 1, L) position ids: the plain token index (for the causal mask) + 3-D M-RoPE."""
+        t_ids = torch.tensor([ids])
+        text = torch.arange(len(ids)).view(1, 1, -1)
+        if grids is None:
+            return text.expand(4, 1, -1)
+        rope, _ = self.qwen.model.get_rope_index(t_ids, mm_token_type_ids=torch.tensor([mm]), image_grid_thw=grids)
+        return torch.cat([text, rope], dim=0)
+
+    def _run(self, ids, mm, keys, frame_idx: list[int], start: int):
+        """Feed tokens ``[start:]`` given a cache holding ``[:start]``; returns last-position logits."""
+        # Never split an image block: move ``start`` back to the block's first token.
+        while 0 < start < len(mm) and mm[start] == IMAGE_TOKEN and mm[start - 1] == IMAGE_TOKEN:
+            start -= 1
+        if self._cache is None or start == 0:
+            from transformers import DynamicCache
+
+            self._cache = DynamicCache(config=self.qwen.config.text_config)
+            start = 0
+        else:
+            excess = self._cache.get_seq_length() - start
+            if excess > 0:
+                self._cache.crop(-excess)
+        grids = torch.cat([self._image(k)[1] for k in frame_idx]) if frame_idx else None
+        pos = self._positions(ids, mm, grids)[:, :, start:]
+        # Images whose tokens are new (blocks are contiguous and in frame order).
+        new_frames, seen = [], set()
+        for j in range(start, len(keys)):
+            fk = keys[j][1]
+            if mm[j] == IMAGE_TOKEN and fk not in seen:
+                seen.add(fk)
+                new_frames.append(fk)
+        kwargs = {}
+        if new_frames:
+            kwargs["pixel_values"] = torch.cat([self._image(k)[0] for k in new_frames])
+            kwargs["image_grid_thw"] = torch.cat([self._image(k)[1] for k in new_frames])
+        out = self.qwen(
+            input_ids=torch.tensor([ids[start:]]),
+            mm_token_type_ids=torch.tensor([mm[start:]]),
+            position_ids=pos,
+            past_key_values=self._cache,
+            use_cache=True,
+            logits_to_keep=1,
+            **kwargs,
+        )
+        self._cache_keys = list(keys)
+        return out.logits[0, -1].float(), start
+
+    # ------------------------------------------------------------------------------------------ act
+    @torch.no_grad()
+    def act(self, rgb: np.ndarray, executed: list[int] | None = None) -> list[Action]:
+        """Observe ``rgb`` (H, W, 3 uint8) and return the next two actions.
+
+        ``executed`` lists the actions actually carried out since the previous call (default: the
+        previous reply, cut after a STOP).
+        """
+        self.qwen.eval()
+        if self.frames:
+            if executed is None:
+                prev = list(self.replies[-1])
+                executed = prev[: prev.index(Action.STOP) + 1] if Action.STOP in prev else prev
+            self.executed.append(tuple(int(a) for a in executed))
+        else:
+            self.executed.append(())
+        self.frames.append(np.asarray(rgb))
+        frame_idx, turns = self._context()
+        enc = self.prompts.encode(self.instruction, turns, add_generation_prompt=True)
+        ids, mm, keys = list(enc.input_ids), list(enc.mm_token_type_ids), list(enc.keys)
+        reuse = common_prefix_length(self._cache_keys, keys) if self.cfg.reuse_cache else 0
+        reuse = min(reuse, len(ids) - 1)  # always run at least one token to get logits
+        logits, start = self._run(ids, mm, keys, frame_idx, reuse)
+        generated, step_logits = [], [logits]
+        actions: list[Action] = []
+        fallback = False
+        if self.cfg.constrained:
+            for position in range(ACTIONS_PER_STEP):
+                prefix: list[int] = []
+                while True:
+                    allowed = self.policy.codec.allowed_next(position, prefix)
+                    tok = allowed[int(torch.argmax(logits[allowed]))]
+                    prefix.append(tok)
+                    generated.append(tok)
+                    done = self.policy.codec.match(position, prefix)
+                    last = done is not None and position == ACTIONS_PER_STEP - 1
+                    if not last:
+                        ids, mm, keys = ids + [tok], mm + [0], keys + [(tok, None, 0)]
+                        logits, _ = self._run(ids, mm, keys, frame_idx, len(ids) - 1)
+                        step_logits.append(logits)
+                    if done is not None:
+                        actions.append(done)
+                        break
+        else:
+            for _ in range(self.cfg.max_new_tokens):
+                tok = int(torch.argmax(logits))
+                generated.append(tok)
+                if tok == self.im_end_id:
+                    break
+                ids, mm, keys = ids + [tok], mm + [0], keys + [(tok, None, 0)]
+                logits, _ = self._run(ids, mm, keys, frame_idx, len(ids) - 1)
+                step_logits.append(logits)
+            text = self.policy.tokenizer.decode([t for t in generated if t != self.im_end_id])
+            actions = parse_actions(text, self.policy.codec.texts)[:ACTIONS_PER_STEP]
+            if len(actions) < ACTIONS_PER_STEP:
+                fallback = True
+                actions = actions + [Action(self.cfg.fallback_action)] * (ACTIONS_PER_STEP - len(actions))
+        self.replies.append(tuple(int(a) for a in actions))
+        self.history.append(StepInfo(actions=list(actions), generated_ids=generated, context_tokens=len(enc),
+                                     reused_tokens=start, fallback=fallback, step_logits=step_logits))
+        return list(actions)

@@ -1,0 +1,188 @@
+"""Prompt layout, label masking, sample construction and the shard format."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from image2sim.navpolicy.data import (
+    InMemoryNavDataset,
+    NavCollator,
+    NavShardDataset,
+    ShardError,
+    ShardReader,
+    Trajectory,
+    make_sample,
+    next_actions,
+    synthetic_trajectories,
+    uniform_indices,
+    write_shard,
+)
+from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder, Turn
+from image2sim.simulator.conventions import Action
+
+
+@pytest.fixture(scope="module")
+def builder(tiny_policy, tiny_cfg):
+    return PromptBuilder(tiny_policy.tokenizer, tiny_policy.codec, tiny_cfg.system_prompt)
+
+
+def _labelled_positions_by_scanning(ids: list[int], tok) -> list[int]:
+    """Reference: the two tokens right after each ``<|im_start|>assistant\\n`` that precede ``<|im_end|>``."""
+    head = tok("<|im_start|>assistant\n", add_special_tokens=False)["input_ids"]
+    im_end = tok.convert_tokens_to_ids("<|im_end|>")
+    out = []
+    for i in range(len(ids) - len(head)):
+        if ids[i : i + len(head)] == head:
+            j = i + len(head)
+            k = j
+            while k < len(ids) and ids[k] != im_end:
+                k += 1
+            out.extend(range(j, k))
+    return out
+
+
+def test_prompt_text_layout(builder, tiny_policy):
+    turns = [
+        Turn(frame_key=0, num_image_tokens=3, executed=(), target=(1, 1)),
+        Turn(frame_key=4, num_image_tokens=3, executed=(1, 1, 2, 3), target=(2, 0)),
+    ]
+    enc = builder.encode("go to the sofa", turns)
+    text = tiny_policy.tokenizer.decode(enc.input_ids)
+    pad = "<|image_pad|>" * 3
+    assert text.endswith(
+        "Instruction: go to the sofa<|im_end|>\n"
+        f"<|im_start|>user\n<|vision_start|>{pad}<|vision_end|><|im_end|>\n"
+        "<|im_start|>assistant\nFORWARD FORWARD<|im_end|>\n"
+        f"<|im_start|>user\nExecuted: FORWARD FORWARD LEFT RIGHT\n<|vision_start|>{pad}<|vision_end|><|im_end|>\n"
+        "<|im_start|>assistant\nLEFT STOP<|im_end|>\n"
+    )
+    assert text.startswith("<|im_start|>system\nYou are a navigation agent")
+    # Labels: exactly the action tokens, with the token ids themselves (the model shifts internally).
+    lab = [i for i, v in enumerate(enc.labels) if v != IGNORE_INDEX]
+    assert lab == _labelled_positions_by_scanning(enc.input_ids, tiny_policy.tokenizer)
+    assert len(lab) == 4
+    assert [enc.input_ids[i] for i in lab] == [enc.labels[i] for i in lab]
+    assert tiny_policy.tokenizer.decode([enc.input_ids[i] for i in lab]) == "FORWARD FORWARDLEFT STOP"
+
+
+def test_generation_prompt_and_bad_turns(builder):
+    gen = builder.encode("x", [Turn(0, 2, (), (1, 2)), Turn(1, 2, (1, 2), None)], add_generation_prompt=True)
+    assert builder.tokenizer.decode(gen.input_ids).endswith("<|im_end|>\n<|im_start|>assistant\n")
+    assert sum(v != IGNORE_INDEX for v in gen.labels) == 2
+    with pytest.raises(ValueError, match="no target"):
+        builder.encode("x", [Turn(0, 2, (), None), Turn(1, 2, (), (1, 1))])
+    with pytest.raises(ValueError, match="must not have a target"):
+        builder.encode("x", [Turn(0, 2, (), (1, 1))], add_generation_prompt=True)
+    with pytest.raises(ValueError, match="2 actions"):
+        builder.encode("x", [Turn(0, 2, (), (1,))])
+    with pytest.raises(ValueError, match="at least one"):
+        builder.encode("x", [])
+
+
+@given(n=st.integers(0, 300), k=st.integers(0, 40), seed=st.one_of(st.none(), st.integers(0, 10)))
+def test_uniform_indices(n, k, seed):
+    rng = None if seed is None else np.random.default_rng(seed)
+    idx = uniform_indices(n, k, rng)
+    assert len(idx) == min(n, k) if (n > 0 and k > 0) else idx == []
+    assert idx == sorted(set(idx)) and all(0 <= i < n for i in idx)
+    if idx:
+        assert idx[0] == 0
+    if n > k > 1:
+        # One index per bin of width n/k: spread over the whole trajectory.
+        bins = [int(i * k // n) for i in idx]
+        assert bins == list(range(k)) or rng is None
+        assert max(idx) >= (k - 1) * n // k - 1
+
+
+def test_make_sample_pairs_observations_with_next_two_actions():
+    rng = np.random.default_rng(0)
+    T = 100
+    acts = [int(a) for a in rng.integers(1, 4, size=T - 1)] + [0]
+    frames = rng.integers(0, 255, size=(T, 4, 4, 3), dtype=np.uint8)
+    traj = Trajectory("i", acts, frames, list(range(T)))
+    s = make_sample(traj, 32, 64, rng)
+    assert len(s.steps) == 32 and s.num_labels == 64
+    for j, t in enumerate(s.steps):
+        assert np.array_equal(s.observations[j], frames[t])
+        assert s.targets[j] == (acts[t], acts[t + 1] if t + 1 < T else 0)
+        if j:
+            assert list(s.executed[j]) == acts[s.steps[j - 1] : t]
+    assert s.executed[0] == ()
+    # Fewer labels than 2 per observation limit the observation count.
+    assert len(make_sample(traj, 32, 10).steps) == 5
+    # Short trajectory: every frame, STOP padding past the end.
+    short = Trajectory("i", [1, 0], frames[:2], [0, 1])
+    s2 = make_sample(short)
+    assert s2.steps == [0, 1] and s2.targets == [(1, 0), (0, 0)]
+    assert next_actions([1, 2, 3], 2, 3) == (3, int(Action.STOP), int(Action.STOP))
+
+
+def test_collator_masks_everything_but_action_tokens(tiny_policy, builder):
+    trajs = synthetic_trajectories(3, min_len=5, max_len=70, seed=1)
+    samples = [make_sample(t, 32, 64, np.random.default_rng(i)) for i, t in enumerate(trajs)]
+    batch = NavCollator(builder, tiny_policy.image_processor)(samples)
+    ids, labels, mm, attn = batch["input_ids"], batch["labels"], batch["mm_token_type_ids"], batch["attention_mask"]
+    n_images = sum(len(s.steps) for s in samples)
+    assert batch["image_grid_thw"].shape == (n_images, 3)
+    assert batch["pixel_values"].shape[0] == int(batch["image_grid_thw"].prod(-1).sum())
+    pad_id = tiny_policy.tokenizer.convert_tokens_to_ids("<|image_pad|>")
+    assert int((ids == pad_id).sum()) == int(batch["image_grid_thw"].prod(-1).sum()) // 4
+    assert bool(((mm == 1) == (ids == pad_id)).all())
+    for b, s in enumerate(samples):
+        n = int(attn[b].sum())
+        assert bool((attn[b, :n] == 1).all()) and bool((attn[b, n:] == 0).all())
+        assert bool((labels[b, n:] == IGNORE_INDEX).all())
+        expected = _labelled_positions_by_scanning(ids[b, :n].tolist(), tiny_policy.tokenizer)
+        got = (labels[b] != IGNORE_INDEX).nonzero().flatten().tolist()
+        assert got == expected
+        assert len(got) == 2 * len(s.steps) <= 64 and len(s.steps) <= 32
+        codec = tiny_policy.codec
+        want = [tok for tgt in s.targets for piece in codec.encode(tgt) for tok in piece]
+        assert labels[b, got].tolist() == want
+    assert bool((labels[mm != 0] == IGNORE_INDEX).all())
+
+
+def test_shard_roundtrip_and_dataset(tmp_path):
+    trajs = synthetic_trajectories(4, min_len=3, max_len=12, height=8, width=12, seed=2)
+    trajs[1].frames = trajs[1].frames[::2]
+    trajs[1].frame_steps = trajs[1].frame_steps[::2]
+    root = write_shard(tmp_path / "shard-0", trajs, observation={"camera": "pinhole", "hfov_deg": 90})
+    manifest = json.loads((root / "manifest.json").read_text())
+    assert manifest["format"] == "image2sim-navshard" and manifest["num_trajectories"] == 4
+    reader = ShardReader(root)
+    for a, b in zip(trajs, (reader[i] for i in range(len(reader)))):
+        assert a.actions == b.actions and a.frame_steps == b.frame_steps and a.instruction == b.instruction
+        assert np.array_equal(a.frames, b.frames)
+    ds = NavShardDataset([root, root], max_observations=4, max_action_labels=8, seed=3)
+    assert len(ds) == 8
+    s1, s2 = ds[5], ds[5]
+    assert s1.steps == s2.steps  # reproducible per (seed, epoch, index)
+    assert set(s1.steps) <= set(reader[1].frame_steps)
+    mem = InMemoryNavDataset(trajs, 4, 8, seed=3)
+    assert mem[1].steps == ds[1].steps
+
+
+def test_shard_errors_name_the_file(tmp_path):
+    with pytest.raises(ShardError, match="manifest.json"):
+        ShardReader(tmp_path)
+    good = synthetic_trajectories(1, 3, 3, 4, 4)[0]
+    bad = Trajectory("i", [1, 9], good.frames[:2], [0, 1])
+    with pytest.raises(ShardError, match="unknown action ids"):
+        write_shard(tmp_path / "bad", [bad])
+    bad2 = Trajectory("i", [1, 0], good.frames[:2], [1, 0])
+    with pytest.raises(ShardError, match="increase"):
+        bad2.validate()
+    root = write_shard(tmp_path / "ok", [good])
+    (root / "frames" / "000000.npz").write_bytes(b"garbage")
+    with pytest.raises(ShardError, match="000000.npz"):
+        ShardReader(root)[0]
+    m = json.loads((root / "manifest.json").read_text())
+    m["version"] = 99
+    (root / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(ShardError, match="v99"):
+        ShardReader(root)
