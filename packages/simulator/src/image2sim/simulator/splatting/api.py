@@ -227,6 +227,8 @@ def splat(
         kwargs = {"radii": proj.radii[idx]} if name in ("torch", "cpu") else {}
         image, alpha = raster(proj.means2d[idx], proj.conics[idx], opacities[idx], values, bg_all,
                               camera.height, camera.width, proj.wrap_width, **kwargs)
+        if idx.numel() == 0:  # keep the output in the autograd graph even when nothing is visible
+            image = image + 0.0 * values.sum()
         images.append(image)
         alphas.append(alpha)
     image = torch.stack(images)

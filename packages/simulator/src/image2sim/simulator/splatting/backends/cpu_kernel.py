@@ -87,9 +87,9 @@ def bin_gaussians(means2d, radii, height: int, width: int, wrap_width: float, ti
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, values, background, offsets, ids, height, width, wrap, tile):
+    def forward(ctx, means2d, conics, opacities, values, background, radii, offsets, ids, height, width, wrap, tile):
         ext = load()
-        args = [t.detach().contiguous() for t in (means2d, conics, opacities, values, background)]
+        args = [t.detach().contiguous() for t in (means2d, radii, conics, opacities, values, background)]
         image, alpha, t_final, n_contrib = ext.rasterize_forward(*args, offsets, ids, height, width, wrap, tile)
         ctx.save_for_backward(*args, offsets, ids, alpha, t_final, n_contrib)
         ctx.grid = (height, width, wrap, tile)
@@ -97,16 +97,16 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_image, g_alpha):
-        means2d, conics, opacities, values, background, offsets, ids, alpha, t_final, n_contrib = ctx.saved_tensors
+        means2d, radii, conics, opacities, values, background, offsets, ids, alpha, t_final, n_contrib = ctx.saved_tensors
         height, width, wrap, tile = ctx.grid
         dtype = values.dtype
         g_image = torch.zeros_like(alpha.expand(values.shape[1], -1, -1)) if g_image is None else g_image
         g_alpha = torch.zeros_like(alpha) if g_alpha is None else g_alpha
         d_mean, d_conic, d_opac, d_vals, d_bg = load().rasterize_backward(
-            means2d, conics, opacities, values, background, offsets, ids, height, width, wrap, tile,
+            means2d, radii, conics, opacities, values, background, offsets, ids, height, width, wrap, tile,
             alpha, t_final, n_contrib, g_image.to(dtype).contiguous(), g_alpha.to(dtype).contiguous(),
         )
-        return d_mean, d_conic, d_opac, d_vals, d_bg, None, None, None, None, None, None
+        return d_mean, d_conic, d_opac, d_vals, d_bg, None, None, None, None, None, None, None
 
 
 def rasterize(
@@ -131,5 +131,6 @@ def rasterize(
         det = a * c - b * b
         radii = CUTOFF_SIGMA * torch.sqrt(torch.stack((c / det, a / det), dim=-1))
     offsets, ids = bin_gaussians(means2d, radii, height, width, wrap_width, tile)
-    return _Rasterize.apply(means2d, conics, opacities, values, background, offsets, ids,
+    radii = radii.detach().to(values.dtype)
+    return _Rasterize.apply(means2d, conics, opacities, values, background, radii, offsets, ids,
                             int(height), int(width), float(wrap_width), int(tile))

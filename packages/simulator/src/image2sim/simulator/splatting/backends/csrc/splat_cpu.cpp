@@ -46,8 +46,47 @@ inline TileView<double> tile_view(const Grid& g, int64_t t) {
   return v;
 }
 
+
+// Pixel window of one Gaussian's footprint box inside one tile: local columns [i0, i1), rows
+// [j0, j1) and the offsets (pixel centre - mean) of local pixel (0, 0). Offsets inside the
+// window never cross the panorama seam because the box half-width is < W/2 - tile there.
+struct Window {
+  int64_t i0, i1, j0, j1;
+  double dx0, dy0;
+};
+
+inline Window window(const Grid& g, const TileView<double>& tv, double mu, double mv, double ru, double rv) {
+  Window w;
+  w.dy0 = tv.y0 + 0.5 - mv;
+  w.j0 = std::max<int64_t>(0, (int64_t)std::ceil(-rv - w.dy0));
+  w.j1 = std::min<int64_t>(tv.h, (int64_t)std::floor(rv - w.dy0) + 1);
+  const double raw = tv.x0 + 0.5 - mu;
+  w.dx0 = wrap_dx(raw, g.wrap);
+  if (g.wrap > 0 && 2.0 * ru >= g.wrap - 2.0 * g.tile) {
+    // Near-full-width footprint: per-pixel wrapping, every column.
+    w.i0 = 0;
+    w.i1 = tv.w;
+    w.dx0 = std::nan("");
+    return w;
+  }
+  w.i0 = std::max<int64_t>(0, (int64_t)std::ceil(-ru - w.dx0));
+  w.i1 = std::min<int64_t>(tv.w, (int64_t)std::floor(ru - w.dx0) + 1);
+  return w;
+}
+
+inline double window_dx(const Grid& g, const TileView<double>& tv, const Window& w, double mu, int64_t i) {
+  if (std::isnan(w.dx0)) return wrap_dx(tv.x0 + i + 0.5 - mu, g.wrap);
+  return w.dx0 + i;
+}
+
+// Largest q at which alpha = o exp(-q/2) can still reach 1/255 (tiny margin: exact test follows).
+inline double q_limit(double o) {
+  if (!(o >= kAlphaMin)) return -1.0;
+  return std::min(kCutoff2, 2.0 * std::log(o / kAlphaMin) + 1e-6);
+}
+
 template <typename scalar_t>
-void forward_impl(const scalar_t* mean, const scalar_t* conic, const scalar_t* opac, const scalar_t* vals,
+void forward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* conic, const scalar_t* opac, const scalar_t* vals,
                   const scalar_t* bg, int64_t D, const int64_t* offs, const int64_t* ids, const Grid& g,
                   scalar_t* out, scalar_t* alpha_out, double* t_final, int64_t* n_contrib) {
   const int64_t n_tiles = g.ntx * g.nty;
@@ -75,23 +114,29 @@ void forward_impl(const scalar_t* mean, const scalar_t* conic, const scalar_t* o
         const double A = conic[3 * gi], B = conic[3 * gi + 1], C = conic[3 * gi + 2];
         const double o = opac[gi];
         const scalar_t* v = vals + gi * D;
-        for (int64_t p = 0; p < np; ++p) {
-          if (done[p]) continue;
-          const double dx = wrap_dx(tv.x0 + (p % tv.w) + 0.5 - mu, g.wrap);
-          const double dy = tv.y0 + (p / tv.w) + 0.5 - mv;
-          const double q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy;
-          if (!(q <= kCutoff2)) continue;
-          const double a = std::min(kAlphaMax, o * std::exp(-0.5 * q));
-          if (a < kAlphaMin) continue;
-          const double w = a * T[p];
-          double* ap = acc.data() + p * D;
-          for (int64_t c = 0; c < D; ++c) ap[c] += w * v[c];
-          asum[p] += w;
-          T[p] *= (1.0 - a);
-          last[p] = k - begin + 1;
-          if (T[p] < kTMin) {
-            done[p] = 1;
-            ++n_done;
+        const double qlim = q_limit(o);
+        if (qlim < 0) continue;
+        const Window win = window(g, tv, mu, mv, radii[2 * gi], radii[2 * gi + 1]);
+        for (int64_t j = win.j0; j < win.j1; ++j) {
+          const double dy = win.dy0 + j;
+          for (int64_t i = win.i0; i < win.i1; ++i) {
+            const int64_t p = j * tv.w + i;
+            if (done[p]) continue;
+            const double dx = window_dx(g, tv, win, mu, i);
+            const double q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy;
+            if (!(q <= qlim)) continue;
+            const double a = std::min(kAlphaMax, o * std::exp(-0.5 * q));
+            if (a < kAlphaMin) continue;
+            const double w = a * T[p];
+            double* ap = acc.data() + p * D;
+            for (int64_t c = 0; c < D; ++c) ap[c] += w * v[c];
+            asum[p] += w;
+            T[p] *= (1.0 - a);
+            last[p] = k - begin + 1;
+            if (T[p] < kTMin) {
+              done[p] = 1;
+              ++n_done;
+            }
           }
         }
       }
@@ -108,7 +153,7 @@ void forward_impl(const scalar_t* mean, const scalar_t* conic, const scalar_t* o
 }
 
 template <typename scalar_t>
-void backward_impl(const scalar_t* mean, const scalar_t* conic, const scalar_t* opac, const scalar_t* vals,
+void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* conic, const scalar_t* opac, const scalar_t* vals,
                    const scalar_t* bg, int64_t D, const int64_t* offs, const int64_t* ids, const Grid& g,
                    const scalar_t* alpha_out, const double* t_final, const int64_t* n_contrib,
                    const scalar_t* g_out, const scalar_t* g_alpha, scalar_t* d_mean, scalar_t* d_conic,
@@ -154,12 +199,17 @@ void backward_impl(const scalar_t* mean, const scalar_t* conic, const scalar_t* 
         double dmu = 0, dmv = 0, dA = 0, dB = 0, dC = 0, dop = 0;
         std::fill(dv.begin(), dv.end(), 0.0);
         bool touched = false;
-        for (int64_t p = 0; p < np; ++p) {
+        const double qlim = q_limit(o);
+        if (qlim < 0) continue;
+        const Window win = window(g, tv, mu, mv, radii[2 * gi], radii[2 * gi + 1]);
+        for (int64_t j = win.j0; j < win.j1; ++j)
+        for (int64_t i = win.i0; i < win.i1; ++i) {
+          const int64_t p = j * tv.w + i;
           if (rank >= last[p]) continue;
-          const double dx = wrap_dx(tv.x0 + (p % tv.w) + 0.5 - mu, g.wrap);
-          const double dy = tv.y0 + (p / tv.w) + 0.5 - mv;
+          const double dx = window_dx(g, tv, win, mu, i);
+          const double dy = win.dy0 + j;
           const double q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy;
-          if (!(q <= kCutoff2)) continue;
+          if (!(q <= qlim)) continue;
           const double gauss = std::exp(-0.5 * q);
           const double raw = o * gauss;
           const double a = std::min(kAlphaMax, raw);
@@ -261,7 +311,7 @@ std::vector<torch::Tensor> bin_gaussians(torch::Tensor means2d, torch::Tensor ra
   return {offsets, ids};
 }
 
-std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics, torch::Tensor opac,
                                              torch::Tensor vals, torch::Tensor bg, torch::Tensor offsets,
                                              torch::Tensor ids, int64_t H, int64_t W, double wrap, int64_t tile) {
   const Grid g = make_grid(H, W, tile, wrap);
@@ -272,7 +322,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto t_final = torch::empty({H, W}, opts.dtype(torch::kFloat64));
   auto n_contrib = torch::empty({H, W}, opts.dtype(torch::kInt64));
   AT_DISPATCH_FLOATING_TYPES(vals.scalar_type(), "splat_cpu_forward", [&] {
-    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
                            vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D, offsets.data_ptr<int64_t>(),
                            ids.data_ptr<int64_t>(), g, out.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
                            t_final.data_ptr<double>(), n_contrib.data_ptr<int64_t>());
@@ -280,7 +330,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   return {out, alpha, t_final, n_contrib};
 }
 
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics, torch::Tensor opac,
                                               torch::Tensor vals, torch::Tensor bg, torch::Tensor offsets,
                                               torch::Tensor ids, int64_t H, int64_t W, double wrap, int64_t tile,
                                               torch::Tensor alpha, torch::Tensor t_final, torch::Tensor n_contrib,
@@ -294,7 +344,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
   const int64_t nthreads = at::get_num_threads();
   auto d_bg_threads = torch::zeros({nthreads, D}, vals.options().dtype(torch::kFloat64));
   AT_DISPATCH_FLOATING_TYPES(vals.scalar_type(), "splat_cpu_backward", [&] {
-    backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+    backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
                             vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D, offsets.data_ptr<int64_t>(),
                             ids.data_ptr<int64_t>(), g, alpha.data_ptr<scalar_t>(), t_final.data_ptr<double>(),
                             n_contrib.data_ptr<int64_t>(), g_out.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(),
