@@ -142,13 +142,9 @@ def base_qwen(model: torch.nn.Module):
     """The ``Qwen3VLForConditionalGeneration`` inside a possible peft wrapper."""
     from transformers import Qwen3VLForConditionalGeneration
 
-    m = model
-    for _ in range(4):
-        if isinstance(m, Qwen3VLForConditionalGeneration):
-            return m
-        m = getattr(m, "base_model", None) or getattr(m, "model", None)
-        if m is None:
-            break
+    m = model.get_base_model() if hasattr(model, "get_base_model") else model  # peft wrapper
+    if isinstance(m, Qwen3VLForConditionalGeneration):
+        return m
     raise TypeError(f"{type(model).__name__} does not wrap a Qwen3VLForConditionalGeneration")
 
 
@@ -203,12 +199,21 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None) -> NavPolicy:
         image_processor.image_mean, image_processor.image_std = pre.image_mean, pre.image_std
     freeze_for_training(model, mc)
     if mc.gradient_checkpointing:
-        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+        enable_checkpointing(model)
         model.config.use_cache = False
     if mc.lora.enabled:
         model = apply_lora(model, mc)
     codec = ActionCodec.from_tokenizer(tokenizer)
     return NavPolicy(model=model, tokenizer=tokenizer, image_processor=image_processor, codec=codec)
+
+
+def enable_checkpointing(model: torch.nn.Module) -> None:
+    """Non-reentrant activation checkpointing (the newer transformers name when it exists)."""
+    kwargs = {"use_reentrant": False}
+    if hasattr(model, "activation_checkpointing_enable"):
+        model.activation_checkpointing_enable(activation_checkpointing_kwargs=kwargs)
+    else:
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs=kwargs)
 
 
 def trainable_summary(model: torch.nn.Module) -> dict[str, int]:
