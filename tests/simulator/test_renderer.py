@@ -1,0 +1,356 @@
+"""Pixel-flow renderer modules: gates, EMA teacher, distillation, ablations, configs, LPIPS, render."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from image2sim.simulator.renderer import meanflow as mf
+from image2sim.simulator.renderer.aligner import SemanticAligner, alignment_loss
+from image2sim.simulator.renderer.config import (
+    config_to_dict,
+    load_renderer_config,
+    paper,
+    renderer_config_from_dict,
+    tiny,
+)
+from image2sim.simulator.renderer.decoder import AlphaGatedSkip, AlphaPyramid, DualTimeEmbedding, SemanticInjector
+from image2sim.simulator.renderer.distill import EMATeacher, distillation_loss, ema_update_, normalised_level_weights
+from image2sim.simulator.renderer.losses import LPIPS, load_lpips, reconstruction_loss, saturation_penalty
+from image2sim.simulator.renderer.model import PixelFlowRenderer
+
+from .test_meanflow import H, W, make_batch, small_cfg
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    """Many small ops: with the 2 cores shared, OpenMP barriers cost more than the work itself."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+# --- gates and pyramid -----------------------------------------------------------------------
+def test_alpha_gate_initialises_to_sigmoid_two():
+    torch.manual_seed(0)
+    skip = AlphaGatedSkip(6, 5)
+    dec, enc, alpha = torch.randn(2, 5, 4, 8), torch.randn(2, 6, 4, 8) * 10, torch.rand(2, 1, 4, 8)
+    g = skip.gate_values(dec, enc, alpha)
+    assert torch.allclose(g, torch.full_like(g, 0.8808), atol=1e-3)
+    assert abs(torch.sigmoid(torch.tensor(2.0)).item() - 0.88) < 1e-3
+    out = skip(dec, enc, alpha)
+    assert torch.allclose(out, g * skip.adapter(enc) + (1 - g) * dec, atol=1e-6)
+    # Every gate in a freshly built decoder starts there too.
+    model = PixelFlowRenderer(small_cfg())
+    for s in model.decoder.skips:
+        assert torch.count_nonzero(s.gate.weight) == 0 and torch.allclose(s.gate.bias, torch.tensor(2.0))
+
+
+def test_plain_skip_ablation_adds_and_gate_learns_from_alpha():
+    skip = AlphaGatedSkip(3, 3, gated=False)
+    dec, enc = torch.randn(1, 3, 2, 4), torch.randn(1, 3, 2, 4)
+    assert torch.allclose(skip(dec, enc, torch.rand(1, 1, 2, 4)), skip.adapter(enc) + dec)
+    with pytest.raises(RuntimeError):
+        skip.gate_values(dec, enc, torch.rand(1, 1, 2, 4))
+    gated = AlphaGatedSkip(3, 3)
+    gated(dec, enc, torch.rand(1, 1, 2, 4)).sum().backward()
+    assert gated.gate.weight.grad[:, -1].abs().sum() > 0  # the alpha column receives gradient
+
+
+def test_alpha_pyramid_is_repeated_average_pooling():
+    alpha = torch.rand(1, 1, 16, 32)
+    pyr = AlphaPyramid(4)(alpha)
+    assert [p.shape[-2:] for p in pyr] == [(16, 32), (8, 16), (4, 8), (2, 4)]
+    assert torch.allclose(pyr[3][0, 0, 0, 0], alpha[0, 0, :8, :8].mean())
+
+
+def test_semantic_injector_is_layernorm_at_init_then_spade():
+    inj = SemanticInjector(8, 4)
+    x, tok = torch.randn(2, 8, 3, 5) * 3 + 1, torch.randn(2, 4, 3, 5)
+    normed = (x - x.mean(1, keepdim=True)) / torch.sqrt(x.var(1, unbiased=False, keepdim=True) + 1e-6)
+    assert torch.allclose(inj(x, tok), normed, atol=1e-5)
+    with torch.no_grad():
+        inj.to_mod.weight.normal_()
+    gamma, beta = inj.to_mod(torch.nn.functional.silu(tok)).chunk(2, 1)
+    assert torch.allclose(inj(x, tok), normed * (1 + gamma) + beta, atol=1e-5)
+
+
+def test_dual_time_embedding_distinguishes_t_and_h():
+    emb = DualTimeEmbedding(16)
+    t = torch.tensor([0.5, 0.5, 0.3])
+    r = torch.tensor([0.5, 0.1, 0.1])
+    e = emb(t, r)
+    assert e.shape == (3, 16)
+    assert not torch.allclose(e[0], e[1]) and not torch.allclose(e[1], e[2])
+
+
+# --- EMA teacher and distillation ----------------------------------------------------------
+def test_ema_update_matches_formula_and_copies_buffers():
+    torch.manual_seed(0)
+    student = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
+    teacher = EMATeacher(student, decay=0.9)
+    before = {k: v.clone() for k, v in teacher.module.state_dict().items()}
+    with torch.no_grad():
+        for p in student.parameters():
+            p.add_(torch.randn_like(p))
+        student[1].running_mean.fill_(3.0)
+    teacher.update(student)
+    for name, p in student.named_parameters():
+        expected = 0.9 * before[name] + 0.1 * p.detach()
+        assert torch.allclose(dict(teacher.module.named_parameters())[name], expected, atol=1e-7)
+    assert torch.equal(teacher.module[1].running_mean, student[1].running_mean)
+    assert int(teacher.num_updates) == 1
+    assert not any(p.requires_grad for p in teacher.parameters())
+    teacher.train()
+    assert not teacher.module.training
+    ema_update_(teacher.module, student, 0.0)  # decay 0 -> exact copy
+    assert all(torch.equal(a, b) for a, b in zip(teacher.module.parameters(), student.parameters()))
+    with pytest.raises(ValueError):
+        ema_update_(teacher.module, torch.nn.Linear(3, 4), 0.5)
+    with pytest.raises(ValueError):
+        EMATeacher(student, decay=1.5)
+
+
+def test_distillation_loss_ground_truth():
+    torch.manual_seed(0)
+    fs = [torch.randn(2, 4, 3, 3), torch.randn(2, 2, 6, 6)]
+    assert distillation_loss(fs, [f.clone() for f in fs], [1.0, 1.0], beta=0.5).abs() < 1e-6
+    # Opposite directions: cos = -1 -> 1 - cos = 2; squared term mean_c (2f)^2.
+    neg = [-f for f in fs]
+    w = normalised_level_weights([3.0, 1.0])
+    expected = sum(wk * (2.0 + 0.5 * (2 * f).pow(2).mean(1)).mean() for wk, f in zip(w, fs))
+    assert torch.allclose(distillation_loss(fs, neg, [3.0, 1.0], beta=0.5), expected, atol=1e-5)
+    assert w == [0.75, 0.25]
+    # The teacher gets no gradient.
+    ft = [f.clone().requires_grad_() for f in neg]
+    s = [f.clone().requires_grad_() for f in fs]
+    distillation_loss(s, ft, [1, 1], 0.1).backward()
+    assert ft[0].grad is None and s[0].grad is not None
+    with pytest.raises(ValueError):
+        distillation_loss(fs, fs[:1], [1.0], 0.1)
+    with pytest.raises(ValueError):
+        normalised_level_weights([0.0, 0.0])
+
+
+def test_default_level_weights_emphasise_deeper_levels():
+    w = normalised_level_weights(tiny().distill.level_weights)
+    assert abs(sum(w) - 1) < 1e-12 and all(a > b for a, b in zip(w, w[1:]))
+
+
+def test_teacher_distillation_is_zero_when_student_equals_teacher_and_sources_match():
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg())
+    teacher = EMATeacher(model)
+    cond, rgb, depth, noise = make_batch()
+    # Give the condition the ground truth with alpha = 1: student source == privileged source.
+    cond = cond.clone()
+    cond[:, 16:19], cond[:, 19:20], cond[:, 20:21] = rgb, depth, 1.0
+    t = torch.tensor([0.5, 0.5])
+    out = model.losses(cond, rgb, depth, noise, t, t, teacher=teacher.module)
+    assert out["distill"].abs() < 1e-5
+
+
+# --- ablations --------------------------------------------------------------------------------
+def test_ablation_switches_change_the_model_as_in_table_4():
+    cond, rgb, depth, noise = make_batch()
+    base = PixelFlowRenderer(small_cfg())
+    assert base.aligner is not None and base.decoder.injectors is not None
+    assert all(s.gated for s in base.decoder.skips)
+
+    splat = PixelFlowRenderer(small_cfg(ablation={"no_pixel_flow": True}))
+    assert sum(p.numel() for p in splat.parameters()) == 0
+    out = splat.render(cond)
+    assert torch.equal(out.rgb, cond[:, 16:19].clamp(0, 1)) and torch.allclose(out.depth, cond[:, 19:20])
+    with pytest.raises(RuntimeError):
+        splat.losses(cond, rgb, depth, noise, torch.ones(2), torch.ones(2))
+
+    nosem = PixelFlowRenderer(small_cfg(ablation={"no_semantic": True}))
+    assert nosem.aligner is None and nosem.decoder.injectors is None
+    assert nosem.losses(cond, rgb, depth, noise, torch.zeros(2), torch.ones(2))["align"] == 0
+
+    nogate = PixelFlowRenderer(small_cfg(ablation={"no_alpha_gate": True}))
+    assert not any(s.gated for s in nogate.decoder.skips)
+    assert sum(p.numel() for p in nogate.parameters()) < sum(p.numel() for p in base.parameters())
+
+    cfg = small_cfg(ablation={"no_distill": True})
+    assert cfg.ablation.no_distill and not small_cfg().ablation.no_distill
+
+
+def test_alignment_loss_and_aligner_shapes():
+    torch.manual_seed(0)
+    cfg = small_cfg(aligner={"target_dim": 24})
+    aligner = SemanticAligner(cfg.aligner)
+    cond, *_ = make_batch()
+    tokens = aligner(cond)
+    assert tokens.shape == (2, cfg.aligner.token_dim, H // 16, W // 16)
+    proj = aligner.project(tokens)
+    assert proj.shape[1] == 24
+    assert alignment_loss(proj, proj.detach()) < 1e-6
+    assert torch.allclose(alignment_loss(proj, -proj.detach()), torch.tensor(2.0), atol=1e-5)
+    # A target on another grid is matched by seam-aware resizing; constant maps stay constant.
+    const = torch.ones(1, 3, 2, 4)
+    assert alignment_loss(const, torch.ones(1, 3, 3, 7)) < 1e-6
+    with pytest.raises(ValueError):
+        alignment_loss(proj, torch.randn(2, 5, 1, 2))
+
+
+# --- render --------------------------------------------------------------------------------
+def test_render_is_deterministic_per_pose_and_counts_steps():
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg()).eval()
+    cond, *_ = make_batch()
+    poses = [np.eye(4), np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3)]
+    a = model.render(cond, steps=1, poses=poses)
+    b = model.render(cond, steps=1, poses=poses)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+    c = model.render(cond, steps=1, poses=poses[::-1])
+    assert not torch.equal(a.rgb, c.rgb)
+    assert a.rgb.shape == (2, 3, H, W) and a.depth.shape == (2, 1, H, W)
+    assert (a.rgb >= 0).all() and (a.rgb <= 1).all() and (a.depth >= 0).all()
+    calls = []
+    handle = model.decoder.register_forward_hook(lambda *args: calls.append(1))
+    model.render(cond, steps=4, poses=poses)
+    handle.remove()
+    assert len(calls) == 4
+    with pytest.raises(ValueError):
+        model.render(cond[:, :20])
+    with pytest.raises(ValueError):
+        model.render(cond, poses=poses[:1])
+
+
+# --- configs --------------------------------------------------------------------------------
+def test_configs_presets_round_trip_and_reject_unknown_keys(tmp_path):
+    t, p = tiny(), paper()
+    assert (t.height, t.width) == (128, 256) and (p.height, p.width) == (512, 1024)
+    assert p.decoder.bottleneck_depth == 8 and p.aligner.token_dim == 1024 and p.distill.ema_decay == 0.999
+    assert p.curriculum.total_steps == 400_000 and p.loss.lambda_rec == 0.1 and p.loss.saturation == 0.2
+    assert renderer_config_from_dict(config_to_dict(p)) == p
+    with pytest.raises(ValueError, match="decoder.bogus"):
+        renderer_config_from_dict({"decoder": {"bogus": 1}})
+    with pytest.raises(ValueError, match="meanflow.tangent"):
+        renderer_config_from_dict({"meanflow": {"tangent": "other"}})
+    with pytest.raises(ValueError, match="multiples of 16"):
+        renderer_config_from_dict({"height": 100})
+    with pytest.raises(ValueError, match="expected int"):
+        renderer_config_from_dict({"height": "128"})
+    yml = tmp_path / "r.yaml"
+    yml.write_text("name: tiny\nmeanflow:\n  weight_k: 2\n  sigma_small: [0.1, 0.2]\n")
+    cfg = load_renderer_config(yml)
+    assert cfg.meanflow.weight_k == 2.0 and cfg.meanflow.sigma_small == (0.1, 0.2)
+    yml.write_text("meanflow:\n  nope: 1\n")
+    with pytest.raises(ValueError, match=str(yml)):
+        load_renderer_config(yml)
+    with pytest.raises(FileNotFoundError):
+        load_renderer_config(tmp_path / "missing.yaml")
+
+
+def test_every_config_field_has_a_docstring():
+    import ast
+    import inspect
+
+    from image2sim.simulator.renderer import config as config_module
+
+    tree = ast.parse(inspect.getsource(config_module))
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef):
+            body = node.body
+            for i, stmt in enumerate(body):
+                if isinstance(stmt, ast.AnnAssign):
+                    nxt = body[i + 1] if i + 1 < len(body) else None
+                    assert isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant), (
+                        f"{node.name}.{stmt.target.id} has no docstring"
+                    )
+
+
+# --- losses -------------------------------------------------------------------------------
+def test_reconstruction_and_saturation_ground_truth():
+    pred, tgt = torch.full((1, 3, 2, 2), 0.5), torch.zeros(1, 3, 2, 2)
+    pd = torch.full((1, 1, 2, 2), 2.0)
+    td = torch.tensor([[[[1.0, 0.0], [float("nan"), 4.0]]]])
+    # RGB 0.5; depth valid at 2 pixels: |2-1| and |2-4| -> 1.5
+    assert torch.allclose(reconstruction_loss(pred, pd, tgt, td), torch.tensor(2.0))
+    assert torch.allclose(saturation_penalty(torch.tensor([-0.5, 0.3, 1.2])), torch.tensor((0.25 + 0.04) / 3))
+
+
+def _random_lpips_file(path):
+    torch.manual_seed(0)
+    net = LPIPS()
+    tensors = {}
+    for i, m in enumerate(net.features):
+        if isinstance(m, torch.nn.Conv2d):
+            tensors[f"features.{i}.weight"] = torch.randn_like(m.weight) * (2.0 / m.weight[0].numel()) ** 0.5
+            tensors[f"features.{i}.bias"] = torch.zeros_like(m.bias)
+    for k, lin in enumerate(net.lins):
+        tensors[f"lin{k}.model.1.weight"] = torch.rand_like(lin.weight)
+    save_file(tensors, str(path))
+    return tensors
+
+
+def test_lpips_loads_weights_and_behaves_like_a_distance(tmp_path):
+    path = tmp_path / "lpips_vgg.safetensors"
+    tensors = _random_lpips_file(path)
+    net = load_lpips(path)
+    assert torch.equal(net.features[0].weight, tensors["features.0.weight"])
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(2, 3, 32, 32, generator=g), torch.rand(2, 3, 32, 32, generator=g)
+    d_ab, d_ba, d_aa = net(a, b), net(b, a), net(a, a)
+    assert torch.allclose(d_ab, d_ba) and torch.allclose(d_aa, torch.zeros(2), atol=1e-6)
+    assert (d_ab > 0).all()
+    near = (a + 0.01 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    assert (net(a, near) < d_ab).all()
+    bad = dict(tensors)
+    bad.pop("lin0.model.1.weight")
+    save_file(bad, str(tmp_path / "bad.safetensors"))
+    with pytest.raises(ValueError, match="missing"):
+        load_lpips(tmp_path / "bad.safetensors")
+
+
+def test_lpips_missing_weights_warn_once_and_disable(tmp_path, caplog):
+    missing = tmp_path / "nowhere.safetensors"
+    with caplog.at_level(logging.WARNING):
+        assert load_lpips(missing) is None
+        assert load_lpips(missing) is None
+    assert sum("LPIPS weights not found" in r.message for r in caplog.records) == 1
+
+
+# --- overfit (slow) -------------------------------------------------------------------------
+@pytest.mark.slow
+def test_tiny_model_overfits_one_target():
+    """The renderer fits one panorama (PSNR > 30 dB, one-step) from a half-empty splat."""
+    torch.manual_seed(0)
+    cfg = small_cfg(
+        height=32, width=64,
+        decoder={"widths": [16, 16, 24, 32], "bottleneck_dim": 32, "time_dim": 32},
+        aligner={"stem_widths": [8, 8, 16, 16], "token_dim": 32},
+    )
+    model = PixelFlowRenderer(cfg)
+    g = torch.Generator().manual_seed(0)
+    h, w = 32, 64
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    target_rgb = torch.stack((xx, yy, 0.5 + 0.4 * torch.sin(6.28 * xx)), 0)[None]
+    target_depth = (2.0 + yy)[None, None]
+    alpha = (xx < 0.5).float()[None, None]
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.renderer.condition import build_condition
+
+    cond = build_condition(
+        torch.zeros(1, 16, h, w), target_rgb * alpha, target_depth * alpha, alpha, EquirectCamera(h, w).ray_map()
+    )
+    noise = torch.randn(1, 4, h, w, generator=g)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for step in range(400):
+        r, t = mf.sample_time_pairs(1, 0.5, generator=g)
+        out = model.losses(cond, target_rgb, target_depth, noise, r, t)
+        loss = out["flow"] + 10.0 * out["rec"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    pred = model.render(cond, steps=1, noise=noise)
+    mse = (pred.rgb - target_rgb).pow(2).mean()
+    psnr = -10 * torch.log10(mse)
+    assert psnr > 30, psnr
