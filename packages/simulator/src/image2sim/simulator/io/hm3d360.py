@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.cameras import EquirectCamera
-from image2sim.simulator.io.images import image_size, read_rgb, read_uint16
+from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.validation import (
     check_equirect_size,
@@ -102,11 +102,10 @@ def read_hm3d_360(path: str | Path, *, strict: bool = True) -> Capture:
         poses.append(pose)
     if not ids:
         raise CaptureError(f"{root}: no usable hm3d_360 frames" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    first_rgb = root / f"{ids[0]}_rgb.png"
-    height, width = image_size(first_rgb, "colour")
-    check_equirect_size(height, width, first_rgb)
-    camera = EquirectCamera(height, width)
     pose_of = dict(zip(ids, poses))
+    ids, (height, width) = probe_first_size(ids, lambda f: root / f"{f}_rgb.png", "colour", strict, skipped)
+    check_equirect_size(height, width, root / f"{ids[0]}_rgb.png")
+    camera = EquirectCamera(height, width)
 
     def load(fid: str) -> Frame:
         rgb_path, depth_path = root / f"{fid}_rgb.png", root / f"{fid}_depth.png"
@@ -119,4 +118,4 @@ def read_hm3d_360(path: str | Path, *, strict: bool = True) -> Capture:
             )
         return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[fid].copy(), frame_id=fid)
 
-    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack(poses), camera=camera)
+    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera)

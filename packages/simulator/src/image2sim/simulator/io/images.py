@@ -14,7 +14,7 @@ import numpy as np
 
 from image2sim.simulator.io.records import CaptureError
 
-__all__ = ["read_rgb", "read_uint16", "write_rgb_png", "write_uint16_png", "image_size"]
+__all__ = ["read_rgb", "read_uint16", "write_rgb_png", "write_uint16_png", "image_size", "probe_first_size"]
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"
@@ -87,6 +87,26 @@ def image_size(path: Path, what: str = "image") -> tuple[int, int]:
         return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
     image = _decode(path, what, cv2.IMREAD_UNCHANGED)
     return int(image.shape[0]), int(image.shape[1])
+
+
+def probe_first_size(
+    ids: list[str], path_of, what: str, strict: bool, skipped: list[tuple[str, str]]
+) -> tuple[list[str], tuple[int, int]]:
+    """Size of the first readable image among ``ids`` (``path_of(id) -> Path``).
+
+    Strict: the first frame's problem raises. Otherwise unreadable leading frames move to
+    ``skipped`` and the remaining ids are returned with the size.
+    """
+    for k, fid in enumerate(ids):
+        try:
+            return ids[k:], image_size(path_of(fid), what)
+        except CaptureError as err:
+            if strict:
+                raise
+            skipped.append((fid, str(err)))
+    first = path_of(ids[0]) if ids else Path(".")
+    reason = skipped[-1][1] if skipped else "no frames"
+    raise CaptureError(f"{first.parent}: no readable {what} image among {len(ids)} frames (last problem: {reason})")
 
 
 def write_rgb_png(path: Path, rgb: np.ndarray) -> None:

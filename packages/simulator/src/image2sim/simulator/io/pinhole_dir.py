@@ -27,7 +27,7 @@ import numpy as np
 
 from image2sim.simulator.conventions import opencv_principal_point_to_ours
 from image2sim.simulator.geometry.cameras import PinholeCamera
-from image2sim.simulator.io.images import image_size, read_rgb, read_uint16
+from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.resample import sample_rgb
 from image2sim.simulator.io.validation import check_pose, read_matrix_txt
@@ -127,9 +127,9 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
         poses.append(pose)
     if not ids:
         raise CaptureError(f"{root}: no usable pinhole_dir frames" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    height, width = image_size(root / "depth" / f"{ids[0]}.png", "depth")
-    camera = PinholeCamera(*depth_k, height, width)
     pose_of = dict(zip(ids, poses))
+    ids, (height, width) = probe_first_size(ids, lambda f: root / "depth" / f"{f}.png", "depth", strict, skipped)
+    camera = PinholeCamera(*depth_k, height, width)
     scale = np.float32(depth_scale)
 
     def load(fid: str) -> Frame:
@@ -167,4 +167,4 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
             notes.append(f"colour {cw}x{ch} resampled to the depth grid {width}x{height} {how} (bilinear)")
         return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[fid].copy(), frame_id=fid, notes=notes)
 
-    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack(poses), camera=camera)
+    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera)

@@ -31,7 +31,7 @@ import numpy as np
 
 from image2sim.simulator.conventions import Y_DOWN_TO_Z_UP_WORLD
 from image2sim.simulator.geometry.cameras import EquirectCamera
-from image2sim.simulator.io.images import image_size, read_rgb, read_uint16
+from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.resample import planar_rel_tol, sample_depth, sample_rgb
 from image2sim.simulator.io.validation import check_equirect_size, check_pose, check_same_size, read_matrix_txt
@@ -127,11 +127,10 @@ def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "re
         poses.append(pose)
     if not ids:
         raise CaptureError(f"{root}: no usable realsee viewpoints" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    first_depth = root / "viewpoints" / ids[0] / DEPTH_NAME
-    height, width = image_size(first_depth, "depth")
-    check_equirect_size(height, width, first_depth)
-    camera = EquirectCamera(height, width)
     pose_of = dict(zip(ids, poses))
+    ids, (height, width) = probe_first_size(ids, lambda v: root / "viewpoints" / v / DEPTH_NAME, "depth", strict, skipped)
+    check_equirect_size(height, width, root / "viewpoints" / ids[0] / DEPTH_NAME)
+    camera = EquirectCamera(height, width)
 
     def load(vid: str) -> Frame:
         vp_dir = root / "viewpoints" / vid
@@ -159,4 +158,4 @@ def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "re
             notes.append("half-pixel offset NOT corrected: samples sit 0.5 px left/up of our pixel centres")
         return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[vid].copy(), frame_id=vid, notes=notes)
 
-    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack(poses), camera=camera)
+    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera)

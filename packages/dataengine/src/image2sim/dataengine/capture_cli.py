@@ -1,0 +1,226 @@
+"""``image2sim data inspect|fuse|ingest``: look at, fuse and convert captures.
+
+Registered on the ``data`` Typer app from :mod:`image2sim.dataengine.cli`. Heavy modules (torch,
+OpenCV, the readers) are imported inside the commands so ``image2sim --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from image2sim.dataengine.cli import app
+
+_FORMAT_HELP = "Capture format (image2sim, hm3d_360, realsee, pinhole_dir, ...); auto-detected when omitted."
+
+
+def _fail(message: str) -> None:
+    from rich.console import Console
+
+    Console(stderr=True).print(f"[bold red]error:[/] {message}", markup=True, highlight=False, soft_wrap=True)
+    raise typer.Exit(code=1)
+
+
+def _open(path: Path, fmt: Optional[str], strict: bool = True):
+    from image2sim.simulator.io import CaptureError, open_capture
+
+    try:
+        return open_capture(path, fmt, strict=strict)
+    except CaptureError as err:
+        _fail(str(err))
+
+
+def _progress():
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TimeRemainingColumn(), transient=False,
+    )
+
+
+def frame_stats(frame) -> dict:
+    """Per-frame numbers shown by ``inspect``: size, valid-depth fraction and range, position."""
+    import numpy as np
+
+    valid = frame.depth > 0
+    d = frame.depth[valid]
+    return {
+        "id": frame.frame_id,
+        "size": f"{frame.width}x{frame.height}",
+        "valid": float(valid.mean()) if valid.size else 0.0,
+        "dmin": float(d.min()) if d.size else float("nan"),
+        "dmax": float(d.max()) if d.size else float("nan"),
+        "position": np.asarray(frame.position, dtype=float),
+        "notes": list(frame.notes),
+    }
+
+
+@app.command()
+def inspect(
+    capture: Path = typer.Argument(..., help="Capture folder."),
+    format: Optional[str] = typer.Option(None, "--format", "-f", help=_FORMAT_HELP),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Load at most N frames for image statistics."),
+    rows: int = typer.Option(12, "--rows", min=1, help="Frame rows to print (first and last halves)."),
+) -> None:
+    """Print a capture's frames, sizes, depth range and pose bounds."""
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    from image2sim.simulator.io import CaptureError
+
+    cap = _open(capture, format, strict=False)
+    console = Console()
+    n_load = len(cap) if max_frames is None else min(max_frames, len(cap))
+    stats, errors = [], []
+    with _progress() as bar:
+        task = bar.add_task("reading frames", total=n_load)
+        for i in range(n_load):
+            try:
+                stats.append(frame_stats(cap[i]))
+            except CaptureError as err:
+                errors.append((cap.frame_ids[i], str(err)))
+            bar.advance(task)
+    positions = cap.poses[:, :3, 3] if cap.poses is not None else np.array([s["position"] for s in stats])
+
+    summary = Table(title=f"capture {cap.root}", show_header=False)
+    summary.add_row("format", cap.format)
+    summary.add_row("scene", cap.scene_id)
+    summary.add_row("frames", f"{len(cap)} ({n_load} read, {len(cap.skipped)} skipped while indexing, {len(errors)} unreadable)")
+    camera = cap.camera if cap.camera is not None else (cap[0].camera if stats else None)
+    summary.add_row("camera", str(camera.to_dict()) if camera is not None else "?")
+    if stats:
+        dmin = np.nanmin([s["dmin"] for s in stats])
+        dmax = np.nanmax([s["dmax"] for s in stats])
+        summary.add_row("depth range", f"{dmin:.3f} - {dmax:.3f} m (valid pixels of the {len(stats)} frames read)")
+        summary.add_row("valid depth", f"{np.mean([s['valid'] for s in stats]) * 100:.1f}% of pixels (mean over frames)")
+    if len(positions):
+        lo, hi = positions.min(axis=0), positions.max(axis=0)
+        summary.add_row("pose bounds min", "x {:.3f}  y {:.3f}  z {:.3f}".format(*lo))
+        summary.add_row("pose bounds max", "x {:.3f}  y {:.3f}  z {:.3f}".format(*hi))
+        summary.add_row("pose extent", "{:.3f} x {:.3f} x {:.3f} m".format(*(hi - lo)))
+    notes = sorted({n for s in stats for n in s["notes"]})
+    for note in notes[:3]:
+        summary.add_row("reader note", note)
+    console.print(summary)
+
+    table = Table(title="frames (depth in m, camera position in world m)")
+    for col in ("#", "id", "size", "d min", "d max", "valid%", "x", "y", "z"):
+        table.add_column(col, justify="right" if col not in ("id", "size") else "left", no_wrap=True)
+    shown = list(range(len(stats)))
+    if len(shown) > rows:
+        shown = shown[: rows - rows // 2] + [-1] + shown[len(shown) - rows // 2 :]
+    for k in shown:
+        if k < 0:
+            table.add_row("...", "", "", "", "", "", "", "", "")
+            continue
+        s = stats[k]
+        table.add_row(
+            str(k), s["id"], s["size"], f"{s['dmin']:.3f}", f"{s['dmax']:.3f}", f"{100 * s['valid']:.1f}",
+            *(f"{c:.3f}" for c in s["position"]),
+        )
+    console.print(table)
+    for fid, reason in list(cap.skipped) + errors:
+        console.print(f"[yellow]skipped[/] {fid}: {reason}", highlight=False, soft_wrap=True)
+
+
+@app.command()
+def fuse(
+    capture: Path = typer.Argument(..., help="Capture folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output PLY file."),
+    voxel: float = typer.Option(0.05, "--voxel", min=1e-4, help="Voxel edge in metres for downsampling."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Fuse at most N frames."),
+    stride: int = typer.Option(1, "--stride", min=1, help="Use every S-th frame."),
+    format: Optional[str] = typer.Option(None, "--format", "-f", help=_FORMAT_HELP),
+) -> None:
+    """Back-project frames into the world, voxel-average colours, write a binary PLY (atomically)."""
+    from rich.console import Console
+
+    from image2sim.simulator.io import CaptureError, write_ply
+    from image2sim.simulator.io.fusion import VoxelAccumulator, backproject_frame, select_indices
+
+    cap = _open(capture, format)
+    indices = select_indices(len(cap), stride, max_frames)
+    acc = VoxelAccumulator(voxel)
+    try:
+        with _progress() as bar:
+            task = bar.add_task("fusing", total=len(indices))
+            for i in indices:
+                points, colours = backproject_frame(cap[i])
+                acc.add(points, colours)
+                bar.advance(task)
+    except CaptureError as err:
+        _fail(str(err))
+    points, colours = acc.result()
+    if len(points) == 0:
+        _fail(f"{capture}: no valid depth in the selected frames, nothing to write")
+    comment = f"image2sim fuse of {cap.root} ({cap.format}), {len(indices)} frames, voxel {voxel} m, world z-up metres"
+    write_ply(out, points, colours, comment=comment)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    Console().print(
+        f"fused {len(indices)} frames: {acc.num_points} points -> {len(points)} voxels of {voxel} m\n"
+        f"bounds min ({lo[0]:.3f}, {lo[1]:.3f}, {lo[2]:.3f}) max ({hi[0]:.3f}, {hi[1]:.3f}, {hi[2]:.3f})\n"
+        f"wrote {out}",
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
+@app.command()
+def ingest(
+    src: Path = typer.Argument(..., help="Source capture folder (any readable format)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder for the canonical capture."),
+    format: Optional[str] = typer.Option(None, "--format", "-f", help=_FORMAT_HELP),
+    skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip unusable frames (and report why) instead of failing."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace --out if it exists."),
+    scene_id: Optional[str] = typer.Option(None, "--scene-id", help="Scene id for the manifest (default: the source's)."),
+) -> None:
+    """Convert a capture to the canonical format; nothing is written unless everything succeeds."""
+    from rich.console import Console
+
+    from image2sim.simulator.io import CaptureError, write_capture
+
+    if out.exists() and not overwrite:
+        _fail(f"{out}: already exists (pass --overwrite to replace it)")
+    cap = _open(src, format, strict=not skip_bad)
+    skipped = [(fid, reason) for fid, reason in cap.skipped]
+    written_ids: list[str] = []
+
+    def frames():
+        with _progress() as bar:
+            task = bar.add_task("ingesting", total=len(cap))
+            for i in range(len(cap)):
+                try:
+                    frame = cap[i]
+                except CaptureError as err:
+                    if not skip_bad:
+                        raise
+                    skipped.append((cap.frame_ids[i], str(err)))
+                else:
+                    written_ids.append(frame.frame_id)
+                    yield frame
+                bar.advance(task)
+
+    def record_skips(tmp: Path) -> None:
+        # The manifest is written before `extra` runs; add the final skip list to it here.
+        import json
+
+        manifest_path = tmp / "manifest.json"
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        manifest["metadata"]["skipped"] = [{"frame_id": f, "reason": r} for f, r in skipped]
+        manifest_path.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+
+    metadata = {"source_format": cap.format, "source_path": str(cap.root.resolve()), "source_scene_id": cap.scene_id}
+    try:
+        written = write_capture(
+            out, frames(), scene_id=scene_id or cap.scene_id, metadata=metadata, extra=record_skips, overwrite=overwrite,
+        )
+    except (CaptureError, FileExistsError) as err:
+        _fail(f"{err}" + ("" if skip_bad else "  (nothing was written; --skip-bad ingests the valid frames)"))
+    console = Console()
+    console.print(f"ingested {len(written_ids)} frames from {src} ({cap.format}) into {written}", highlight=False, soft_wrap=True)
+    for fid, reason in skipped:
+        console.print(f"[yellow]skipped[/] {fid}: {reason}", highlight=False, soft_wrap=True)
