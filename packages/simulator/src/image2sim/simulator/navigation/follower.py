@@ -1,0 +1,114 @@
+"""Oracle follower: smoothed planner waypoints -> lookahead pure pursuit -> discrete actions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from image2sim.simulator.conventions import Action
+from image2sim.simulator.navigation.agent import AgentState, wrap_angle
+from image2sim.simulator.navigation.embodiment import Embodiment, FollowerConfig
+from image2sim.simulator.navigation.planner import PathResult, Planner
+
+__all__ = ["smooth_path", "pure_pursuit_action", "OracleFollower"]
+
+
+def smooth_path(waypoints: np.ndarray, window: int = 5) -> np.ndarray:
+    """Centred moving average of (P, 3) waypoints; the end points are kept exactly.
+
+    Near the ends the window shrinks symmetrically so the start and goal do not move.
+    """
+    pts = np.asarray(waypoints, dtype=np.float64)
+    if window <= 1 or len(pts) < 3:
+        return pts.copy()
+    half = window // 2
+    out = pts.copy()
+    csum = np.vstack((np.zeros((1, pts.shape[1])), np.cumsum(pts, axis=0)))
+    n = len(pts)
+    idx = np.arange(n)
+    h = np.minimum(np.minimum(idx, n - 1 - idx), half)
+    out = (csum[idx + h + 1] - csum[idx - h]) / (2 * h + 1)[:, None]
+    return out
+
+
+def pure_pursuit_action(
+    state: AgentState, target_xy: np.ndarray, turn_tolerance: float
+) -> int:
+    """Turn towards ``target_xy`` while the heading error exceeds ``turn_tolerance``, else go forward."""
+    d = np.asarray(target_xy, float)[:2] - state.position[:2]
+    err = wrap_angle(math.atan2(d[1], d[0]) - state.heading)
+    if err > turn_tolerance:
+        return int(Action.TURN_LEFT)
+    if err < -turn_tolerance:
+        return int(Action.TURN_RIGHT)
+    return int(Action.MOVE_FORWARD)
+
+
+class OracleFollower:
+    """Plans with a :class:`Planner`, smooths the waypoints and emits discrete actions (pure pursuit)."""
+
+    def __init__(
+        self, planner: Planner, embodiment: Embodiment | None = None, config: FollowerConfig | None = None
+    ) -> None:
+        self.planner = planner
+        self.embodiment = embodiment or planner.graph.embodiment
+        self.config = config or FollowerConfig()
+        tol = self.config.turn_tolerance_deg
+        self.turn_tolerance = math.radians(tol) if tol is not None else 0.5 * self.embodiment.turn_angle + 1e-6
+        self.goal: np.ndarray | None = None
+        self.path: np.ndarray = np.zeros((0, 3))
+        self.result: PathResult | None = None
+        self._progress = 0
+
+    def reset(self, start: np.ndarray, goal: np.ndarray) -> PathResult:
+        """Plan from ``start`` to ``goal`` (map frame feet positions)."""
+        self.goal = np.asarray(goal, dtype=np.float64).reshape(3)
+        return self._plan(np.asarray(start, dtype=np.float64).reshape(3))
+
+    def _plan(self, start: np.ndarray) -> PathResult:
+        assert self.goal is not None
+        self.result = self.planner.shortest_path(start, self.goal)
+        self.path = smooth_path(self.result.waypoints, self.config.smoothing_window) if self.result.reachable else np.zeros((0, 3))
+        self._progress = 0
+        return self.result
+
+    def act(self, state: AgentState, collided: bool = False) -> int:
+        """Next action for the agent in ``state``; STOP within ``stop_radius`` or when no path exists."""
+        if self.goal is None:
+            raise RuntimeError("OracleFollower.act called before reset(start, goal)")
+        pos = state.position
+        if np.linalg.norm(self.goal[:2] - pos[:2]) <= self.config.stop_radius:
+            return int(Action.STOP)
+        if len(self.path) == 0:
+            return int(Action.STOP)
+        dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
+        # Progress is monotone along the path so loops back to passed points cannot trap the agent.
+        nearest = self._progress + int(np.argmin(dist[self._progress :]))
+        if collided or dist[nearest] > self.config.replan_distance:
+            if not self._plan(pos).reachable:
+                return int(Action.STOP)
+            dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
+            nearest = int(np.argmin(dist))
+        self._progress = nearest
+        return pure_pursuit_action(state, self._target(pos, dist, nearest)[:2], self.turn_tolerance)
+
+    def _target(self, pos: np.ndarray, dist: np.ndarray, nearest: int) -> np.ndarray:
+        """Farthest path point within the lookahead that the agent sees through navigable cells.
+
+        Plain pure pursuit cuts corners (door frames); requiring line of sight over navigable cells
+        (clearance >= radius) keeps the straight-line motion collision-free.
+        """
+        beyond = np.flatnonzero(dist[nearest:] >= self.config.lookahead)
+        last = nearest + int(beyond[0]) if len(beyond) else len(self.path) - 1
+        for j in range(last, nearest, -1):
+            if self._line_of_sight(pos, self.path[j]):
+                return self.path[j]
+        return self.path[min(nearest + 1, len(self.path) - 1)]
+
+    def _line_of_sight(self, a: np.ndarray, b: np.ndarray) -> bool:
+        graph = self.planner.graph
+        n = max(2, int(np.ceil(np.linalg.norm(b[:2] - a[:2]) / (0.5 * graph.voxel_size))) + 1)
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        idx, off = graph.snap(a + (b - a) * t)
+        return bool((idx >= 0).all() and (off <= 0.75 * graph.voxel_size).all())

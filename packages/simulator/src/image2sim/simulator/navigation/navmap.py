@@ -1,0 +1,906 @@
+"""Navigable-area extraction: posed RGB-D (or a world point cloud) -> :class:`NavMap`.
+
+Pipeline (seed paper, appendix "Navigable Area Extraction and Denoising"):
+
+1. floor candidates: semantic floor labels when given, and upward normals (n_z >= 0.5; the 5x5 Sobel
+   estimator of :func:`image2sim.simulator.geometry.normals.point_normals` for captures);
+2. RANSAC ground plane -> gravity alignment (rotate so the ground normal is +Z; skipped when the
+   tilt is below 0.5 degrees, the usual case for Z-up captures);
+3. 0.05 m voxels; floor voxels stacked in a column within one voxel merge into one *floor cell*;
+4. floor components: cells connected where neighbouring heights differ by at most the maximum step
+   height; components under the capture cameras are kept (tabletops, ceilings seen as floors and
+   other islands are dropped and become obstacles);
+5. storeys by height clustering, one RANSAC plane per storey; morphological closing of each storey's
+   2D floor mask fills occlusion holes, the filled cells are re-projected onto the storey plane;
+6. radius outlier removal of obstacle voxels; per floor-height band, the obstacle columns (obstacles
+   between the step height and the body height above that floor) plus unsupported/unknown columns
+   form a 2D blocked mask whose Euclidean distance transform is the clearance; cells with clearance
+   >= the safety buffer (default: the agent radius) are navigable.
+
+Everything is expressed in the *map frame*: the gravity-aligned world (identical to the world frame
+when ``rotation`` is the identity, i.e. for Z-up captures). :attr:`NavMap.points` is returned in world
+coordinates.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
+
+__all__ = [
+    "NavMap",
+    "NavMapError",
+    "extract_navmap",
+    "extract_navmap_from_points",
+    "fit_plane_ransac",
+    "rotation_aligning",
+    "estimate_normals_pca",
+    "radius_outlier_mask",
+    "render_topdown",
+]
+
+NAVMAP_FORMAT_VERSION = 1
+
+HEIGHT_TOLERANCE = 0.01
+"""Slack (metres) on every step-height comparison: a tread edge exactly one step up stays climbable
+despite voxel averaging and float rounding."""
+
+
+class NavMapError(ValueError):
+    """The input cannot yield a navigable map; the message says what is missing and where."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Small pure helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def fit_plane_ransac(
+    points: np.ndarray, threshold: float, iterations: int, rng: np.random.Generator
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """RANSAC plane ``n . p + d = 0`` through (N, 3) points, refined by least squares on the inliers.
+
+    Returns ``(n, d, inliers)`` with ``n`` a unit normal oriented towards +Z (n_z >= 0).
+    Raises :class:`NavMapError` for fewer than 3 points or fully degenerate input.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise NavMapError(f"plane fit needs at least 3 points of shape (N, 3), got {pts.shape}")
+    n_pts = len(pts)
+    triples = rng.integers(0, n_pts, size=(iterations, 3))
+    a, b, c = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-12
+    if not ok.any():
+        raise NavMapError("plane fit: all sampled point triples are collinear")
+    normals = normals[ok] / norms[ok, None]
+    ds = -np.einsum("ij,ij->i", normals, a[ok])
+    # Score all hypotheses on a subsample so the cost stays bounded on big clouds.
+    sample = pts if n_pts <= 20000 else pts[rng.choice(n_pts, 20000, replace=False)]
+    scores = (np.abs(sample @ normals.T + ds) < threshold).sum(axis=0)
+    best = int(np.argmax(scores))
+    inliers = np.abs(pts @ normals[best] + ds[best]) < threshold
+    if inliers.sum() >= 3:
+        centre = pts[inliers].mean(axis=0)
+        _, _, vt = np.linalg.svd(pts[inliers] - centre, full_matrices=False)
+        n = vt[-1]
+        d = -float(n @ centre)
+    else:
+        n, d = normals[best], float(ds[best])
+    if n[2] < 0:
+        n, d = -n, -d
+    inliers = np.abs(pts @ n + d) < threshold
+    return n, d, inliers
+
+
+def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3x3) taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(a @ b)
+    s = float(np.linalg.norm(v))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        # Opposite vectors: rotate by pi about any axis perpendicular to a.
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
+
+
+def estimate_normals_pca(
+    points: np.ndarray, k: int = 12, viewpoints: np.ndarray | None = None
+) -> np.ndarray:
+    """Unit normals of an (N, 3) cloud from the smallest PCA axis of each point's k nearest neighbours.
+
+    Orientation: towards the nearest of ``viewpoints`` (M, 3) when given, otherwise upwards
+    (n_z >= 0) -- without viewpoints a ceiling cannot be told from a floor.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return np.zeros((0, 3))
+    k = int(min(k, len(pts)))
+    tree = cKDTree(pts)
+    _, idx = tree.query(pts, k=k)
+    idx = idx.reshape(len(pts), k)
+    out = np.empty_like(pts)
+    for start in range(0, len(pts), 100_000):  # bounded memory: (chunk, k, 3) at a time
+        nb = pts[idx[start : start + 100_000]]
+        centred = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", centred, centred)
+        _, vecs = np.linalg.eigh(cov)
+        out[start : start + 100_000] = vecs[:, :, 0]
+    if viewpoints is not None and len(viewpoints):
+        vp = np.asarray(viewpoints, dtype=np.float64).reshape(-1, 3)
+        _, nearest = cKDTree(vp).query(pts)
+        flip = np.einsum("ij,ij->i", out, vp[nearest] - pts) < 0
+    else:
+        flip = out[:, 2] < 0
+    out[flip] *= -1.0
+    return out
+
+
+def radius_outlier_mask(points: np.ndarray, radius: float, min_neighbors: int) -> np.ndarray:
+    """True for points with at least ``min_neighbors`` *other* points within ``radius``."""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0 or min_neighbors <= 0:
+        return np.ones(len(pts), dtype=bool)
+    counts = cKDTree(pts).query_ball_point(pts, r=radius, return_length=True)
+    return (np.asarray(counts) - 1) >= min_neighbors
+
+
+def _voxel_reduce(
+    ijk: np.ndarray, values: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group rows by integer voxel ``ijk`` (N, 3): unique voxels, weighted mean values, summed weights."""
+    if len(ijk) == 0:
+        return ijk.reshape(0, 3), values.reshape(0, values.shape[1]), weights.reshape(0)
+    uniq, inverse = np.unique(ijk, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    wsum = np.bincount(inverse, weights=weights, minlength=len(uniq))
+    means = np.stack(
+        [np.bincount(inverse, weights=values[:, c] * weights, minlength=len(uniq)) for c in range(values.shape[1])],
+        axis=1,
+    ) / wsum[:, None]
+    return uniq.astype(np.int64), means, wsum
+
+
+def _disk(radius: int) -> np.ndarray:
+    r = int(radius)
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    return (xx * xx + yy * yy) <= r * r + 1e-9
+
+
+def _band_columns(
+    obstacle_ij: np.ndarray, obstacle_z: np.ndarray, lo: float, hi: float, shape2d: tuple[int, int]
+) -> np.ndarray:
+    """2D mask of columns holding an obstacle voxel whose height lies in (lo, hi]."""
+    mask = np.zeros(shape2d, dtype=bool)
+    sel = (obstacle_z > lo) & (obstacle_z <= hi)
+    mask[obstacle_ij[sel, 0], obstacle_ij[sel, 1]] = True
+    return mask
+
+
+# ----------------------------------------------------------------------------------------------
+# The map
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class NavMap:
+    """Navigable floor of one scene on a 0.05 m grid (map frame = gravity-aligned world).
+
+    Attributes:
+        voxel_size: cell size in metres.
+        origin: (3,) map-frame position of the corner of voxel (0, 0, 0).
+        shape: (nx, ny, nz) voxel-grid extent.
+        floor_ij: (F, 2) int column of every floor cell (a column may hold several, e.g. storeys).
+        floor_z: (F,) floor height of each cell in metres.
+        floor_level: (F,) storey index of each cell (nearest storey height).
+        floor_filled: (F,) True for cells created by the hole-filling closing.
+        clearance: (F,) horizontal distance (m) to the nearest blocked column (obstacle in the body
+            band above this floor height, or unsupported/unknown floor).
+        navigable: (F,) clearance >= safety buffer.
+        obstacle_ij: (O, 2) int columns of obstacle voxels (after outlier removal).
+        obstacle_xyz: (O, 3) mean position of the points of each obstacle voxel.
+        level_heights: (L,) storey heights.
+        level_planes: (L, 4) storey planes (a, b, c, d) with a x + b y + c z + d = 0, c > 0.
+        rotation: (3, 3) map_from_world rotation (identity when no gravity correction was applied).
+        embodiment: the body used for the clearance/step tests.
+        config: the extraction config.
+        notes: remarks from the extraction (fallbacks taken, counts dropped).
+    """
+
+    voxel_size: float
+    origin: np.ndarray
+    shape: tuple[int, int, int]
+    floor_ij: np.ndarray
+    floor_z: np.ndarray
+    floor_level: np.ndarray
+    floor_filled: np.ndarray
+    clearance: np.ndarray
+    navigable: np.ndarray
+    obstacle_ij: np.ndarray
+    obstacle_xyz: np.ndarray
+    level_heights: np.ndarray
+    level_planes: np.ndarray
+    rotation: np.ndarray
+    embodiment: Embodiment
+    config: NavMapConfig
+    notes: list[str] = field(default_factory=list)
+
+    # --- derived geometry -----------------------------------------------------------------
+    @property
+    def shape2d(self) -> tuple[int, int]:
+        return (int(self.shape[0]), int(self.shape[1]))
+
+    def cell_xy(self, ij: np.ndarray) -> np.ndarray:
+        """Map-frame (x, y) centres of integer columns (N, 2)."""
+        return self.origin[:2] + (np.asarray(ij, dtype=np.float64) + 0.5) * self.voxel_size
+
+    def xy_to_ij(self, xy: np.ndarray) -> np.ndarray:
+        """Integer columns containing map-frame (x, y) positions (N, 2); may lie outside the grid."""
+        return np.floor((np.asarray(xy, dtype=np.float64) - self.origin[:2]) / self.voxel_size).astype(np.int64)
+
+    @property
+    def floor_points(self) -> np.ndarray:
+        """(F, 3) map-frame centres of all floor cells (navigable or not) at floor height."""
+        return np.column_stack((self.cell_xy(self.floor_ij), self.floor_z))
+
+    @property
+    def map_points(self) -> np.ndarray:
+        """(M, 3) map-frame centres of the navigable cells at floor height."""
+        return self.floor_points[self.navigable]
+
+    @property
+    def points(self) -> np.ndarray:
+        """(M, 3) world-frame centres of the navigable cells at floor height (public contract)."""
+        return self.to_world(self.map_points)
+
+    @property
+    def levels(self) -> np.ndarray:
+        """(M,) storey index of each row of :attr:`points`."""
+        return self.floor_level[self.navigable]
+
+    @property
+    def obstacle_z(self) -> np.ndarray:
+        """(O,) mean height of each obstacle voxel."""
+        return self.obstacle_xyz[:, 2]
+
+    @property
+    def obstacle_points(self) -> np.ndarray:
+        """(O, 3) map-frame obstacle positions (mean of the points of each obstacle voxel)."""
+        return self.obstacle_xyz
+
+    def to_world(self, p: np.ndarray) -> np.ndarray:
+        """Map-frame points (..., 3) -> world frame."""
+        return np.asarray(p, dtype=np.float64) @ self.rotation  # R^T p for row vectors
+
+    def to_map(self, p: np.ndarray) -> np.ndarray:
+        """World-frame points (..., 3) -> map frame."""
+        return np.asarray(p, dtype=np.float64) @ self.rotation.T
+
+    @property
+    def num_levels(self) -> int:
+        return int(len(self.level_heights))
+
+    def navigable_area(self, level: int | None = None) -> float:
+        """Navigable area in m^2 (of one storey when ``level`` is given)."""
+        sel = self.navigable if level is None else (self.navigable & (self.floor_level == level))
+        return float(sel.sum()) * self.voxel_size**2
+
+    @property
+    def safety_buffer(self) -> float:
+        buf = self.config.safety_buffer
+        return self.embodiment.radius if buf is None else float(buf)
+
+    # --- per-height-band blocked masks (the body-band view of the 3D occupancy) --------------
+    def height_bins(self) -> tuple[np.ndarray, np.ndarray]:
+        """Floor-height bins used for the body-band masks: (bin heights (B,), bin of each cell (F,))."""
+        k = np.floor((self.floor_z - self.origin[2]) / self.voxel_size).astype(np.int64)
+        uniq, inv = np.unique(k, return_inverse=True)
+        heights = np.bincount(inv.reshape(-1), weights=self.floor_z) / np.bincount(inv.reshape(-1))
+        return heights, inv.reshape(-1)
+
+    def blocked_mask(self, floor_height: float) -> np.ndarray:
+        """(nx, ny) columns an agent standing at ``floor_height`` may not occupy.
+
+        Blocked = an obstacle voxel in the body band (floor + max step, floor + height] or no floor
+        within the maximum step height (unknown space, drops, holes).
+        """
+        emb = self.embodiment
+        blocked = _band_columns(
+            self.obstacle_ij,
+            self.obstacle_z,
+            floor_height + emb.max_step_height + HEIGHT_TOLERANCE,
+            floor_height + emb.height,
+            self.shape2d,
+        )
+        support = np.zeros(self.shape2d, dtype=bool)
+        near = np.abs(self.floor_z - floor_height) <= emb.max_step_height + HEIGHT_TOLERANCE
+        support[self.floor_ij[near, 0], self.floor_ij[near, 1]] = True
+        return blocked | ~support
+
+    def blocked_stack(self) -> tuple[np.ndarray, np.ndarray]:
+        """Blocked masks of every height bin: (bin heights (B,), masks (B, nx, ny))."""
+        heights, _ = self.height_bins()
+        masks = np.stack([self.blocked_mask(float(h)) for h in heights]) if len(heights) else np.zeros(
+            (0,) + self.shape2d, dtype=bool
+        )
+        return heights, masks
+
+    # --- persistence ----------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write an ``.npz`` (no pickle) atomically; returns the path."""
+        path = Path(path)
+        meta = {
+            "format_version": NAVMAP_FORMAT_VERSION,
+            "voxel_size": self.voxel_size,
+            "shape": list(self.shape),
+            "embodiment": self.embodiment.to_dict(),
+            "config": {**self.config.to_dict(), "floor_labels": list(self.config.floor_labels)},
+            "notes": self.notes,
+        }
+        arrays = {
+            "meta_json": np.array(json.dumps(meta)),
+            "origin": self.origin,
+            "floor_ij": self.floor_ij.astype(np.int32),
+            "floor_z": self.floor_z.astype(np.float32),
+            "floor_level": self.floor_level.astype(np.int16),
+            "floor_filled": self.floor_filled,
+            "clearance": self.clearance.astype(np.float32),
+            "navigable": self.navigable,
+            "obstacle_ij": self.obstacle_ij.astype(np.int32),
+            "obstacle_xyz": self.obstacle_xyz.astype(np.float32),
+            "level_heights": self.level_heights,
+            "level_planes": self.level_planes,
+            "rotation": self.rotation,
+            "points": self.points.astype(np.float32),
+        }
+        _atomic_savez(path, arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "NavMap":
+        """Read a map written by :meth:`save`; errors name the file and the missing field."""
+        path = Path(path)
+        if not path.is_file():
+            raise NavMapError(f"{path}: navigation map file not found")
+        with np.load(path, allow_pickle=False) as data:
+            try:
+                meta = json.loads(str(data["meta_json"]))
+                if meta.get("format_version") != NAVMAP_FORMAT_VERSION:
+                    raise NavMapError(f"{path}: unsupported navmap format_version {meta.get('format_version')!r}")
+                return cls(
+                    voxel_size=float(meta["voxel_size"]),
+                    origin=np.asarray(data["origin"], dtype=np.float64),
+                    shape=tuple(int(v) for v in meta["shape"]),  # type: ignore[arg-type]
+                    floor_ij=data["floor_ij"].astype(np.int64),
+                    floor_z=data["floor_z"].astype(np.float64),
+                    floor_level=data["floor_level"].astype(np.int64),
+                    floor_filled=data["floor_filled"].astype(bool),
+                    clearance=data["clearance"].astype(np.float64),
+                    navigable=data["navigable"].astype(bool),
+                    obstacle_ij=data["obstacle_ij"].astype(np.int64),
+                    obstacle_xyz=data["obstacle_xyz"].astype(np.float64),
+                    level_heights=np.asarray(data["level_heights"], dtype=np.float64),
+                    level_planes=np.asarray(data["level_planes"], dtype=np.float64),
+                    rotation=np.asarray(data["rotation"], dtype=np.float64),
+                    embodiment=Embodiment.from_dict(meta["embodiment"], where=str(path)),
+                    config=NavMapConfig.from_dict(meta["config"], where=str(path)),
+                    notes=list(meta.get("notes", [])),
+                )
+            except KeyError as err:
+                raise NavMapError(f"{path}: navmap file is missing field {err.args[0]!r}") from None
+
+    def summary(self) -> dict:
+        """Counts and areas, JSON-ready."""
+        return {
+            "navigable_cells": int(self.navigable.sum()),
+            "floor_cells": int(len(self.floor_z)),
+            "filled_cells": int(self.floor_filled.sum()),
+            "obstacle_voxels": int(len(self.obstacle_z)),
+            "levels": [
+                {"height": float(h), "navigable_area_m2": self.navigable_area(i)}
+                for i, h in enumerate(self.level_heights)
+            ],
+            "navigable_area_m2": self.navigable_area(),
+            "gravity_correction_deg": float(
+                math.degrees(math.acos(max(-1.0, min(1.0, float(self.rotation[2, 2])))))
+            ),
+            "notes": list(self.notes),
+        }
+
+
+def _atomic_savez(path: Path, arrays: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# ----------------------------------------------------------------------------------------------
+# Extraction
+# ----------------------------------------------------------------------------------------------
+
+
+def extract_navmap_from_points(
+    points: np.ndarray,
+    normals: np.ndarray | None = None,
+    labels: np.ndarray | None = None,
+    camera_positions: np.ndarray | None = None,
+    embodiment: Embodiment | None = None,
+    config: NavMapConfig | None = None,
+    weights: np.ndarray | None = None,
+) -> NavMap:
+    """Navigable map of a world point cloud (N, 3) in metres, Z roughly up.
+
+    Args:
+        points: (N, 3) world points (non-finite rows are dropped).
+        normals: (N, 3) unit normals facing the observer; None = PCA normals oriented towards the
+            nearest camera (or upwards without cameras).
+        labels: (N,) semantic category ids; with ``config.floor_labels`` only those count as floor.
+        camera_positions: (C, 3) capture camera centres; they seed the kept floor components.
+        embodiment: agent body (default: the paper's).
+        config: extraction settings (default: the paper's).
+        weights: (N,) per-point weights (e.g. counts of pre-merged points); default 1.
+    """
+    emb = embodiment or Embodiment()
+    cfg = config or NavMapConfig()
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise NavMapError(f"points must have shape (N, 3), got {pts.shape}")
+    keep = np.isfinite(pts).all(axis=1)
+    cams = None if camera_positions is None else np.asarray(camera_positions, dtype=np.float64).reshape(-1, 3)
+    if normals is None:
+        nrm = estimate_normals_pca(pts[keep], viewpoints=cams)
+        full = np.zeros_like(pts)
+        full[keep] = nrm
+        nrm = full
+    else:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape != pts.shape:
+            raise NavMapError(f"normals must match points {pts.shape}, got {nrm.shape}")
+    floor = nrm[:, 2] >= cfg.normal_z_min
+    if labels is not None and cfg.floor_labels:
+        lab = np.asarray(labels).reshape(-1)
+        if len(lab) != len(pts):
+            raise NavMapError(f"labels must have one entry per point ({len(pts)}), got {len(lab)}")
+        floor &= np.isin(lab, cfg.floor_labels)
+    w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    return _build_navmap(pts[keep], floor[keep], w[keep], cams, emb, cfg)
+
+
+def extract_navmap(
+    capture: Iterable,
+    embodiment: Embodiment | None = None,
+    config: NavMapConfig | None = None,
+    progress: bool = False,
+) -> NavMap:
+    """Navigable map of a :class:`~image2sim.simulator.io.records.Capture` (any iterable of Frames).
+
+    Frames are back-projected with their camera's ``unproject`` and pose; normals come from the
+    5x5 Sobel estimator (``point_normals``); frames carrying ``semantics`` use ``config.floor_labels``.
+    Points are pre-merged into 0.05 m voxels per frame so memory stays bounded.
+    """
+    import torch
+
+    from image2sim.simulator.geometry.normals import point_normals
+
+    emb = embodiment or Embodiment()
+    cfg = config or NavMapConfig()
+    vox = cfg.voxel_size
+    acc_keys, acc_vals, acc_w, cams = [], [], [], []
+    frames = capture
+    bar = None
+    if progress:
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        bar.start()
+        task = bar.add_task("back-projecting frames", total=len(capture) if hasattr(capture, "__len__") else None)
+    try:
+        for frame in frames:
+            depth = np.asarray(frame.depth, dtype=np.float32)
+            d_t = torch.from_numpy(depth)
+            nrm = point_normals(d_t[None, None], frame.camera)[0].permute(1, 2, 0).numpy()
+            pts_c = frame.camera.unproject(d_t).numpy()
+            s = cfg.pixel_stride
+            depth_s, pts_s, nrm_s = depth[::s, ::s], pts_c[::s, ::s], nrm[::s, ::s]
+            valid = np.isfinite(depth_s) & (depth_s > 0) & (depth_s <= cfg.max_range)
+            pose = np.asarray(frame.cam_to_world, dtype=np.float64)
+            p_w = pts_s[valid].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+            n_w = nrm_s[valid].astype(np.float64) @ pose[:3, :3].T
+            is_floor = n_w[:, 2] >= cfg.normal_z_min
+            sem = getattr(frame, "semantics", None)
+            if sem is not None and cfg.floor_labels:
+                is_floor &= np.isin(np.asarray(sem)[::s, ::s][valid], cfg.floor_labels)
+            cams.append(pose[:3, 3])
+            # Pre-merge per frame: key = (voxel ijk, floor flag) in a fixed world lattice.
+            ijk = np.floor(p_w / vox).astype(np.int64)
+            key = np.column_stack((ijk, is_floor.astype(np.int64)))
+            uk, mean, wsum = _voxel_reduce(key, p_w, np.ones(len(p_w)))
+            acc_keys.append(uk[:, 3].astype(bool))
+            acc_vals.append(mean)
+            acc_w.append(wsum)
+            if bar is not None:
+                bar.advance(task)
+    finally:
+        if bar is not None:
+            bar.stop()
+    if not acc_vals:
+        raise NavMapError("capture has no frames: cannot extract a navigable map")
+    pts = np.concatenate(acc_vals)
+    floor = np.concatenate(acc_keys)
+    w = np.concatenate(acc_w)
+    return _build_navmap(pts, floor, w, np.asarray(cams), emb, cfg)
+
+
+def _build_navmap(
+    pts: np.ndarray,
+    floor: np.ndarray,
+    weights: np.ndarray,
+    cams: np.ndarray | None,
+    emb: Embodiment,
+    cfg: NavMapConfig,
+) -> NavMap:
+    """Core of the extraction on points already classified as floor candidates or not."""
+    notes: list[str] = []
+    vox = cfg.voxel_size
+    rng = np.random.default_rng(cfg.seed)
+    if len(pts) == 0:
+        raise NavMapError("no finite points: cannot extract a navigable map")
+    if floor.sum() < 3:
+        raise NavMapError(
+            f"only {int(floor.sum())} floor-candidate points (upward normals"
+            + (f" with labels {list(cfg.floor_labels)}" if cfg.floor_labels else "")
+            + "): no floor to navigate"
+        )
+
+    # 1. Gravity: the dominant upward plane's normal becomes +Z.
+    rotation = np.eye(3)
+    if cfg.align_gravity:
+        fp = pts[floor]
+        if len(fp) > 50000:
+            fp = fp[rng.choice(len(fp), 50000, replace=False)]
+        n, _, _ = fit_plane_ransac(fp, cfg.ransac_threshold, cfg.ransac_iterations, rng)
+        tilt = math.degrees(math.acos(min(1.0, abs(float(n[2])))))
+        if 0.5 < tilt <= cfg.max_tilt_deg:
+            rotation = rotation_aligning(n, np.array([0.0, 0.0, 1.0]))
+            pts = pts @ rotation.T
+            if cams is not None:
+                cams = cams @ rotation.T
+            notes.append(f"gravity corrected by {tilt:.2f} deg (RANSAC ground normal {np.round(n, 4).tolist()})")
+        elif tilt > cfg.max_tilt_deg:
+            notes.append(f"RANSAC ground normal tilted {tilt:.1f} deg > max_tilt_deg: not corrected")
+
+    # 2. Voxel lattice (one voxel margin so the border is always unknown space).
+    lo = np.floor(pts.min(axis=0) / vox) * vox - vox
+    hi = pts.max(axis=0)
+    shape = tuple(int(v) for v in np.floor((hi - lo) / vox).astype(np.int64) + 2)
+    ijk = np.floor((pts - lo) / vox).astype(np.int64)
+    ijk = np.minimum(ijk, np.array(shape) - 1)
+    f_ijk, f_mean, f_w = _voxel_reduce(ijk[floor], pts[floor], weights[floor])
+    o_ijk, o_mean, o_w = _voxel_reduce(ijk[~floor], pts[~floor], weights[~floor])
+
+    # 3. Floor cells: floor voxels stacked within one voxel in a column merge.
+    cell_of_voxel, c_ij, c_z = _merge_floor_columns(f_ijk, f_mean[:, 2], f_w, shape)
+
+    # 4. Components connected within the step height; keep those under cameras (or large ones).
+    comp = _floor_components(c_ij, c_z, emb.max_step_height)
+    keep_comp = _select_components(comp, c_ij, c_z, cams, lo, vox, cfg, notes)
+    keep_cell = np.isin(comp, keep_comp)
+    if not keep_cell.any():
+        raise NavMapError("no floor component survived (no camera above a floor and none large enough)")
+    # Rejected floor (tabletops, ceilings mistaken for floors, islands) are obstacles.
+    rejected_vox = ~keep_cell[cell_of_voxel]
+    o_ijk = np.concatenate((o_ijk, f_ijk[rejected_vox]))
+    o_mean = np.concatenate((o_mean, f_mean[rejected_vox]))
+    o_w = np.concatenate((o_w, f_w[rejected_vox]))
+    c_ij, c_z = c_ij[keep_cell], c_z[keep_cell]
+
+    # 5. Obstacle denoising: radius outlier removal on voxel centres.
+    if len(o_ijk):
+        inlier = radius_outlier_mask(o_ijk * vox, cfg.outlier_radius, int(cfg.outlier_min_neighbors))
+        if (~inlier).any():
+            notes.append(f"radius outlier removal dropped {int((~inlier).sum())} of {len(inlier)} obstacle voxels")
+        o_ijk, o_mean = o_ijk[inlier], o_mean[inlier]
+    obstacle_ij, obstacle_z = o_ijk[:, :2], o_mean[:, 2]
+    obstacle_xyz = o_mean
+
+    # 6. Storeys, planes, hole filling.
+    level_heights = _cluster_levels(c_z, vox, cfg.min_level_area, 2.0 * cfg.level_tolerance + vox)
+    level_planes = np.zeros((len(level_heights), 4))
+    for li, h in enumerate(level_heights):
+        member = np.abs(c_z - h) <= cfg.level_tolerance
+        xyz = np.column_stack((lo[:2] + (c_ij[member] + 0.5) * vox, c_z[member]))
+        if len(xyz) >= 3:
+            n, d, _ = fit_plane_ransac(xyz, cfg.ransac_threshold, cfg.ransac_iterations, rng)
+            if n[2] < 0.9:  # a storey plane must be near horizontal after alignment
+                n, d = np.array([0.0, 0.0, 1.0]), -h
+        else:
+            n, d = np.array([0.0, 0.0, 1.0]), -h
+        level_planes[li] = (*n, d)
+    c_level = np.argmin(np.abs(c_z[:, None] - level_heights[None, :]), axis=1)
+    filled_ij, filled_z, filled_level = _fill_holes(
+        c_ij, c_z, c_level, level_heights, level_planes, obstacle_ij, obstacle_z, lo, vox, shape, emb, cfg
+    )
+    floor_ij = np.concatenate((c_ij, filled_ij)).astype(np.int64)
+    floor_z = np.concatenate((c_z, filled_z))
+    floor_level = np.concatenate((c_level, filled_level)).astype(np.int64)
+    floor_filled = np.concatenate((np.zeros(len(c_z), bool), np.ones(len(filled_z), bool)))
+
+    navmap = NavMap(
+        voxel_size=vox,
+        origin=lo,
+        shape=shape,  # type: ignore[arg-type]
+        floor_ij=floor_ij,
+        floor_z=floor_z,
+        floor_level=floor_level,
+        floor_filled=floor_filled,
+        clearance=np.zeros(len(floor_z)),
+        navigable=np.zeros(len(floor_z), dtype=bool),
+        obstacle_ij=obstacle_ij.astype(np.int64),
+        obstacle_xyz=obstacle_xyz,
+        level_heights=level_heights,
+        level_planes=level_planes,
+        rotation=rotation,
+        embodiment=emb,
+        config=cfg,
+        notes=notes,
+    )
+    # 7. Clearance per floor-height bin (EDT of the blocked columns); safety buffer. The EDT measures
+    # centre to centre; subtracting half a cell diagonal makes it a lower bound on the distance to
+    # any point inside the blocking cell, so a navigable cell is free for the true geometry too.
+    heights, cell_bin = navmap.height_bins()
+    clearance = np.zeros(len(floor_z))
+    for b, h in enumerate(heights):
+        free = ~navmap.blocked_mask(float(h))
+        dist = np.maximum(ndimage.distance_transform_edt(free) * vox - vox * math.sqrt(0.5), 0.0)
+        sel = cell_bin == b
+        clearance[sel] = dist[floor_ij[sel, 0], floor_ij[sel, 1]]
+    navmap.clearance = clearance
+    navmap.navigable = clearance >= navmap.safety_buffer - 1e-9
+    if not navmap.navigable.any():
+        notes.append("no floor cell has the required clearance: the map has no navigable cell")
+    return navmap
+
+
+def _merge_floor_columns(
+    f_ijk: np.ndarray, f_z: np.ndarray, f_w: np.ndarray, shape: tuple[int, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge floor voxels of one column whose k differ by <= 1 into cells (weighted mean height).
+
+    Returns (cell index of every voxel, cell columns (C, 2), cell heights (C,)).
+    """
+    if len(f_ijk) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 2), np.int64), np.zeros(0)
+    col = f_ijk[:, 0] * shape[1] + f_ijk[:, 1]
+    order = np.lexsort((f_ijk[:, 2], col))
+    col_s, k_s = col[order], f_ijk[order, 2]
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (col_s[1:] != col_s[:-1]) | (k_s[1:] - k_s[:-1] > 1)
+    cell_sorted = np.cumsum(new) - 1
+    cell = np.empty(len(order), dtype=np.int64)
+    cell[order] = cell_sorted
+    n_cells = int(cell_sorted[-1]) + 1
+    wsum = np.bincount(cell, weights=f_w, minlength=n_cells)
+    z = np.bincount(cell, weights=f_z * f_w, minlength=n_cells) / wsum
+    ij = np.zeros((n_cells, 2), dtype=np.int64)
+    ij[cell] = f_ijk[:, :2]
+    return cell, ij, z
+
+
+def _floor_components(c_ij: np.ndarray, c_z: np.ndarray, max_step: float) -> np.ndarray:
+    """Connected-component id of every floor cell: 8-neighbours whose heights differ <= max_step."""
+    n = len(c_z)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    # Chebyshev ball of radius 1 in (i, j, z / step) = 8-neighbourhood with |dz| <= step.
+    coords = np.column_stack((c_ij.astype(np.float64), c_z / max(max_step + HEIGHT_TOLERANCE, 1e-6)))
+    pairs = cKDTree(coords).query_pairs(r=1.0 + 1e-9, p=np.inf, output_type="ndarray")
+    adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix(
+        (n, n)
+    )
+    _, labels = connected_components(adj, directed=False)
+    return labels.astype(np.int64)
+
+
+def _select_components(
+    comp: np.ndarray,
+    c_ij: np.ndarray,
+    c_z: np.ndarray,
+    cams: np.ndarray | None,
+    origin: np.ndarray,
+    vox: float,
+    cfg: NavMapConfig,
+    notes: list[str],
+) -> np.ndarray:
+    """Component ids to keep: those supporting a capture camera, else all large enough."""
+    xy = origin[:2] + (c_ij + 0.5) * vox
+    if cams is not None and len(cams):
+        tree = cKDTree(xy)
+        seeds = []
+        for cam in cams:
+            cand = np.asarray(tree.query_ball_point(cam[:2], r=cfg.camera_support_radius), dtype=np.int64)
+            cand = cand[c_z[cand] <= cam[2] - cfg.min_camera_height]
+            if len(cand):
+                best = cand[np.argmin(np.linalg.norm(xy[cand] - cam[:2], axis=1))]
+                seeds.append(comp[best])
+        missing = len(cams) - len(seeds)
+        if missing:
+            notes.append(f"{missing} of {len(cams)} cameras have no floor below within {cfg.camera_support_radius} m")
+        if seeds:
+            return np.unique(seeds)
+        notes.append("no camera lies above a floor: kept components by area instead")
+    area = np.bincount(comp) * vox * vox
+    keep = np.flatnonzero(area >= cfg.min_component_area)
+    if len(keep) == 0 and len(area):
+        keep = np.array([int(np.argmax(area))])
+    return keep
+
+
+def _cluster_levels(c_z: np.ndarray, vox: float, min_area: float, min_separation: float) -> np.ndarray:
+    """Storey heights from a height histogram of floor cells (peaks >= min_area, >= min_separation apart)."""
+    lo = float(c_z.min())
+    bins = np.floor((c_z - lo) / vox).astype(np.int64)
+    area = np.bincount(bins).astype(np.float64) * vox * vox
+    # Sum over 3 neighbouring bins so a floor straddling a bin edge counts once, whole.
+    smooth = np.convolve(area, np.ones(3), mode="same")
+    order = np.argsort(-smooth, kind="stable")
+    peaks: list[int] = []
+    for b in order:
+        if smooth[b] < min_area:
+            break
+        if all(abs(int(b) - p) * vox >= min_separation for p in peaks):
+            peaks.append(int(b))
+    if not peaks:  # a small scene: its single most populated height is the storey
+        peaks = [int(order[0])]
+    heights = []
+    for p in sorted(peaks):
+        sel = np.abs(bins - p) <= 1
+        heights.append(float(np.median(c_z[sel])))
+    return np.asarray(heights)
+
+
+def _fill_holes(
+    c_ij: np.ndarray,
+    c_z: np.ndarray,
+    c_level: np.ndarray,
+    level_heights: np.ndarray,
+    level_planes: np.ndarray,
+    obstacle_ij: np.ndarray,
+    obstacle_z: np.ndarray,
+    origin: np.ndarray,
+    vox: float,
+    shape: tuple[int, ...],
+    emb: Embodiment,
+    cfg: NavMapConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Morphological closing of each storey's floor mask; new cells lie on the storey plane.
+
+    Cells are not added in columns that already hold a floor within a body height of the storey
+    (stairs, the storey itself) nor where an obstacle stands in the storey's body band.
+    """
+    r = int(cfg.closing_radius_cells)
+    shape2d = (int(shape[0]), int(shape[1]))
+    empty = (np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0, np.int64))
+    if r <= 0 or len(level_heights) == 0:
+        return empty
+    out_ij, out_z, out_l = [], [], []
+    struct = _disk(r)
+    for li, h in enumerate(level_heights):
+        a, b, c, d = level_planes[li]
+        member = (c_level == li) & (np.abs(c_z - h) <= cfg.level_tolerance)
+        if not member.any():
+            continue
+        mask = np.zeros(shape2d, dtype=bool)
+        mask[c_ij[member, 0], c_ij[member, 1]] = True
+        closed = ndimage.binary_closing(np.pad(mask, r), structure=struct)[r:-r, r:-r]
+        near = np.abs(c_z - h) < emb.height
+        occupied = np.zeros(shape2d, dtype=bool)
+        occupied[c_ij[near, 0], c_ij[near, 1]] = True
+        occupied |= _band_columns(
+            obstacle_ij, obstacle_z, h + emb.max_step_height + HEIGHT_TOLERANCE, h + emb.height, shape2d
+        )
+        new = closed & ~mask & ~occupied
+        ij = np.argwhere(new)
+        if len(ij) == 0:
+            continue
+        xy = origin[:2] + (ij + 0.5) * vox
+        z = -(d + a * xy[:, 0] + b * xy[:, 1]) / c
+        out_ij.append(ij)
+        out_z.append(z)
+        out_l.append(np.full(len(ij), li, dtype=np.int64))
+    if not out_ij:
+        return empty
+    return np.concatenate(out_ij), np.concatenate(out_z), np.concatenate(out_l)
+
+
+# ----------------------------------------------------------------------------------------------
+# Visualisation
+# ----------------------------------------------------------------------------------------------
+
+_LEVEL_COLOURS = np.array(
+    [[66, 135, 245], [245, 135, 66], [80, 190, 90], [200, 80, 200], [220, 200, 60], [60, 200, 200]], dtype=np.uint8
+)
+
+
+def render_topdown(navmap: NavMap, path: np.ndarray | None = None, scale: int = 2) -> np.ndarray:
+    """Top-down RGB image (uint8, rows = +y downwards flipped so +y is up) with three panels.
+
+    Left: navigable cells coloured by storey over obstacles (grey) and non-navigable floor (dark);
+    middle: clearance heat map (black 0 m -> white >= r_safe); right: floor height. An optional
+    (P, 3) map-frame ``path`` is drawn in red on the left panel.
+    """
+    nx, ny = navmap.shape2d
+    base = np.full((nx, ny, 3), 255, dtype=np.uint8)
+    occ = np.zeros((nx, ny), dtype=bool)
+    occ[navmap.obstacle_ij[:, 0], navmap.obstacle_ij[:, 1]] = True
+    base[occ] = (150, 150, 150)
+    fi, fj = navmap.floor_ij[:, 0], navmap.floor_ij[:, 1]
+    # Draw lower storeys first so the top storey is visible where they overlap.
+    order = np.argsort(navmap.floor_z)
+    nav = navmap.navigable[order]
+    base[fi[order][~nav], fj[order][~nav]] = (60, 60, 60)
+    base[fi[order][nav], fj[order][nav]] = _LEVEL_COLOURS[navmap.floor_level[order][nav] % len(_LEVEL_COLOURS)]
+    clear = np.zeros((nx, ny, 3), dtype=np.uint8)
+    r_safe = 5.0 * navmap.embodiment.radius
+    val = np.clip(navmap.clearance[order] / r_safe, 0, 1)
+    clear[fi[order], fj[order]] = (val[:, None] * 255).astype(np.uint8)
+    height = np.zeros((nx, ny, 3), dtype=np.uint8)
+    z = navmap.floor_z[order]
+    span = max(1e-6, float(z.max() - z.min())) if len(z) else 1.0
+    t = ((z - (z.min() if len(z) else 0)) / span)
+    height[fi[order], fj[order]] = np.column_stack((40 + 215 * t, 80 + 100 * (1 - t), 255 * (1 - t))).astype(np.uint8)
+    if path is not None and len(path):
+        ij = navmap.xy_to_ij(np.asarray(path)[:, :2])
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+        base[ij[ok, 0], ij[ok, 1]] = (220, 30, 30)
+    def _to_image(panel: np.ndarray) -> np.ndarray:
+        # Array axis 0 is x, axis 1 is y: rows = y, flipped so +y points up in the image.
+        return np.transpose(panel, (1, 0, 2))[::-1]
+
+    sep = np.full((ny, 2, 3), 255, dtype=np.uint8)
+    img = np.ascontiguousarray(
+        np.concatenate((_to_image(base), sep, _to_image(clear), sep, _to_image(height)), axis=1)
+    )
+    if scale > 1:
+        img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
+    return img
+
+
+def write_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Atomically write an RGB uint8 image as PNG."""
+    import cv2
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
+    if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+        raise OSError(f"{path}: could not encode PNG")
+    os.replace(tmp, path)
+    return path

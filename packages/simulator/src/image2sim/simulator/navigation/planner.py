@@ -1,0 +1,166 @@
+"""Planning on a :class:`NavGraph`: snapped shortest paths, geodesic distances, goal distance fields.
+
+Two metrics live on the same graph: the *planning cost* (directed, collision-aware, see
+:mod:`.graph`) chooses paths; the *geodesic distance* (shortest path length in metres, symmetric)
+is what navigation metrics report. Failures never raise: they return ``inf`` with a reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse.csgraph import dijkstra
+
+from image2sim.simulator.navigation.graph import NavGraph
+
+__all__ = ["PathResult", "DistanceField", "Planner"]
+
+
+@dataclass
+class PathResult:
+    """Outcome of a path query (map frame).
+
+    Attributes:
+        waypoints: (P, 3) start point, node positions along the path, goal point (empty if unreachable).
+        nodes: (P - 2,) graph node ids along the path.
+        length: metres along the waypoints (inf when unreachable).
+        cost: summed directed arc costs between the snapped nodes (inf when unreachable).
+        reason: "" on success, else why there is no path.
+    """
+
+    waypoints: np.ndarray
+    nodes: np.ndarray
+    length: float
+    cost: float
+    reason: str = ""
+
+    @property
+    def reachable(self) -> bool:
+        return bool(np.isfinite(self.length))
+
+
+@dataclass
+class DistanceField:
+    """Distances from every node to one goal (one Dijkstra), then cheap lookups per query.
+
+    ``distance(p)`` = horizontal offset of ``p`` to its snapped node + the node's distance to the
+    goal node + the goal point's offset to that node, inf when off the graph or unreachable.
+    """
+
+    graph: NavGraph
+    goal: np.ndarray
+    goal_node: int
+    node_distance: np.ndarray
+    goal_offset: float
+    reason: str = ""
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Geodesic distance (metres) of map-frame feet positions (N, 3) or (3,) to the goal."""
+        p = np.asarray(points, dtype=np.float64)
+        single = p.ndim == 1
+        idx, off = self.graph.snap(np.atleast_2d(p))
+        out = np.full(len(idx), np.inf)
+        ok = idx >= 0
+        out[ok] = self.node_distance[idx[ok]] + off[ok] + self.goal_offset
+        return out[0] if single else out
+
+    def __call__(self, point: np.ndarray) -> float:
+        """Scalar distance of one position (fast path for per-step evaluation)."""
+        return float(self.distance(np.asarray(point, dtype=np.float64).reshape(3)))
+
+
+class Planner:
+    """Shortest paths (planning cost) and geodesic distances (metres) on a navigation graph."""
+
+    def __init__(self, graph: NavGraph) -> None:
+        self.graph = graph
+        self._cost_t = graph.cost.T.tocsr()
+
+    # --- helpers --------------------------------------------------------------------------
+    def _snap_one(self, point: np.ndarray, what: str) -> tuple[int, float, str]:
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        if not np.isfinite(p).all():
+            return -1, np.inf, f"{what} {p.tolist()} is not finite"
+        if self.graph.num_nodes == 0:
+            return -1, np.inf, "the navigation graph is empty"
+        idx, off = self.graph.snap(p[None])
+        if idx[0] < 0:
+            return -1, np.inf, (
+                f"{what} {np.round(p, 3).tolist()} is off the navigable map "
+                f"(no node within {self.graph.config.max_snap_distance} m horizontally and a body height vertically)"
+            )
+        return int(idx[0]), float(off[0]), ""
+
+    def _unreachable(self, reason: str) -> PathResult:
+        return PathResult(np.zeros((0, 3)), np.zeros(0, np.int64), float("inf"), float("inf"), reason)
+
+    # --- queries --------------------------------------------------------------------------
+    def shortest_path(self, start: np.ndarray, goal: np.ndarray) -> PathResult:
+        """Minimum-cost path between two map-frame feet positions, as 3D waypoints."""
+        s, s_off, why = self._snap_one(start, "start")
+        if why:
+            return self._unreachable(why)
+        g, g_off, why = self._snap_one(goal, "goal")
+        if why:
+            return self._unreachable(why)
+        if self.graph.components[s] != self.graph.components[g]:
+            return self._unreachable(f"start node {s} and goal node {g} lie in different connected components")
+        dist, pred = dijkstra(self.graph.cost, directed=True, indices=s, return_predecessors=True)
+        if not np.isfinite(dist[g]):
+            return self._unreachable(f"goal node {g} is not reachable from start node {s}")
+        chain = [g]
+        while chain[-1] != s:
+            chain.append(int(pred[chain[-1]]))
+        nodes = np.asarray(chain[::-1], dtype=np.int64)
+        pts = np.vstack((np.asarray(start, float).reshape(1, 3), self.graph.nodes[nodes], np.asarray(goal, float).reshape(1, 3)))
+        length = float(np.linalg.norm(np.diff(pts[1:-1], axis=0), axis=1).sum()) + s_off + g_off
+        return PathResult(pts, nodes, length, float(dist[g]))
+
+    def geodesic_distance(self, start: np.ndarray, goal: np.ndarray) -> tuple[float, str]:
+        """Shortest path length in metres (symmetric, ignores clearance penalties) and a reason if inf."""
+        s, s_off, why = self._snap_one(start, "start")
+        if why:
+            return float("inf"), why
+        g, g_off, why = self._snap_one(goal, "goal")
+        if why:
+            return float("inf"), why
+        if self.graph.components[s] != self.graph.components[g]:
+            return float("inf"), f"start node {s} and goal node {g} lie in different connected components"
+        d = dijkstra(self.graph.length_matrix, directed=False, indices=s)[g]
+        return float(d + s_off + g_off), ""
+
+    def distance_field(self, goal: np.ndarray, weighted: bool = False) -> DistanceField:
+        """Distance of every node to ``goal``: metres (default) or planning cost (``weighted``).
+
+        The cost field runs Dijkstra on the transposed directed graph, i.e. it is the cost of
+        travelling *to* the goal.
+        """
+        g, g_off, why = self._snap_one(goal, "goal")
+        if why:
+            return DistanceField(self.graph, np.asarray(goal, float), -1, np.full(self.graph.num_nodes, np.inf), np.inf, why)
+        if weighted:
+            d = dijkstra(self._cost_t, directed=True, indices=g)
+        else:
+            d = dijkstra(self.graph.length_matrix, directed=False, indices=g)
+        return DistanceField(self.graph, np.asarray(goal, float), g, d, g_off)
+
+    def path_from_field(self, field_: DistanceField, start: np.ndarray, max_nodes: int = 1_000_000) -> PathResult:
+        """Greedy descent of a *weighted* distance field from ``start`` (same path as Dijkstra ties aside)."""
+        s, s_off, why = self._snap_one(start, "start")
+        if why or field_.goal_node < 0:
+            return self._unreachable(why or field_.reason)
+        if not np.isfinite(field_.node_distance[s]):
+            return self._unreachable(f"start node {s} cannot reach goal node {field_.goal_node}")
+        cost = self.graph.cost
+        chain = [s]
+        while chain[-1] != field_.goal_node and len(chain) < max_nodes:
+            i = chain[-1]
+            nb = cost.indices[cost.indptr[i] : cost.indptr[i + 1]]
+            w = cost.data[cost.indptr[i] : cost.indptr[i + 1]]
+            chain.append(int(nb[np.argmin(w + field_.node_distance[nb])]))
+        nodes = np.asarray(chain, dtype=np.int64)
+        pts = np.vstack((np.asarray(start, float).reshape(1, 3), self.graph.nodes[nodes], field_.goal.reshape(1, 3)))
+        length = float(np.linalg.norm(np.diff(pts[1:-1], axis=0), axis=1).sum()) + s_off + field_.goal_offset
+        return PathResult(pts, nodes, length, float(field_.node_distance[s]))
