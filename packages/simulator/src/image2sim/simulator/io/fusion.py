@@ -25,28 +25,34 @@ _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
 @lru_cache(maxsize=4)
-def _unit_depth_points(camera: Camera) -> np.ndarray:
-    """Camera-frame points at depth 1 for every pixel, (H, W, 3) float64.
+def _unit_depth_points(camera: Camera) -> torch.Tensor:
+    """Camera-frame points at depth 1 for every pixel, (H*W, 3) float32, row-major pixels.
 
     Unprojection is linear in depth for both camera models (range x unit ray; z x K^-1 ray), so
-    one cached map per camera turns every frame's back-projection into a multiply.
+    one cached map per camera turns every frame's back-projection into a multiply-add.
     """
     ones = torch.ones((camera.height, camera.width), dtype=torch.float64)
-    return camera.unproject(ones).numpy()
+    return camera.unproject(ones).reshape(-1, 3).to(torch.float32)
 
 
 def backproject_frame(frame: Frame, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) float64 and colours (N, 3) uint8 of the valid (depth > 0) pixels.
+    """World points (N, 3) float32 and colours (N, 3) uint8 of the valid (depth > 0) pixels.
 
     ``pixels`` optionally restricts to flat pixel indices (row-major); invalid ones are dropped.
+    float32 is ample here (1 micrometre at 10 m) and keeps the hot path fast.
     """
-    depth = np.asarray(frame.depth).reshape(-1)
-    idx = np.flatnonzero(depth > 0) if pixels is None else np.asarray(pixels)[depth[pixels] > 0]
-    rays = _unit_depth_points(frame.camera).reshape(-1, 3)[idx]
-    cam_points = rays * depth[idx, None].astype(np.float64)
-    pose = np.asarray(frame.cam_to_world, dtype=np.float64)
-    world = cam_points @ pose[:3, :3].T + pose[:3, 3]
-    return world, np.asarray(frame.rgb).reshape(-1, 3)[idx]
+    depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32).reshape(-1))
+    rays = _unit_depth_points(frame.camera)
+    colours = np.asarray(frame.rgb).reshape(-1, 3)
+    if pixels is not None:
+        pixels = torch.as_tensor(np.asarray(pixels), dtype=torch.int64)
+        depth, rays, colours = depth[pixels], rays[pixels], colours[pixels.numpy()]
+    valid = depth > 0
+    pose = torch.from_numpy(np.asarray(frame.cam_to_world, dtype=np.float32))
+    # Transform every pixel, then mask: dense ops beat gathering rows first.
+    world = torch.addmm(pose[:3, 3], rays * depth[:, None], pose[:3, :3].T)
+    valid_np = valid.numpy()
+    return world[valid].numpy(), colours[valid_np]
 
 
 def _pack(keys: torch.Tensor) -> torch.Tensor:
