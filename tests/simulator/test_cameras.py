@@ -270,3 +270,12 @@ def test_camera_from_dict_errors(data, message):
     with pytest.raises(ValueError) as err:
         camera_from_dict(data)
     assert message in str(err.value)
+
+
+@pytest.mark.parametrize("cam", [EquirectCamera(8, 16), PinholeCamera(10.0, 10.0, 8.0, 4.0, 8, 16)])
+def test_unproject_rejects_a_wrong_size_map(cam):
+    with pytest.raises(ValueError, match=r"does not end in the camera's \(H, W\) = \(8, 16\)"):
+        cam.unproject(torch.ones(8, 15))
+    with pytest.raises(ValueError, match="does not end"):
+        cam.unproject(torch.ones(16))
+    assert cam.unproject(torch.ones(2, 8, 16)).shape == (2, 8, 16, 3)

@@ -21,6 +21,13 @@ __all__ = ["EquirectCamera", "PinholeCamera", "Camera", "camera_from_dict"]
 _POLE_EPS = 1e-12
 
 
+def _check_map(camera, depth: torch.Tensor) -> None:
+    """A clear error instead of a broadcasting failure (or silent broadcast) on a wrong-size map."""
+    if depth.ndim < 2 or tuple(depth.shape[-2:]) != (camera.height, camera.width):
+        raise ValueError(f"{type(camera).__name__}.unproject: depth map of shape {tuple(depth.shape)} does not "
+                         f"end in the camera's (H, W) = ({camera.height}, {camera.width})")
+
+
 def _pixel_grid(height: int, width: int, dtype: torch.dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
     """Continuous coordinates (u, v) of every pixel centre, each (H, W)."""
     v = torch.arange(height, dtype=dtype, device=device) + 0.5
@@ -90,6 +97,7 @@ class EquirectCamera:
 
     def unproject(self, depth: torch.Tensor) -> torch.Tensor:
         """Range maps (..., H, W) -> camera-frame points (..., H, W, 3); invalid pixels give 0."""
+        _check_map(self, depth)
         rays = self.ray_map(depth.dtype, depth.device).permute(1, 2, 0)
         return depth.unsqueeze(-1) * rays
 
@@ -174,6 +182,7 @@ class PinholeCamera:
 
     def unproject(self, depth: torch.Tensor) -> torch.Tensor:
         """z-depth maps (..., H, W) -> camera-frame points (..., H, W, 3); invalid pixels give 0."""
+        _check_map(self, depth)
         uu, vv = _pixel_grid(self.height, self.width, depth.dtype, depth.device)
         x = (uu - self.cx) / self.fx
         y = (vv - self.cy) / self.fy
