@@ -13,6 +13,8 @@ from image2sim.eval.metrics.render import (
     SSIM_K1,
     SSIM_K2,
     depth_metrics,
+    gaussian_filter_valid,
+    gaussian_kernel_1d,
     gaussian_window,
     psnr,
     ssim,
@@ -81,6 +83,14 @@ def test_gaussian_window() -> None:
     assert w.shape == (11, 11) and w.sum().item() == pytest.approx(1.0)
     assert torch.allclose(w, w.T) and w.argmax().item() == 5 * 11 + 5
     assert (w[5, 5] / w[5, 6]).item() == pytest.approx(math.exp(1 / (2 * 1.5**2)))
+
+
+def test_separable_filter_matches_2d_convolution() -> None:
+    x = _rand(4, 23, 31).double()
+    fast = gaussian_filter_valid(x, gaussian_kernel_1d())
+    slow = torch.nn.functional.conv2d(x[:, None], gaussian_window()[None, None])[:, 0]
+    assert fast.shape == (4, 13, 21)
+    assert torch.allclose(fast, slow, atol=1e-14, rtol=0)
 
 
 def test_ssim_constant_images_hand_computed() -> None:
