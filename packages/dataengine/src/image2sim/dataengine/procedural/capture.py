@@ -65,17 +65,39 @@ def pose_matrix(view: Viewpoint) -> np.ndarray:
     return pose
 
 
+def _segment_cells_free(nav: np.ndarray, grid, a: np.ndarray, b: np.ndarray) -> bool:
+    """True when every grid cell whose square the segment a-b touches is navigable (exact supercover)."""
+    lo = np.minimum(a, b)
+    hi = np.maximum(a, b)
+    r0, c0 = grid.world_to_cell(lo)
+    r1, c1 = grid.world_to_cell(hi)
+    if r0 < 0 or c0 < 0 or r1 >= nav.shape[0] or c1 >= nav.shape[1]:
+        return False
+    rr, cc = np.mgrid[r0:r1 + 1, c0:c1 + 1]
+    rr, cc = rr.ravel(), cc.ravel()
+    res = grid.resolution
+    sq_lo = np.stack((grid.origin[0] + cc * res, grid.origin[1] + rr * res), axis=1) - 1e-9
+    sq_hi = sq_lo + res + 2e-9
+    # Liang-Barsky clip of the segment against every square.
+    d = b - a
+    t0 = np.zeros(len(rr))
+    t1 = np.ones(len(rr))
+    for k in range(2):
+        if abs(d[k]) < 1e-15:
+            inside = (a[k] >= sq_lo[:, k]) & (a[k] <= sq_hi[:, k])
+            t1 = np.where(inside, t1, -1.0)
+            continue
+        ta = (sq_lo[:, k] - a[k]) / d[k]
+        tb = (sq_hi[:, k] - a[k]) / d[k]
+        t0 = np.maximum(t0, np.minimum(ta, tb))
+        t1 = np.minimum(t1, np.maximum(ta, tb))
+    touched = t0 <= t1
+    return bool(nav[rr[touched], cc[touched]].all())
+
+
 def _line_of_sight(nav: np.ndarray, grid, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """For segments a (2,) -> b (K, 2): True where every sample every half cell is navigable."""
-    length = np.linalg.norm(b - a, axis=1)
-    steps = int(np.ceil(length.max(initial=0.0) / (0.5 * grid.resolution))) + 1
-    s = np.linspace(0.0, 1.0, max(steps, 2))
-    pts = a[None, None, :] + s[None, :, None] * (b - a)[:, None, :]
-    iy, ix = grid.world_to_cell(pts)
-    inside = (iy >= 0) & (ix >= 0) & (iy < nav.shape[0]) & (ix < nav.shape[1])
-    ok = np.zeros(iy.shape, dtype=bool)
-    ok[inside] = nav[iy[inside], ix[inside]]
-    return ok.all(axis=1)
+    """For segments a (2,) -> b (K, 2): True where the segment only crosses navigable cells."""
+    return np.array([_segment_cells_free(nav, grid, a, bk) for bk in b], dtype=bool)
 
 
 def sample_viewpoints(scene: ProceduralScene, n: int, rng: np.random.Generator) -> list[Viewpoint]:
