@@ -3,6 +3,9 @@
 Channel layout of C_p (fixed; every consumer slices with the constants here):
 ``[0:16]`` splatted features, ``[16:19]`` RGB in [0, 1], ``[19]`` depth in metres (range, 0 =
 invalid), ``[20]`` alpha in [0, 1], ``[21:24]`` target ray map (unit directions, camera frame).
+RGB and depth are the *expected* colour and range of the visible surface (not premultiplied by
+alpha; the source state multiplies by alpha itself): convert a compositing splatter's output
+with :func:`unpremultiply`.
 The flow state is ``[RGB, depth / depth_scale]`` (4 channels).
 """
 
@@ -19,6 +22,7 @@ __all__ = [
     "ALPHA",
     "RAYS",
     "build_condition",
+    "unpremultiply",
     "prior_state",
     "condition_alpha",
     "to_state",
@@ -57,6 +61,19 @@ def build_condition(
     _check("ray_map", ray_map, 3, features)
     cond = torch.cat((features, rgb, depth, alpha.clamp(0.0, 1.0), ray_map.to(features.dtype)), dim=1)
     return torch.nan_to_num(cond, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def unpremultiply(
+    rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, background: float = 0.0, min_alpha: float = 1e-3
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composited ``rgb = sum w c + (1 - alpha) bg`` and weighted ``depth = sum w rho`` ->
+    expected colour and range ``(rgb - (1 - alpha) bg) / alpha``, ``depth / alpha``; 0 where
+    ``alpha < min_alpha`` (nothing reliable was projected there)."""
+    a = alpha.clamp(0.0, 1.0)
+    ok = a >= min_alpha
+    safe = torch.where(ok, a, torch.ones_like(a))
+    colour = ((rgb - (1.0 - a) * background) / safe).clamp(0.0, 1.0)
+    return torch.where(ok, colour, torch.zeros_like(colour)), torch.where(ok, depth / safe, torch.zeros_like(depth))
 
 
 def condition_alpha(condition: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,278 @@
+"""Lightning training of the pixel-flow renderer with the paper's three-stage curriculum.
+
+* Stage 1 (geometry initialisation, steps [0, stage2_start)): flow without the spatial focus
+  weight, no distillation, lambda_perc = curriculum.lambda_perc[0].
+* Stage 2 (flow + distillation): the EMA teacher starts as a copy of the student and follows it
+  with decay ``distill.ema_decay``; the opacity-adaptive weight W(A) is applied to the flow loss.
+* Stage 3 (high-frequency refinement): the decoder's conv encoder, the semantic aligner, the time
+  embedding and the transformer bottleneck (with its semantic injectors) are frozen; only the
+  upsampling decoder, skips and heads train.
+
+The stage is a pure function of the global step and is re-applied at every step, so resuming
+from a checkpoint lands in the right stage with the right modules frozen. Per-step randomness
+((r, t), source noise) comes from a generator seeded by (seed, step), and the data order from
+:class:`StepSampler`, so an interrupted-and-resumed run reproduces the uninterrupted losses.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import lightning as L
+import torch
+from torch import nn
+
+from image2sim.simulator.renderer import meanflow as mf
+from image2sim.simulator.renderer.config import RendererConfig
+from image2sim.simulator.renderer.distill import EMATeacher
+from image2sim.simulator.renderer.losses import load_lpips
+from image2sim.simulator.renderer.model import PixelFlowRenderer
+
+__all__ = ["stage_at", "stage_weights", "frozen_prefixes", "apply_stage", "RendererModule", "RendererDataModule",
+           "psnr"]
+
+FROZEN_IN_STAGE3: tuple[str, ...] = (
+    "aligner.",
+    "decoder.stem.",
+    "decoder.enc_blocks.",
+    "decoder.downs.",
+    "decoder.time_embed.",
+    "decoder.injectors.",
+    "decoder.blocks.",
+)
+"""Parameter-name prefixes frozen in stage 3 (encoder, aligner, bottleneck). The paper also
+freezes the scene encoder's feature upsampler, which lives outside the renderer."""
+
+
+def stage_at(step: int, cfg: RendererConfig) -> int:
+    """Curriculum stage (1, 2 or 3) of a global step."""
+    c = cfg.curriculum
+    return 1 if step < c.stage2_start else (2 if step < c.stage3_start else 3)
+
+
+def stage_weights(stage: int, cfg: RendererConfig, perceptual_available: bool = True) -> dict[str, float]:
+    """Loss weights in force in ``stage`` (ablations and a missing LPIPS zero their terms)."""
+    c, lo, ab = cfg.curriculum, cfg.loss, cfg.ablation
+    return {
+        "rec": lo.lambda_rec,
+        "align": 0.0 if ab.no_semantic else lo.lambda_align,
+        "flow": lo.lambda_flow,
+        "distill": 0.0 if ab.no_distill else c.lambda_distill[stage - 1],
+        "perc": c.lambda_perc[stage - 1] if perceptual_available else 0.0,
+    }
+
+
+def frozen_prefixes(stage: int) -> tuple[str, ...]:
+    """Parameter-name prefixes frozen in ``stage``."""
+    return FROZEN_IN_STAGE3 if stage >= 3 else ()
+
+
+def apply_stage(renderer: nn.Module, stage: int) -> list[str]:
+    """Set ``requires_grad`` for ``stage``; returns the names of the frozen parameters."""
+    prefixes = frozen_prefixes(stage)
+    frozen = []
+    for name, p in renderer.named_parameters():
+        freeze = name.startswith(prefixes)
+        p.requires_grad_(not freeze)
+        if freeze:
+            frozen.append(name)
+    return frozen
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean PSNR (dB) of images in [0, 1] over the batch."""
+    mse = (pred.float() - target.float()).pow(2).flatten(1).mean(1).clamp_min(1e-10)
+    return (-10.0 * torch.log10(mse)).mean()
+
+
+class RendererModule(L.LightningModule):
+    """Renderer + EMA teacher + curriculum; AdamW with a cosine schedule (per step)."""
+
+    def __init__(self, cfg: RendererConfig, seed: int = 0, lpips_path: str | None = None,
+                 grid_every: int = 0) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.seed = int(seed)
+        self.grid_every = int(grid_every)
+        self.renderer = PixelFlowRenderer(cfg)
+        self.teacher = None if cfg.ablation.no_distill or cfg.ablation.no_pixel_flow else EMATeacher(
+            self.renderer, cfg.distill.ema_decay
+        )
+        self.register_buffer("teacher_started", torch.zeros((), dtype=torch.bool))
+        self.perceptual = load_lpips(lpips_path or cfg.loss.lpips_weights)
+        self.current_stage = 0
+        self.save_hyperparameters({"config": __import__("dataclasses").asdict(cfg), "seed": seed})
+
+    # --- helpers -------------------------------------------------------------------------------
+    def _step_generator(self, step: int) -> torch.Generator:
+        return torch.Generator().manual_seed(self.seed * 1_000_003 + int(step))
+
+    def _enter_stage(self, stage: int) -> None:
+        if stage != self.current_stage:
+            apply_stage(self.renderer, stage)
+            self.current_stage = stage
+
+    # --- Lightning hooks ------------------------------------------------------------------------
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        step = int(self.global_step)
+        stage = stage_at(step, self.cfg)
+        self._enter_stage(stage)
+        cond, rgb, depth = batch["condition"], batch["target_rgb"], batch["target_depth"]
+        b = cond.shape[0]
+        gen = self._step_generator(step)
+        r, t = mf.sample_time_pairs(b, self.cfg.meanflow.p_r_equals_t, generator=gen)
+        noise = torch.randn((b, 4, *cond.shape[-2:]), generator=gen)
+        r, t, noise = r.to(cond), t.to(cond), noise.to(cond)
+        weights = stage_weights(stage, self.cfg, self.perceptual is not None)
+        teacher = None
+        if self.teacher is not None and stage >= 2 and weights["distill"] > 0:
+            if not bool(self.teacher_started):
+                # The teacher is introduced at stage 2 as a copy of the current student.
+                self.teacher.update(self.renderer, decay=0.0)
+                self.teacher_started.fill_(True)
+            teacher = self.teacher.module
+        out = self.renderer.losses(
+            cond, rgb, depth, noise, r, t, teacher=teacher, target_tokens=batch.get("target_tokens"),
+            perceptual=self.perceptual if weights["perc"] > 0 else None, spatial_focus=stage >= 2,
+        )
+        total = sum(weights[k] * out[k] for k in weights)
+        log = {f"train/{k}": out[k].detach() for k in ("flow", "flow_raw", "rec", "align", "distill", "perc")}
+        log["train/loss"] = total.detach()
+        log["train/stage"] = float(stage)
+        log["train/psnr_one_step"] = psnr(out["x_one_step"][:, :3], rgb)
+        self.log_dict(log, prog_bar=False, on_step=True, on_epoch=False, batch_size=b)
+        self.last_losses = {k: float(v) for k, v in log.items()}
+        if self.grid_every and step % self.grid_every == 0:
+            self._log_grid(cond, out["x_one_step"], rgb, step)
+        return total
+
+    def optimizer_step(self, *args, **kwargs) -> None:
+        super().optimizer_step(*args, **kwargs)
+        # EMA right after the student's update, inside the step: checkpoint callbacks (which run
+        # in on_train_batch_end, before the module's hook) then always see the updated teacher.
+        if self.teacher is not None and bool(self.teacher_started):
+            self.teacher.update(self.renderer)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.current_stage = 0  # re-apply freezing for the restored step at the next batch
+
+    def configure_optimizers(self):
+        c = self.cfg.curriculum
+        params = [p for p in self.renderer.parameters()]
+        opt = torch.optim.AdamW(params, lr=c.lr, weight_decay=c.weight_decay)
+        total = max(1, c.total_steps)
+        floor = c.min_lr / c.lr
+
+        def cosine(step: int) -> float:
+            progress = min(1.0, step / total)
+            return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, cosine)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def _log_grid(self, cond: torch.Tensor, x: torch.Tensor, rgb: torch.Tensor, step: int) -> None:
+        """prior | one-step | target | alpha for the first sample, to the logger (W&B) or a PNG."""
+        from image2sim.simulator.renderer.condition import ALPHA, RGB
+
+        row = torch.cat(
+            (cond[0, RGB], x[0, :3].clamp(0, 1), rgb[0], cond[0, ALPHA].expand(3, -1, -1)), dim=-1
+        ).detach().float().cpu()
+        image = (row.permute(1, 2, 0).numpy() * 255).round().astype("uint8")
+        logger = self.logger
+        if logger is not None and hasattr(logger, "log_image"):
+            logger.log_image(key="grid/prior|one_step|target|alpha", images=[image], step=step)
+        elif logger is not None and getattr(logger, "log_dir", None):
+            from pathlib import Path
+
+            from PIL import Image
+
+            out = Path(logger.log_dir) / "grids"
+            out.mkdir(parents=True, exist_ok=True)
+            tmp = out / f".step_{step:07d}.png.tmp"
+            Image.fromarray(image).save(tmp, format="PNG")
+            tmp.replace(out / f"step_{step:07d}.png")
+
+
+class RendererDataModule(L.LightningDataModule):
+    """Serves a map-style dataset in :class:`StepSampler` order; remembers its position in
+    checkpoints so a resumed run continues with the next unseen batch."""
+
+    def __init__(self, dataset, batch_size: int, total_steps: int, seed: int = 0, num_workers: int = 0) -> None:
+        super().__init__()
+        self.dataset = dataset
+        self.batch_size = int(batch_size)
+        self.total_steps = int(total_steps)
+        self.seed = int(seed)
+        self.num_workers = int(num_workers)
+        self._start_step = 0
+
+    def state_dict(self) -> dict:
+        step = int(self.trainer.global_step) if self.trainer is not None else self._start_step
+        return {"position_step": step}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._start_step = int(state.get("position_step", 0))
+
+    def train_dataloader(self):
+        from torch.utils.data import DataLoader
+
+        from image2sim.simulator.renderer.data import StepSampler
+
+        sampler = StepSampler(
+            len(self.dataset), self.seed, start=self._start_step * self.batch_size,
+            total=self.total_steps * self.batch_size,
+        )
+        return DataLoader(self.dataset, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers,
+                          drop_last=True)
+
+
+def fit(
+    cfg: RendererConfig,
+    dataset,
+    out_dir: str,
+    max_steps: int | None = None,
+    seed: int = 0,
+    resume: str | None = None,
+    bf16: bool = False,
+    logger: str = "csv",
+    checkpoint_every: int = 500,
+    grid_every: int = 0,
+    progress: bool = True,
+) -> RendererModule:
+    """Train (or resume) the renderer; checkpoints and logs under ``out_dir``."""
+    import dataclasses
+    import json
+    import os
+    from pathlib import Path
+
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / ".config.json.tmp"
+    tmp.write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    os.replace(tmp, out / "config.json")
+    steps = max_steps if max_steps is not None else cfg.curriculum.total_steps
+    L.seed_everything(seed, workers=True, verbose=False)
+    module = RendererModule(cfg, seed=seed, grid_every=grid_every)
+    data = RendererDataModule(dataset, cfg.curriculum.batch_size, cfg.curriculum.total_steps, seed)
+    if logger == "wandb":
+        from lightning.pytorch.loggers import WandbLogger
+
+        os.environ.setdefault("WANDB_MODE", "offline")
+        log = WandbLogger(save_dir=str(out), project="image2sim-renderer", offline=True)
+    else:
+        from lightning.pytorch.loggers import CSVLogger
+
+        log = CSVLogger(str(out), name="logs")
+    ckpt = ModelCheckpoint(dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True,
+                           save_top_k=-1)
+    trainer = L.Trainer(
+        accelerator="cpu", devices=1, max_steps=steps, gradient_clip_val=cfg.curriculum.grad_clip,
+        precision="bf16-mixed" if bf16 else "32-true", logger=log, callbacks=[ckpt], enable_progress_bar=progress,
+        enable_model_summary=False, log_every_n_steps=1, num_sanity_val_steps=0, limit_val_batches=0,
+        deterministic=False,
+    )
+    trainer.fit(module, datamodule=data, ckpt_path=resume)
+    return module
