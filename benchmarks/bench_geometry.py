@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from image2sim.simulator.geometry import (
     EquirectCamera,
     equirect_to_cubemap,
@@ -41,7 +40,8 @@ def hardware() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({torch.get_num_threads()} threads)"
+    threads = torch.get_num_threads()
+    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> float:
@@ -77,8 +77,12 @@ def numpy_perspective(pano: np.ndarray, yaw: float, pitch: float, hfov: float, v
     tx, ty = gx - x0, gy - y0
     y1 = np.minimum(y0 + 1, H - 1)
     x0w, x1w = x0 % W, (x0 + 1) % W
-    return ((1 - ty) * (1 - tx) * pano[:, y0, x0w] + (1 - ty) * tx * pano[:, y0, x1w]
-            + ty * (1 - tx) * pano[:, y1, x0w] + ty * tx * pano[:, y1, x1w])
+    return (
+        (1 - ty) * (1 - tx) * pano[:, y0, x0w]
+        + (1 - ty) * tx * pano[:, y0, x1w]
+        + ty * (1 - tx) * pano[:, y1, x0w]
+        + ty * tx * pano[:, y1, x1w]
+    )
 
 
 def scipy_sobel_normals(depth: np.ndarray) -> np.ndarray:
@@ -88,10 +92,12 @@ def scipy_sobel_normals(depth: np.ndarray) -> np.ndarray:
     smooth = ndimage.uniform_filter(depth, size=3, mode=("nearest", "wrap"))
     binomial, derivative = np.array([1.0, 4, 6, 4, 1]), np.array([-1.0, -2, 0, 2, 1]) / 48.0
     # Separable 5x5 Sobel: rows (axis 0) replicate at the edges, columns (axis 1) wrap.
-    gu = ndimage.correlate1d(ndimage.correlate1d(smooth, binomial, axis=0, mode="nearest"), derivative,
-                             axis=1, mode="wrap")
-    gv = ndimage.correlate1d(ndimage.correlate1d(smooth, derivative, axis=0, mode="nearest"), binomial,
-                             axis=1, mode="wrap")
+    gu = ndimage.correlate1d(
+        ndimage.correlate1d(smooth, binomial, axis=0, mode="nearest"), derivative, axis=1, mode="wrap"
+    )
+    gv = ndimage.correlate1d(
+        ndimage.correlate1d(smooth, derivative, axis=0, mode="nearest"), binomial, axis=1, mode="wrap"
+    )
     n = np.stack((-gu, -gv, np.full_like(gu, 0.5)))
     return n / np.sqrt((n * n).sum(axis=0))
 
@@ -116,27 +122,53 @@ def main() -> None:
 
     pano_np = rng.random((3, 512, 1024), dtype=np.float32)
     pano = torch.from_numpy(pano_np)[None]
-    for name, hfov, vfov, h, w in (("perspective 90x90 336x336", 90.0, 90.0, 336, 336),
-                                   ("ultra-wide 180x118 512x336 (equirect crop)", 180.0, 118.0, 336, 512)):
-        ours = timeit(lambda: perspective_from_equirect(pano, 30.0, 10.0, hfov, vfov, h, w), 7)
+    for name, hfov, vfov, h, w in (
+        ("perspective 90x90 336x336", 90.0, 90.0, 336, 336),
+        ("ultra-wide 180x118 512x336 (equirect crop)", 180.0, 118.0, 336, 512),
+    ):
+        view = (30.0, 10.0, hfov, vfov, h, w)
+        ours = timeit(lambda v=view: perspective_from_equirect(pano, *v), 7)
         ref = None
         if hfov < 180:
-            ref = timeit(lambda: numpy_perspective(pano_np, 30.0, 10.0, hfov, vfov, h, w), 5)
-        results.append({"case": f"{name} from 1024x512 pano, float32", "seconds": ours,
-                        "reference": "numpy bilinear lookup" if ref else None, "reference_seconds": ref})
+            ref = timeit(lambda v=view: numpy_perspective(pano_np, *v), 5)
+        results.append(
+            {
+                "case": f"{name} from 1024x512 pano, float32",
+                "seconds": ours,
+                "reference": "numpy bilinear lookup" if ref else None,
+                "reference_seconds": ref,
+            }
+        )
 
     ours = timeit(lambda: equirect_to_cubemap(pano, 256), 5)
-    results.append({"case": "equirect_to_cubemap 1024x512 -> 6x256x256", "seconds": ours,
-                    "reference": None, "reference_seconds": None})
+    results.append(
+        {
+            "case": "equirect_to_cubemap 1024x512 -> 6x256x256",
+            "seconds": ours,
+            "reference": None,
+            "reference_seconds": None,
+        }
+    )
 
     depth = torch.from_numpy(rng.uniform(0.5, 8.0, size=(1, 1, 512, 1024)).astype(np.float32))
     cam = EquirectCamera(512, 1024)
     depth_np = depth[0, 0].numpy()
-    results.append({"case": "sobel_normals 1024x512 (circular), float32", "seconds": timeit(
-        lambda: sobel_normals(depth, circular=True), 7), "reference": "scipy.ndimage filters",
-        "reference_seconds": timeit(lambda: scipy_sobel_normals(depth_np), 5)})
-    results.append({"case": "point_normals 1024x512 equirect, float32", "seconds": timeit(
-        lambda: point_normals(depth, cam), 7), "reference": None, "reference_seconds": None})
+    results.append(
+        {
+            "case": "sobel_normals 1024x512 (circular), float32",
+            "seconds": timeit(lambda: sobel_normals(depth, circular=True), 7),
+            "reference": "scipy.ndimage filters",
+            "reference_seconds": timeit(lambda: scipy_sobel_normals(depth_np), 5),
+        }
+    )
+    results.append(
+        {
+            "case": "point_normals 1024x512 equirect, float32",
+            "seconds": timeit(lambda: point_normals(depth, cam), 7),
+            "reference": None,
+            "reference_seconds": None,
+        }
+    )
 
     n = 1_000_000
     pts_np = rng.uniform(-5, 5, size=(n, 3))
@@ -144,21 +176,43 @@ def main() -> None:
     pts, col = torch.from_numpy(pts_np), torch.from_numpy(col_np)
     ours = timeit(lambda: voxel_downsample(pts, 0.05, {"rgb": col}), 5)
     ref = timeit(lambda: numpy_voxel(pts_np, col_np, 0.05), 3)
-    results.append({"case": "voxel_downsample 1M points + rgb, 5 cm, float64", "seconds": ours,
-                    "reference": "numpy unique(axis=0) + add.at", "reference_seconds": ref})
+    results.append(
+        {
+            "case": "voxel_downsample 1M points + rgb, 5 cm, float64",
+            "seconds": ours,
+            "reference": "numpy unique(axis=0) + add.at",
+            "reference_seconds": ref,
+        }
+    )
 
     for r in results:
-        r["speedup_vs_reference"] = (r["reference_seconds"] / r["seconds"]) if r["reference_seconds"] else None
-    report = {"benchmark": "geometry", "hardware": hardware(), "statistic": "median wall time, 1 warm-up",
-              "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "results": results}
+        r["speedup_vs_reference"] = (
+            (r["reference_seconds"] / r["seconds"]) if r["reference_seconds"] else None
+        )
+    report = {
+        "benchmark": "geometry",
+        "hardware": hardware(),
+        "statistic": "median wall time, 1 warm-up",
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "results": results,
+    }
 
-    lines = ["# Geometry benchmarks", "", f"Hardware: {report['hardware']}  ", f"Measured {report['date_utc']}, "
-             f"{report['statistic']} (machine shared with other jobs: expect noise).", "",
-             "| case | ours (ms) | reference | reference (ms) | speed-up |", "|---|---:|---|---:|---:|"]
+    lines = [
+        "# Geometry benchmarks",
+        "",
+        f"Hardware: {report['hardware']}  ",
+        f"Measured {report['date_utc']}, "
+        f"{report['statistic']} (machine shared with other jobs: expect noise).",
+        "",
+        "| case | ours (ms) | reference | reference (ms) | speed-up |",
+        "|---|---:|---|---:|---:|",
+    ]
     for r in results:
         ref_ms = f"{1e3 * r['reference_seconds']:.1f}" if r["reference_seconds"] else "–"
         speed = f"{r['speedup_vs_reference']:.1f}x" if r["speedup_vs_reference"] else "–"
-        lines.append(f"| {r['case']} | {1e3 * r['seconds']:.1f} | {r['reference'] or '–'} | {ref_ms} | {speed} |")
+        lines.append(
+            f"| {r['case']} | {1e3 * r['seconds']:.1f} | {r['reference'] or '–'} | {ref_ms} | {speed} |"
+        )
     REPORTS.mkdir(exist_ok=True)
     for suffix, text in ((".json", json.dumps(report, indent=2) + "\n"), (".md", "\n".join(lines) + "\n")):
         target = REPORTS / f"bench_geometry{suffix}"

@@ -8,7 +8,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera, camera_from_dict
 
 F64 = torch.float64
@@ -47,8 +46,14 @@ def test_equirect_ground_truth_directions():
     cam = EquirectCamera(512, 1024)
     t = lambda *x: torch.tensor(x, dtype=F64)  # noqa: E731
     # Centre of the image is the camera's forward axis; a quarter turn right is +x; top is up (-y).
-    cases = [((512.0, 256.0), (0, 0, 1)), ((768.0, 256.0), (1, 0, 0)), ((256.0, 256.0), (-1, 0, 0)),
-             ((0.0, 256.0), (0, 0, -1)), ((512.0, 0.0), (0, -1, 0)), ((512.0, 512.0), (0, 1, 0))]
+    cases = [
+        ((512.0, 256.0), (0, 0, 1)),
+        ((768.0, 256.0), (1, 0, 0)),
+        ((256.0, 256.0), (-1, 0, 0)),
+        ((0.0, 256.0), (0, 0, -1)),
+        ((512.0, 0.0), (0, -1, 0)),
+        ((512.0, 512.0), (0, 1, 0)),
+    ]
     for (u, v), expected in cases:
         ray = cam.pixel_to_ray(t(u), t(v))
         assert torch.allclose(ray, t(*expected), atol=1e-12), (u, v, ray)
@@ -238,7 +243,9 @@ def test_float32_stays_float32():
 # --- dict round trip and errors -------------------------------------------------------------
 
 
-@pytest.mark.parametrize("cam", [EquirectCamera(512, 1024), PinholeCamera(320.5, 300.25, 160.0, 120.5, 240, 320)])
+@pytest.mark.parametrize(
+    "cam", [EquirectCamera(512, 1024), PinholeCamera(320.5, 300.25, 160.0, 120.5, 240, 320)]
+)
 def test_camera_dict_roundtrip(cam):
     data = cam.to_dict()
     assert camera_from_dict(data) == cam
@@ -258,11 +265,26 @@ def test_camera_dict_roundtrip(cam):
         ({"model": "equirect", "height": "2", "width": 4}, "'height' must be int"),
         ({"model": "equirect", "height": True, "width": 4}, "'height' must be int"),
         ({"model": "equirect", "height": 0, "width": 4}, "positive height/width"),
-        ({"model": "pinhole", "fx": 1.0, "fy": 1.0, "cx": 0.0, "height": 2, "width": 2}, "missing field 'cy'"),
-        ({"model": "pinhole", "fx": -1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0, "height": 2, "width": 2},
-         "focal lengths must be positive"),
-        ({"model": "pinhole", "fx": float("nan"), "fy": 1.0, "cx": 0.0, "cy": 0.0, "height": 2, "width": 2},
-         "fx must be finite"),
+        (
+            {"model": "pinhole", "fx": 1.0, "fy": 1.0, "cx": 0.0, "height": 2, "width": 2},
+            "missing field 'cy'",
+        ),
+        (
+            {"model": "pinhole", "fx": -1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0, "height": 2, "width": 2},
+            "focal lengths must be positive",
+        ),
+        (
+            {
+                "model": "pinhole",
+                "fx": float("nan"),
+                "fy": 1.0,
+                "cx": 0.0,
+                "cy": 0.0,
+                "height": 2,
+                "width": 2,
+            },
+            "fx must be finite",
+        ),
         ([1, 2], "must be a dict"),
     ],
 )

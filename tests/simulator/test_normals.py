@@ -10,7 +10,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.geometry.normals import pad_equirect, point_normals, sobel_kernels, sobel_normals
 
@@ -164,13 +163,17 @@ def ref_valid_mask(depth: np.ndarray, circular: bool) -> np.ndarray:
     first = np.zeros_like(good)
     for i in range(H):
         for j in range(W):
-            first[i, j] = all(good[ref_source_index(i + a, j + b, H, W, circular)]
-                              for a in (-1, 0, 1) for b in (-1, 0, 1))
+            first[i, j] = all(
+                good[ref_source_index(i + a, j + b, H, W, circular)] for a in (-1, 0, 1) for b in (-1, 0, 1)
+            )
     out = np.zeros_like(good)
     for i in range(H):
         for j in range(W):
-            out[i, j] = all(first[ref_source_index(i + a, j + b, H, W, circular)]
-                            for a in range(-2, 3) for b in range(-2, 3))
+            out[i, j] = all(
+                first[ref_source_index(i + a, j + b, H, W, circular)]
+                for a in range(-2, 3)
+                for b in range(-2, 3)
+            )
     return out
 
 
@@ -256,7 +259,9 @@ def test_point_normals_invalid_depth_gives_zero_not_nan():
     assert n.dtype == torch.float32 and torch.isfinite(n).all()
     valid = n.norm(dim=1)[0] > 0
     assert np.array_equal(valid.numpy(), ref_valid_mask(np.nan_to_num(depth[0, 0].numpy(), posinf=0.0), True))
-    assert not valid[40, 93:].any() and not valid[40, :4].any()  # the hole at column 0 spreads across the seam
+    assert (
+        not valid[40, 93:].any() and not valid[40, :4].any()
+    )  # the hole at column 0 spreads across the seam
     assert torch.allclose(n[0, :, valid], -EQUIRECT.ray_map()[:, valid], atol=3e-3)  # sphere of radius 2
 
 

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.geometry.reproject import (
     CUBEMAP_FACES,
@@ -25,7 +24,7 @@ F64 = torch.float64
 
 
 def ref_rotation(yaw_deg: float, pitch_deg: float) -> np.ndarray:
-    """View -> panorama frame: tilt the optical axis up by pitch (about x), then turn right by yaw (about y)."""
+    """View -> panorama frame: tilt the optical axis up by pitch (about x), then turn right by yaw (y)."""
     y, p = math.radians(yaw_deg), math.radians(pitch_deg)
     # OpenCV axes: y points down, so "up" is -y; Rx(p) takes (0, 0, 1) to (0, -sin p, cos p).
     rx = np.array([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
@@ -68,8 +67,12 @@ def ref_lookup(pano: np.ndarray, rays: np.ndarray) -> np.ndarray:
         j = np.where(over, j + W // 2, j) % W
         return pano[:, i, j]
 
-    return ((1 - ty) * (1 - tx) * read(y0, x0) + (1 - ty) * tx * read(y0, x0 + 1)
-            + ty * (1 - tx) * read(y0 + 1, x0) + ty * tx * read(y0 + 1, x0 + 1))
+    return (
+        (1 - ty) * (1 - tx) * read(y0, x0)
+        + (1 - ty) * tx * read(y0, x0 + 1)
+        + ty * (1 - tx) * read(y0 + 1, x0)
+        + ty * tx * read(y0 + 1, x0 + 1)
+    )
 
 
 def random_pano(h=64, w=128, c=3, seed=0) -> torch.Tensor:
@@ -98,9 +101,14 @@ def test_perspective_matches_first_principles(yaw, pitch, hfov, vfov, h, w):
     assert np.allclose(ours[0].numpy(), ref_lookup(pano[0].numpy(), rays), atol=1e-10)
 
 
-@pytest.mark.parametrize(("yaw", "pitch", "hfov", "vfov", "h", "w"),
-                         [(0.0, 0.0, 180.0, 118.0, 34, 51), (170.0, 30.0, 200.0, 100.0, 20, 40),
-                          (-45.0, 0.0, 360.0, 180.0, 32, 64)])
+@pytest.mark.parametrize(
+    ("yaw", "pitch", "hfov", "vfov", "h", "w"),
+    [
+        (0.0, 0.0, 180.0, 118.0, 34, 51),
+        (170.0, 30.0, 200.0, 100.0, 20, 40),
+        (-45.0, 0.0, 360.0, 180.0, 32, 64),
+    ],
+)
 def test_equirect_crop_matches_first_principles(yaw, pitch, hfov, vfov, h, w):
     pano = random_pano(seed=1)
     ours = equirect_crop(pano, yaw, pitch, hfov, vfov, h, w)
@@ -147,8 +155,14 @@ def ray_pano(h=256, w=512) -> torch.Tensor:
 
 @pytest.mark.parametrize(
     ("yaw", "pitch", "direction"),
-    [(0.0, 0.0, (0, 0, 1)), (90.0, 0.0, (1, 0, 0)), (-90.0, 0.0, (-1, 0, 0)), (180.0, 0.0, (0, 0, -1)),
-     (0.0, 60.0, (0, -math.sin(math.pi / 3), 0.5)), (45.0, -30.0, (0.6123724, 0.5, 0.6123724))],
+    [
+        (0.0, 0.0, (0, 0, 1)),
+        (90.0, 0.0, (1, 0, 0)),
+        (-90.0, 0.0, (-1, 0, 0)),
+        (180.0, 0.0, (0, 0, -1)),
+        (0.0, 60.0, (0, -math.sin(math.pi / 3), 0.5)),
+        (45.0, -30.0, (0.6123724, 0.5, 0.6123724)),
+    ],
 )
 def test_view_centre_looks_at_yaw_pitch(yaw, pitch, direction):
     # yaw positive to the right, pitch positive up (OpenCV: up is -y).
@@ -180,15 +194,24 @@ def test_cubemap_faces_order_and_content():
     pano = ray_pano(128, 256)
     cube = equirect_to_cubemap(pano, 24)
     assert cube.shape == (1, 6, 3, 24, 24)
-    expected = {"front": (0, 0, 1), "right": (1, 0, 0), "back": (0, 0, -1), "left": (-1, 0, 0),
-                "up": (0, -1, 0), "down": (0, 1, 0)}
+    expected = {
+        "front": (0, 0, 1),
+        "right": (1, 0, 0),
+        "back": (0, 0, -1),
+        "left": (-1, 0, 0),
+        "up": (0, -1, 0),
+        "down": (0, 1, 0),
+    }
     for k, (name, yaw, pitch) in enumerate(CUBEMAP_FACES):
         face = cube[0, k]
         centre = face[:, 11:13, 11:13].mean(dim=(1, 2))
-        assert torch.allclose(centre / centre.norm(), torch.tensor(expected[name], dtype=F64), atol=2e-3), name
+        assert torch.allclose(centre / centre.norm(), torch.tensor(expected[name], dtype=F64), atol=2e-3), (
+            name
+        )
         assert torch.allclose(face, perspective_from_equirect(pano, yaw, pitch, 90, 90, 24, 24)[0])
     # "up" has the front direction (+z) along its bottom edge, "down" along its top edge.
     assert cube[0, 4, 2, -1].mean() > 0.5 and cube[0, 5, 2, 0].mean() > 0.5
+
     # Adjacent faces meet edge to edge: the boundary pixels on both sides are one pixel apart.
     def gap(a: torch.Tensor, b: torch.Tensor) -> float:
         a, b = a / a.norm(dim=0), b / b.norm(dim=0)
@@ -209,8 +232,10 @@ def test_batched_yaw_pitch_tensors():
     pitch = torch.tensor([0.0, 45.0])
     out = perspective_from_equirect(pano, yaw, pitch, 80.0, 70.0, 20, 24)
     for b in range(2):
-        single = perspective_from_equirect(pano[b:b + 1], float(yaw[b]), float(pitch[b]), 80.0, 70.0, 20, 24)
-        assert torch.allclose(out[b:b + 1], single, atol=1e-12)
+        single = perspective_from_equirect(
+            pano[b : b + 1], float(yaw[b]), float(pitch[b]), 80.0, 70.0, 20, 24
+        )
+        assert torch.allclose(out[b : b + 1], single, atol=1e-12)
 
 
 def test_float32_gradient_and_nearest():

@@ -9,8 +9,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
-
 from image2sim.simulator.geometry.se3 import (
     invert_pose,
     make_pose,
@@ -28,6 +26,7 @@ from image2sim.simulator.geometry.se3 import (
     so3_log,
     transform_points,
 )
+from scipy.spatial.transform import Rotation
 
 F64 = torch.float64
 seeds = st.integers(0, 2**31 - 1)
@@ -81,7 +80,9 @@ def test_matrix_to_quat_near_180_degrees_and_identity():
 @given(seeds)
 def test_quat_multiply_is_matrix_product(seed):
     a, b = random_quats(seed).chunk(2)
-    assert torch.allclose(quat_to_matrix(quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b), atol=1e-14)
+    assert torch.allclose(
+        quat_to_matrix(quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b), atol=1e-14
+    )
     ident = torch.tensor([1.0, 0, 0, 0], dtype=F64)
     assert torch.allclose(quat_multiply(a, quat_conjugate(a)), ident.expand_as(a), atol=1e-14)
     v = torch.randn(32, 3, dtype=F64)

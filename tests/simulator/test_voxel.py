@@ -10,7 +10,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from image2sim.simulator.geometry.se3 import normalize_quat, quat_to_matrix
 from image2sim.simulator.geometry.voxel import voxel_downsample, voxel_groups, voxel_keys
 
@@ -46,7 +45,7 @@ def test_matches_reference_means_per_voxel(cloud):
     groups = ref_groups(points.numpy(), size)
     assert out.shape == (len(groups), 3) and len(groups) <= len(points)
     assert out.dtype == F64 and attrs["rgb"].dtype == F64 and attrs["label"].dtype == torch.uint8
-    for row, (key, members) in enumerate(groups.items()):  # output ordered by voxel key
+    for row, members in enumerate(groups.values()):  # output ordered by voxel key
         assert np.allclose(out[row].numpy(), points[members].numpy().mean(axis=0), rtol=0, atol=1e-9)
         assert np.allclose(attrs["rgb"][row].numpy(), colours[members].numpy().mean(axis=0), atol=1e-12)
         assert int(attrs["label"][row]) == int(np.round(labels[members].numpy().astype(float).mean()))
@@ -96,8 +95,9 @@ def test_quaternion_pair_q_and_minus_q_gives_the_same_rotation():
 
 
 def test_empty_input():
-    out, attrs = voxel_downsample(torch.zeros(0, 3), 0.1, {"rgb": torch.zeros(0, 3), "q": torch.zeros(0, 4)},
-                                  quaternion_keys=["q"])
+    out, attrs = voxel_downsample(
+        torch.zeros(0, 3), 0.1, {"rgb": torch.zeros(0, 3), "q": torch.zeros(0, 4)}, quaternion_keys=["q"]
+    )
     assert out.shape == (0, 3) and attrs["rgb"].shape == (0, 3) and attrs["q"].shape == (0, 4)
     keys, inverse, counts = voxel_groups(torch.zeros(0, 3), 0.1)
     assert keys.shape == (0, 3) and inverse.shape == (0,) and counts.shape == (0,)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
-from typing import Union
 
 import torch
 
@@ -24,7 +23,8 @@ _POLE_EPS = 1e-12
 def _check_map(camera, depth: torch.Tensor) -> None:
     """A clear error instead of a broadcasting failure (or silent broadcast) on a wrong-size map."""
     if depth.ndim < 2 or tuple(depth.shape[-2:]) != (camera.height, camera.width):
-        raise ValueError(f"{type(camera).__name__}.unproject: depth map of shape {tuple(depth.shape)} does not "
+        name = type(camera).__name__
+        raise ValueError(f"{name}.unproject: depth map of shape {tuple(depth.shape)} does not "
                          f"end in the camera's (H, W) = ({camera.height}, {camera.width})")
 
 
@@ -147,7 +147,7 @@ class PinholeCamera:
             raise ValueError(f"PinholeCamera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
 
     @classmethod
-    def from_fov(cls, hfov_deg: float, vfov_deg: float, height: int, width: int) -> "PinholeCamera":
+    def from_fov(cls, hfov_deg: float, vfov_deg: float, height: int, width: int) -> PinholeCamera:
         """Centred pinhole with the given horizontal/vertical fields of view (degrees, < 180)."""
         if not (0 < hfov_deg < 180 and 0 < vfov_deg < 180):
             raise ValueError(f"pinhole FOV must lie in (0, 180) degrees, got {hfov_deg} x {vfov_deg}")
@@ -213,7 +213,7 @@ class PinholeCamera:
         }
 
 
-Camera = Union[EquirectCamera, PinholeCamera]
+Camera = EquirectCamera | PinholeCamera
 
 
 def camera_from_dict(data: dict) -> Camera:

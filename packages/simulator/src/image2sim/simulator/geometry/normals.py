@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
 
 __all__ = ["sobel_kernels", "pad_equirect", "pad_image", "sobel_normals", "point_normals"]

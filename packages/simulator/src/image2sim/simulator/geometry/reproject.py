@@ -15,11 +15,9 @@ axes are right = (cos y, 0, -sin y) and down = f x right.
 from __future__ import annotations
 
 import math
-from typing import Union
 
 import torch
 import torch.nn.functional as F
-
 from image2sim.simulator.geometry.normals import pad_equirect
 
 __all__ = [
@@ -33,7 +31,7 @@ __all__ = [
     "equirect_to_cubemap",
 ]
 
-Angle = Union[float, torch.Tensor]
+Angle = float | torch.Tensor
 
 CUBEMAP_FACES: tuple[tuple[str, float, float], ...] = (
     ("front", 0.0, 0.0),
@@ -73,7 +71,9 @@ def view_rotation(yaw: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
     return torch.stack((right, down, forward), dim=-1)
 
 
-def sample_equirect(pano: torch.Tensor, lon: torch.Tensor, lat: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+def sample_equirect(
+    pano: torch.Tensor, lon: torch.Tensor, lat: torch.Tensor, mode: str = "bilinear"
+) -> torch.Tensor:
     """Sample panoramas (B, C, H, W) at directions (lon, lat) in radians, each (B, h, w) -> (B, C, h, w).
 
     Pixel (u, v) of the panorama is longitude 2*pi*u/W - pi and latitude pi/2 - pi*v/H with pixel
@@ -85,11 +85,15 @@ def sample_equirect(pano: torch.Tensor, lon: torch.Tensor, lat: torch.Tensor, mo
     if pano.ndim != 4:
         raise ValueError(f"sample_equirect: pano must be (B, C, H, W), got shape {tuple(pano.shape)}")
     if not pano.is_floating_point():
-        raise ValueError(f"sample_equirect: pano must be floating point (convert uint8 first), got {pano.dtype}")
+        raise ValueError(
+            f"sample_equirect: pano must be floating point (convert uint8 first), got {pano.dtype}"
+        )
     B, _, H, W = pano.shape
     if lon.shape != lat.shape or lon.ndim != 3 or lon.shape[0] not in (1, B):
-        raise ValueError(f"sample_equirect: lon/lat must both be (B or 1, h, w), got {tuple(lon.shape)} "
-                         f"and {tuple(lat.shape)} for a batch of {B}")
+        raise ValueError(
+            f"sample_equirect: lon/lat must both be (B or 1, h, w), got {tuple(lon.shape)} "
+            f"and {tuple(lat.shape)} for a batch of {B}"
+        )
     u = torch.remainder(lon + math.pi, 2.0 * math.pi) * (W / (2.0 * math.pi))
     v = (0.5 * math.pi - lat) * (H / math.pi)
     padded = pad_equirect(pano, 1)
@@ -101,8 +105,9 @@ def sample_equirect(pano: torch.Tensor, lon: torch.Tensor, lat: torch.Tensor, mo
     return F.grid_sample(padded, grid, mode=mode, padding_mode="border", align_corners=False)
 
 
-def perspective_directions(hfov: float, vfov: float, height: int, width: int, dtype=torch.float32,
-                           device=None) -> torch.Tensor:
+def perspective_directions(
+    hfov: float, vfov: float, height: int, width: int, dtype=torch.float32, device=None
+) -> torch.Tensor:
     """Unit view-frame rays (h, w, 3) of a centred pinhole with the given FOVs (degrees, < 180)."""
     if not (0 < hfov < 180 and 0 < vfov < 180):
         raise ValueError(f"a pinhole view needs 0 < FOV < 180 degrees, got {hfov} x {vfov}")
@@ -115,15 +120,18 @@ def perspective_directions(hfov: float, vfov: float, height: int, width: int, dt
     return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
 
 
-def equirect_crop_directions(hfov: float, vfov: float, height: int, width: int, dtype=torch.float32,
-                             device=None) -> torch.Tensor:
+def equirect_crop_directions(
+    hfov: float, vfov: float, height: int, width: int, dtype=torch.float32, device=None
+) -> torch.Tensor:
     """Unit view-frame rays (h, w, 3) of an equirectangular window hfov x vfov degrees wide.
 
     Output pixel (j + 0.5, i + 0.5) has local longitude hfov * ((j + 0.5)/w - 1/2) and latitude
     vfov * (1/2 - (i + 0.5)/h); with yaw/pitch 0 this is a plain crop of the panorama.
     """
     if not (0 < hfov <= 360 and 0 < vfov <= 180):
-        raise ValueError(f"an equirectangular crop needs 0 < hfov <= 360 and 0 < vfov <= 180, got {hfov} x {vfov}")
+        raise ValueError(
+            f"an equirectangular crop needs 0 < hfov <= 360 and 0 < vfov <= 180, got {hfov} x {vfov}"
+        )
     u = (torch.arange(width, dtype=dtype, device=device) + 0.5) / width
     v = (torch.arange(height, dtype=dtype, device=device) + 0.5) / height
     lon = math.radians(hfov) * (u - 0.5)
@@ -144,8 +152,10 @@ def _render(pano: torch.Tensor, rays: torch.Tensor, yaw: Angle, pitch: Angle, mo
         raise ValueError(f"pano must be (B, C, H, W), got shape {tuple(pano.shape)}")
     B = pano.shape[0]
     # Directions are built in float64 so float32 panoramas still get accurate lookups at the seam.
-    R = view_rotation(_angles(yaw, B, torch.float64, pano.device, "yaw"),
-                      _angles(pitch, B, torch.float64, pano.device, "pitch"))
+    R = view_rotation(
+        _angles(yaw, B, torch.float64, pano.device, "yaw"),
+        _angles(pitch, B, torch.float64, pano.device, "pitch"),
+    )
     d = torch.einsum("bij,hwj->bhwi", R, rays)
     x, y, z = d.unbind(-1)
     lon = torch.atan2(x, z)
@@ -153,8 +163,16 @@ def _render(pano: torch.Tensor, rays: torch.Tensor, yaw: Angle, pitch: Angle, mo
     return sample_equirect(pano, lon, lat, mode=mode)
 
 
-def equirect_crop(pano: torch.Tensor, yaw: Angle, pitch: Angle, hfov: float, vfov: float, height: int,
-                  width: int, mode: str = "bilinear") -> torch.Tensor:
+def equirect_crop(
+    pano: torch.Tensor,
+    yaw: Angle,
+    pitch: Angle,
+    hfov: float,
+    vfov: float,
+    height: int,
+    width: int,
+    mode: str = "bilinear",
+) -> torch.Tensor:
     """An equirectangular window (B, C, height, width) of hfov x vfov degrees centred at (yaw, pitch).
 
     The window's own longitude/latitude grid (:func:`equirect_crop_directions`) is rotated to the
@@ -167,8 +185,16 @@ def equirect_crop(pano: torch.Tensor, yaw: Angle, pitch: Angle, hfov: float, vfo
     return _render(pano, rays, yaw, pitch, mode)
 
 
-def perspective_from_equirect(pano: torch.Tensor, yaw: Angle, pitch: Angle, hfov: float, vfov: float,
-                              height: int, width: int, mode: str = "bilinear") -> torch.Tensor:
+def perspective_from_equirect(
+    pano: torch.Tensor,
+    yaw: Angle,
+    pitch: Angle,
+    hfov: float,
+    vfov: float,
+    height: int,
+    width: int,
+    mode: str = "bilinear",
+) -> torch.Tensor:
     """A view (B, C, height, width) of panoramas (B, C, H, W) looking at (yaw, pitch), in degrees.
 
     For hfov < 180 and vfov < 180 this is a centred pinhole camera (fx = width / (2 tan(hfov/2)),

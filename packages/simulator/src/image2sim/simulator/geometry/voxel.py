@@ -23,8 +23,10 @@ def _check_points(points: torch.Tensor, voxel_size: float, name: str) -> None:
         raise ValueError(f"{name}: voxel_size must be a positive finite number, got {voxel_size}")
     bad = ~torch.isfinite(points).all(dim=1)
     if bad.any():
-        raise ValueError(f"{name}: {int(bad.sum())} of {points.shape[0]} points are NaN/inf (first at row "
-                         f"{int(bad.nonzero()[0, 0])}); filter them before downsampling")
+        raise ValueError(
+            f"{name}: {int(bad.sum())} of {points.shape[0]} points are NaN/inf (first at row "
+            f"{int(bad.nonzero()[0, 0])}); filter them before downsampling"
+        )
 
 
 def voxel_keys(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
@@ -32,8 +34,10 @@ def voxel_keys(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
     _check_points(points, voxel_size, "voxel_keys")
     scaled = torch.floor(points / voxel_size)
     if scaled.numel() and float(scaled.abs().amax()) >= 2.0**52:
-        raise ValueError(f"voxel_keys: coordinates up to {float(points.abs().amax()):.3g} are too large for "
-                         f"voxel_size {voxel_size} (more than 2^52 voxels per axis)")
+        raise ValueError(
+            f"voxel_keys: coordinates up to {float(points.abs().amax()):.3g} are too large for "
+            f"voxel_size {voxel_size} (more than 2^52 voxels per axis)"
+        )
     return scaled.to(torch.int64)
 
 
@@ -99,15 +103,20 @@ def voxel_downsample(
     for key, value in attributes.items():
         if not isinstance(value, torch.Tensor) or value.ndim < 1 or value.shape[0] != N:
             shape = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
-            raise ValueError(f"voxel_downsample: attribute {key!r} must be a tensor with {N} rows, got {shape}")
+            raise ValueError(
+                f"voxel_downsample: attribute {key!r} must be a tensor with {N} rows, got {shape}"
+            )
     for key in quaternion_keys:
         if key not in attributes:
-            raise ValueError(f"voxel_downsample: quaternion key {key!r} is not among the attributes "
-                             f"{sorted(attributes)}")
+            raise ValueError(
+                f"voxel_downsample: quaternion key {key!r} is not among the attributes {sorted(attributes)}"
+            )
         q = attributes[key]
         if q.ndim != 2 or q.shape[1] != 4 or not q.is_floating_point():
-            raise ValueError(f"voxel_downsample: quaternion attribute {key!r} must be floating (N, 4), "
-                             f"got {tuple(q.shape)} {q.dtype}")
+            raise ValueError(
+                f"voxel_downsample: quaternion attribute {key!r} must be floating (N, 4), "
+                f"got {tuple(q.shape)} {q.dtype}"
+            )
 
     _, inverse, counts = voxel_groups(points, voxel_size)
     out_points = _mean_per_group(points, inverse, counts).to(points.dtype)
