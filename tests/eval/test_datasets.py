@@ -130,6 +130,8 @@ def test_load_r2r_ce(r2r_root: Path) -> None:
     np.testing.assert_allclose(ep.gt_locations[1], [1.0, 2.25, 0.17])
     assert ep.gt_actions == (1, 3, 1, 0)
     assert ep.ndtw_reference is ep.gt_locations
+    spec = ep.metric_spec()
+    assert spec.episode_id == "1" and spec.reference_path is ep.gt_locations
     assert ds.scenes() == ["7y3sRwLe3Va"]
     # Test split: no gt file, so no gt (unless required).
     test = load_r2r_ce(r2r_root, "test")

@@ -31,7 +31,10 @@ def test_published_values() -> None:
     cam = RXR_HABITAT.camera
     assert (RXR_HABITAT.turn_angle_deg, cam.width, cam.height) == (30.0, 640, 480)
     assert RXR_HABITAT.camera.hfov_deg == 79.0 and not RXR_HABITAT.allow_sliding
-    assert set(PROTOCOLS) == {"image2sim", "vlnce", "rxr-habitat"}
+    wide = PROTOCOLS["image2sim-180"]
+    assert (wide.camera.kind, wide.camera.width, wide.camera.height) == ("equirect", 512, 336)
+    assert (wide.camera.hfov_deg, wide.camera.vfov_deg, wide.max_steps) == (180.0, 118.0, 300)
+    assert set(PROTOCOLS) == {"image2sim", "image2sim-180", "vlnce", "rxr-habitat"}
     assert get_protocol("rxr-habitat") is RXR_HABITAT
     with pytest.raises(ProtocolError, match="unknown protocol 'r2r'"):
         get_protocol("r2r")

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from image2sim.eval.metrics.nav import EpisodeSpec
 
 Frame = Literal["habitat-y-up", "image2sim-z-up"]
 HABITAT_FRAME: Frame = "habitat-y-up"
@@ -204,6 +205,10 @@ class NavEpisode:
     def ndtw_reference(self) -> np.ndarray:
         """The path nDTW should use: the dense ground truth if loaded, else the reference path."""
         return self.gt_locations if self.gt_locations is not None else self.reference_path
+
+    def metric_spec(self) -> EpisodeSpec:
+        """The :class:`~image2sim.eval.metrics.nav.EpisodeSpec` the navigation measures need."""
+        return EpisodeSpec(self.episode_id, self.ndtw_reference)
 
 
 @dataclass(frozen=True)

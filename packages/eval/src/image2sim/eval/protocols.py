@@ -11,6 +11,8 @@ Built-in protocols
     ``vlnce``        R2R-CE as published (VLN-CE ``vlnce_task.yaml`` + Habitat defaults): 500 steps,
                      15° turns, 0.25 m forward, 224×224 RGB at HFOV 90, agent height 1.5 m,
                      radius 0.1 m, sliding on, success 3.0 m.
+    ``image2sim-180`` as ``image2sim`` with the paper's ultra-wide camera: a 512×336 equirectangular
+                     crop covering 180° × 118°.
     ``rxr-habitat``  the RxR-Habitat challenge (``rxr_vlnce_*_task.yaml``): 500 steps, 30° turns,
                      0.25 m forward, 640×480 RGB at HFOV 79, agent height 0.88 m, radius 0.18 m,
                      sliding off, success 3.0 m.
@@ -206,7 +208,15 @@ RXR_HABITAT = Protocol(
     source="RxR-Habitat challenge: VLN-CE habitat_extensions/config/rxr_vlnce_english_task.yaml",
 )
 
-PROTOCOLS: Mapping[str, Protocol] = {p.name: p for p in (IMAGE2SIM, VLNCE, RXR_HABITAT)}
+IMAGE2SIM_180 = dataclasses.replace(
+    IMAGE2SIM,
+    name="image2sim-180",
+    camera=CameraSpec("equirect", 512, 336, 180.0, 118.0),
+    source="Image2Sim paper: the ultra-wide setting of Table 2 (512x336 equirectangular crop, "
+    "180 deg HFOV x 118 deg VFOV); otherwise as 'image2sim'",
+)
+
+PROTOCOLS: Mapping[str, Protocol] = {p.name: p for p in (IMAGE2SIM, IMAGE2SIM_180, VLNCE, RXR_HABITAT)}
 """Built-in protocols by name."""
 
 
