@@ -17,7 +17,7 @@ from image2sim.simulator.geometry.voxel import voxel_downsample
 from image2sim.simulator.io import open_capture, read_ply, write_ply
 from image2sim.simulator.io.fusion import VoxelAccumulator, backproject_frame, fuse_frames, select_indices
 from image2sim.simulator.io.ply import PlyError
-from image2sim.simulator.io.resample import planar_rel_tol, sample_bilinear, sample_depth
+from image2sim.simulator.io.resample import planar_rel_tol, sample_bilinear, sample_depth, sample_rgb
 
 from .test_io_room import surface_distance, write_hm3d_fixture
 
@@ -98,6 +98,22 @@ def test_bilinear_exact_at_centres_and_wraps_the_seam() -> None:
     assert got == pytest.approx(0.5 * (img[1, 5] + img[1, 0]))
 
 
+@pytest.mark.parametrize("wrap", [True, False])
+def test_fast_rgb_sampling_matches_reference(wrap: bool) -> None:
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 256, size=(9, 14, 3), dtype=np.uint8)
+    u = rng.uniform(-2.0, 16.0, size=(40, 30))
+    v = rng.uniform(-1.0, 10.0, size=(40, 30))
+    ref = sample_bilinear(img, u, v, wrap_u=wrap)
+    fast = sample_rgb(img, u, v, wrap_u=wrap)
+    assert fast.shape == (40, 30, 3) and fast.dtype == np.uint8
+    assert np.abs(fast.astype(float) - ref).max() <= 4.5  # remap's 1/32-pixel fixed-point weights
+    # Half-pixel offsets (the realsee case) are exact.
+    uu, vv = np.meshgrid(np.arange(14) + 1.0, np.arange(9) + 1.0)
+    half = sample_rgb(img, uu, vv, wrap_u=wrap)
+    assert np.abs(half.astype(float) - sample_bilinear(img, uu, vv, wrap_u=wrap)).max() <= 0.5 + 1e-9
+
+
 def test_depth_sampling_is_edge_aware() -> None:
     depth = np.array([[1.0, 1.0, 5.0, 5.0], [1.0, 1.02, 5.0, 0.0]], np.float32)
     u = np.array([1.0, 2.0, 2.9, 3.0, 3.5])
@@ -119,7 +135,7 @@ def test_accumulator_equals_one_shot_voxel_downsample() -> None:
     rng = np.random.default_rng(3)
     batches = [rng.uniform(-1, 1, size=(2000, 3)) for _ in range(4)]
     colours = [rng.integers(0, 256, size=(2000, 3), dtype=np.uint8) for _ in range(4)]
-    acc = VoxelAccumulator(0.1, merge_rows=3000)  # forces intermediate merges
+    acc = VoxelAccumulator(0.1, chunk_points=2500, merge_rows=3000)  # forces chunking and merges
     for p, c in zip(batches, colours):
         acc.add(p, c)
     pts, cols = acc.result()

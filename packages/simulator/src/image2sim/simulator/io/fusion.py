@@ -1,7 +1,7 @@
 """Back-project capture frames into the world and fuse them into one voxel-averaged coloured cloud.
 
-Fusion streams: each frame is reduced to per-voxel sums (position, colour, count) with
-:func:`image2sim.simulator.geometry.voxel.voxel_groups`, and the sums are merged across frames by
+Fusion streams: chunks of frames are reduced to per-voxel sums (position, colour, count) with
+:func:`image2sim.simulator.geometry.voxel.voxel_groups`, and the sums are merged across chunks by
 voxel key. The result equals :func:`~image2sim.simulator.geometry.voxel.voxel_downsample` of all
 points at once (the mean of every voxel over every frame), without holding every point in memory.
 """
@@ -64,34 +64,56 @@ def _pack(keys: torch.Tensor) -> torch.Tensor:
 
 
 class VoxelAccumulator:
-    """Running per-voxel sums of position and colour; add point batches, then :meth:`result`."""
+    """Running per-voxel sums of position and colour; add point batches, then :meth:`result`.
 
-    def __init__(self, voxel_size: float, merge_rows: int = 4_000_000) -> None:
+    Raw points are buffered up to ``chunk_points`` and reduced together (one grouping pass per
+    chunk is several times cheaper than one per frame); per-voxel sums are merged whenever their
+    rows exceed ``merge_rows``. Memory stays bounded by the chunk plus the voxel count.
+    """
+
+    def __init__(self, voxel_size: float, chunk_points: int = 4_000_000, merge_rows: int = 4_000_000) -> None:
         if not (float(voxel_size) > 0 and np.isfinite(voxel_size)):
             raise ValueError(f"voxel_size must be a positive finite number, got {voxel_size}")
         self.voxel_size = float(voxel_size)
+        self.chunk_points = int(chunk_points)
         self.merge_rows = int(merge_rows)
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pending_points = 0
         self._keys: list[torch.Tensor] = []
         self._sums: list[torch.Tensor] = []  # (M, 7): sum x, y, z, r, g, b, count
         self.num_points = 0
 
     def add(self, points: np.ndarray, colors: np.ndarray) -> None:
         """Add world points (N, 3) and colours (N, 3) uint8."""
+        points, colors = np.asarray(points), np.asarray(colors)
+        if points.ndim != 2 or points.shape[1] != 3 or colors.shape != points.shape:
+            raise ValueError(f"points and colours must both be (N, 3), got {points.shape} and {colors.shape}")
         if len(points) == 0:
             return
-        pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float64))
+        self._pending.append((points, colors))
+        self._pending_points += len(points)
+        self.num_points += len(points)
+        if self._pending_points >= self.chunk_points:
+            self._reduce_pending()
+
+    def _reduce_pending(self) -> None:
+        if not self._pending:
+            return
+        pts = torch.from_numpy(np.concatenate([p for p, _ in self._pending]).astype(np.float64, copy=False))
+        cols = torch.from_numpy(np.concatenate([c for _, c in self._pending]).astype(np.float64))
+        self._pending, self._pending_points = [], 0
         keys, inverse, counts = voxel_groups(pts, self.voxel_size)
         sums = torch.zeros((keys.shape[0], 7), dtype=torch.float64)
         sums[:, :3].index_add_(0, inverse, pts)
-        sums[:, 3:6].index_add_(0, inverse, torch.from_numpy(np.asarray(colors, dtype=np.float64)))
+        sums[:, 3:6].index_add_(0, inverse, cols)
         sums[:, 6] = counts.to(torch.float64)
         self._keys.append(_pack(keys))
         self._sums.append(sums)
-        self.num_points += len(points)
         if sum(len(k) for k in self._keys) > self.merge_rows:
             self._merge()
 
     def _merge(self) -> None:
+        self._reduce_pending()
         if len(self._keys) <= 1:
             return
         keys = torch.cat(self._keys)

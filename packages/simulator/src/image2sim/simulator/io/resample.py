@@ -10,6 +10,7 @@ pixel size so that any plane seen at up to 75 degrees incidence still counts as 
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 __all__ = ["bilinear_taps", "sample_bilinear", "sample_rgb", "sample_depth", "planar_rel_tol"]
@@ -67,8 +68,23 @@ def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray, *, wrap_u: 
 
 
 def sample_rgb(image: np.ndarray, u: np.ndarray, v: np.ndarray, *, wrap_u: bool = False) -> np.ndarray:
-    """Bilinear colour sampling rounded back to uint8."""
-    return np.clip(np.rint(sample_bilinear(image, u, v, wrap_u=wrap_u)), 0, 255).astype(np.uint8)
+    """Bilinear sampling of a uint8 image (same taps as :func:`sample_bilinear`), via ``cv2.remap``.
+
+    OpenCV's remap is ~30x faster than the numpy gather but cannot wrap one axis and clamp the
+    other, so the seam is handled by padding one wrapped column on each side and clamping with
+    ``BORDER_REPLICATE``. Its fixed-point weights (1/32 steps) can differ from exact bilinear by one
+    grey level.
+    """
+    image = np.ascontiguousarray(image)
+    x = np.asarray(u, dtype=np.float64)
+    if wrap_u:
+        width = image.shape[1]
+        image = np.concatenate([image[:, -1:], image, image[:, :1]], axis=1)
+        x = np.mod(x, width) + 1.0  # shift into the padded image
+    map_x = (x - 0.5).astype(np.float32)
+    map_y = (np.asarray(v, dtype=np.float64) - 0.5).astype(np.float32)
+    out = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(*np.shape(u), *image.shape[2:])
 
 
 def sample_depth(
