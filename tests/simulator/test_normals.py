@@ -11,7 +11,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
-from image2sim.simulator.geometry.normals import pad_equirect, point_normals, sobel_kernels, sobel_normals
+from image2sim.simulator.geometry.normals import (
+    SurfaceNormalEstimator,
+    pad_equirect,
+    point_normals,
+    sobel_kernels,
+    sobel_normals,
+)
 
 F64 = torch.float64
 
@@ -108,6 +114,13 @@ def test_sobel_normals_circular_is_roll_equivariant():
         assert torch.allclose(rolled, torch.roll(base, k, dims=-1), atol=1e-14)
     # Without the flag the seam columns see replicated edges instead, so they differ.
     assert not torch.allclose(sobel_normals(depth)[..., 0], base[..., 0])
+
+
+def test_surface_normal_estimator_module_is_the_function():
+    depth = torch.rand(2, 1, 8, 16) + 0.5
+    module = SurfaceNormalEstimator(circular=True)
+    assert list(module.parameters()) == [] and "circular=True" in repr(module)
+    assert torch.equal(module(depth), sobel_normals(depth, circular=True))
 
 
 def test_pad_equirect_matches_index_reference():

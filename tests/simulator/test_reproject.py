@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.geometry.reproject import (
     CUBEMAP_FACES,
@@ -114,6 +116,28 @@ def test_equirect_crop_matches_first_principles(yaw, pitch, hfov, vfov, h, w):
     ours = equirect_crop(pano, yaw, pitch, hfov, vfov, h, w)
     rays = ref_crop_rays(hfov, vfov, h, w) @ ref_rotation(yaw, pitch).T
     assert np.allclose(ours[0].numpy(), ref_lookup(pano[0].numpy(), rays), atol=1e-10)
+
+
+HALF_PI = 0.5 * math.pi
+near_pole = st.floats(0.0, 0.05).flatmap(lambda d: st.sampled_from([HALF_PI - d, -HALF_PI + d]))
+near_seam = st.floats(0.0, 0.05).flatmap(lambda e: st.sampled_from([math.pi - e, -math.pi + e]))
+lons = st.one_of(st.floats(-math.pi, math.pi), near_seam)
+lats = st.one_of(st.floats(-HALF_PI, HALF_PI), near_pole)
+
+
+@settings(max_examples=60)
+@given(
+    st.lists(st.tuples(lons, lats), min_size=1, max_size=20), st.sampled_from([(8, 16), (9, 14), (16, 32)])
+)
+def test_sample_equirect_matches_reference_anywhere_on_the_sphere(directions, size):
+    """Random directions, many within a few pixels of the seam or the poles (the hard cases)."""
+    pano = random_pano(*size, seed=len(directions))
+    lon = torch.tensor([d[0] for d in directions], dtype=F64)[None, None]
+    lat = torch.tensor([d[1] for d in directions], dtype=F64)[None, None]
+    ours = sample_equirect(pano, lon, lat)[0, :, 0].numpy()
+    lo, la = lon[0].numpy(), lat[0].numpy()  # (1, n)
+    rays = np.stack((np.cos(la) * np.sin(lo), -np.sin(la), np.cos(la) * np.cos(lo)), axis=-1)
+    assert np.allclose(ours, ref_lookup(pano[0].numpy(), rays)[:, 0], atol=1e-9)
 
 
 def test_sample_equirect_at_pixel_centres_is_identity():

@@ -1,7 +1,12 @@
 """Geometry core: camera models, Jacobians, normals, voxel downsampling, SE(3), reprojection."""
 
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, PinholeCamera, camera_from_dict
-from image2sim.simulator.geometry.normals import pad_equirect, point_normals, sobel_normals
+from image2sim.simulator.geometry.normals import (
+    SurfaceNormalEstimator,
+    pad_equirect,
+    point_normals,
+    sobel_normals,
+)
 from image2sim.simulator.geometry.reproject import (
     CUBEMAP_FACES,
     equirect_crop,
@@ -29,6 +34,7 @@ __all__ = [
     "PinholeCamera",
     "camera_from_dict",
     "sobel_normals",
+    "SurfaceNormalEstimator",
     "point_normals",
     "pad_equirect",
     "voxel_downsample",

@@ -25,7 +25,14 @@ import torch
 import torch.nn.functional as F
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
 
-__all__ = ["sobel_kernels", "pad_equirect", "pad_image", "sobel_normals", "point_normals"]
+__all__ = [
+    "sobel_kernels",
+    "pad_equirect",
+    "pad_image",
+    "sobel_normals",
+    "point_normals",
+    "SurfaceNormalEstimator",
+]
 
 SOBEL_SCALE = 1.0 / 48.0
 """The paper's scale of the 5x5 Sobel filters (sum of |weights| on one side of the kernel)."""
@@ -192,3 +199,21 @@ def point_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
         invalid = F.max_pool2d(pad_image(invalid, _SOBEL, circular), kernel_size=5, stride=1)
         keep = keep & (invalid == 0)
     return torch.where(keep, n, torch.zeros_like(n))
+
+
+class SurfaceNormalEstimator(torch.nn.Module):
+    """The paper's ``SurfaceNormalEstimator`` as a parameter-free module wrapping :func:`sobel_normals`.
+
+    ``circular`` selects panorama padding (seam wrap + pole continuation) for equirectangular inputs.
+    """
+
+    def __init__(self, circular: bool = False) -> None:
+        super().__init__()
+        self.circular = bool(circular)
+
+    def forward(self, depth: torch.Tensor) -> torch.Tensor:
+        """depth (B, 1, H, W) -> unit normals (B, 3, H, W)."""
+        return sobel_normals(depth, circular=self.circular)
+
+    def extra_repr(self) -> str:
+        return f"circular={self.circular}"

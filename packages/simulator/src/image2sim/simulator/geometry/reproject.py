@@ -15,6 +15,7 @@ axes are right = (cos y, 0, -sin y) and down = f x right.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
@@ -146,6 +147,16 @@ def _check_size(height: int, width: int) -> None:
         raise ValueError(f"output size must be positive, got {height}x{width}")
 
 
+@lru_cache(maxsize=16)
+def _cached_rays(kind: str, hfov: float, vfov: float, height: int, width: int, device: str) -> torch.Tensor:
+    """View-frame ray grids are reused across calls (the simulator renders the same view every step).
+
+    Returned tensors are shared: callers must not modify them in place.
+    """
+    make = perspective_directions if kind == "pinhole" else equirect_crop_directions
+    return make(hfov, vfov, height, width, torch.float64, torch.device(device))
+
+
 def _render(pano: torch.Tensor, rays: torch.Tensor, yaw: Angle, pitch: Angle, mode: str) -> torch.Tensor:
     """Rotate view rays (h, w, 3) by each batch element's yaw/pitch and sample the panorama."""
     if pano.ndim != 4:
@@ -181,7 +192,7 @@ def equirect_crop(
     (B,) tensors.
     """
     _check_size(height, width)
-    rays = equirect_crop_directions(hfov, vfov, height, width, torch.float64, pano.device)
+    rays = _cached_rays("crop", float(hfov), float(vfov), int(height), int(width), str(pano.device))
     return _render(pano, rays, yaw, pitch, mode)
 
 
@@ -206,7 +217,7 @@ def perspective_from_equirect(
     _check_size(height, width)
     if hfov >= 180 or vfov >= 180:
         return equirect_crop(pano, yaw, pitch, hfov, vfov, height, width, mode=mode)
-    rays = perspective_directions(hfov, vfov, height, width, torch.float64, pano.device)
+    rays = _cached_rays("pinhole", float(hfov), float(vfov), int(height), int(width), str(pano.device))
     return _render(pano, rays, yaw, pitch, mode)
 
 
@@ -218,7 +229,7 @@ def equirect_to_cubemap(pano: torch.Tensor, face_size: int, mode: str = "bilinea
     and adjacent faces do not duplicate samples.
     """
     _check_size(face_size, face_size)
-    rays = perspective_directions(90.0, 90.0, face_size, face_size, torch.float64, pano.device)
+    rays = _cached_rays("pinhole", 90.0, 90.0, int(face_size), int(face_size), str(pano.device))
     faces = []
     for _, yaw, pitch in CUBEMAP_FACES:
         faces.append(_render(pano, rays, yaw, pitch, mode))
