@@ -9,6 +9,7 @@ from image2sim.simulator.geometry.normals import (
 )
 from image2sim.simulator.geometry.reproject import (
     CUBEMAP_FACES,
+    cubemap_to_equirect,
     equirect_crop,
     equirect_to_cubemap,
     perspective_from_equirect,
@@ -52,6 +53,7 @@ __all__ = [
     "perspective_from_equirect",
     "equirect_crop",
     "equirect_to_cubemap",
+    "cubemap_to_equirect",
     "sample_equirect",
     "CUBEMAP_FACES",
 ]

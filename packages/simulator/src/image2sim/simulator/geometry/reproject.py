@@ -19,6 +19,7 @@ from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
+from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.geometry.normals import pad_equirect
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "perspective_from_equirect",
     "equirect_crop",
     "equirect_to_cubemap",
+    "cubemap_to_equirect",
 ]
 
 Angle = float | torch.Tensor
@@ -234,3 +236,37 @@ def equirect_to_cubemap(pano: torch.Tensor, face_size: int, mode: str = "bilinea
     for _, yaw, pitch in CUBEMAP_FACES:
         faces.append(_render(pano, rays, yaw, pitch, mode))
     return torch.stack(faces, dim=1)
+
+
+def cubemap_to_equirect(cube: torch.Tensor, height: int, width: int, mode: str = "bilinear") -> torch.Tensor:
+    """Cubemaps (B, 6, C, F, F) in :data:`CUBEMAP_FACES` order -> panoramas (B, C, height, width).
+
+    Every panorama pixel reads the face whose axis is closest to its direction (largest view-frame
+    z), at that face's pinhole coordinates. Faces are sampled independently with edge clamping, so
+    the outermost half pixel of each face is held constant rather than blended with its
+    neighbour: a round trip through :func:`equirect_to_cubemap` is accurate to the interpolation
+    error of the face resolution, not exact.
+    """
+    if cube.ndim != 5 or cube.shape[1] != 6 or cube.shape[-1] != cube.shape[-2]:
+        raise ValueError(f"cubemap_to_equirect: cube must be (B, 6, C, F, F), got shape {tuple(cube.shape)}")
+    if not cube.is_floating_point():
+        raise ValueError(f"cubemap_to_equirect: cube must be floating point, got {cube.dtype}")
+    _check_size(height, width)
+    B, _, C, F_, _ = cube.shape
+    rays = EquirectCamera(int(height), int(width)).ray_map(torch.float64, cube.device).permute(1, 2, 0)
+    yaws = torch.tensor([f[1] for f in CUBEMAP_FACES], dtype=torch.float64, device=cube.device)
+    pitches = torch.tensor([f[2] for f in CUBEMAP_FACES], dtype=torch.float64, device=cube.device)
+    R = view_rotation(torch.deg2rad(yaws), torch.deg2rad(pitches))  # (6, 3, 3) view -> pano
+    local = torch.einsum("kji,hwj->khwi", R, rays)  # R^T d: directions in each face's frame
+    best = local[..., 2].argmax(dim=0)  # (h, w)
+    out = cube.new_zeros((B, C, int(height), int(width)))
+    for k in range(6):
+        x, y, z = local[k].unbind(-1)
+        zs = z.clamp_min(1e-12)
+        # 90-degree pinhole: u = F/2 (x/z + 1); align_corners=False normalises to x/z directly.
+        grid = torch.stack((x / zs, y / zs), dim=-1).clamp(-2.0, 2.0).to(cube.dtype)
+        sampled = F.grid_sample(
+            cube[:, k], grid.expand(B, -1, -1, -1), mode=mode, padding_mode="border", align_corners=False
+        )
+        out = torch.where((best == k)[None, None], sampled, out)
+    return out
