@@ -28,6 +28,7 @@ __all__ = [
     "Viewpoint",
     "make_camera",
     "sample_viewpoints",
+    "geodesic_distance",
     "pose_matrix",
     "jitter_pose",
     "apply_depth_noise",
@@ -100,18 +101,72 @@ def _line_of_sight(nav: np.ndarray, grid, a: np.ndarray, b: np.ndarray) -> np.nd
     return np.array([_segment_cells_free(nav, grid, a, bk) for bk in b], dtype=bool)
 
 
+def geodesic_distance(nav: np.ndarray, start: tuple[int, int]) -> np.ndarray:
+    """Steps (4-connected) from cell ``start`` to every navigable cell (inf where unreachable)."""
+    dist = np.full(nav.shape, np.inf)
+    if not nav[start]:
+        return dist
+    frontier = np.zeros(nav.shape, dtype=bool)
+    frontier[start] = True
+    seen = frontier.copy()
+    step = 0
+    while frontier.any():
+        dist[frontier] = step
+        grow = np.zeros_like(frontier)
+        grow[1:] |= frontier[:-1]
+        grow[:-1] |= frontier[1:]
+        grow[:, 1:] |= frontier[:, :-1]
+        grow[:, :-1] |= frontier[:, 1:]
+        frontier = grow & nav & ~seen
+        seen |= frontier
+        step += 1
+    return dist
+
+
+def _room_anchor(scene: ProceduralScene, room: int, cells: np.ndarray) -> tuple[int, int]:
+    """The navigable cell nearest to a room's centre (inside that room when possible)."""
+    r = scene.layout.rooms[room]
+    centre = np.array([0.5 * (r.x0 + r.x1), 0.5 * (r.y0 + r.y1)])
+    in_room = scene.layout.room_at(cells) == room
+    pool = cells[in_room] if in_room.any() else cells
+    best = pool[int(np.argmin(np.linalg.norm(pool - centre, axis=1)))]
+    iy, ix = scene.grid.world_to_cell(best)
+    return int(iy), int(ix)
+
+
 def sample_viewpoints(scene: ProceduralScene, n: int, rng: np.random.Generator) -> list[Viewpoint]:
-    """``n`` viewpoints following the spacing rule of the module docstring."""
+    """``n`` viewpoints following the spacing rule of the module docstring, touring the rooms.
+
+    The walk spends about ``n / rooms`` views in a room (each step to the free candidate farthest
+    from all earlier views), then heads for the nearest unvisited room (each step to the candidate
+    with the smallest geodesic distance to that room's centre), so a capture covers the house while
+    consecutive views stay close and mutually visible.
+    """
     cap = scene.config.capture
     grid = scene.grid
     iy, ix = np.nonzero(grid.navigable)
     if iy.size == 0:
         raise ValueError(f"scene {scene.scene_id}: no navigable cell to place a camera on")
     cells = grid.cell_centers(iy, ix)
+    cell_room = scene.layout.room_at(cells)
     eye = float(rng.uniform(cap.eye_height_min, cap.eye_height_max))
     chosen = [cells[int(rng.integers(0, len(cells)))]]
+    n_rooms = len(scene.layout.rooms)
+    per_room = max(1, n // n_rooms)
+    visited = {int(scene.layout.room_at(chosen[0][None])[0])}
+    fields: dict[int, np.ndarray] = {}
+    target: int | None = None
+    local = 1
     for _ in range(1, n):
         prev = chosen[-1]
+        if local >= per_room and target is None and len(visited) < n_rooms:
+            here = grid.world_to_cell(prev)
+            from_here = geodesic_distance(grid.navigable, (int(here[0]), int(here[1])))
+            todo = [r for r in range(n_rooms) if r not in visited]
+            anchors = {r: _room_anchor(scene, r, cells) for r in todo}
+            target = min(todo, key=lambda r: (from_here[anchors[r]], r))
+            if target not in fields:
+                fields[target] = geodesic_distance(grid.navigable, anchors[target])
         dist = np.linalg.norm(cells - prev, axis=1)
         pick = None
         for lo in (cap.spacing_min, 0.0):
@@ -120,10 +175,22 @@ def sample_viewpoints(scene: ProceduralScene, n: int, rng: np.random.Generator) 
                 continue
             cand = pool[rng.permutation(pool.size)[:64]]
             visible = cand[_line_of_sight(grid.navigable, grid, prev, cells[cand])]
-            if visible.size:
+            if visible.size == 0:
+                continue
+            if target is not None:
+                geo = fields[target][iy[visible], ix[visible]]
+                pick_i = visible[int(np.argmin(geo))]
+            else:
                 spread = np.min(np.linalg.norm(cells[visible][:, None, :] - np.asarray(chosen)[None], axis=2), axis=1)
-                pick = cells[visible[int(np.argmax(spread))]]
-                break
+                pick_i = visible[int(np.argmax(spread))]
+            pick = cells[pick_i]
+            room = int(cell_room[pick_i])
+            if target is not None and room == target:
+                target, local = None, 0
+            if room not in visited:
+                visited.add(room)
+            break
+        local += 1
         chosen.append(prev if pick is None else pick)
     return [
         Viewpoint((float(p[0]), float(p[1]), eye), float(rng.uniform(-math.pi, math.pi))) for p in chosen
