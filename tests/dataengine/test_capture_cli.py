@@ -125,3 +125,15 @@ def test_fuse_writes_a_cloud_on_the_walls(tmp_path: Path) -> None:
     result = _run("fuse", src, "--out", out, "--stride", "2", "--max-frames", "1")
     assert "fused 1 frames" in result.output and f"{32 * 64} points" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply", "src"]
+
+
+def test_fused_ply_opens_in_an_independent_reader(tmp_path: Path) -> None:
+    """trimesh (a dataengine dependency) parses the PLY with its own code: points and colours agree."""
+    trimesh = pytest.importorskip("trimesh")
+    src = write_hm3d_fixture(tmp_path / "src", n=2)
+    out = tmp_path / "cloud.ply"
+    assert _run("fuse", src, "--out", out, "--voxel", "0.2").exit_code == 0
+    ours = read_ply(out)
+    cloud = trimesh.load(out)
+    np.testing.assert_allclose(np.asarray(cloud.vertices), ours["points"], atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(cloud.colors)[:, :3], ours["colors"])
