@@ -49,6 +49,11 @@ def weights_file(tmp_path_factory: pytest.TempPathFactory, state: dict[str, torc
     return path
 
 
+@pytest.fixture(scope="module")
+def model(weights_file: Path) -> LPIPS:
+    return load_lpips(weights_file)
+
+
 def reference_lpips(state: dict[str, torch.Tensor], x: torch.Tensor, y: torch.Tensor) -> float:
     """Slow reference for one image pair: explicit VGG16 layer loop + per-pixel numpy head."""
     shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
@@ -83,21 +88,19 @@ def reference_lpips(state: dict[str, torch.Tensor], x: torch.Tensor, y: torch.Te
     return total
 
 
-def test_parity_with_reference(weights_file: Path, state: dict[str, torch.Tensor]) -> None:
-    model = load_lpips(weights_file)
+def test_parity_with_reference(model: LPIPS, state: dict[str, torch.Tensor]) -> None:
     g = torch.Generator().manual_seed(1)
-    x, y = torch.rand(2, 3, 32, 48, generator=g), torch.rand(2, 3, 32, 48, generator=g)
+    x, y = torch.rand(2, 3, 16, 24, generator=g), torch.rand(2, 3, 16, 24, generator=g)
     got = lpips_distance(x, y, model)
     assert got is not None and got.shape == (2,)
     for i in range(2):
         assert got[i].item() == pytest.approx(reference_lpips(state, x[i], y[i]), rel=1e-4)
 
 
-def test_properties(weights_file: Path) -> None:
-    model = load_lpips(weights_file)
+def test_properties(model: LPIPS) -> None:
     g = torch.Generator().manual_seed(2)
-    x = torch.rand(1, 3, 32, 32, generator=g)
-    y = torch.rand(1, 3, 32, 32, generator=g)
+    x = torch.rand(1, 3, 16, 16, generator=g)
+    y = torch.rand(1, 3, 16, 16, generator=g)
     assert lpips_distance(x, x, model).item() == 0.0
     assert lpips_distance(x, y, model).item() > 0.0
     assert lpips_distance(x, y, model).item() == pytest.approx(lpips_distance(y, x, model).item(), rel=1e-6)

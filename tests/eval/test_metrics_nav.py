@@ -296,3 +296,26 @@ def test_unreachable_goal_is_an_error_in_aggregation() -> None:
                            [F, S], VLNCE)
     with pytest.raises(AggregationError, match="episode lost: metric 'distance_to_goal' is inf"):
         aggregate([res])
+
+
+@settings(max_examples=60)
+@given(
+    st.booleans(),
+    st.floats(0, 100, allow_nan=False),
+    st.floats(0, 100, allow_nan=False),
+)
+def test_spl_bounds(success: bool, d0: float, length: float) -> None:
+    value = spl(success, d0, length)
+    assert 0.0 <= value <= 1.0
+    if not success:
+        assert value == 0.0
+    elif length <= d0:
+        assert value == 1.0
+
+
+@settings(max_examples=60)
+@given(st.tuples(_paths(3), _paths(3)), st.floats(0.1, 10.0))
+def test_ndtw_bounds_and_threshold_monotone(pair: tuple[np.ndarray, np.ndarray], threshold: float) -> None:
+    path, ref = pair
+    low, high = ndtw(path, ref, threshold), ndtw(path, ref, threshold * 2)
+    assert 0.0 <= low <= high <= 1.0
