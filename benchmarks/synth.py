@@ -48,7 +48,7 @@ import torch  # noqa: E402
 
 torch.set_num_threads(1)
 
-from image2sim.dataengine.procedural.capture import make_camera, pose_matrix, sample_viewpoints, write_scene  # noqa: E402
+from image2sim.dataengine.procedural.capture import pose_matrix, sample_viewpoints, write_scene  # noqa: E402
 from image2sim.dataengine.procedural.config import preset  # noqa: E402
 from image2sim.dataengine.procedural.raycast import BoxCaster, EmbreeCaster, embree_available  # noqa: E402
 from image2sim.dataengine.procedural.render import camera_rays, render  # noqa: E402
@@ -106,10 +106,20 @@ def main() -> None:
 
     gen_s, gen_runs = timeit(lambda: generate_scene(cfg, 0), repeats)
     scene = generate_scene(cfg, 0)
-    results["scene"] = {"seed": 0, "rooms": len(scene.layout.rooms), "objects": len(scene.objects),
-                        "boxes": int(scene.box_lo.shape[0])}
-    results["cases"].append({"case": "generate_scene (default preset: plan, furniture, GT grid)", "seconds": gen_s,
-                             "cpu_seconds": cpu(), "runs": gen_runs})
+    results["scene"] = {
+        "seed": 0,
+        "rooms": len(scene.layout.rooms),
+        "objects": len(scene.objects),
+        "boxes": int(scene.box_lo.shape[0]),
+    }
+    results["cases"].append(
+        {
+            "case": "generate_scene (default preset: plan, furniture, GT grid)",
+            "seconds": gen_s,
+            "cpu_seconds": cpu(),
+            "runs": gen_runs,
+        }
+    )
 
     view = sample_viewpoints(scene, 1, seed_streams(0)["capture"])[0]
     pose = pose_matrix(view)
@@ -123,16 +133,28 @@ def main() -> None:
     for name, caster in casters.items():
         s, runs = timeit(lambda c=caster: c.cast(origin, dirs, (512, 1024)), repeats)
         cast_times[name] = cpu()
-        results["cases"].append({"case": f"first-hit cast 512x1024 rays: {name}", "seconds": s, "cpu_seconds": cpu(),
-                                 "runs": runs})
+        results["cases"].append(
+            {
+                "case": f"first-hit cast 512x1024 rays: {name}",
+                "seconds": s,
+                "cpu_seconds": cpu(),
+                "runs": runs,
+            }
+        )
     small = EquirectCamera(128, 256)
     o_s, d_s, _ = camera_rays(small, pose)
     brute = BoxCaster(scene.box_lo, scene.box_hi, cull=False)
     s, runs = timeit(lambda: brute.cast(o_s, d_s), max(1, repeats // 2))
     brute_per_pano = cpu() * (512 * 1024) / (128 * 256)
-    results["cases"].append({"case": "first-hit cast 128x256 rays: numpy brute force (all rays x all boxes)",
-                             "seconds": s, "cpu_seconds": cpu(), "runs": runs,
-                             "extrapolated_512x1024_cpu_seconds": brute_per_pano})
+    results["cases"].append(
+        {
+            "case": "first-hit cast 128x256 rays: numpy brute force (all rays x all boxes)",
+            "seconds": s,
+            "cpu_seconds": cpu(),
+            "runs": runs,
+            "extrapolated_512x1024_cpu_seconds": brute_per_pano,
+        }
+    )
     cast_times["numpy brute force (extrapolated)"] = brute_per_pano
 
     fastest = min(cast_times, key=cast_times.get)
@@ -141,8 +163,14 @@ def main() -> None:
 
     for kind in (["embree"] if embree_available() else []) + ["numpy"]:
         s, runs = timeit(lambda k=kind: render(scene, pano, pose, caster=k), repeats)
-        results["cases"].append({"case": f"render 512x1024 panorama RGB-D + semantics + instances ({kind})",
-                                 "seconds": s, "cpu_seconds": cpu(), "runs": runs})
+        results["cases"].append(
+            {
+                "case": f"render 512x1024 panorama RGB-D + semantics + instances ({kind})",
+                "seconds": s,
+                "cpu_seconds": cpu(),
+                "runs": runs,
+            }
+        )
 
     views = 6 if args.quick else 24
     scene_cfg = preset("default")
@@ -155,16 +183,24 @@ def main() -> None:
         write_scene(generate_scene(scene_cfg, 1), Path(tmp) / "scene")
         whole = time.perf_counter() - t0
         whole_cpu = time.process_time() - c0
-    results["cases"].append({"case": f"whole scene: generate + {views} panoramas 512x1024 + write capture and gt/ "
-                                     "(1 run)", "seconds": whole, "cpu_seconds": whole_cpu, "runs": [whole],
-                             "per_view_cpu_seconds": whole_cpu / views})
+    results["cases"].append(
+        {
+            "case": f"whole scene: generate + {views} panoramas 512x1024 + write capture and gt/ (1 run)",
+            "seconds": whole,
+            "cpu_seconds": whole_cpu,
+            "runs": [whole],
+            "per_view_cpu_seconds": whole_cpu / views,
+        }
+    )
 
     results["hardware"] = hardware()
     results["date"] = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     results["load_average_before_after"] = [list(load_before), list(os.getloadavg())]
     results["target"] = "< 1 s per 512x1024 RGB-D+semantics panorama on one core"
-    results["timing_note"] = ("seconds = median wall time; cpu_seconds = median process CPU time (all threads, "
-                              "process pinned to one core); the caster comparison uses CPU time")
+    results["timing_note"] = (
+        "seconds = median wall time; cpu_seconds = median process CPU time (all threads, "
+        "process pinned to one core); the caster comparison uses CPU time"
+    )
     REPORTS.mkdir(exist_ok=True)
     (REPORTS / "bench_synth.json").write_text(json.dumps(results, indent=2) + "\n")
     lines = [
@@ -184,7 +220,11 @@ def main() -> None:
         if "extrapolated_512x1024_cpu_seconds" in case:
             extra = f" (x16 -> {case['extrapolated_512x1024_cpu_seconds']:.2f} s per 512x1024)"
         lines.append(f"| {case['case']} | {case['seconds']:.3f} | {case['cpu_seconds']:.3f}{extra} |")
-    lines += ["", f"Fastest caster (CPU time): **{fastest}** (`caster=\"auto\"` uses Embree when embreex is importable, else the culled numpy caster). CPU time relative to it:", ""]
+    lines += [
+        "",
+        f'Fastest caster (CPU time): **{fastest}** (`caster="auto"` uses Embree when embreex is importable, else the culled numpy caster). CPU time relative to it:',
+        "",
+    ]
     lines += [f"- {k}: {v:.1f}x" for k, v in results["caster_ratio_vs_fastest"].items()]
     lines.append("")
     (REPORTS / "bench_synth.md").write_text("\n".join(lines))

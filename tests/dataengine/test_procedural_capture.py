@@ -4,12 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from image2sim.dataengine.procedural.capture import (
     apply_depth_noise,
     capture_frames,
@@ -24,6 +21,7 @@ from image2sim.dataengine.procedural.render import render
 from image2sim.dataengine.procedural.scene import generate_scene, seed_streams
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.io import open_capture
+from typer.testing import CliRunner
 
 TINY = preset("tiny")
 
@@ -54,7 +52,7 @@ def test_viewpoints_follow_the_spacing_rule(tiny_scene):
     assert (steps <= cap.spacing_max + 1e-9).all()
     assert (steps >= cap.spacing_min - 1e-9).mean() > 0.8
     # A straight free line between consecutive views (sampled every centimetre).
-    for a, b in zip(xy[:-1], xy[1:]):
+    for a, b in zip(xy[:-1], xy[1:], strict=False):
         s = np.linspace(0, 1, 200)[:, None]
         ly, lx = g.world_to_cell(a + s * (b - a))
         assert g.navigable[ly, lx].all()
@@ -97,7 +95,7 @@ def test_high_tier_has_fewer_views_and_sparse_depth():
     frames, poses = capture_frames(scene)
     assert len(frames) == 2  # view_fraction 0.5
     assert all((f.depth == 0).mean() >= 0.3 for f in frames)
-    assert any(not np.allclose(f.cam_to_world, p) for f, p in zip(frames, poses))
+    assert any(not np.allclose(f.cam_to_world, p) for f, p in zip(frames, poses, strict=False))
 
 
 # --- fusion consistency ------------------------------------------------------------------------
@@ -158,7 +156,7 @@ def test_fusion_consistency_on_clean_captures():
     cfg = _with_noise(TINY, "none", views=4, height=256, width=512)
     scene = generate_scene(cfg, 9)
     frames, _ = capture_frames(scene)
-    for a, b in zip(frames[:-1], frames[1:]):
+    for a, b in zip(frames[:-1], frames[1:], strict=False):
         overlap, within = _fusion_fraction(a, b)
         assert overlap > 0.5, "consecutive views should overlap"
         assert within >= 0.995, f"only {within:.4f} of overlapping points within 1 cm"
@@ -240,8 +238,24 @@ def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
     from image2sim.dataengine.cli import app
 
     runner = CliRunner()
-    result = runner.invoke(app, ["synth", "--preset", "tiny", "--scenes", "2", "--views", "2", "--noise", "none",
-                                 "--seed", "0", "--out", str(tmp_path / "syn")])
+    result = runner.invoke(
+        app,
+        [
+            "synth",
+            "--preset",
+            "tiny",
+            "--scenes",
+            "2",
+            "--views",
+            "2",
+            "--noise",
+            "none",
+            "--seed",
+            "0",
+            "--out",
+            str(tmp_path / "syn"),
+        ],
+    )
     assert result.exit_code == 0, result.output
     for i in range(2):
         scene_dir = tmp_path / "syn" / f"scene_{i:03d}"
@@ -253,7 +267,9 @@ def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
     bad = runner.invoke(app, ["synth", "--preset", "tiny", "--noise", "loud", "--out", str(tmp_path / "x")])
     assert bad.exit_code == 2 and "noise tier" in bad.output
     assert not (tmp_path / "x").exists()
-    again = runner.invoke(app, ["synth", "--preset", "tiny", "--scenes", "1", "--views", "2", "--out", str(tmp_path / "syn")])
+    again = runner.invoke(
+        app, ["synth", "--preset", "tiny", "--scenes", "1", "--views", "2", "--out", str(tmp_path / "syn")]
+    )
     assert again.exit_code != 0  # existing output is not overwritten without --overwrite
 
 
@@ -261,3 +277,46 @@ def test_capture_config_views_are_independent_of_the_layout():
     a = generate_scene(_with_noise(TINY, "none", views=2), 5)
     b = generate_scene(dataclasses.replace(TINY, capture=CaptureConfig(views=7, height=64, width=128)), 5)
     np.testing.assert_array_equal(a.box_lo, b.box_lo)
+
+
+def _bfs_reference(nav: np.ndarray, start: tuple[int, int]) -> np.ndarray:
+    """Plain queue-based breadth-first search (the readable reference)."""
+    from collections import deque
+
+    dist = np.full(nav.shape, np.inf)
+    dist[start] = 0
+    queue = deque([start])
+    while queue:
+        r, c = queue.popleft()
+        for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            rr, cc = r + dr, c + dc
+            if 0 <= rr < nav.shape[0] and 0 <= cc < nav.shape[1] and nav[rr, cc] and dist[rr, cc] == np.inf:
+                dist[rr, cc] = dist[r, c] + 1
+                queue.append((rr, cc))
+    return dist
+
+
+def test_geodesic_distance_matches_breadth_first_search():
+    from image2sim.dataengine.procedural.capture import geodesic_distance
+
+    rng = np.random.default_rng(0)
+    nav = rng.random((30, 40)) < 0.7
+    nav[5, 7] = True
+    np.testing.assert_array_equal(geodesic_distance(nav, (5, 7)), _bfs_reference(nav, (5, 7)))
+    assert np.isinf(geodesic_distance(nav & False, (5, 7))).all()  # start not navigable
+
+
+def test_captures_tour_several_rooms():
+    from image2sim.dataengine.procedural.config import LayoutConfig
+
+    cfg = dataclasses.replace(
+        TINY,
+        layout=LayoutConfig(rooms_min=4, rooms_max=4, room_size_min=2.6, room_size_max=3.6),
+        capture=dataclasses.replace(TINY.capture, views=16),
+    )
+    scene = generate_scene(cfg, 3)
+    views = sample_viewpoints(scene, 16, np.random.default_rng(0))
+    rooms = scene.layout.room_at(np.array([v.position[:2] for v in views]))
+    assert len(set(rooms.tolist())) >= 3
+    steps = np.linalg.norm(np.diff([v.position[:2] for v in views], axis=0), axis=1)
+    assert (steps <= cfg.capture.spacing_max + 1e-9).all()

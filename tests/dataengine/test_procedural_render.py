@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from image2sim.dataengine.procedural.config import LayoutConfig, ObjectConfig, preset
 from image2sim.dataengine.procedural.raycast import BoxCaster, embree_available
 from image2sim.dataengine.procedural.render import render
@@ -117,7 +116,9 @@ def test_object_pixels_lie_on_their_object(furnished):
             on_any = np.zeros(int(sel.sum()), dtype=bool)
             for part in obj.parts:
                 on_any |= _on_box_surface(points[sel], np.asarray(part.lo), np.asarray(part.hi))
-            assert on_any.all(), f"{obj.category.name}: {int((~on_any).sum())} pixels off the object's surface"
+            assert on_any.all(), (
+                f"{obj.category.name}: {int((~on_any).sum())} pixels off the object's surface"
+            )
     assert n_object_pixels > 100
 
 

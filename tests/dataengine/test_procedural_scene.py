@@ -7,7 +7,6 @@ import itertools
 
 import numpy as np
 import pytest
-
 from image2sim.dataengine.procedural.config import (
     CaptureConfig,
     ConfigError,
@@ -18,8 +17,8 @@ from image2sim.dataengine.procedural.config import (
     synth_config_from_dict,
 )
 from image2sim.dataengine.procedural.gt import OBSTACLE, rasterise_box
-from image2sim.dataengine.procedural.objects import CATEGORIES, CATEGORY_BY_NAME, ROOM_PROGRAMS, SMALL_BY_ROOM
 from image2sim.dataengine.procedural.layout import ROOM_TYPES
+from image2sim.dataengine.procedural.objects import CATEGORIES, CATEGORY_BY_NAME, ROOM_PROGRAMS, SMALL_BY_ROOM
 from image2sim.dataengine.procedural.scene import generate_scene
 
 # Medium scenes: several rooms (corridor or BSP) but small enough to generate quickly.
@@ -84,12 +83,34 @@ def test_category_table():
     objects = [c for c in CATEGORIES if c.placement != "structure"]
     assert len(objects) >= 30
     assert {c.name for c in CATEGORIES if c.placement == "structure"} == {"floor", "wall", "ceiling"}
-    for name in ("sofa", "bed", "table_lamp", "chair", "cabinet", "bookshelf", "tv", "plant", "floor_lamp", "fridge",
-                 "sink", "toilet", "bathtub", "desk", "washing_machine", "mirror", "painting", "rug", "vase", "laptop",
-                 "clock", "bowl", "book_stack"):
+    for name in (
+        "sofa",
+        "bed",
+        "table_lamp",
+        "chair",
+        "cabinet",
+        "bookshelf",
+        "tv",
+        "plant",
+        "floor_lamp",
+        "fridge",
+        "sink",
+        "toilet",
+        "bathtub",
+        "desk",
+        "washing_machine",
+        "mirror",
+        "painting",
+        "rug",
+        "vase",
+        "laptop",
+        "clock",
+        "bowl",
+        "book_stack",
+    ):
         assert name in CATEGORY_BY_NAME, name
     for c in objects:
-        assert all(0 < a <= b for a, b in zip(c.size_min, c.size_max)), c.name
+        assert all(0 < a <= b for a, b in zip(c.size_min, c.size_max, strict=False)), c.name
     assert sum(c.small for c in objects) >= 8
     for program in ROOM_PROGRAMS.values():
         assert all(name in CATEGORY_BY_NAME for name, _, _ in program)
@@ -124,16 +145,22 @@ def test_layout_rooms_doors_and_types(medium_scenes):
             a, b = lay.rooms[d.a], lay.rooms[d.b]
             assert d.width >= MEDIUM.layout.door_width_min - 0.025 - 1e-9
             if d.axis == 0:
-                assert {round(a.y0, 6), round(a.y1, 6)} & {round(b.y0, 6), round(b.y1, 6)} == {round(d.line, 6)}
+                assert {round(a.y0, 6), round(a.y1, 6)} & {round(b.y0, 6), round(b.y1, 6)} == {
+                    round(d.line, 6)
+                }
                 assert max(a.x0, b.x0) < d.lo < d.hi < min(a.x1, b.x1)
             else:
-                assert {round(a.x0, 6), round(a.x1, 6)} & {round(b.x0, 6), round(b.x1, 6)} == {round(d.line, 6)}
+                assert {round(a.x0, 6), round(a.x1, 6)} & {round(b.x0, 6), round(b.x1, 6)} == {
+                    round(d.line, 6)
+                }
                 assert max(a.y0, b.y0) < d.lo < d.hi < min(a.y1, b.y1)
         assert len(lay.doors) >= len(lay.rooms) - 1
 
 
 def test_corridor_plans_have_a_hallway():
-    cfg = dataclasses.replace(MEDIUM, layout=dataclasses.replace(MEDIUM.layout, corridor_probability=1.0, rooms_min=4))
+    cfg = dataclasses.replace(
+        MEDIUM, layout=dataclasses.replace(MEDIUM.layout, corridor_probability=1.0, rooms_min=4)
+    )
     scene = generate_scene(cfg, 0)
     assert scene.layout.rooms[0].room_type == "hallway"
     assert sum(r.room_type == "hallway" for r in scene.layout.rooms) == 1
@@ -149,17 +176,25 @@ def test_objects_lie_inside_their_room_and_do_not_interpenetrate(medium_scenes):
         for obj in scene.objects:
             x0, y0, x1, y1 = lay.rooms[obj.room].interior(lay.wall_thickness)
             corners = obj.corners()
-            assert np.all(corners[:, 0] >= x0 - 1e-9) and np.all(corners[:, 0] <= x1 + 1e-9), obj.category.name
-            assert np.all(corners[:, 1] >= y0 - 1e-9) and np.all(corners[:, 1] <= y1 + 1e-9), obj.category.name
+            assert np.all(corners[:, 0] >= x0 - 1e-9) and np.all(corners[:, 0] <= x1 + 1e-9), (
+                obj.category.name
+            )
+            assert np.all(corners[:, 1] >= y0 - 1e-9) and np.all(corners[:, 1] <= y1 + 1e-9), (
+                obj.category.name
+            )
             assert np.all(corners[:, 2] >= -1e-9) and np.all(corners[:, 2] <= lay.ceiling_height + 1e-9)
             # Every part lies inside the object's oriented box (= its AABB for quarter-turn yaws).
             lo, hi = corners.min(0), corners.max(0)
             for p in obj.parts:
-                assert np.all(np.asarray(p.lo) >= lo - 1e-9) and np.all(np.asarray(p.hi) <= hi + 1e-9), obj.category.name
+                assert np.all(np.asarray(p.lo) >= lo - 1e-9) and np.all(np.asarray(p.hi) <= hi + 1e-9), (
+                    obj.category.name
+                )
         for a, b in itertools.combinations(scene.objects, 2):
             for p, q in itertools.product(a.parts, b.parts):
                 overlap = np.minimum(p.hi, q.hi) - np.maximum(p.lo, q.lo)
-                assert not np.all(overlap > 1e-9), f"{a.category.name} {a.instance_id} intersects {b.category.name}"
+                assert not np.all(overlap > 1e-9), (
+                    f"{a.category.name} {a.instance_id} intersects {b.category.name}"
+                )
 
 
 def test_small_objects_rest_on_a_surface_of_their_support(medium_scenes):
@@ -191,7 +226,9 @@ def test_navigable_cells_avoid_objects_and_walls(medium_scenes):
         # Every navigable cell centre is on floor: in a room interior or a door passage.
         iy, ix = np.nonzero(g.navigable)
         xy = g.cell_centers(iy, ix)
-        rects = [r.interior(lay.wall_thickness) for r in lay.rooms] + [d.passage(lay.wall_thickness) for d in lay.doors]
+        rects = [r.interior(lay.wall_thickness) for r in lay.rooms] + [
+            d.passage(lay.wall_thickness) for d in lay.doors
+        ]
         inside = np.zeros(len(xy), dtype=bool)
         for x0, y0, x1, y1 in rects:
             inside |= (xy[:, 0] > x0) & (xy[:, 0] < x1) & (xy[:, 1] > y0) & (xy[:, 1] < y1)
@@ -208,7 +245,7 @@ def test_one_navigable_component_and_doors_connect_rooms(medium_scenes):
             x0, y0, x1, y1 = room.interior(lay.wall_thickness)
             r0, c0 = g.world_to_cell(np.array([x0, y0]))
             r1, c1 = g.world_to_cell(np.array([x1, y1]))
-            assert g.navigable[r0:r1 + 1, c0:c1 + 1].any(), f"room {room.index} has no navigable floor"
+            assert g.navigable[r0 : r1 + 1, c0 : c1 + 1].any(), f"room {room.index} has no navigable floor"
         for d in lay.doors:
             x0, y0, x1, y1 = d.passage(lay.wall_thickness)
             iy, ix = g.world_to_cell(np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)]))

@@ -14,10 +14,28 @@ import importlib
 
 # Lazy exports: `image2sim data --help` imports this package's CLI without loading numpy/torch/scipy.
 _EXPORTS = {
-    "capture": ("Viewpoint", "capture_frames", "make_camera", "pose_matrix", "sample_viewpoints", "scene_seed",
-                "synthesize", "write_scene"),
-    "config": ("NOISE_TIERS", "PRESETS", "CaptureConfig", "ConfigError", "LayoutConfig", "NoiseConfig", "ObjectConfig",
-               "SynthConfig", "preset", "synth_config_from_dict"),
+    "capture": (
+        "Viewpoint",
+        "capture_frames",
+        "make_camera",
+        "pose_matrix",
+        "sample_viewpoints",
+        "scene_seed",
+        "synthesize",
+        "write_scene",
+    ),
+    "config": (
+        "NOISE_TIERS",
+        "PRESETS",
+        "CaptureConfig",
+        "ConfigError",
+        "LayoutConfig",
+        "NoiseConfig",
+        "ObjectConfig",
+        "SynthConfig",
+        "preset",
+        "synth_config_from_dict",
+    ),
     "objects": ("CATEGORIES", "CATEGORY_BY_NAME", "STRUCTURE_CATEGORIES"),
     "render": ("render",),
     "scene": ("ProceduralScene", "generate_scene"),

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.dataengine.procedural.config import NoiseConfig, SynthConfig
 from image2sim.dataengine.procedural.gt import write_gt
 from image2sim.dataengine.procedural.render import _ray_map, render
@@ -74,7 +73,7 @@ def _segment_cells_free(nav: np.ndarray, grid, a: np.ndarray, b: np.ndarray) -> 
     r1, c1 = grid.world_to_cell(hi)
     if r0 < 0 or c0 < 0 or r1 >= nav.shape[0] or c1 >= nav.shape[1]:
         return False
-    rr, cc = np.mgrid[r0:r1 + 1, c0:c1 + 1]
+    rr, cc = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
     rr, cc = rr.ravel(), cc.ravel()
     res = grid.resolution
     sq_lo = np.stack((grid.origin[0] + cc * res, grid.origin[1] + rr * res), axis=1) - 1e-9
@@ -181,7 +180,9 @@ def sample_viewpoints(scene: ProceduralScene, n: int, rng: np.random.Generator) 
                 geo = fields[target][iy[visible], ix[visible]]
                 pick_i = visible[int(np.argmin(geo))]
             else:
-                spread = np.min(np.linalg.norm(cells[visible][:, None, :] - np.asarray(chosen)[None], axis=2), axis=1)
+                spread = np.min(
+                    np.linalg.norm(cells[visible][:, None, :] - np.asarray(chosen)[None], axis=2), axis=1
+                )
                 pick_i = visible[int(np.argmax(spread))]
             pick = cells[pick_i]
             room = int(cell_room[pick_i])
@@ -192,9 +193,7 @@ def sample_viewpoints(scene: ProceduralScene, n: int, rng: np.random.Generator) 
             break
         local += 1
         chosen.append(prev if pick is None else pick)
-    return [
-        Viewpoint((float(p[0]), float(p[1]), eye), float(rng.uniform(-math.pi, math.pi))) for p in chosen
-    ]
+    return [Viewpoint((float(p[0]), float(p[1]), eye), float(rng.uniform(-math.pi, math.pi))) for p in chosen]
 
 
 def _rotation_from_axis_angle(v: np.ndarray) -> np.ndarray:
@@ -218,7 +217,9 @@ def jitter_pose(pose: np.ndarray, noise: NoiseConfig, rng: np.random.Generator) 
     return out
 
 
-def apply_depth_noise(depth: np.ndarray, camera: Camera, noise: NoiseConfig, rng: np.random.Generator) -> np.ndarray:
+def apply_depth_noise(
+    depth: np.ndarray, camera: Camera, noise: NoiseConfig, rng: np.random.Generator
+) -> np.ndarray:
     """Noisy float32 depth following ``noise`` (0 stays 0 = invalid)."""
     h, w = depth.shape
     d = depth.astype(np.float64)
@@ -233,7 +234,9 @@ def apply_depth_noise(depth: np.ndarray, camera: Camera, noise: NoiseConfig, rng
         rays = _ray_map(camera).reshape(h, w, 3)
         elevation = np.degrees(np.arcsin(np.clip(-rays[..., 1], -1.0, 1.0)))
         rows = (np.arange(h) % noise.lidar_row_step == 0)[:, None]
-        valid &= rows & (elevation >= noise.lidar_elevation_min_deg) & (elevation <= noise.lidar_elevation_max_deg)
+        valid &= (
+            rows & (elevation >= noise.lidar_elevation_min_deg) & (elevation <= noise.lidar_elevation_max_deg)
+        )
     n_holes = int(rng.integers(noise.holes_min, noise.holes_max + 1)) if noise.holes_max > 0 else 0
     if n_holes:
         vv, uu = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
@@ -255,24 +258,43 @@ def apply_rgb_noise(rgb: np.ndarray, noise: NoiseConfig, rng: np.random.Generato
     return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
 
-def render_frame(scene: ProceduralScene, camera: Camera, view: Viewpoint, noise: NoiseConfig,
-                 rng: np.random.Generator, frame_id: str) -> tuple[Frame, np.ndarray]:
+def render_frame(
+    scene: ProceduralScene,
+    camera: Camera,
+    view: Viewpoint,
+    noise: NoiseConfig,
+    rng: np.random.Generator,
+    frame_id: str,
+) -> tuple[Frame, np.ndarray]:
     """Render one view, degrade it by ``noise``; returns the Frame (stored pose) and the exact pose."""
     pose = pose_matrix(view)
     out = render(scene, camera, pose)
     depth = apply_depth_noise(out["depth"], camera, noise, rng)
     rgb = apply_rgb_noise(out["rgb"], noise, rng)
     stored = jitter_pose(pose, noise, rng)
-    frame = Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=stored, semantics=out["semantics"],
-                  instances=out["instances"], frame_id=frame_id)
+    frame = Frame(
+        rgb=rgb,
+        depth=depth,
+        camera=camera,
+        cam_to_world=stored,
+        semantics=out["semantics"],
+        instances=out["instances"],
+        frame_id=frame_id,
+    )
     return frame, pose
 
 
 class _LazyFrames:
     """Sized iterable that renders frames on demand (so write_capture's progress bar tracks rendering)."""
 
-    def __init__(self, scene: ProceduralScene, camera: Camera, views: list[Viewpoint], noise: NoiseConfig,
-                 rng: np.random.Generator):
+    def __init__(
+        self,
+        scene: ProceduralScene,
+        camera: Camera,
+        views: list[Viewpoint],
+        noise: NoiseConfig,
+        rng: np.random.Generator,
+    ):
         self.scene, self.camera, self.views, self.noise, self.rng = scene, camera, views, noise, rng
         self.true_poses: dict[str, list] = {}
 
@@ -304,7 +326,9 @@ def _capture_plan(scene: ProceduralScene):
     return make_camera(cfg), views, noise, streams["noise"]
 
 
-def write_scene(scene: ProceduralScene, out_dir: str | Path, *, overwrite: bool = False, progress: bool = False) -> Path:
+def write_scene(
+    scene: ProceduralScene, out_dir: str | Path, *, overwrite: bool = False, progress: bool = False
+) -> Path:
     """Render and write ``scene`` as a canonical capture with a ``gt/`` folder (atomically)."""
     from image2sim.simulator.io.canonical import write_capture
 
@@ -323,16 +347,27 @@ def write_scene(scene: ProceduralScene, out_dir: str | Path, *, overwrite: bool 
     }
 
     def extra(tmp: Path) -> None:
-        write_gt(scene, tmp / "gt", extra={
-            "poses.json": {
-                "note": "exact camera-to-world poses (OpenCV camera, Z-up world); frames/ hold the stored, "
-                        "possibly jittered ones",
-                "poses": lazy.true_poses,
+        write_gt(
+            scene,
+            tmp / "gt",
+            extra={
+                "poses.json": {
+                    "note": "exact camera-to-world poses (OpenCV camera, Z-up world); frames/ hold the stored, "
+                    "possibly jittered ones",
+                    "poses": lazy.true_poses,
+                },
             },
-        })
+        )
 
-    return write_capture(out_dir, lazy, scene_id=scene.scene_id, metadata=metadata, extra=extra,
-                         overwrite=overwrite, progress=progress)
+    return write_capture(
+        out_dir,
+        lazy,
+        scene_id=scene.scene_id,
+        metadata=metadata,
+        extra=extra,
+        overwrite=overwrite,
+        progress=progress,
+    )
 
 
 def scene_seed(base_seed: int, index: int) -> int:
@@ -340,8 +375,15 @@ def scene_seed(base_seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(base_seed), int(index)]).generate_state(1, dtype=np.uint32)[0])
 
 
-def synthesize(config: SynthConfig, out_dir: str | Path, *, scenes: int, seed: int, overwrite: bool = False,
-               progress: bool = True) -> list[Path]:
+def synthesize(
+    config: SynthConfig,
+    out_dir: str | Path,
+    *,
+    scenes: int,
+    seed: int,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> list[Path]:
     """Generate ``scenes`` scenes into ``out_dir/scene_XXX`` (each independent of the others)."""
     out_dir = Path(out_dir)
     paths = []

@@ -4,26 +4,30 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional
 
 import typer
-
 from image2sim.dataengine.cli import app
 
 
 @app.command("synth")
 def synth(
-    out: Path = typer.Option(Path("data/synthetic"), "--out", help="Output folder; scenes go to OUT/scene_XXX."),
+    out: Path = typer.Option(
+        Path("data/synthetic"), "--out", help="Output folder; scenes go to OUT/scene_XXX."
+    ),
     scenes: int = typer.Option(8, "--scenes", min=1, help="Number of scenes."),
-    views: Optional[int] = typer.Option(None, "--views", min=1, help="Views per scene (before the noise tier's view fraction)."),
-    noise: Optional[str] = typer.Option(None, "--noise", help="Noise tier: none, middle or high (default: preset's, none)."),
+    views: int | None = typer.Option(
+        None, "--views", min=1, help="Views per scene (before the noise tier's view fraction)."
+    ),
+    noise: str | None = typer.Option(
+        None, "--noise", help="Noise tier: none, middle or high (default: preset's, none)."
+    ),
     seed: int = typer.Option(0, "--seed", min=0, help="Base seed; scene i uses an independent stream."),
     preset_name: str = typer.Option("default", "--preset", help="Config preset: default or tiny."),
-    config: Optional[Path] = typer.Option(None, "--config", help="JSON/YAML file overriding preset fields."),
-    height: Optional[int] = typer.Option(None, "--height", help="Image height (default from the preset)."),
-    width: Optional[int] = typer.Option(None, "--width", help="Image width (default from the preset)."),
-    camera: Optional[str] = typer.Option(None, "--camera", help="equirect or pinhole."),
-    caster: Optional[str] = typer.Option(None, "--caster", help="auto, embree or numpy."),
+    config: Path | None = typer.Option(None, "--config", help="JSON/YAML file overriding preset fields."),
+    height: int | None = typer.Option(None, "--height", help="Image height (default from the preset)."),
+    width: int | None = typer.Option(None, "--width", help="Image width (default from the preset)."),
+    camera: str | None = typer.Option(None, "--camera", help="equirect or pinhole."),
+    caster: str | None = typer.Option(None, "--caster", help="auto, embree or numpy."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing scene folders."),
 ) -> None:
     """Generate procedural indoor scenes (RGB-D + semantics + instances, exact GT in gt/)."""
@@ -36,7 +40,11 @@ def synth(
         cfg = preset(preset_name)
         if config is not None:
             cfg = synth_config_from_dict(_load_mapping(config), base=cfg)
-        cap = {k: v for k, v in (("views", views), ("height", height), ("width", width), ("camera", camera)) if v is not None}
+        cap = {
+            k: v
+            for k, v in (("views", views), ("height", height), ("width", width), ("camera", camera))
+            if v is not None
+        }
         top = {k: v for k, v in (("noise", noise), ("caster", caster)) if v is not None}
         cfg = replace(cfg, capture=replace(cfg.capture, **cap), **top).validate()
     except ConfigError as err:

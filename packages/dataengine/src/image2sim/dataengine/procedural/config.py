@@ -217,13 +217,26 @@ class SynthConfig:
         if lay.rooms_max > 8:
             raise ConfigError(f"layout.rooms_max must be <= 8, got {lay.rooms_max}")
         if lay.rooms_max < lay.rooms_min:
-            raise ConfigError(f"layout.rooms_max ({lay.rooms_max}) is below layout.rooms_min ({lay.rooms_min})")
-        for name in ("room_size_min", "room_size_max", "corridor_width", "wall_thickness", "ceiling_height_min",
-                     "ceiling_height_max", "door_width_min", "door_width_max", "door_height"):
+            raise ConfigError(
+                f"layout.rooms_max ({lay.rooms_max}) is below layout.rooms_min ({lay.rooms_min})"
+            )
+        for name in (
+            "room_size_min",
+            "room_size_max",
+            "corridor_width",
+            "wall_thickness",
+            "ceiling_height_min",
+            "ceiling_height_max",
+            "door_width_min",
+            "door_width_max",
+            "door_height",
+        ):
             if getattr(lay, name) <= 0:
                 raise ConfigError(f"layout.{name} must be positive, got {getattr(lay, name)}")
         if lay.room_size_max < lay.room_size_min:
-            raise ConfigError(f"layout.room_size_max ({lay.room_size_max}) is below room_size_min ({lay.room_size_min})")
+            raise ConfigError(
+                f"layout.room_size_max ({lay.room_size_max}) is below room_size_min ({lay.room_size_min})"
+            )
         if lay.ceiling_height_max < lay.ceiling_height_min:
             raise ConfigError("layout.ceiling_height_max is below layout.ceiling_height_min")
         if lay.door_width_max < lay.door_width_min:
@@ -255,7 +268,9 @@ class SynthConfig:
         if obj.furniture_scale < 0:
             raise ConfigError(f"objects.furniture_scale must be >= 0, got {obj.furniture_scale}")
         if obj.small_per_surface_max < 0 or obj.placement_attempts < 1:
-            raise ConfigError("objects.small_per_surface_max must be >= 0 and objects.placement_attempts >= 1")
+            raise ConfigError(
+                "objects.small_per_surface_max must be >= 0 and objects.placement_attempts >= 1"
+            )
         if not 0.0 <= obj.small_probability <= 1.0:
             raise ConfigError(f"objects.small_probability must lie in [0, 1], got {obj.small_probability}")
         if obj.wall_gap < 0 or obj.door_clearance < 0:
@@ -286,9 +301,13 @@ class SynthConfig:
         if cap.agent_radius < 0:
             raise ConfigError(f"capture.agent_radius must be >= 0, got {cap.agent_radius}")
         if not 0 < cap.grid_resolution <= 0.5:
-            raise ConfigError(f"capture.grid_resolution must lie in (0, 0.5] metres, got {cap.grid_resolution}")
+            raise ConfigError(
+                f"capture.grid_resolution must lie in (0, 0.5] metres, got {cap.grid_resolution}"
+            )
         if self.caster not in ("auto", "embree", "numpy", "numpy-brute"):
-            raise ConfigError(f"caster must be 'auto', 'embree', 'numpy' or 'numpy-brute', got {self.caster!r}")
+            raise ConfigError(
+                f"caster must be 'auto', 'embree', 'numpy' or 'numpy-brute', got {self.caster!r}"
+            )
         noise = self.noise_config()
         if not 0 < noise.view_fraction <= 1:
             raise ConfigError(f"noise tier {self.noise!r}: view_fraction must lie in (0, 1]")
@@ -319,7 +338,9 @@ def _build(cls: type, data: Any, where: str):
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown} (known: {sorted(known)})")
     defaults = cls()
-    kwargs = {name: _coerce(value, type(getattr(defaults, name)), f"{where}.{name}") for name, value in data.items()}
+    kwargs = {
+        name: _coerce(value, type(getattr(defaults, name)), f"{where}.{name}") for name, value in data.items()
+    }
     return cls(**kwargs)
 
 
@@ -356,7 +377,9 @@ def synth_config_from_dict(data: dict, base: SynthConfig | None = None) -> Synth
         raise ConfigError(f"synth config: expected a mapping, got {type(data).__name__}")
     unknown = sorted(set(data) - {f.name for f in fields(SynthConfig)})
     if unknown:
-        raise ConfigError(f"synth config: unknown key(s) {unknown} (known: {sorted(f.name for f in fields(SynthConfig))})")
+        raise ConfigError(
+            f"synth config: unknown key(s) {unknown} (known: {sorted(f.name for f in fields(SynthConfig))})"
+        )
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         if name in _NESTED:
@@ -377,7 +400,9 @@ PRESETS: dict[str, SynthConfig] = {
     "default": SynthConfig(),
     # Small, fast scenes for tests: 1-2 small rooms, a few objects, 64x128 panoramas.
     "tiny": SynthConfig(
-        layout=LayoutConfig(rooms_min=1, rooms_max=2, room_size_min=2.6, room_size_max=3.6, corridor_probability=0.0),
+        layout=LayoutConfig(
+            rooms_min=1, rooms_max=2, room_size_min=2.6, room_size_max=3.6, corridor_probability=0.0
+        ),
         objects=ObjectConfig(furniture_scale=0.6, small_per_surface_max=2, placement_attempts=15),
         capture=CaptureConfig(views=4, height=64, width=128, spacing_min=0.3, spacing_max=0.8),
     ),

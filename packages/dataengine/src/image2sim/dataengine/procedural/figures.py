@@ -11,7 +11,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from image2sim.dataengine.procedural.capture import pose_matrix, sample_viewpoints
 from image2sim.dataengine.procedural.config import preset
 from image2sim.dataengine.procedural.gt import OBSTACLE
@@ -43,7 +42,8 @@ def panorama_figure(scene: ProceduralScene, pose: np.ndarray, height: int = 256)
     """RGB over depth (turbo colour map) over category colours, one equirectangular panorama each."""
     out = render(scene, EquirectCamera(height, 2 * height), pose)
     return np.concatenate(
-        [out["rgb"], _depth_colors(out["depth"], float(out["depth"].max())), label_colors(out["semantics"])], axis=0
+        [out["rgb"], _depth_colors(out["depth"], float(out["depth"].max())), label_colors(out["semantics"])],
+        axis=0,
     )
 
 
@@ -62,21 +62,23 @@ def topdown_figure(scene: ProceduralScene, views: list, scale: int = 4) -> np.nd
         lo, hi = obj.aabb
         ix0, iy0 = np.floor((lo[:2] - g.origin) / g.resolution).astype(int)
         ix1, iy1 = np.ceil((hi[:2] - g.origin) / g.resolution).astype(int)
-        cat[max(iy0, 0):iy1, max(ix0, 0):ix1] = obj.category.id
+        cat[max(iy0, 0) : iy1, max(ix0, 0) : ix1] = obj.category.id
     colors = label_colors(cat)
     sel = (cat > 0) & ((g.occupancy == OBSTACLE) | (g.occupancy == 1))
     img[sel] = colors[sel]
     img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
 
     def px(x: float, y: float) -> tuple[int, int]:
-        return int(round((x - g.origin[0]) / g.resolution * scale)), int(round((y - g.origin[1]) / g.resolution * scale))
+        return int(round((x - g.origin[0]) / g.resolution * scale)), int(
+            round((y - g.origin[1]) / g.resolution * scale)
+        )
 
     t = scene.layout.wall_thickness
     for d in scene.layout.doors:
         x0, y0, x1, y1 = d.passage(t)
         cv2.rectangle(img, px(x0, y0), px(x1, y1), (40, 170, 60), thickness=-1)
     pts = [px(v.position[0], v.position[1]) for v in views]
-    for a, b in zip(pts[:-1], pts[1:]):
+    for a, b in zip(pts[:-1], pts[1:], strict=False):
         cv2.line(img, a, b, (220, 60, 60), 1, lineType=cv2.LINE_AA)
     for p in pts:
         cv2.circle(img, p, max(2, scale), (220, 30, 30), -1, lineType=cv2.LINE_AA)
@@ -85,7 +87,16 @@ def topdown_figure(scene: ProceduralScene, views: list, scale: int = 4) -> np.nd
     for room in scene.layout.rooms:
         x0, y0, x1, y1 = room.interior(t)
         cx, cy = px(0.5 * (x0 + x1), 0.5 * (y0 + y1))
-        cv2.putText(img, room.room_type, (cx - 30, H - cy), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (20, 20, 120), 1, cv2.LINE_AA)
+        cv2.putText(
+            img,
+            room.room_type,
+            (cx - 30, H - cy),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (20, 20, 120),
+            1,
+            cv2.LINE_AA,
+        )
     return img
 
 

@@ -18,9 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import ndimage
-
 from image2sim.dataengine.procedural.layout import Layout
+from scipy import ndimage
 
 if TYPE_CHECKING:  # pragma: no cover
     from image2sim.dataengine.procedural.scene import ProceduralScene
@@ -68,7 +67,10 @@ class NavGrid:
     def cell_centers(self, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
         """World (x, y) (N, 2) of cells ``(iy, ix)``."""
         return np.stack(
-            (self.origin[0] + (np.asarray(ix) + 0.5) * self.resolution, self.origin[1] + (np.asarray(iy) + 0.5) * self.resolution),
+            (
+                self.origin[0] + (np.asarray(ix) + 0.5) * self.resolution,
+                self.origin[1] + (np.asarray(iy) + 0.5) * self.resolution,
+            ),
             axis=-1,
         )
 
@@ -165,12 +167,18 @@ def mesh_arrays(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     # Per face: two triangles, counter-clockwise seen from outside.
     faces_local = np.array(
         [
-            [0, 4, 6], [0, 6, 2],  # -x
-            [1, 3, 7], [1, 7, 5],  # +x
-            [0, 1, 5], [0, 5, 4],  # -y
-            [2, 6, 7], [2, 7, 3],  # +y
-            [0, 2, 3], [0, 3, 1],  # -z
-            [4, 5, 7], [4, 7, 6],  # +z
+            [0, 4, 6],
+            [0, 6, 2],  # -x
+            [1, 3, 7],
+            [1, 7, 5],  # +x
+            [0, 1, 5],
+            [0, 5, 4],  # -y
+            [2, 6, 7],
+            [2, 7, 3],  # +y
+            [0, 2, 3],
+            [0, 3, 1],  # -z
+            [4, 5, 7],
+            [4, 7, 6],  # +z
         ],
         dtype=np.int64,
     )
@@ -180,9 +188,17 @@ def mesh_arrays(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def write_ply(path: Path, verts: np.ndarray, tris: np.ndarray, face_props: dict[str, np.ndarray]) -> None:
     """Binary little-endian PLY with float32 vertices and per-face int32 properties (e.g. category)."""
-    header = ["ply", "format binary_little_endian 1.0", "comment image2sim procedural scene (world Z-up, metres)",
-              f"element vertex {len(verts)}", "property float x", "property float y", "property float z",
-              f"element face {len(tris)}", "property list uchar int vertex_indices"]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment image2sim procedural scene (world Z-up, metres)",
+        f"element vertex {len(verts)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        f"element face {len(tris)}",
+        "property list uchar int vertex_indices",
+    ]
     header += [f"property int {name}" for name in face_props]
     header.append("end_header")
     dtype = [("n", "u1"), ("idx", "<i4", (3,))] + [(name, "<i4") for name in face_props]
@@ -232,13 +248,20 @@ def write_gt(scene: ProceduralScene, gt_dir: Path, extra: dict | None = None) ->
                     "type": r.room_type,
                     "polygon": r.polygon(layout.wall_thickness),
                     "centerline": [[r.x0, r.y0], [r.x1, r.y0], [r.x1, r.y1], [r.x0, r.y1]],
-                    "area": float((r.x1 - r.x0 - layout.wall_thickness) * (r.y1 - r.y0 - layout.wall_thickness)),
+                    "area": float(
+                        (r.x1 - r.x0 - layout.wall_thickness) * (r.y1 - r.y0 - layout.wall_thickness)
+                    ),
                 }
                 for r in layout.rooms
             ],
             "doors": [
-                {"rooms": [d.a, d.b], "axis": d.axis, "line": d.line, "span": [d.lo, d.hi],
-                 "passage": list(d.passage(layout.wall_thickness))}
+                {
+                    "rooms": [d.a, d.b],
+                    "axis": d.axis,
+                    "line": d.line,
+                    "span": [d.lo, d.hi],
+                    "passage": list(d.passage(layout.wall_thickness)),
+                }
                 for d in layout.doors
             ],
         },

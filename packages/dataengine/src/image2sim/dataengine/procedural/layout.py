@@ -13,7 +13,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
 from image2sim.dataengine.procedural.config import LayoutConfig
 
 __all__ = [
@@ -137,7 +136,12 @@ class Layout:
         xy = np.asarray(xy, dtype=np.float64)
         out = np.full(xy.shape[:-1], -1, dtype=np.int64)
         for room in reversed(self.rooms):
-            inside = (xy[..., 0] >= room.x0) & (xy[..., 0] <= room.x1) & (xy[..., 1] >= room.y0) & (xy[..., 1] <= room.y1)
+            inside = (
+                (xy[..., 0] >= room.x0)
+                & (xy[..., 0] <= room.x1)
+                & (xy[..., 1] >= room.y0)
+                & (xy[..., 1] <= room.y1)
+            )
             out[inside] = room.index
         return out
 
@@ -162,7 +166,9 @@ def _bsp_plan(rng: np.random.Generator, n: int, smin: int, smax: int) -> list[_R
     d = max(smin, int(round(area / w)))
     rects: list[_Rect] = [(0, 0, w, d)]
     while len(rects) < n:
-        order = sorted(range(len(rects)), key=lambda i: -((rects[i][2] - rects[i][0]) * (rects[i][3] - rects[i][1])))
+        order = sorted(
+            range(len(rects)), key=lambda i: -((rects[i][2] - rects[i][0]) * (rects[i][3] - rects[i][1]))
+        )
         for i in order:
             x0, y0, x1, y1 = rects[i]
             along_x = (x1 - x0) >= (y1 - y0)
@@ -170,9 +176,9 @@ def _bsp_plan(rng: np.random.Generator, n: int, smin: int, smax: int) -> list[_R
             if length >= 2 * smin:
                 cut = int(rng.integers(smin, length - smin + 1))
                 if along_x:
-                    rects[i:i + 1] = [(x0, y0, x0 + cut, y1), (x0 + cut, y0, x1, y1)]
+                    rects[i : i + 1] = [(x0, y0, x0 + cut, y1), (x0 + cut, y0, x1, y1)]
                 else:
-                    rects[i:i + 1] = [(x0, y0, x1, y0 + cut), (x0, y0 + cut, x1, y1)]
+                    rects[i : i + 1] = [(x0, y0, x1, y0 + cut), (x0, y0 + cut, x1, y1)]
                 break
         else:
             return None
@@ -261,7 +267,7 @@ def _choose_doors(
         return i
 
     chosen = []
-    for weight, i, j, seg in edges:
+    for _weight, i, j, seg in edges:
         ri, rj = find(i), find(j)
         if ri != rj:
             parent[ri] = rj
@@ -295,20 +301,30 @@ def _merge(intervals: list[tuple[int, int]]) -> list[tuple[int, int]]:
     return [(a, b) for a, b in out]
 
 
-def _structure(rects: list[_Rect], doors: list[Door], t: float, height: float, door_height: float) -> list[StructureBox]:
+def _structure(
+    rects: list[_Rect], doors: list[Door], t: float, height: float, door_height: float
+) -> list[StructureBox]:
     """Floor and ceiling slabs per room, wall pieces between door openings, lintels over doors."""
     boxes: list[StructureBox] = []
     for k, (x0, y0, x1, y1) in enumerate(rects):
-        boxes.append(StructureBox("floor", (x0 * UNIT, y0 * UNIT, -FLOOR_THICKNESS), (x1 * UNIT, y1 * UNIT, 0.0), k))
+        boxes.append(
+            StructureBox("floor", (x0 * UNIT, y0 * UNIT, -FLOOR_THICKNESS), (x1 * UNIT, y1 * UNIT, 0.0), k)
+        )
     for k, (x0, y0, x1, y1) in enumerate(rects):
-        boxes.append(StructureBox("ceiling", (x0 * UNIT, y0 * UNIT, height), (x1 * UNIT, y1 * UNIT, height + FLOOR_THICKNESS), k))
+        boxes.append(
+            StructureBox(
+                "ceiling", (x0 * UNIT, y0 * UNIT, height), (x1 * UNIT, y1 * UNIT, height + FLOOR_THICKNESS), k
+            )
+        )
     lines: dict[tuple[int, int], list[tuple[int, int]]] = {}
     for x0, y0, x1, y1 in rects:
         for key, iv in (((0, y0), (x0, x1)), ((0, y1), (x0, x1)), ((1, x0), (y0, y1)), ((1, x1), (y0, y1))):
             lines.setdefault(key, []).append(iv)
     h = 0.5 * t
     for (axis, line), intervals in sorted(lines.items()):
-        cuts = sorted((_units(d.lo), _units(d.hi)) for d in doors if d.axis == axis and _units(d.line) == line)
+        cuts = sorted(
+            (_units(d.lo), _units(d.hi)) for d in doors if d.axis == axis and _units(d.line) == line
+        )
         for lo, hi in _merge(intervals):
             pieces = []
             start, start_open = lo, False
@@ -330,7 +346,9 @@ def _structure(rects: list[_Rect], doors: list[Door], t: float, height: float, d
     return boxes
 
 
-def _wall_box(kind: str, axis: int, line: float, a: float, b: float, h: float, z0: float, z1: float) -> StructureBox:
+def _wall_box(
+    kind: str, axis: int, line: float, a: float, b: float, h: float, z0: float, z1: float
+) -> StructureBox:
     if axis == 0:
         return StructureBox(kind, (a, line - h, z0), (b, line + h, z1), -1)
     return StructureBox(kind, (line - h, a, z0), (line + h, b, z1), -1)
@@ -350,7 +368,9 @@ def generate_layout(cfg: LayoutConfig, rng: np.random.Generator, max_tries: int 
             continue
         height = _units(rng.uniform(cfg.ceiling_height_min, cfg.ceiling_height_max)) * UNIT
         types = _assign_types(rng, rects, corridor)
-        rooms = [Room(k, types[k], r[0] * UNIT, r[1] * UNIT, r[2] * UNIT, r[3] * UNIT) for k, r in enumerate(rects)]
+        rooms = [
+            Room(k, types[k], r[0] * UNIT, r[1] * UNIT, r[2] * UNIT, r[3] * UNIT) for k, r in enumerate(rects)
+        ]
         boxes = _structure(rects, doors, cfg.wall_thickness, height, cfg.door_height)
         return Layout(rooms, doors, cfg.wall_thickness, height, cfg.door_height, boxes)
     raise LayoutError(

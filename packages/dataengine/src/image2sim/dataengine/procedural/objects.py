@@ -91,7 +91,17 @@ CATEGORIES: tuple[Category, ...] = (
     _c(30, "cabinet", (0.5, 0.35, 0.7), (1.2, 0.6, 1.2), "wall", "cabinet", "wood"),
     _c(31, "wall_shelf", (0.6, 0.2, 0.03), (1.2, 0.3, 0.05), "mounted", "box", "wood", mount_z=(1.2, 1.6)),
     _c(32, "shoe_rack", (0.6, 0.3, 0.4), (1.0, 0.35, 0.6), "wall", "shelf", "wood"),
-    _c(33, "clock", (0.25, 0.04, 0.25), (0.4, 0.06, 0.4), "mounted", "framed", "plastic", small=True, mount_z=(1.7, 2.0)),
+    _c(
+        33,
+        "clock",
+        (0.25, 0.04, 0.25),
+        (0.4, 0.06, 0.4),
+        "mounted",
+        "framed",
+        "plastic",
+        small=True,
+        mount_z=(1.7, 2.0),
+    ),
     _c(34, "monitor", (0.45, 0.15, 0.35), (0.7, 0.22, 0.5), "surface", "monitor", "screen", small=True),
     _c(35, "laptop", (0.3, 0.22, 0.2), (0.38, 0.26, 0.25), "surface", "laptop", "metal", small=True),
     _c(36, "table_lamp", (0.15, 0.15, 0.3), (0.3, 0.3, 0.55), "surface", "lamp", "ceramic", small=True),
@@ -112,19 +122,74 @@ CATEGORY_BY_NAME = {c.name: c for c in CATEGORIES}
 CATEGORY_BY_ID = {c.id: c for c in CATEGORIES}
 
 ROOM_PROGRAMS: dict[str, tuple[tuple[str, int, int], ...]] = {
-    "living_room": (("sofa", 1, 1), ("coffee_table", 1, 1), ("tv_stand", 0, 1), ("tv", 0, 1), ("armchair", 0, 2),
-                    ("bookshelf", 0, 1), ("cabinet", 0, 1), ("plant", 0, 2), ("floor_lamp", 0, 1),
-                    ("painting", 0, 2), ("wall_shelf", 0, 1), ("clock", 0, 1), ("rug", 0, 1)),
-    "kitchen": (("kitchen_counter", 1, 2), ("fridge", 1, 1), ("stove", 0, 1), ("dining_table", 0, 1),
-                ("cabinet", 0, 1), ("plant", 0, 1), ("painting", 0, 1), ("clock", 0, 1), ("wall_shelf", 0, 1)),
-    "bedroom": (("bed", 1, 1), ("nightstand", 1, 2), ("wardrobe", 0, 1), ("dresser", 0, 1), ("desk", 0, 1),
-                ("plant", 0, 1), ("floor_lamp", 0, 1), ("painting", 0, 2), ("mirror", 0, 1), ("rug", 0, 1)),
-    "bathroom": (("toilet", 1, 1), ("sink", 1, 1), ("bathtub", 0, 1), ("washing_machine", 0, 1),
-                 ("mirror", 0, 1), ("cabinet", 0, 1), ("wall_shelf", 0, 1), ("plant", 0, 1)),
-    "office": (("desk", 1, 2), ("bookshelf", 0, 2), ("cabinet", 0, 1), ("armchair", 0, 1), ("plant", 0, 1),
-               ("floor_lamp", 0, 1), ("painting", 0, 1), ("clock", 0, 1), ("wall_shelf", 0, 1), ("rug", 0, 1)),
-    "hallway": (("shoe_rack", 0, 1), ("cabinet", 0, 1), ("plant", 0, 1), ("painting", 0, 2), ("mirror", 0, 1),
-                ("clock", 0, 1)),
+    "living_room": (
+        ("sofa", 1, 1),
+        ("coffee_table", 1, 1),
+        ("tv_stand", 0, 1),
+        ("tv", 0, 1),
+        ("armchair", 0, 2),
+        ("bookshelf", 0, 1),
+        ("cabinet", 0, 1),
+        ("plant", 0, 2),
+        ("floor_lamp", 0, 1),
+        ("painting", 0, 2),
+        ("wall_shelf", 0, 1),
+        ("clock", 0, 1),
+        ("rug", 0, 1),
+    ),
+    "kitchen": (
+        ("kitchen_counter", 1, 2),
+        ("fridge", 1, 1),
+        ("stove", 0, 1),
+        ("dining_table", 0, 1),
+        ("cabinet", 0, 1),
+        ("plant", 0, 1),
+        ("painting", 0, 1),
+        ("clock", 0, 1),
+        ("wall_shelf", 0, 1),
+    ),
+    "bedroom": (
+        ("bed", 1, 1),
+        ("nightstand", 1, 2),
+        ("wardrobe", 0, 1),
+        ("dresser", 0, 1),
+        ("desk", 0, 1),
+        ("plant", 0, 1),
+        ("floor_lamp", 0, 1),
+        ("painting", 0, 2),
+        ("mirror", 0, 1),
+        ("rug", 0, 1),
+    ),
+    "bathroom": (
+        ("toilet", 1, 1),
+        ("sink", 1, 1),
+        ("bathtub", 0, 1),
+        ("washing_machine", 0, 1),
+        ("mirror", 0, 1),
+        ("cabinet", 0, 1),
+        ("wall_shelf", 0, 1),
+        ("plant", 0, 1),
+    ),
+    "office": (
+        ("desk", 1, 2),
+        ("bookshelf", 0, 2),
+        ("cabinet", 0, 1),
+        ("armchair", 0, 1),
+        ("plant", 0, 1),
+        ("floor_lamp", 0, 1),
+        ("painting", 0, 1),
+        ("clock", 0, 1),
+        ("wall_shelf", 0, 1),
+        ("rug", 0, 1),
+    ),
+    "hallway": (
+        ("shoe_rack", 0, 1),
+        ("cabinet", 0, 1),
+        ("plant", 0, 1),
+        ("painting", 0, 2),
+        ("mirror", 0, 1),
+        ("clock", 0, 1),
+    ),
 }
 """Furniture per room type: (category, min count, max count), placed in this order (large first)."""
 
@@ -135,7 +200,16 @@ COMPANIONS: dict[str, tuple[str, int, int, str]] = {
 """Objects placed next to a parent: (category, min, max, where)."""
 
 SMALL_BY_ROOM: dict[str, tuple[str, ...]] = {
-    "living_room": ("vase", "book_stack", "bowl", "small_plant", "table_lamp", "picture_frame", "clock", "storage_box"),
+    "living_room": (
+        "vase",
+        "book_stack",
+        "bowl",
+        "small_plant",
+        "table_lamp",
+        "picture_frame",
+        "clock",
+        "storage_box",
+    ),
     "kitchen": ("microwave", "kettle", "bowl", "cup", "vase", "small_plant", "storage_box"),
     "bedroom": ("table_lamp", "book_stack", "picture_frame", "vase", "clock", "cup"),
     "bathroom": ("small_plant", "cup", "storage_box", "vase", "bowl"),
@@ -199,7 +273,13 @@ class SceneObject:
         out = []
         for z in (0.0, h):
             for x, y in ((-w / 2, -d / 2), (w / 2, -d / 2), (w / 2, d / 2), (-w / 2, d / 2)):
-                out.append((self.center[0] + c * x - s * y, self.center[1] + s * x + c * y, self.center[2] - h / 2 + z))
+                out.append(
+                    (
+                        self.center[0] + c * x - s * y,
+                        self.center[1] + s * x + c * y,
+                        self.center[2] - h / 2 + z,
+                    )
+                )
         return np.asarray(out)
 
     def to_json(self, room_types: list[str]) -> dict:
@@ -259,9 +339,20 @@ def _shape_cabinet(w, d, h, rng):
     ]
     doors = 1 if w < 0.7 else 2
     for k in range(doors):
-        cx = -w / 2 + (k + 0.5) * w / doors + (0.12 if k == 0 and doors == 2 else -0.12 if doors == 2 else 0.0)
-        parts.append((cx - 0.06, -d / 2, plinth + 0.6 * (h - plinth) - 0.015, cx + 0.06, -d / 2 + 0.02,
-                      plinth + 0.6 * (h - plinth) + 0.015, 2))
+        cx = (
+            -w / 2 + (k + 0.5) * w / doors + (0.12 if k == 0 and doors == 2 else -0.12 if doors == 2 else 0.0)
+        )
+        parts.append(
+            (
+                cx - 0.06,
+                -d / 2,
+                plinth + 0.6 * (h - plinth) - 0.015,
+                cx + 0.06,
+                -d / 2 + 0.02,
+                plinth + 0.6 * (h - plinth) + 0.015,
+                2,
+            )
+        )
     return parts, [(h, -w / 2, -d / 2 + 0.02, w / 2, d / 2, 0.45)]
 
 
@@ -385,7 +476,10 @@ def _shape_plant(w, d, h, rng):
 
 
 def _shape_panel(w, d, h, rng):
-    return [(-w / 2, -d / 2, 0.0, w / 2, d / 2 - 0.01, h, 0), (-w / 2 + 0.02, d / 2 - 0.01, 0.02, w / 2 - 0.02, d / 2, h - 0.02, 1)], []
+    return [
+        (-w / 2, -d / 2, 0.0, w / 2, d / 2 - 0.01, h, 0),
+        (-w / 2 + 0.02, d / 2 - 0.01, 0.02, w / 2 - 0.02, d / 2, h - 0.02, 1),
+    ], []
 
 
 def _shape_framed(w, d, h, rng):
@@ -474,14 +568,19 @@ def _shape_monitor(w, d, h, rng):
 
 
 def _shape_laptop(w, d, h, rng):
-    parts = [(-w / 2, -d / 2, 0.0, w / 2, d / 2 - 0.012, 0.02, 0), (-w / 2, d / 2 - 0.012, 0.0, w / 2, d / 2, h, 1)]
+    parts = [
+        (-w / 2, -d / 2, 0.0, w / 2, d / 2 - 0.012, 0.02, 0),
+        (-w / 2, d / 2 - 0.012, 0.0, w / 2, d / 2, h, 1),
+    ]
     return parts, []
 
 
 def _shape_vase(w, d, h, rng):
     neck = float(rng.uniform(0.5, 0.8))
-    return [(-w / 2, -d / 2, 0.0, w / 2, d / 2, neck * h, 0),
-            (-w * 0.25, -d * 0.25, neck * h, w * 0.25, d * 0.25, h, 0)], []
+    return [
+        (-w / 2, -d / 2, 0.0, w / 2, d / 2, neck * h, 0),
+        (-w * 0.25, -d * 0.25, neck * h, w * 0.25, d * 0.25, h, 0),
+    ], []
 
 
 def _shape_bowl(w, d, h, rng):
@@ -514,22 +613,46 @@ def _shape_books(w, d, h, rng):
 
 def _shape_cup(w, d, h, rng):
     handle = 0.25 * w
-    return [(-w / 2, -d / 2, 0.0, w / 2 - handle, d / 2, h, 0),
-            (w / 2 - handle, -d * 0.1, 0.3 * h, w / 2, d * 0.1, 0.8 * h, 1)], []
+    return [
+        (-w / 2, -d / 2, 0.0, w / 2 - handle, d / 2, h, 0),
+        (w / 2 - handle, -d * 0.1, 0.3 * h, w / 2, d * 0.1, 0.8 * h, 1),
+    ], []
 
 
 def _shape_lidded(w, d, h, rng):
-    return [(-w / 2 + 0.01, -d / 2 + 0.01, 0.0, w / 2 - 0.01, d / 2 - 0.01, h - 0.03, 0),
-            (-w / 2, -d / 2, h - 0.03, w / 2, d / 2, h, 1)], []
+    return [
+        (-w / 2 + 0.01, -d / 2 + 0.01, 0.0, w / 2 - 0.01, d / 2 - 0.01, h - 0.03, 0),
+        (-w / 2, -d / 2, h - 0.03, w / 2, d / 2, h, 1),
+    ], []
 
 
 SHAPES: dict[str, Callable] = {
-    "box": _shape_box, "cabinet": _shape_cabinet, "counter": _shape_counter, "table": _shape_table,
-    "desk": _shape_desk, "chair": _shape_chair, "office_chair": _shape_office_chair, "sofa": _shape_sofa,
-    "bed": _shape_bed, "shelf": _shape_shelf, "lamp": _shape_lamp, "plant": _shape_plant, "panel": _shape_panel,
-    "framed": _shape_framed, "fridge": _shape_fridge, "stove": _shape_stove, "vanity": _shape_vanity,
-    "toilet": _shape_toilet, "tub": _shape_tub, "appliance": _shape_appliance, "monitor": _shape_monitor,
-    "laptop": _shape_laptop, "vase": _shape_vase, "bowl": _shape_bowl, "books": _shape_books, "cup": _shape_cup,
+    "box": _shape_box,
+    "cabinet": _shape_cabinet,
+    "counter": _shape_counter,
+    "table": _shape_table,
+    "desk": _shape_desk,
+    "chair": _shape_chair,
+    "office_chair": _shape_office_chair,
+    "sofa": _shape_sofa,
+    "bed": _shape_bed,
+    "shelf": _shape_shelf,
+    "lamp": _shape_lamp,
+    "plant": _shape_plant,
+    "panel": _shape_panel,
+    "framed": _shape_framed,
+    "fridge": _shape_fridge,
+    "stove": _shape_stove,
+    "vanity": _shape_vanity,
+    "toilet": _shape_toilet,
+    "tub": _shape_tub,
+    "appliance": _shape_appliance,
+    "monitor": _shape_monitor,
+    "laptop": _shape_laptop,
+    "vase": _shape_vase,
+    "bowl": _shape_bowl,
+    "books": _shape_books,
+    "cup": _shape_cup,
     "lidded": _shape_lidded,
 }
 """Shape builders: ``(w, d, h, rng) -> (local parts, local support surfaces)``."""
@@ -542,14 +665,19 @@ def _rotate_xy(x: float, y: float, quarter: int) -> tuple[float, float]:
     return x, y
 
 
-def _local_box_to_world(x0, y0, x1, y1, quarter: int, cx: float, cy: float) -> tuple[float, float, float, float]:
+def _local_box_to_world(
+    x0, y0, x1, y1, quarter: int, cx: float, cy: float
+) -> tuple[float, float, float, float]:
     a = _rotate_xy(x0, y0, quarter)
     b = _rotate_xy(x1, y1, quarter)
     return (min(a[0], b[0]) + cx, min(a[1], b[1]) + cy, max(a[0], b[0]) + cx, max(a[1], b[1]) + cy)
 
 
 def build_parts(
-    category: Category, size: tuple[float, float, float], quarter: int, base: tuple[float, float, float],
+    category: Category,
+    size: tuple[float, float, float],
+    quarter: int,
+    base: tuple[float, float, float],
     rng: np.random.Generator,
 ) -> tuple[list[Part], list[Surface]]:
     """World parts and support surfaces of ``category`` with ``size`` at ``base`` (footprint centre, bottom z)."""

@@ -16,10 +16,7 @@ the box's min face, normal ``-e_axis``; side 1 = its max face, normal ``+e_axis`
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-
 from image2sim.dataengine.procedural.gt import mesh_arrays
 
 __all__ = ["BoxCaster", "EmbreeCaster", "make_caster", "embree_available", "exact_face_distance"]
@@ -44,8 +41,9 @@ def _safe_dirs(dirs: np.ndarray) -> np.ndarray:
     return out
 
 
-def exact_face_distance(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                        box: np.ndarray, face: np.ndarray) -> np.ndarray:
+def exact_face_distance(
+    origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray, box: np.ndarray, face: np.ndarray
+) -> np.ndarray:
     """Distance along each ray to the plane of its hit face (float64); NaN where ``box < 0``."""
     t = np.full(dirs.shape[0], np.nan)
     ok = box >= 0
@@ -62,7 +60,9 @@ def exact_face_distance(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi
 class BoxCaster:
     """Vectorised (numpy) slab-test caster over axis-aligned boxes ``lo``/``hi`` (M, 3)."""
 
-    def __init__(self, lo: np.ndarray, hi: np.ndarray, *, cull: bool = True, chunk: int = 1024, tile: int = 16):
+    def __init__(
+        self, lo: np.ndarray, hi: np.ndarray, *, cull: bool = True, chunk: int = 1024, tile: int = 16
+    ):
         self.lo = np.asarray(lo, dtype=np.float64)
         self.hi = np.asarray(hi, dtype=np.float64)
         self.cull = cull
@@ -101,8 +101,8 @@ class BoxCaster:
         box = np.empty(n, dtype=np.int64)
         face = np.empty(n, dtype=np.int64)
         for s in range(0, n, self.chunk):
-            t[s:s + self.chunk], box[s:s + self.chunk], face[s:s + self.chunk] = self._slab(
-                origin, dirs[s:s + self.chunk], self.lo, self.hi
+            t[s : s + self.chunk], box[s : s + self.chunk], face[s : s + self.chunk] = self._slab(
+                origin, dirs[s : s + self.chunk], self.lo, self.hi
             )
         return t, box, face
 
@@ -121,7 +121,7 @@ class BoxCaster:
         sub = np.arcsin(np.clip(self._radius / np.maximum(dist, 1e-12), 0.0, 1.0))
         for r0 in range(0, h, ts):
             for c0 in range(0, w, ts):
-                pix = idx[r0:r0 + ts, c0:c0 + ts].reshape(-1)
+                pix = idx[r0 : r0 + ts, c0 : c0 + ts].reshape(-1)
                 dd = dirs[pix]
                 c = dd.mean(axis=0)
                 c /= max(np.linalg.norm(c), 1e-12)
@@ -168,7 +168,11 @@ class EmbreeCaster:
         # Shift to the scene's corner so float32 keeps sub-micrometre resolution.
         self._shift = verts.min(axis=0) if len(verts) else np.zeros(3)
         self._scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(scene=self._scene, vertices=(verts - self._shift).astype(np.float32), indices=tris.astype(np.int32))
+        TriangleMesh(
+            scene=self._scene,
+            vertices=(verts - self._shift).astype(np.float32),
+            indices=tris.astype(np.int32),
+        )
 
     def cast(self, origin: np.ndarray, dirs: np.ndarray, image_shape: tuple[int, int] | None = None):
         """``(t, box, face)`` like :meth:`BoxCaster.cast` (``image_shape`` is ignored)."""
@@ -177,7 +181,9 @@ class EmbreeCaster:
         if dirs.shape[0] == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         origins = np.broadcast_to((origin - self._shift).astype(np.float32), dirs.shape)
-        tri = np.asarray(self._scene.run(np.ascontiguousarray(origins), dirs.astype(np.float32)), dtype=np.int64)
+        tri = np.asarray(
+            self._scene.run(np.ascontiguousarray(origins), dirs.astype(np.float32)), dtype=np.int64
+        )
         box = np.where(tri >= 0, tri // 12, -1)
         face = np.where(tri >= 0, (tri % 12) // 2, 0)
         t = exact_face_distance(origin, dirs, self.lo, self.hi, box, face)
@@ -190,7 +196,9 @@ def make_caster(kind: str, lo: np.ndarray, hi: np.ndarray):
         kind = "embree" if embree_available() else "numpy"
     if kind == "embree":
         if not embree_available():
-            raise RuntimeError("caster 'embree' needs the embreex package (pip install embreex); use caster='numpy'")
+            raise RuntimeError(
+                "caster 'embree' needs the embreex package (pip install embreex); use caster='numpy'"
+            )
         return EmbreeCaster(lo, hi)
     if kind == "numpy":
         return BoxCaster(lo, hi, cull=True)

@@ -13,7 +13,6 @@ import functools
 
 import numpy as np
 import torch
-
 from image2sim.dataengine.procedural.scene import WALL_MATERIAL, ProceduralScene
 from image2sim.dataengine.procedural.textures import evaluate_albedo
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
@@ -77,7 +76,9 @@ def shade(scene: ProceduralScene, points: np.ndarray, box: np.ndarray, face: np.
     return np.clip(albedo * light, 0.0, 1.0)
 
 
-def render(scene: ProceduralScene, camera: Camera, cam_to_world: np.ndarray, *, caster: str | None = None) -> dict:
+def render(
+    scene: ProceduralScene, camera: Camera, cam_to_world: np.ndarray, *, caster: str | None = None
+) -> dict:
     """Render RGB (H, W, 3) uint8, depth (H, W) float32, semantics and instances (H, W) int32.
 
     Also returns ``box`` (index of the box each ray hit, -1 for none) and ``face``.

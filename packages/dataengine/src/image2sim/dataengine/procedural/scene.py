@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from image2sim.dataengine.procedural.config import SynthConfig
 from image2sim.dataengine.procedural.gt import (
     FREE,
@@ -43,9 +42,19 @@ __all__ = ["ProceduralScene", "generate_scene", "SceneGenerationError", "seed_st
 WALL_MATERIAL = -1
 """``box_material`` marker: the paint of the room the face looks into (resolved at render time)."""
 
-_SECONDARY = {"fabric": "wood", "wood": "wood", "metal": "metal", "ceramic": "ceramic", "plastic": "metal",
-              "plant": "ceramic", "screen": "plastic", "art": "wood", "glass": "wood", "paper": "paper",
-              "carpet": "carpet"}
+_SECONDARY = {
+    "fabric": "wood",
+    "wood": "wood",
+    "metal": "metal",
+    "ceramic": "ceramic",
+    "plastic": "metal",
+    "plant": "ceramic",
+    "screen": "plastic",
+    "art": "wood",
+    "glass": "wood",
+    "paper": "paper",
+    "carpet": "carpet",
+}
 _FLOOR_FAMILY = {"kitchen": "floor_tile", "bathroom": "floor_tile"}
 _KIND_CODE = {"floor": 1, "ceiling": 2, "wall": 3, "lintel": 3}
 
@@ -60,7 +69,7 @@ def seed_streams(seed: int) -> dict[str, np.random.Generator]:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     names = ("layout", "objects", "materials", "capture", "noise")
     children = np.random.SeedSequence(int(seed)).spawn(len(names))
-    return {n: np.random.Generator(np.random.PCG64(c)) for n, c in zip(names, children)}
+    return {n: np.random.Generator(np.random.PCG64(c)) for n, c in zip(names, children, strict=False)}
 
 
 @dataclass
@@ -102,13 +111,14 @@ class ProceduralScene:
         """The scene as a ``trimesh.Trimesh`` (12 triangles per box) with ``face_attributes``
         ``category`` and ``instance``."""
         import trimesh
-
         from image2sim.dataengine.procedural.gt import mesh_arrays
 
         verts, tris = mesh_arrays(self.box_lo, self.box_hi)
         box = np.arange(len(tris)) // 12
         return trimesh.Trimesh(
-            vertices=verts, faces=tris, process=False,
+            vertices=verts,
+            faces=tris,
+            process=False,
             face_attributes={"category": self.box_category[box], "instance": self.box_instance[box]},
         )
 
@@ -141,8 +151,14 @@ def _overlaps(lo: np.ndarray, hi: np.ndarray, los: np.ndarray, his: np.ndarray, 
 class _Placer:
     """Stateful furniture placement for one scene."""
 
-    def __init__(self, cfg: SynthConfig, layout: Layout, rng: np.random.Generator, mat_rng: np.random.Generator,
-                 materials: MaterialTable):
+    def __init__(
+        self,
+        cfg: SynthConfig,
+        layout: Layout,
+        rng: np.random.Generator,
+        mat_rng: np.random.Generator,
+        materials: MaterialTable,
+    ):
         self.cfg = cfg
         self.layout = layout
         self.rng = rng
@@ -175,14 +191,16 @@ class _Placer:
                 y0, y1 = y0 - 0.05, y1 + 0.05
             los.append((x0, y0, 0.0))
             his.append((x1, y1, self.layout.ceiling_height))
-        return np.asarray(los, dtype=np.float64).reshape(-1, 3), np.asarray(his, dtype=np.float64).reshape(-1, 3)
+        return np.asarray(los, dtype=np.float64).reshape(-1, 3), np.asarray(his, dtype=np.float64).reshape(
+            -1, 3
+        )
 
     def navigable(self, obstacle: np.ndarray | None = None) -> np.ndarray:
         free = self.floor & ~(self.obstacle if obstacle is None else obstacle)
         return navigable_from_free(free, self.radius, self.res)
 
     def _sample_size(self, cat: Category) -> tuple[float, float, float]:
-        return tuple(float(self.rng.uniform(a, b)) for a, b in zip(cat.size_min, cat.size_max))  # type: ignore[return-value]
+        return tuple(float(self.rng.uniform(a, b)) for a, b in zip(cat.size_min, cat.size_max, strict=False))  # type: ignore[return-value]
 
     def _materials_for(self, cat: Category) -> tuple[int, int, int]:
         m0 = self.materials.add(cat.material, self.mat_rng)
@@ -257,14 +275,23 @@ class _Placer:
         klo, khi = self.keepout[room]
         if _overlaps(lo, hi, klo, khi):
             return False
-        return not any(_overlaps(pl, ph, self.part_lo[room], self.part_hi[room]) for pl, ph in zip(parts_lo, parts_hi))
+        return not any(
+            _overlaps(pl, ph, self.part_lo[room], self.part_hi[room]) for pl, ph in zip(parts_lo, parts_hi, strict=False)
+        )
 
     def _accept(self, cat, room, size, quarter, base, parts, surfaces, support=0) -> SceneObject:
         w, d, h = size
         center = np.array([base[0], base[1], base[2] + h / 2], dtype=np.float64)
         obj = SceneObject(
-            instance_id=len(self.objects) + 1, category=cat, room=room, center=center, size=size,
-            yaw=quarter * math.pi / 2, parts=parts, surfaces=surfaces, materials=self._materials_for(cat),
+            instance_id=len(self.objects) + 1,
+            category=cat,
+            room=room,
+            center=center,
+            size=size,
+            yaw=quarter * math.pi / 2,
+            parts=parts,
+            surfaces=surfaces,
+            materials=self._materials_for(cat),
             support=support,
         )
         self.objects.append(obj)
@@ -274,7 +301,9 @@ class _Placer:
         self.part_hi[room] = np.vstack([self.part_hi[room], phi])
         return obj
 
-    def place(self, cat: Category, room: int, parent: SceneObject | None = None, slot: int = 0) -> SceneObject | None:
+    def place(
+        self, cat: Category, room: int, parent: SceneObject | None = None, slot: int = 0
+    ) -> SceneObject | None:
         """Try to place one object of ``cat`` in ``room``; None after ``placement_attempts`` failures."""
         for _ in range(self.cfg.objects.placement_attempts):
             size, quarter, base = self._candidate(cat, room, parent, slot)
@@ -294,7 +323,9 @@ class _Placer:
             return self._accept(cat, room, size, quarter, base, parts, surfaces)
         return None
 
-    def place_small(self, cat: Category, room: int, surface: Surface, support: SceneObject) -> SceneObject | None:
+    def place_small(
+        self, cat: Category, room: int, surface: Surface, support: SceneObject
+    ) -> SceneObject | None:
         """Put a small object on ``surface`` (inside its rectangle, under its clearance)."""
         margin = 0.01
         for _ in range(self.cfg.objects.placement_attempts):
@@ -313,7 +344,9 @@ class _Placer:
             phi = np.array([p.hi for p in parts])
             if not self._fits(room, plo, phi):
                 continue
-            return self._accept(cat, room, size, quarter, (x, y, surface.z), parts, [], support=support.instance_id)
+            return self._accept(
+                cat, room, size, quarter, (x, y, surface.z), parts, [], support=support.instance_id
+            )
         return None
 
     def furnish(self) -> None:
@@ -358,7 +391,8 @@ def generate_scene(config: SynthConfig, seed: int) -> ProceduralScene:
     n_rooms = len(layout.rooms)
     wall_m = np.array([materials.add("wall_paint", mat_rng) for _ in range(n_rooms)], dtype=np.int64)
     floor_m = np.array(
-        [materials.add(_FLOOR_FAMILY.get(r.room_type, "floor_wood"), mat_rng) for r in layout.rooms], dtype=np.int64
+        [materials.add(_FLOOR_FAMILY.get(r.room_type, "floor_wood"), mat_rng) for r in layout.rooms],
+        dtype=np.int64,
     )
     ceil_m = np.array([materials.add("ceiling", mat_rng) for _ in range(n_rooms)], dtype=np.int64)
     light_pos = np.array(
@@ -379,7 +413,9 @@ def generate_scene(config: SynthConfig, seed: int) -> ProceduralScene:
         cat.append(STRUCTURE_CATEGORIES[key])
         inst.append(0)
         kind.append(_KIND_CODE[b.kind])
-        mat.append(floor_m[b.room] if b.kind == "floor" else ceil_m[b.room] if b.kind == "ceiling" else WALL_MATERIAL)
+        mat.append(
+            floor_m[b.room] if b.kind == "floor" else ceil_m[b.room] if b.kind == "ceiling" else WALL_MATERIAL
+        )
     for obj in placer.objects:
         for p in obj.parts:
             lo.append(p.lo)
@@ -395,13 +431,30 @@ def generate_scene(config: SynthConfig, seed: int) -> ProceduralScene:
     components, n_comp = label_components(navigable)
     if n_comp != 1:
         raise SceneGenerationError(f"scene seed {seed}: navigable floor has {n_comp} components, expected 1")
-    grid = NavGrid(occupancy, navigable, components, placer.origin, config.capture.grid_resolution,
-                   config.capture.agent_radius)
+    grid = NavGrid(
+        occupancy,
+        navigable,
+        components,
+        placer.origin,
+        config.capture.grid_resolution,
+        config.capture.agent_radius,
+    )
     return ProceduralScene(
-        config=config, seed=int(seed), layout=layout, objects=placer.objects, materials=materials,
-        room_wall_material=wall_m, room_floor_material=floor_m, room_ceiling_material=ceil_m,
-        light_position=light_pos, light_color=light_col,
-        box_lo=np.asarray(lo, dtype=np.float64), box_hi=np.asarray(hi, dtype=np.float64),
-        box_category=np.asarray(cat, dtype=np.int32), box_instance=np.asarray(inst, dtype=np.int32),
-        box_material=np.asarray(mat, dtype=np.int64), box_kind=np.asarray(kind, dtype=np.int8), grid=grid,
+        config=config,
+        seed=int(seed),
+        layout=layout,
+        objects=placer.objects,
+        materials=materials,
+        room_wall_material=wall_m,
+        room_floor_material=floor_m,
+        room_ceiling_material=ceil_m,
+        light_position=light_pos,
+        light_color=light_col,
+        box_lo=np.asarray(lo, dtype=np.float64),
+        box_hi=np.asarray(hi, dtype=np.float64),
+        box_category=np.asarray(cat, dtype=np.int32),
+        box_instance=np.asarray(inst, dtype=np.int32),
+        box_material=np.asarray(mat, dtype=np.int64),
+        box_kind=np.asarray(kind, dtype=np.int8),
+        grid=grid,
     )

@@ -26,15 +26,38 @@ PATTERNS = ("plain", "stripes", "checker", "noise", "wood", "tiles")
 """Pattern ids are indices into this tuple."""
 
 # family -> (pattern choices, hue range, saturation range, value range, scale range (m), contrast range)
-FAMILIES: dict[str, tuple[tuple[str, ...], tuple[float, float], tuple[float, float], tuple[float, float],
-                          tuple[float, float], tuple[float, float]]] = {
-    "wall_paint": (("plain", "noise", "stripes"), (0.0, 1.0), (0.05, 0.3), (0.7, 0.95), (0.15, 0.5), (0.05, 0.15)),
+FAMILIES: dict[
+    str,
+    tuple[
+        tuple[str, ...],
+        tuple[float, float],
+        tuple[float, float],
+        tuple[float, float],
+        tuple[float, float],
+        tuple[float, float],
+    ],
+] = {
+    "wall_paint": (
+        ("plain", "noise", "stripes"),
+        (0.0, 1.0),
+        (0.05, 0.3),
+        (0.7, 0.95),
+        (0.15, 0.5),
+        (0.05, 0.15),
+    ),
     "floor_wood": (("wood",), (0.05, 0.1), (0.35, 0.7), (0.35, 0.75), (0.1, 0.25), (0.2, 0.4)),
     "floor_tile": (("tiles", "checker"), (0.0, 1.0), (0.0, 0.25), (0.5, 0.95), (0.3, 0.6), (0.15, 0.45)),
     "carpet": (("noise",), (0.0, 1.0), (0.1, 0.5), (0.3, 0.7), (0.03, 0.1), (0.15, 0.3)),
     "ceiling": (("plain", "noise"), (0.08, 0.15), (0.0, 0.06), (0.88, 0.97), (0.4, 1.0), (0.02, 0.06)),
     "wood": (("wood",), (0.04, 0.11), (0.3, 0.75), (0.25, 0.8), (0.05, 0.2), (0.2, 0.45)),
-    "fabric": (("noise", "stripes", "checker", "plain"), (0.0, 1.0), (0.2, 0.7), (0.25, 0.8), (0.04, 0.15), (0.1, 0.35)),
+    "fabric": (
+        ("noise", "stripes", "checker", "plain"),
+        (0.0, 1.0),
+        (0.2, 0.7),
+        (0.25, 0.8),
+        (0.04, 0.15),
+        (0.1, 0.35),
+    ),
     "metal": (("plain", "noise"), (0.55, 0.65), (0.0, 0.1), (0.5, 0.85), (0.02, 0.08), (0.03, 0.1)),
     "ceramic": (("plain", "noise"), (0.0, 1.0), (0.0, 0.15), (0.8, 0.97), (0.05, 0.2), (0.02, 0.08)),
     "plastic": (("plain", "noise", "stripes"), (0.0, 1.0), (0.3, 0.9), (0.4, 0.95), (0.02, 0.1), (0.05, 0.2)),
@@ -72,7 +95,9 @@ class MaterialTable:
         c = rng.uniform(*contrast)
         a = colorsys.hsv_to_rgb(h % 1.0, s, v)
         # Second colour: darker (or lighter) and slightly hue-shifted so patterns show in luminance too.
-        shift = rng.uniform(-0.06, 0.06) if family not in ("art", "fabric", "plastic") else rng.uniform(-0.5, 0.5)
+        shift = (
+            rng.uniform(-0.06, 0.06) if family not in ("art", "fabric", "plastic") else rng.uniform(-0.5, 0.5)
+        )
         v2 = v * (1 - c) if v > 0.5 else min(1.0, v + c)
         b = colorsys.hsv_to_rgb((h + shift) % 1.0, min(1.0, s * rng.uniform(0.8, 1.3)), v2)
         self.pattern.append(PATTERNS.index(pattern))
@@ -155,7 +180,9 @@ def _face_coords(p: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return u, v
 
 
-def evaluate_albedo(points: np.ndarray, face_axis: np.ndarray, material: np.ndarray, table: dict) -> np.ndarray:
+def evaluate_albedo(
+    points: np.ndarray, face_axis: np.ndarray, material: np.ndarray, table: dict
+) -> np.ndarray:
     """Albedo (N, 3) in [0, 1] of materials ``material`` (N,) at world hit ``points`` (N, 3).
 
     ``face_axis`` (N,) is the axis of the hit face's normal (0, 1, 2); ``table`` is
