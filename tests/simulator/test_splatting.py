@@ -148,7 +148,7 @@ def test_backend_gradients_match_reference(backend, camera, dtype):
 
 
 @pytest.mark.parametrize("backend", ["reference", *BACKENDS])
-@pytest.mark.parametrize("camera", [EquirectCamera(8, 16), PinholeCamera(9.0, 9.0, 6.0, 4.5, 9, 12)],
+@pytest.mark.parametrize("camera", [EquirectCamera(5, 10), PinholeCamera(6.0, 6.0, 4.0, 3.0, 6, 8)],
                          ids=["equirect", "pinhole"])
 def test_gradcheck_float64(backend, camera):
     g = torch.Generator().manual_seed(5)
@@ -168,7 +168,10 @@ def test_gradcheck_float64(backend, camera):
         out = splat(*args[:6], camera, EYE, background=args[6], backend=backend)
         return out.rgb, out.depth, out.alpha, out.features
 
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+    # Full Jacobians for the ground truth; random projections (fast mode) for the other backends,
+    # whose full gradients are compared with the reference in test_backend_gradients_match_reference.
+    fast = backend != "reference"
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=fast)
 
 
 # --- analytic footprints ---------------------------------------------------------------------------
