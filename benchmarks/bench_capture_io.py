@@ -24,7 +24,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.geometry.voxel import voxel_downsample
 from image2sim.simulator.io import Frame, open_capture
@@ -34,7 +33,11 @@ from image2sim.simulator.io.resample import sample_rgb
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTS = ROOT / "reports"
-HM3D = Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data")) / "hm3d_360" / "00000-kfPV7w3FaU5"
+HM3D = (
+    Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data"))
+    / "hm3d_360"
+    / "00000-kfPV7w3FaU5"
+)
 
 
 def hardware() -> str:
@@ -46,7 +49,8 @@ def hardware() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({torch.get_num_threads()} threads)"
+    threads = torch.get_num_threads()
+    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> float:
@@ -97,9 +101,15 @@ def main() -> None:
     a, _ = backproject_frame(frames[0])
     b, _ = reference_backproject(frames[0])
     err = float(np.abs(a - b).max())
-    rows.append({"case": f"backproject 1024x512 equirect ({source})", "ours_ms": ours * 1e3,
-                 "reference": "numpy float64 gather + transform", "reference_ms": ref * 1e3,
-                 "note": f"max |diff| {err:.2e} m"})
+    rows.append(
+        {
+            "case": f"backproject 1024x512 equirect ({source})",
+            "ours_ms": ours * 1e3,
+            "reference": "numpy float64 gather + transform",
+            "reference_ms": ref * 1e3,
+            "note": f"max |diff| {err:.2e} m",
+        }
+    )
 
     def fuse_stream():
         acc = VoxelAccumulator(0.05)
@@ -108,43 +118,78 @@ def main() -> None:
         return acc.result()
 
     def fuse_oneshot():
-        pts, cols = zip(*(backproject_frame(f) for f in frames))
-        return voxel_downsample(torch.from_numpy(np.concatenate(pts)), 0.05,
-                                {"rgb": torch.from_numpy(np.concatenate(cols).astype(np.float32))})
+        pts, cols = zip(*(backproject_frame(f) for f in frames), strict=False)
+        return voxel_downsample(
+            torch.from_numpy(np.concatenate(pts)),
+            0.05,
+            {"rgb": torch.from_numpy(np.concatenate(cols).astype(np.float32))},
+        )
 
     ours = timeit(fuse_stream, 3)
     ref = timeit(fuse_oneshot, 3)
     n_vox = len(fuse_stream()[0])
-    rows.append({"case": f"fuse 8 frames, 5 cm voxels ({source}; {n_vox} voxels)", "ours_ms": ours * 1e3,
-                 "reference": "one-shot voxel_downsample of all points", "reference_ms": ref * 1e3,
-                 "note": "streaming keeps only per-voxel sums in memory"})
+    rows.append(
+        {
+            "case": f"fuse 8 frames, 5 cm voxels ({source}; {n_vox} voxels)",
+            "ours_ms": ours * 1e3,
+            "reference": "one-shot voxel_downsample of all points",
+            "reference_ms": ref * 1e3,
+            "note": "streaming keeps only per-voxel sums in memory",
+        }
+    )
 
     rgb = np.random.default_rng(1).integers(0, 256, size=(800, 1600, 3), dtype=np.uint8)
     uu, vv = _source_coords(800, 1600, 800, 1600)
     map_x, map_y = (uu - 0.5).astype(np.float32), (vv - 0.5).astype(np.float32)
     ours = timeit(lambda: sample_rgb(rgb, uu, vv, wrap_u=True), 5)
     ref = timeit(lambda: cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP), 5)
-    rows.append({"case": "realsee half-pixel resample, 1600x800 rgb", "ours_ms": ours * 1e3,
-                 "reference": "cv2.remap bilinear (wraps rows too)", "reference_ms": ref * 1e3,
-                 "note": "ours wraps longitude only and clamps latitude"})
+    rows.append(
+        {
+            "case": "realsee half-pixel resample, 1600x800 rgb",
+            "ours_ms": ours * 1e3,
+            "reference": "cv2.remap bilinear (wraps rows too)",
+            "reference_ms": ref * 1e3,
+            "note": "ours wraps longitude only and clamps latitude",
+        }
+    )
 
     if HM3D.is_dir():
         cap = open_capture(HM3D)
         ours = timeit(lambda: cap[0], 5)
-        rows.append({"case": "hm3d_360 frame read (rgb + depth PNG 1024x512, checks)", "ours_ms": ours * 1e3,
-                     "reference": "–", "reference_ms": None, "note": ""})
+        rows.append(
+            {
+                "case": "hm3d_360 frame read (rgb + depth PNG 1024x512, checks)",
+                "ours_ms": ours * 1e3,
+                "reference": "–",
+                "reference_ms": None,
+                "note": "",
+            }
+        )
 
-    report = {"hardware": hardware(), "measured": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-              "method": "median wall time after 1 warm-up", "rows": rows}
+    report = {
+        "hardware": hardware(),
+        "measured": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "method": "median wall time after 1 warm-up",
+        "rows": rows,
+    }
     REPORTS.mkdir(exist_ok=True)
     (REPORTS / "bench_capture_io.json").write_text(json.dumps(report, indent=2) + "\n")
-    lines = ["# Capture I/O benchmarks", "", f"Hardware: {report['hardware']}  ",
-             f"Measured {report['measured']}, median wall time, 1 warm-up (machine shared with other jobs: expect noise).",
-             "", "| case | ours (ms) | reference | reference (ms) | speed-up | note |", "|---|---:|---|---:|---:|---|"]
+    lines = [
+        "# Capture I/O benchmarks",
+        "",
+        f"Hardware: {report['hardware']}  ",
+        f"Measured {report['measured']}, median wall time, 1 warm-up "
+        "(machine shared with other jobs: expect noise).",
+        "",
+        "| case | ours (ms) | reference | reference (ms) | speed-up | note |",
+        "|---|---:|---|---:|---:|---|",
+    ]
     for r in rows:
         ref_ms = "–" if r["reference_ms"] is None else f"{r['reference_ms']:.1f}"
         speed = "–" if r["reference_ms"] is None else f"{r['reference_ms'] / r['ours_ms']:.1f}x"
-        lines.append(f"| {r['case']} | {r['ours_ms']:.1f} | {r['reference']} | {ref_ms} | {speed} | {r['note']} |")
+        lines.append(
+            f"| {r['case']} | {r['ours_ms']:.1f} | {r['reference']} | {ref_ms} | {speed} | {r['note']} |"
+        )
     (REPORTS / "bench_capture_io.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from image2sim.dataengine.cli import app
 from image2sim.simulator.io import open_capture, read_ply
+from typer.testing import CliRunner
+
 from tests.simulator.test_io_room import (
     surface_distance,
     write_hm3d_fixture,
@@ -26,7 +26,12 @@ def _run(*args: str):
 
 
 @pytest.mark.parametrize(
-    "writer, fmt", [(write_hm3d_fixture, "hm3d_360"), (write_realsee_fixture, "realsee"), (write_pinhole_fixture, "pinhole_dir")]
+    "writer, fmt",
+    [
+        (write_hm3d_fixture, "hm3d_360"),
+        (write_realsee_fixture, "realsee"),
+        (write_pinhole_fixture, "pinhole_dir"),
+    ],
 )
 def test_ingest_round_trip(tmp_path: Path, writer, fmt: str) -> None:
     src = writer(tmp_path / "src")
@@ -38,7 +43,7 @@ def test_ingest_round_trip(tmp_path: Path, writer, fmt: str) -> None:
     assert canon.format == "image2sim" and canon.frame_ids == source.frame_ids
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["metadata"]["source_format"] == fmt and manifest["metadata"]["skipped"] == []
-    for a, b in zip(source, canon):
+    for a, b in zip(source, canon, strict=False):
         np.testing.assert_array_equal(a.rgb, b.rgb)
         np.testing.assert_allclose(a.depth, b.depth, atol=0.5e-3 + 1e-6)
         np.testing.assert_array_equal(a.cam_to_world, b.cam_to_world)

@@ -7,11 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.io import CaptureError, Frame, read_canonical, write_capture
 from image2sim.simulator.io.canonical import CONVENTIONS, FORMAT_NAME, encode_depth_mm
+from scipy.spatial.transform import Rotation
 
 
 def _frames(n: int = 3, camera=None, semantics: bool = False, seed: int = 0) -> list[Frame]:
@@ -50,7 +49,7 @@ def test_round_trip(tmp_path: Path, camera) -> None:
     assert manifest["camera"] == camera.to_dict() and manifest["metadata"] == {"source": "test"}
     cap = read_canonical(out)
     assert len(cap) == 3 and cap.scene_id == "scene-a" and cap.camera == camera
-    for src, got in zip(frames, cap):
+    for src, got in zip(frames, cap, strict=False):
         np.testing.assert_array_equal(got.rgb, src.rgb)
         np.testing.assert_allclose(got.depth, src.depth, atol=0.5e-3 + 1e-6)
         assert got.depth[0, 0] == 0.0

@@ -10,14 +10,13 @@ import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
-from scipy.spatial import cKDTree
-
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.voxel import voxel_downsample
 from image2sim.simulator.io import open_capture, read_ply, write_ply
 from image2sim.simulator.io.fusion import VoxelAccumulator, backproject_frame, fuse_frames, select_indices
 from image2sim.simulator.io.ply import PlyError
 from image2sim.simulator.io.resample import planar_rel_tol, sample_bilinear, sample_depth, sample_rgb
+from scipy.spatial import cKDTree
 
 from .test_io_room import surface_distance, write_hm3d_fixture
 
@@ -32,7 +31,9 @@ def test_ply_round_trip_and_header(tmp_path: Path) -> None:
     path = write_ply(tmp_path / "c.ply", pts, cols, nrm, comment="made by a test")
     raw = path.read_bytes()
     header = raw[: raw.index(b"end_header")].decode()
-    assert header.startswith("ply\nformat binary_little_endian 1.0\ncomment made by a test\nelement vertex 500\n")
+    assert header.startswith(
+        "ply\nformat binary_little_endian 1.0\ncomment made by a test\nelement vertex 500\n"
+    )
     assert "property float x" in header and "property uchar red" in header and "property float nx" in header
     assert len(raw) == len(header) + len("end_header\n") + 500 * (12 + 12 + 3)
     back = read_ply(path)
@@ -125,7 +126,9 @@ def test_depth_sampling_is_edge_aware() -> None:
     assert out[3] == 5.0  # the invalid (0) tap is ignored, not averaged in
     assert out[4] == 0.0  # exactly on an invalid pixel centre
     assert sample_depth(np.zeros((2, 2), np.float32), np.array([1.0]), np.array([1.0]))[0] == 0.0
-    assert planar_rel_tol(2 * np.pi / 1024) == pytest.approx(np.tan(np.radians(75)) * np.sqrt(2) * 2 * np.pi / 1024)
+    assert planar_rel_tol(2 * np.pi / 1024) == pytest.approx(
+        np.tan(np.radians(75)) * np.sqrt(2) * 2 * np.pi / 1024
+    )
 
 
 # --- fusion ---------------------------------------------------------------------------------
@@ -136,11 +139,12 @@ def test_accumulator_equals_one_shot_voxel_downsample() -> None:
     batches = [rng.uniform(-1, 1, size=(2000, 3)) for _ in range(4)]
     colours = [rng.integers(0, 256, size=(2000, 3), dtype=np.uint8) for _ in range(4)]
     acc = VoxelAccumulator(0.1, chunk_points=2500, merge_rows=3000)  # forces chunking and merges
-    for p, c in zip(batches, colours):
+    for p, c in zip(batches, colours, strict=False):
         acc.add(p, c)
     pts, cols = acc.result()
     ref_pts, ref_attrs = voxel_downsample(
-        torch.from_numpy(np.concatenate(batches)), 0.1,
+        torch.from_numpy(np.concatenate(batches)),
+        0.1,
         {"c": torch.from_numpy(np.concatenate(colours).astype(np.float64))},
     )
     assert len(acc) == len(pts) == ref_pts.shape[0] and acc.num_points == 8000

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.io import (
@@ -219,7 +218,9 @@ def test_hm3d_image_problems(tmp_path: Path) -> None:
     import cv2
 
     cv2.imwrite(str(root / "00001_depth.png"), np.zeros((16, 32), np.uint16))
-    with pytest.raises(CaptureError, match=r"00001_rgb.png: rgb/depth size mismatch: rgb is 64x32, depth is 32x16"):
+    with pytest.raises(
+        CaptureError, match=r"00001_rgb.png: rgb/depth size mismatch: rgb is 64x32, depth is 32x16"
+    ):
         cap[1]
     cv2.imwrite(str(root / "00002_depth.png"), np.zeros((32, 64), np.uint8))
     with pytest.raises(CaptureError, match=r"00002_depth.png: depth image must be 16-bit"):
@@ -289,5 +290,7 @@ def test_pinhole_bad_inputs(tmp_path: Path) -> None:
 
 def test_pinhole_aspect_mismatch_without_colour_intrinsics(tmp_path: Path) -> None:
     root = write_pinhole_fixture(tmp_path / "p", n=1, colour_hw=(24, 64), write_colour_intrinsics=False)
-    with pytest.raises(CaptureError, match=r"color/0.jpg: colour 64x24 and depth 32x24 differ in aspect ratio"):
+    with pytest.raises(
+        CaptureError, match=r"color/0.jpg: colour 64x24 and depth 32x24 differ in aspect ratio"
+    ):
         open_capture(root)[0]

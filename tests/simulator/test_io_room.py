@@ -12,9 +12,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from image2sim.simulator.conventions import Y_DOWN_TO_Z_UP_WORLD
+from scipy.spatial.transform import Rotation
 
 ROOM_LO = np.array([-2.0, -1.5, 0.0])
 ROOM_HI = np.array([3.0, 2.5, 2.7])
@@ -35,8 +34,15 @@ def box_range(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 def face_of(points: np.ndarray) -> np.ndarray:
     """Index (0..5) of the room face nearest to each point."""
     gaps = np.stack(
-        [points[..., 0] - ROOM_LO[0], ROOM_HI[0] - points[..., 0], points[..., 1] - ROOM_LO[1],
-         ROOM_HI[1] - points[..., 1], points[..., 2] - ROOM_LO[2], ROOM_HI[2] - points[..., 2]], axis=-1
+        [
+            points[..., 0] - ROOM_LO[0],
+            ROOM_HI[0] - points[..., 0],
+            points[..., 1] - ROOM_LO[1],
+            ROOM_HI[1] - points[..., 1],
+            points[..., 2] - ROOM_LO[2],
+            ROOM_HI[2] - points[..., 2],
+        ],
+        axis=-1,
     )
     return np.argmin(np.abs(gaps), axis=-1)
 
@@ -90,7 +96,13 @@ def write_hm3d_fixture(root: Path, n: int = 3, height: int = 32, width: int = 64
 
 
 def write_realsee_fixture(
-    root: Path, n: int = 3, height: int = 32, width: int = 64, rgb_scale: int = 1, seed: int = 0, scale: float = 4000.0
+    root: Path,
+    n: int = 3,
+    height: int = 32,
+    width: int = 64,
+    rgb_scale: int = 1,
+    seed: int = 0,
+    scale: float = 4000.0,
 ) -> Path:
     root.mkdir(parents=True, exist_ok=True)
     M = Y_DOWN_TO_Z_UP_WORLD  # ours = M @ theirs
@@ -125,8 +137,12 @@ def write_realsee_fixture(
 
 
 def write_pinhole_fixture(
-    root: Path, n: int = 3, depth_hw: tuple[int, int] = (24, 32), colour_hw: tuple[int, int] = (48, 64),
-    seed: int = 0, write_colour_intrinsics: bool = True,
+    root: Path,
+    n: int = 3,
+    depth_hw: tuple[int, int] = (24, 32),
+    colour_hw: tuple[int, int] = (48, 64),
+    seed: int = 0,
+    write_colour_intrinsics: bool = True,
 ) -> Path:
     dh, dw = depth_hw
     ch, cw = colour_hw
@@ -159,7 +175,9 @@ def write_pinhole_fixture(
         _, colour = render(pos, unit_c @ rot.T)
         _write_png(root / "depth" / f"{i}.png", np.rint(z * 1000).astype(np.uint16))
         (root / "color").mkdir(parents=True, exist_ok=True)
-        assert cv2.imwrite(str(root / "color" / f"{i}.jpg"), colour[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 98])
+        assert cv2.imwrite(
+            str(root / "color" / f"{i}.jpg"), colour[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 98]
+        )
         (root / "pose").mkdir(parents=True, exist_ok=True)
         np.savetxt(root / "pose" / f"{i}.txt", pose)
     return root

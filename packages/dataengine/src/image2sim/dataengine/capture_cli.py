@@ -7,10 +7,9 @@ OpenCV, the readers) are imported inside the commands so ``image2sim --help`` st
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated
 
 import typer
-
 from image2sim.dataengine.cli import app
 
 _FORMAT_HELP = "Capture format (image2sim, hm3d_360, realsee, pinhole_dir, ...); auto-detected when omitted."
@@ -23,7 +22,7 @@ def _fail(message: str) -> None:
     raise typer.Exit(code=1)
 
 
-def _open(path: Path, fmt: Optional[str], strict: bool = True):
+def _open(path: Path, fmt: str | None, strict: bool = True):
     from image2sim.simulator.io import CaptureError, open_capture
 
     try:
@@ -33,11 +32,22 @@ def _open(path: Path, fmt: Optional[str], strict: bool = True):
 
 
 def _progress():
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     return Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        TimeRemainingColumn(), transient=False,
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        transient=False,
     )
 
 
@@ -60,17 +70,20 @@ def frame_stats(frame) -> dict:
 
 @app.command()
 def inspect(
-    capture: Path = typer.Argument(..., help="Capture folder."),
-    format: Optional[str] = typer.Option(None, "--format", "-f", help=_FORMAT_HELP),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Load at most N frames for image statistics."),
-    rows: int = typer.Option(12, "--rows", min=1, help="Frame rows to print (first and last halves)."),
+    capture: Annotated[Path, typer.Argument(help="Capture folder.")],
+    format: Annotated[str | None, typer.Option("--format", "-f", help=_FORMAT_HELP)] = None,
+    max_frames: Annotated[
+        int | None, typer.Option("--max-frames", min=1, help="Load at most N frames for image statistics.")
+    ] = None,
+    rows: Annotated[
+        int, typer.Option("--rows", min=1, help="Frame rows to print (first and last halves).")
+    ] = 12,
 ) -> None:
     """Print a capture's frames, sizes, depth range and pose bounds."""
     import numpy as np
+    from image2sim.simulator.io import CaptureError
     from rich.console import Console
     from rich.table import Table
-
-    from image2sim.simulator.io import CaptureError
 
     cap = _open(capture, format, strict=False)
     console = Console()
@@ -89,14 +102,21 @@ def inspect(
     summary = Table(title=f"capture {cap.root}", show_header=False)
     summary.add_row("format", cap.format)
     summary.add_row("scene", cap.scene_id)
-    summary.add_row("frames", f"{len(cap)} ({n_load} read, {len(cap.skipped)} skipped while indexing, {len(errors)} unreadable)")
+    summary.add_row(
+        "frames",
+        f"{len(cap)} ({n_load} read, {len(cap.skipped)} skipped while indexing, {len(errors)} unreadable)",
+    )
     camera = cap.camera if cap.camera is not None else (cap[0].camera if stats else None)
     summary.add_row("camera", str(camera.to_dict()) if camera is not None else "?")
     if stats:
         dmin = np.nanmin([s["dmin"] for s in stats])
         dmax = np.nanmax([s["dmax"] for s in stats])
-        summary.add_row("depth range", f"{dmin:.3f} - {dmax:.3f} m (valid pixels of the {len(stats)} frames read)")
-        summary.add_row("valid depth", f"{np.mean([s['valid'] for s in stats]) * 100:.1f}% of pixels (mean over frames)")
+        summary.add_row(
+            "depth range", f"{dmin:.3f} - {dmax:.3f} m (valid pixels of the {len(stats)} frames read)"
+        )
+        summary.add_row(
+            "valid depth", f"{np.mean([s['valid'] for s in stats]) * 100:.1f}% of pixels (mean over frames)"
+        )
     if len(positions):
         lo, hi = positions.min(axis=0), positions.max(axis=0)
         summary.add_row("pose bounds min", "x {:.3f}  y {:.3f}  z {:.3f}".format(*lo))
@@ -119,7 +139,12 @@ def inspect(
             continue
         s = stats[k]
         table.add_row(
-            str(k), s["id"], s["size"], f"{s['dmin']:.3f}", f"{s['dmax']:.3f}", f"{100 * s['valid']:.1f}",
+            str(k),
+            s["id"],
+            s["size"],
+            f"{s['dmin']:.3f}",
+            f"{s['dmax']:.3f}",
+            f"{100 * s['valid']:.1f}",
             *(f"{c:.3f}" for c in s["position"]),
         )
     console.print(table)
@@ -129,18 +154,19 @@ def inspect(
 
 @app.command()
 def fuse(
-    capture: Path = typer.Argument(..., help="Capture folder."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output PLY file."),
-    voxel: float = typer.Option(0.05, "--voxel", min=1e-4, help="Voxel edge in metres for downsampling."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1, help="Fuse at most N frames."),
-    stride: int = typer.Option(1, "--stride", min=1, help="Use every S-th frame."),
-    format: Optional[str] = typer.Option(None, "--format", "-f", help=_FORMAT_HELP),
+    capture: Annotated[Path, typer.Argument(help="Capture folder.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output PLY file.")],
+    voxel: Annotated[float, typer.Option("--voxel", min=1e-4, help="Voxel edge in metres.")] = 0.05,
+    max_frames: Annotated[
+        int | None, typer.Option("--max-frames", min=1, help="Fuse at most N frames.")
+    ] = None,
+    stride: Annotated[int, typer.Option("--stride", min=1, help="Use every S-th frame.")] = 1,
+    format: Annotated[str | None, typer.Option("--format", "-f", help=_FORMAT_HELP)] = None,
 ) -> None:
     """Back-project frames into the world, voxel-average colours, write a binary PLY (atomically)."""
-    from rich.console import Console
-
     from image2sim.simulator.io import CaptureError, write_ply
     from image2sim.simulator.io.fusion import VoxelAccumulator, backproject_frame, select_indices
+    from rich.console import Console
 
     cap = _open(capture, format)
     indices = select_indices(len(cap), stride, max_frames)
@@ -157,7 +183,7 @@ def fuse(
     points, colours = acc.result()
     if len(points) == 0:
         _fail(f"{capture}: no valid depth in the selected frames, nothing to write")
-    comment = f"image2sim fuse of {cap.root} ({cap.format}), {len(indices)} frames, voxel {voxel} m, world z-up metres"
+    comment = f"image2sim fuse of {cap.root} ({cap.format}), {len(indices)} frames, voxel {voxel} m"
     write_ply(out, points, colours, comment=comment)
     lo, hi = points.min(axis=0), points.max(axis=0)
     Console().print(
@@ -171,17 +197,20 @@ def fuse(
 
 @app.command()
 def ingest(
-    src: Path = typer.Argument(..., help="Source capture folder (any readable format)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder for the canonical capture."),
-    format: Optional[str] = typer.Option(None, "--format", "-f", help=_FORMAT_HELP),
-    skip_bad: bool = typer.Option(False, "--skip-bad", help="Skip unusable frames (and report why) instead of failing."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace --out if it exists."),
-    scene_id: Optional[str] = typer.Option(None, "--scene-id", help="Scene id for the manifest (default: the source's)."),
+    src: Annotated[Path, typer.Argument(help="Source capture folder (any readable format).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for the canonical capture.")],
+    format: Annotated[str | None, typer.Option("--format", "-f", help=_FORMAT_HELP)] = None,
+    skip_bad: Annotated[
+        bool, typer.Option("--skip-bad", help="Skip unusable frames (and report why) instead of failing.")
+    ] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace --out if it exists.")] = False,
+    scene_id: Annotated[
+        str | None, typer.Option("--scene-id", help="Scene id for the manifest (default: the source's).")
+    ] = None,
 ) -> None:
     """Convert a capture to the canonical format; nothing is written unless everything succeeds."""
-    from rich.console import Console
-
     from image2sim.simulator.io import CaptureError, write_capture
+    from rich.console import Console
 
     if out.exists() and not overwrite:
         _fail(f"{out}: already exists (pass --overwrite to replace it)")
@@ -213,14 +242,27 @@ def ingest(
         manifest["metadata"]["skipped"] = [{"frame_id": f, "reason": r} for f, r in skipped]
         manifest_path.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
 
-    metadata = {"source_format": cap.format, "source_path": str(cap.root.resolve()), "source_scene_id": cap.scene_id}
+    metadata = {
+        "source_format": cap.format,
+        "source_path": str(cap.root.resolve()),
+        "source_scene_id": cap.scene_id,
+    }
     try:
         written = write_capture(
-            out, frames(), scene_id=scene_id or cap.scene_id, metadata=metadata, extra=record_skips, overwrite=overwrite,
+            out,
+            frames(),
+            scene_id=scene_id or cap.scene_id,
+            metadata=metadata,
+            extra=record_skips,
+            overwrite=overwrite,
         )
     except (CaptureError, FileExistsError) as err:
         _fail(f"{err}" + ("" if skip_bad else "  (nothing was written; --skip-bad ingests the valid frames)"))
     console = Console()
-    console.print(f"ingested {len(written_ids)} frames from {src} ({cap.format}) into {written}", highlight=False, soft_wrap=True)
+    console.print(
+        f"ingested {len(written_ids)} frames from {src} ({cap.format}) into {written}",
+        highlight=False,
+        soft_wrap=True,
+    )
     for fid, reason in skipped:
         console.print(f"[yellow]skipped[/] {fid}: {reason}", highlight=False, soft_wrap=True)

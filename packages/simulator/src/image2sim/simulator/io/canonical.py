@@ -26,7 +26,6 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.simulator.conventions import DEPTH_PNG_SCALE
 from image2sim.simulator.geometry.cameras import camera_from_dict
 from image2sim.simulator.io.images import read_rgb, read_uint16, write_rgb_png, write_uint16_png
@@ -56,7 +55,15 @@ MAX_DEPTH_M = 65535 / DEPTH_PNG_SCALE
 
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")
 _MANIFEST_KEYS = (
-    "format", "version", "scene_id", "num_frames", "frame_ids", "camera", "conventions", "has_semantics", "metadata",
+    "format",
+    "version",
+    "scene_id",
+    "num_frames",
+    "frame_ids",
+    "camera",
+    "conventions",
+    "has_semantics",
+    "metadata",
 )
 
 
@@ -69,7 +76,9 @@ def encode_depth_mm(depth: np.ndarray, source: str) -> np.ndarray:
     d = check_depth(depth, source)
     mm = np.rint(d.astype(np.float64) * DEPTH_PNG_SCALE)
     if mm.size and float(mm.max()) > 65535:
-        raise CaptureError(f"{source}: depth {float(d.max()):.3f} m exceeds the uint16 millimetre range ({MAX_DEPTH_M} m)")
+        raise CaptureError(
+            f"{source}: depth {float(d.max()):.3f} m exceeds the uint16 millimetre range ({MAX_DEPTH_M} m)"
+        )
     if np.any((d > 0) & (mm == 0)):
         raise CaptureError(f"{source}: positive depth below 0.5 mm would be stored as 0 (invalid)")
     return mm.astype(np.uint16)
@@ -80,14 +89,18 @@ def _label_to_uint16(labels: np.ndarray, source: str) -> np.ndarray:
     if lab.ndim != 2 or not np.issubdtype(lab.dtype, np.integer):
         raise CaptureError(f"{source}: label image must be (H, W) integers, got {lab.shape} {lab.dtype}")
     if lab.size and (int(lab.min()) < 0 or int(lab.max()) > 65535):
-        raise CaptureError(f"{source}: label ids must lie in [0, 65535], got [{int(lab.min())}, {int(lab.max())}]")
+        raise CaptureError(
+            f"{source}: label ids must lie in [0, 65535], got [{int(lab.min())}, {int(lab.max())}]"
+        )
     return lab.astype(np.uint16)
 
 
 def _frame_name(frame: Frame, index: int, seen: set[str]) -> str:
     name = frame.frame_id or f"{index:05d}"
     if not _SAFE_ID.match(name):
-        raise CaptureError(f"frame {index}: frame_id {name!r} is not a safe file name (letters, digits, _ . -)")
+        raise CaptureError(
+            f"frame {index}: frame_id {name!r} is not a safe file name (letters, digits, _ . -)"
+        )
     if name in seen:
         raise CaptureError(f"frame {index}: duplicate frame_id {name!r}")
     seen.add(name)
@@ -108,7 +121,8 @@ def _write_frame(tmp: Path, name: str, frame: Frame, index: int) -> None:
     cam = frame.camera
     if (cam.height, cam.width) != tuple(frame.depth.shape):
         raise CaptureError(
-            f"{source}: camera is {cam.width}x{cam.height} but depth is {frame.depth.shape[1]}x{frame.depth.shape[0]}"
+            f"{source}: camera is {cam.width}x{cam.height} but depth is "
+            f"{frame.depth.shape[1]}x{frame.depth.shape[0]}"
         )
     pose = check_pose(frame.cam_to_world, f"{source} cam_to_world")
     write_rgb_png(tmp / "frames" / f"{name}_rgb.png", np.asarray(frame.rgb))
@@ -118,9 +132,15 @@ def _write_frame(tmp: Path, name: str, frame: Frame, index: int) -> None:
         pose_doc["notes"] = list(frame.notes)
     (tmp / "frames" / f"{name}_pose.json").write_text(json.dumps(pose_doc) + "\n", encoding="utf-8")
     if frame.semantics is not None:
-        write_uint16_png(tmp / "semantics" / f"{name}_category.png", _label_to_uint16(frame.semantics, f"{source} semantics"))
+        write_uint16_png(
+            tmp / "semantics" / f"{name}_category.png",
+            _label_to_uint16(frame.semantics, f"{source} semantics"),
+        )
     if frame.instances is not None:
-        write_uint16_png(tmp / "semantics" / f"{name}_instance.png", _label_to_uint16(frame.instances, f"{source} instances"))
+        write_uint16_png(
+            tmp / "semantics" / f"{name}_instance.png",
+            _label_to_uint16(frame.instances, f"{source} instances"),
+        )
 
 
 def write_capture(
@@ -166,7 +186,8 @@ def write_capture(
                 camera = frame.camera
             elif frame.camera != camera:
                 raise CaptureError(
-                    f"frame {index} ({name!r}): camera {frame.camera.to_dict()} differs from the first frame's "
+                    f"frame {index} ({name!r}): camera {frame.camera.to_dict()} differs from "
+                    "the first frame's "
                     f"{camera.to_dict()} (a capture has one camera)"
                 )
             _write_frame(tmp, name, frame, index)
@@ -175,8 +196,10 @@ def write_capture(
         if not names:
             raise CaptureError(f"{out_dir}: no frames to write")
         if any(semantic_flags) and not all(semantic_flags):
-            missing = [n for n, f in zip(names, semantic_flags) if not f]
-            raise CaptureError(f"{out_dir}: some frames have semantics and some do not (missing in {missing[:5]})")
+            missing = [n for n, f in zip(names, semantic_flags, strict=False) if not f]
+            raise CaptureError(
+                f"{out_dir}: some frames have semantics and some do not (missing in {missing[:5]})"
+            )
         if not any(semantic_flags) and not any((tmp / "semantics").iterdir()):
             (tmp / "semantics").rmdir()
         manifest = {
@@ -257,7 +280,9 @@ def _load_manifest(path: Path) -> dict:
     if manifest["format"] != FORMAT_NAME:
         raise CaptureError(f"{mpath}: field 'format' is {manifest['format']!r}, expected {FORMAT_NAME!r}")
     if manifest["version"] != FORMAT_VERSION:
-        raise CaptureError(f"{mpath}: unsupported version {manifest['version']!r} (this reader knows {FORMAT_VERSION})")
+        raise CaptureError(
+            f"{mpath}: unsupported version {manifest['version']!r} (this reader knows {FORMAT_VERSION})"
+        )
     ids = manifest["frame_ids"]
     if not isinstance(ids, list) or not all(isinstance(i, str) and _SAFE_ID.match(i) for i in ids):
         raise CaptureError(f"{mpath}: field 'frame_ids' must be a list of safe file-name strings")
@@ -305,7 +330,7 @@ def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
         ids.append(fid)
         poses.append(pose)
         notes[fid] = frame_notes
-    pose_of = dict(zip(ids, poses))
+    pose_of = dict(zip(ids, poses, strict=False))
 
     def load(fid: str) -> Frame:
         frames = root / "frames"
@@ -328,13 +353,26 @@ def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
                 instances = read_uint16(inst_path, "instance").astype(np.int32)
                 check_same_size(instances[..., None], depth, inst_path)
         return Frame(
-            rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[fid].copy(), semantics=semantics,
-            instances=instances, frame_id=fid, notes=list(notes[fid]),
+            rgb=rgb,
+            depth=depth,
+            camera=camera,
+            cam_to_world=pose_of[fid].copy(),
+            semantics=semantics,
+            instances=instances,
+            frame_id=fid,
+            notes=list(notes[fid]),
         )
 
     if not ids:
         raise CaptureError(f"{root}: no usable frames" + (f" ({len(skipped)} skipped)" if skipped else ""))
     return Capture(
-        root, "image2sim", ids, load, scene_id=str(manifest["scene_id"]), skipped=skipped,
-        metadata=dict(manifest["metadata"]), poses=np.stack(poses), camera=camera,
+        root,
+        "image2sim",
+        ids,
+        load,
+        scene_id=str(manifest["scene_id"]),
+        skipped=skipped,
+        metadata=dict(manifest["metadata"]),
+        poses=np.stack(poses),
+        camera=camera,
     )

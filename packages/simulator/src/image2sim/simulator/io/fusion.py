@@ -13,9 +13,8 @@ from functools import lru_cache
 
 import numpy as np
 import torch
-
-from image2sim.simulator.geometry.voxel import voxel_groups
 from image2sim.simulator.geometry.cameras import Camera
+from image2sim.simulator.geometry.voxel import voxel_groups
 from image2sim.simulator.io.records import Capture, Frame
 
 __all__ = ["backproject_frame", "fuse_frames", "select_indices", "VoxelAccumulator"]

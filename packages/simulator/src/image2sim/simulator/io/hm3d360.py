@@ -17,8 +17,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
@@ -30,6 +28,7 @@ from image2sim.simulator.io.validation import (
     check_same_size,
     read_matrix_txt,
 )
+from scipy.spatial.transform import Rotation
 
 __all__ = ["FORMAT", "is_hm3d_360", "read_hm3d_360", "hm3d_pose_to_cam_to_world", "hm3d_pixel_direction_gl"]
 
@@ -74,7 +73,9 @@ def is_hm3d_360(path: Path) -> bool:
     path = Path(path)
     if not path.is_dir():
         return False
-    return any((p.with_name(p.name[: -len("_pose.txt")] + "_rgb.png")).is_file() for p in path.glob("*_pose.txt"))
+    return any(
+        (p.with_name(p.name[: -len("_pose.txt")] + "_rgb.png")).is_file() for p in path.glob("*_pose.txt")
+    )
 
 
 def read_hm3d_360(path: str | Path, *, strict: bool = True) -> Capture:
@@ -101,8 +102,10 @@ def read_hm3d_360(path: str | Path, *, strict: bool = True) -> Capture:
         ids.append(stem)
         poses.append(pose)
     if not ids:
-        raise CaptureError(f"{root}: no usable hm3d_360 frames" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    pose_of = dict(zip(ids, poses))
+        raise CaptureError(
+            f"{root}: no usable hm3d_360 frames" + (f" ({len(skipped)} skipped)" if skipped else "")
+        )
+    pose_of = dict(zip(ids, poses, strict=False))
     ids, (height, width) = probe_first_size(ids, lambda f: root / f"{f}_rgb.png", "colour", strict, skipped)
     check_equirect_size(height, width, root / f"{ids[0]}_rgb.png")
     camera = EquirectCamera(height, width)
@@ -114,8 +117,11 @@ def read_hm3d_360(path: str | Path, *, strict: bool = True) -> Capture:
         check_same_size(rgb, depth, rgb_path)
         if depth.shape != (camera.height, camera.width):
             raise CaptureError(
-                f"{depth_path}: image is {depth.shape[1]}x{depth.shape[0]}, other frames are {camera.width}x{camera.height}"
+                f"{depth_path}: image is {depth.shape[1]}x{depth.shape[0]}, "
+                f"other frames are {camera.width}x{camera.height}"
             )
         return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[fid].copy(), frame_id=fid)
 
-    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera)
+    return Capture(
+        root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera
+    )

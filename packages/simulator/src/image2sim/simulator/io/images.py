@@ -11,7 +11,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from image2sim.simulator.io.records import CaptureError
 
 __all__ = ["read_rgb", "read_uint16", "write_rgb_png", "write_uint16_png", "image_size", "probe_first_size"]
@@ -106,7 +105,9 @@ def probe_first_size(
             skipped.append((fid, str(err)))
     first = path_of(ids[0]) if ids else Path(".")
     reason = skipped[-1][1] if skipped else "no frames"
-    raise CaptureError(f"{first.parent}: no readable {what} image among {len(ids)} frames (last problem: {reason})")
+    raise CaptureError(
+        f"{first.parent}: no readable {what} image among {len(ids)} frames (last problem: {reason})"
+    )
 
 
 def write_rgb_png(path: Path, rgb: np.ndarray) -> None:

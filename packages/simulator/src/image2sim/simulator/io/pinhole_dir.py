@@ -24,7 +24,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from image2sim.simulator.conventions import opencv_principal_point_to_ours
 from image2sim.simulator.geometry.cameras import PinholeCamera
 from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
@@ -41,9 +40,10 @@ _COLOUR_EXTS = (".jpg", ".jpeg", ".png")
 def is_pinhole_dir(path: Path) -> bool:
     """A folder with ``color/``, ``depth/``, ``pose/`` and ``intrinsic/intrinsic_depth.txt``."""
     path = Path(path)
-    return all((path / d).is_dir() for d in ("color", "depth", "pose")) and (
-        path / "intrinsic" / "intrinsic_depth.txt"
-    ).is_file()
+    return (
+        all((path / d).is_dir() for d in ("color", "depth", "pose"))
+        and (path / "intrinsic" / "intrinsic_depth.txt").is_file()
+    )
 
 
 def read_intrinsics(path: Path) -> tuple[float, float, float, float]:
@@ -93,7 +93,9 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
     """
     root = Path(path)
     if not is_pinhole_dir(root):
-        raise CaptureError(f"{root}: not a pinhole_dir folder (needs color/, depth/, pose/, intrinsic/intrinsic_depth.txt)")
+        raise CaptureError(
+            f"{root}: not a pinhole_dir folder (needs color/, depth/, pose/, intrinsic/intrinsic_depth.txt)"
+        )
     if not np.isfinite(depth_scale) or depth_scale <= 0:
         raise CaptureError(f"pinhole_dir option depth_scale={depth_scale}: must be positive")
     depth_k = read_intrinsics(root / "intrinsic" / "intrinsic_depth.txt")
@@ -126,9 +128,13 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
         ids.append(stem)
         poses.append(pose)
     if not ids:
-        raise CaptureError(f"{root}: no usable pinhole_dir frames" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    pose_of = dict(zip(ids, poses))
-    ids, (height, width) = probe_first_size(ids, lambda f: root / "depth" / f"{f}.png", "depth", strict, skipped)
+        raise CaptureError(
+            f"{root}: no usable pinhole_dir frames" + (f" ({len(skipped)} skipped)" if skipped else "")
+        )
+    pose_of = dict(zip(ids, poses, strict=False))
+    ids, (height, width) = probe_first_size(
+        ids, lambda f: root / "depth" / f"{f}.png", "depth", strict, skipped
+    )
     camera = PinholeCamera(*depth_k, height, width)
     scale = np.float32(depth_scale)
 
@@ -139,7 +145,9 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
             raise CaptureError(f"{root / 'color' / (fid + '.jpg')}: missing colour file")
         depth = read_uint16(depth_path).astype(np.float32) / scale
         if depth.shape != (height, width):
-            raise CaptureError(f"{depth_path}: image is {depth.shape[1]}x{depth.shape[0]}, other frames are {width}x{height}")
+            raise CaptureError(
+                f"{depth_path}: image is {depth.shape[1]}x{depth.shape[0]}, other frames are {width}x{height}"
+            )
         rgb = read_rgb(colour_path)
         notes = []
         ch, cw = rgb.shape[:2]
@@ -150,7 +158,12 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
                     f"{colour_path}: colour {cw}x{ch} and depth {width}x{height} differ in aspect ratio and "
                     f"{colour_k_path} is missing, so they cannot be registered"
                 )
-            ck = (depth_k[0] * cw / width, depth_k[1] * ch / height, depth_k[2] * cw / width, depth_k[3] * ch / height)
+            ck = (
+                depth_k[0] * cw / width,
+                depth_k[1] * ch / height,
+                depth_k[2] * cw / width,
+                depth_k[3] * ch / height,
+            )
             how = "by the size ratio (no intrinsic_color.txt)"
         else:
             how = "through intrinsic_color/intrinsic_depth"
@@ -165,6 +178,10 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
             uu, vv = _colour_coords(depth_k, tuple(ck), height, width)
             rgb = sample_rgb(rgb, uu, vv, wrap_u=False)
             notes.append(f"colour {cw}x{ch} resampled to the depth grid {width}x{height} {how} (bilinear)")
-        return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[fid].copy(), frame_id=fid, notes=notes)
+        return Frame(
+            rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[fid].copy(), frame_id=fid, notes=notes
+        )
 
-    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera)
+    return Capture(
+        root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera
+    )

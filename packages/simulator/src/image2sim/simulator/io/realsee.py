@@ -28,13 +28,17 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.simulator.conventions import Y_DOWN_TO_Z_UP_WORLD
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.resample import planar_rel_tol, sample_depth, sample_rgb
-from image2sim.simulator.io.validation import check_equirect_size, check_pose, check_same_size, read_matrix_txt
+from image2sim.simulator.io.validation import (
+    check_equirect_size,
+    check_pose,
+    check_same_size,
+    read_matrix_txt,
+)
 
 __all__ = ["FORMAT", "is_realsee", "read_realsee", "realsee_pose_to_cam_to_world", "realsee_pixel_direction"]
 
@@ -126,9 +130,13 @@ def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "re
         ids.append(vid)
         poses.append(pose)
     if not ids:
-        raise CaptureError(f"{root}: no usable realsee viewpoints" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    pose_of = dict(zip(ids, poses))
-    ids, (height, width) = probe_first_size(ids, lambda v: root / "viewpoints" / v / DEPTH_NAME, "depth", strict, skipped)
+        raise CaptureError(
+            f"{root}: no usable realsee viewpoints" + (f" ({len(skipped)} skipped)" if skipped else "")
+        )
+    pose_of = dict(zip(ids, poses, strict=False))
+    ids, (height, width) = probe_first_size(
+        ids, lambda v: root / "viewpoints" / v / DEPTH_NAME, "depth", strict, skipped
+    )
     check_equirect_size(height, width, root / "viewpoints" / ids[0] / DEPTH_NAME)
     camera = EquirectCamera(height, width)
 
@@ -139,7 +147,8 @@ def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "re
         check_equirect_size(*rgb.shape[:2], vp_dir / RGB_NAME)
         if raw.shape != (height, width):
             raise CaptureError(
-                f"{vp_dir / DEPTH_NAME}: image is {raw.shape[1]}x{raw.shape[0]}, other viewpoints are {width}x{height}"
+                f"{vp_dir / DEPTH_NAME}: image is {raw.shape[1]}x{raw.shape[0]}, "
+                f"other viewpoints are {width}x{height}"
             )
         depth = raw.astype(np.float32) / np.float32(scales[vid])
         notes = []
@@ -156,6 +165,10 @@ def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "re
         else:
             check_same_size(rgb, depth, vp_dir / RGB_NAME)
             notes.append("half-pixel offset NOT corrected: samples sit 0.5 px left/up of our pixel centres")
-        return Frame(rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[vid].copy(), frame_id=vid, notes=notes)
+        return Frame(
+            rgb=rgb, depth=depth, camera=camera, cam_to_world=pose_of[vid].copy(), frame_id=vid, notes=notes
+        )
 
-    return Capture(root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera)
+    return Capture(
+        root, FORMAT, ids, load, skipped=skipped, poses=np.stack([pose_of[i] for i in ids]), camera=camera
+    )

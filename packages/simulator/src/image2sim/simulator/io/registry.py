@@ -62,14 +62,30 @@ def _load_builtins() -> None:
     from image2sim.simulator.io import canonical, hm3d360, pinhole_dir, realsee
 
     builtins = [
-        CaptureFormat("image2sim", canonical.read_canonical, canonical.is_canonical,
-                      "canonical capture: manifest.json + frames/"),
-        CaptureFormat("hm3d_360", hm3d360.read_hm3d_360, hm3d360.is_hm3d_360,
-                      "NNNNN_{rgb.png,depth.png,pose.txt} equirect panoramas (habitat-sim, OpenGL camera)"),
-        CaptureFormat("realsee", realsee.read_realsee, realsee.is_realsee,
-                      "viewpoints.txt + viewpoints/<id>/{panoImage_1600.jpg,depth_image.png,extrinsics.txt}"),
-        CaptureFormat("pinhole_dir", pinhole_dir.read_pinhole_dir, pinhole_dir.is_pinhole_dir,
-                      "ScanNet export: color/, depth/, pose/, intrinsic/intrinsic_depth.txt"),
+        CaptureFormat(
+            "image2sim",
+            canonical.read_canonical,
+            canonical.is_canonical,
+            "canonical capture: manifest.json + frames/",
+        ),
+        CaptureFormat(
+            "hm3d_360",
+            hm3d360.read_hm3d_360,
+            hm3d360.is_hm3d_360,
+            "NNNNN_{rgb.png,depth.png,pose.txt} equirect panoramas (habitat-sim, OpenGL camera)",
+        ),
+        CaptureFormat(
+            "realsee",
+            realsee.read_realsee,
+            realsee.is_realsee,
+            "viewpoints.txt + viewpoints/<id>/{panoImage_1600.jpg,depth_image.png,extrinsics.txt}",
+        ),
+        CaptureFormat(
+            "pinhole_dir",
+            pinhole_dir.read_pinhole_dir,
+            pinhole_dir.is_pinhole_dir,
+            "ScanNet export: color/, depth/, pose/, intrinsic/intrinsic_depth.txt",
+        ),
     ]
     for fmt in builtins:
         _FORMATS.setdefault(fmt.name, fmt)
@@ -112,12 +128,16 @@ def open_capture(path: str | Path, format: str | None = None, *, strict: bool = 
     if format is None:
         format = detect_format(path)
     elif format not in _FORMATS:
-        raise CaptureError(f"{path}: unknown capture format {format!r}; known formats: {_known_formats_text()}")
+        raise CaptureError(
+            f"{path}: unknown capture format {format!r}; known formats: {_known_formats_text()}"
+        )
     elif not path.exists():
         raise CaptureError(f"{path}: no such file or directory")
     try:
         return _FORMATS[format].reader(path, strict=strict, **options)
     except TypeError as err:
         if "unexpected keyword argument" in str(err):
-            raise CaptureError(f"{path}: format {format!r} does not accept option(s) {sorted(options)}: {err}") from None
+            raise CaptureError(
+                f"{path}: format {format!r} does not accept option(s) {sorted(options)}: {err}"
+            ) from None
         raise

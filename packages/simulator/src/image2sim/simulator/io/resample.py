@@ -25,9 +25,7 @@ def planar_rel_tol(angular_step: float, max_incidence_deg: float = 75.0) -> floa
     return float(np.tan(np.radians(max_incidence_deg)) * np.sqrt(2.0) * angular_step)
 
 
-def bilinear_taps(
-    coord: np.ndarray, size: int, wrap: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bilinear_taps(coord: np.ndarray, size: int, wrap: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Indices (i0, i1) and weight of i1 for continuous coordinates along one axis of ``size`` pixels.
 
     ``wrap`` makes the axis periodic (panorama longitude); otherwise indices clamp to the border.

@@ -10,7 +10,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.simulator.io.records import CaptureError
 
 __all__ = [
@@ -41,7 +40,9 @@ def check_rotation(rotation: np.ndarray, source: str | Path, tol: float = ROTATI
         raise CaptureError(f"{source}: rotation contains non-finite values (inf/NaN)")
     ortho_err = float(np.max(np.abs(r.T @ r - np.eye(3))))
     if ortho_err > tol:
-        raise CaptureError(f"{source}: rotation is not orthonormal (max |R^T R - I| = {ortho_err:.3g} > {tol:g})")
+        raise CaptureError(
+            f"{source}: rotation is not orthonormal (max |R^T R - I| = {ortho_err:.3g} > {tol:g})"
+        )
     det = float(np.linalg.det(r))
     if abs(det - 1.0) > tol:
         raise CaptureError(f"{source}: rotation has determinant {det:.6g} (a reflection, expected +1)")
@@ -102,7 +103,9 @@ def check_same_size(rgb: np.ndarray, depth: np.ndarray, source: str | Path) -> N
 def check_equirect_size(height: int, width: int, source: str | Path) -> None:
     """An equirectangular panorama spans 360 x 180 degrees, so W = 2H."""
     if width != 2 * height:
-        raise CaptureError(f"{source}: not an equirectangular panorama: {width}x{height} (WxH), expected W = 2H")
+        raise CaptureError(
+            f"{source}: not an equirectangular panorama: {width}x{height} (WxH), expected W = 2H"
+        )
 
 
 def read_matrix_txt(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
