@@ -268,6 +268,9 @@ def test_aggregate_counts_and_means() -> None:
     assert rep.metrics["success"].mean == pytest.approx(2 / 3) and rep.metrics["success"].count == 3
     assert rep.metrics["ndtw"].mean == pytest.approx(0.6)
     assert rep.metrics["ndtw"].count == 2 and rep.metrics["ndtw"].missing == 1
+    # Standard error: sample std / sqrt(n); success values 1, 0, 1 -> std 0.57735, sem 0.33333.
+    assert rep.metrics["success"].sem == pytest.approx(math.sqrt(1 / 3) / math.sqrt(3))
+    assert aggregate(rs[:1]).metrics["success"].sem is None
     d = rep.to_dict()
     assert d["protocol"]["name"] == "vlnce" and d["metrics"]["ndtw"]["count"] == 2
 

@@ -56,7 +56,9 @@ def test_write_aggregate(tmp_path: Path) -> None:
     path = write_aggregate(tmp_path / "agg.json", report, {"split": "val_seen"})
     protocol, payload = read_result_file(path)
     assert protocol == VLNCE and payload["num_episodes"] == 4 and payload["split"] == "val_seen"
-    assert payload["metrics"]["ndtw"] == {"mean": pytest.approx(0.2), "count": 3, "missing": 1}
+    ndtw_sem = 0.1 / math.sqrt(3)  # values 0.1, 0.2, 0.3: sample std 0.1
+    expected = {"mean": pytest.approx(0.2), "count": 3, "missing": 1, "sem": pytest.approx(ndtw_sem)}
+    assert payload["metrics"]["ndtw"] == expected
 
 
 def test_episode_log_resume_matches_uninterrupted(tmp_path: Path) -> None:

@@ -81,6 +81,7 @@ def dvc_metrics(report: AggregateReport) -> dict[str, Any]:
     for name, s in report.metrics.items():
         out[name] = None if s.mean is None or not math.isfinite(s.mean) else s.mean
         out[f"{name}_count"] = s.count
+        out[f"{name}_sem"] = s.sem
     return out
 
 
@@ -106,7 +107,10 @@ def read_aggregate(path: str | Path) -> tuple[str, AggregateReport]:
     try:
         metrics = {
             k: MetricSummary(
-                None if v["mean"] is None else float(v["mean"]), int(v["count"]), int(v["missing"])
+                None if v["mean"] is None else float(v["mean"]),
+                int(v["count"]),
+                int(v["missing"]),
+                None if v.get("sem") is None else float(v["sem"]),
             )
             for k, v in payload["metrics"].items()
         }

@@ -557,6 +557,19 @@ class MetricSummary:
     """Episodes that entered the mean."""
     missing: int
     """Episodes where the metric is n/a (``None``); never silently dropped: they are counted here."""
+    sem: float | None = None
+    """Standard error of the mean (sample std / sqrt(count)); ``None`` for fewer than 2 episodes."""
+
+
+def summarize(values: Sequence[float], missing: int = 0) -> MetricSummary:
+    """Mean, count and standard error of finite ``values``."""
+    n = len(values)
+    if n == 0:
+        return MetricSummary(None, 0, missing, None)
+    arr = np.asarray(values, dtype=np.float64)
+    mean = float(arr.mean())
+    sem = float(arr.std(ddof=1) / math.sqrt(n)) if n > 1 and math.isfinite(mean) else None
+    return MetricSummary(mean, n, missing, sem)
 
 
 @dataclass(frozen=True)
@@ -576,7 +589,8 @@ class AggregateReport:
             "protocol": self.protocol.to_dict(),
             "num_episodes": self.num_episodes,
             "metrics": {
-                k: {"mean": s.mean, "count": s.count, "missing": s.missing} for k, s in self.metrics.items()
+                k: {"mean": s.mean, "count": s.count, "missing": s.missing, "sem": s.sem}
+                for k, s in self.metrics.items()
             },
         }
 
@@ -616,8 +630,5 @@ def aggregate(results: Sequence[EpisodeResult], allow_inf: Collection[str] = ())
                 raise AggregationError(f"episode {r.episode_id}: metric {k!r} is {v}; non-finite values are "
                                        "errors, not silently dropped")
             columns[k].append(v)
-    summaries = {
-        k: MetricSummary(float(np.mean(columns[k])) if columns[k] else None, len(columns[k]), missing[k])
-        for k in keys
-    }
+    summaries = {k: summarize(columns[k], missing[k]) for k in keys}
     return AggregateReport(protocol, len(results), summaries)
