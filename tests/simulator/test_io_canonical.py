@@ -159,7 +159,19 @@ def test_reader_manifest_errors(written: Path) -> None:
     _edit_manifest(written, version=1, num_frames=5)
     with pytest.raises(CaptureError, match=r"manifest.json: num_frames = 5"):
         read_canonical(written)
-    _edit_manifest(written, num_frames=3, camera={"model": "fisheye"})
+    _edit_manifest(written, num_frames=3, metadata=[1])
+    with pytest.raises(CaptureError, match=r"field 'metadata' must be a JSON object"):
+        read_canonical(written)
+    _edit_manifest(written, metadata={}, has_semantics="yes")
+    with pytest.raises(CaptureError, match=r"field 'has_semantics' must be true or false"):
+        read_canonical(written)
+    _edit_manifest(written, has_semantics=False, format="other")
+    with pytest.raises(CaptureError, match=r"field 'format' is 'other'"):
+        read_canonical(written)
+    _edit_manifest(written, format="image2sim-capture", frame_ids=["00000", "00000", "00002"])
+    with pytest.raises(CaptureError, match=r"field 'frame_ids' has duplicates"):
+        read_canonical(written)
+    _edit_manifest(written, frame_ids=["00000", "00001", "00002"], camera={"model": "fisheye"})
     with pytest.raises(CaptureError, match=r"field 'camera'.*unknown camera model"):
         read_canonical(written)
     (written / "manifest.json").write_text("{not json")

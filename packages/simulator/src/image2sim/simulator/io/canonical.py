@@ -283,6 +283,10 @@ def _load_manifest(path: Path) -> dict:
         raise CaptureError(
             f"{mpath}: unsupported version {manifest['version']!r} (this reader knows {FORMAT_VERSION})"
         )
+    if not isinstance(manifest["metadata"], dict):
+        raise CaptureError(f"{mpath}: field 'metadata' must be a JSON object")
+    if not isinstance(manifest["has_semantics"], bool):
+        raise CaptureError(f"{mpath}: field 'has_semantics' must be true or false")
     ids = manifest["frame_ids"]
     if not isinstance(ids, list) or not all(isinstance(i, str) and _SAFE_ID.match(i) for i in ids):
         raise CaptureError(f"{mpath}: field 'frame_ids' must be a list of safe file-name strings")
