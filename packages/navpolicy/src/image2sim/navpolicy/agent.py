@@ -41,11 +41,12 @@ def select_context_frames(n: int, sparse: int, dense: int) -> list[int]:
     if n <= sparse + dense:
         return list(range(n))
     history = n - dense
+    if sparse <= 0:
+        return list(range(history, n))
     stride = 1
     while -(-history // stride) > sparse:
         stride *= 2
-    sparse_idx = list(range(0, history, stride)) if sparse > 0 else []
-    return sparse_idx + list(range(history, n))
+    return list(range(0, history, stride)) + list(range(history, n))
 
 
 @dataclass
