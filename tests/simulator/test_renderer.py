@@ -318,6 +318,35 @@ def test_lpips_missing_weights_warn_once_and_disable(tmp_path, caplog):
     assert sum("LPIPS weights not found" in r.message for r in caplog.records) == 1
 
 
+def test_unpremultiply_inverts_compositing():
+    from image2sim.simulator.renderer.condition import unpremultiply
+
+    colour = torch.rand(1, 3, 2, 3)
+    rng = torch.rand(1, 1, 2, 3) * 4 + 1
+    alpha = torch.tensor([[[[1.0, 0.5, 0.0], [0.25, 1e-5, 0.9]]]])
+    bg = 0.3
+    composited = alpha * colour + (1 - alpha) * bg
+    c, d = unpremultiply(composited, alpha * rng, alpha, background=bg)
+    ok = alpha >= 1e-3
+    assert torch.allclose(c[ok.expand_as(c)], colour[ok.expand_as(c)], atol=1e-5)
+    assert torch.allclose(d[ok], rng[ok], atol=1e-5)
+    assert (c[~ok.expand_as(c)] == 0).all() and (d[~ok] == 0).all()
+
+
+def test_metrics_ground_truth():
+    from image2sim.simulator.renderer.metrics import abs_rel, psnr_per_image, ssim_per_image
+
+    a = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    b = (a + 0.1).clamp(0, 1)
+    mse = (a - b).pow(2).flatten(1).mean(1).double()
+    assert torch.allclose(psnr_per_image(a, b), -10 * torch.log10(mse))
+    assert torch.allclose(ssim_per_image(a, a), torch.ones(2, dtype=torch.float64))
+    assert (ssim_per_image(a, b) < 1).all()
+    gt = torch.tensor([[[[2.0, 0.0], [4.0, 1.0]]]])
+    pred = torch.tensor([[[[1.0, 9.0], [4.0, 1.5]]]])
+    assert torch.allclose(abs_rel(pred, gt), torch.tensor([(0.5 + 0.0 + 0.5) / 3], dtype=torch.float64))
+
+
 # --- overfit (slow) -------------------------------------------------------------------------
 @pytest.mark.slow
 def test_tiny_model_overfits_one_target():
@@ -325,7 +354,7 @@ def test_tiny_model_overfits_one_target():
     torch.manual_seed(0)
     cfg = small_cfg(
         height=32, width=64,
-        decoder={"widths": [16, 16, 24, 32], "bottleneck_dim": 32, "time_dim": 32},
+        decoder={"widths": [16, 16, 24, 32], "bottleneck_dim": 32, "time_dim": 32, "blocks_per_level": [1, 1, 1, 1]},
         aligner={"stem_widths": [8, 8, 16, 16], "token_dim": 32},
     )
     model = PixelFlowRenderer(cfg)
@@ -343,7 +372,7 @@ def test_tiny_model_overfits_one_target():
     )
     noise = torch.randn(1, 4, h, w, generator=g)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for step in range(400):
+    for step in range(600):
         r, t = mf.sample_time_pairs(1, 0.5, generator=g)
         out = model.losses(cond, target_rgb, target_depth, noise, r, t)
         loss = out["flow"] + 10.0 * out["rec"]

@@ -19,6 +19,17 @@ def sim_cameras() -> None:
     typer.echo(conventions.__doc__)
 
 
+def _register_renderer_commands() -> None:
+    # Lazy: the renderer (torch, lightning) is imported only when its command runs.
+    from image2sim.simulator.renderer import cli as renderer_cli
+
+    sim_app.command("train")(renderer_cli.train_command)
+    sim_app.command("renderer-eval")(renderer_cli.eval_command)
+
+
+_register_renderer_commands()
+
+
 def build_app() -> typer.Typer:
     app = typer.Typer(
         help="Image2Sim: posed RGB-D captures -> neural simulators -> navigation data and policies.",

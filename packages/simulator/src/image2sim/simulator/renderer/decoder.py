@@ -164,7 +164,7 @@ class RenderingDecoder(nn.Module):
         nb = cfg.blocks_per_level
         self.stem = PanoConv2d(CONDITION_CHANNELS + STATE_CHANNELS, w[0], 3, panoramic=panoramic)
         self.enc_blocks = nn.ModuleList(
-            nn.Sequential(*[PanoBlock(w[i], cfg.kernel_size, panoramic=panoramic) for _ in range(nb)])
+            nn.Sequential(*[PanoBlock(w[i], cfg.kernel_size, cfg.expansion, panoramic) for _ in range(nb[i])])
             for i in range(4)
         )
         outs = w[1:] + [cfg.bottleneck_dim]
@@ -190,7 +190,7 @@ class RenderingDecoder(nn.Module):
             AlphaGatedSkip(w[3 - j], w[3 - j], cfg.gate_bias, gated_skips, panoramic) for j in range(4)
         )
         self.dec_blocks = nn.ModuleList(
-            nn.Sequential(*[PanoBlock(w[3 - j], cfg.kernel_size, panoramic=panoramic) for _ in range(nb)])
+            nn.Sequential(*[PanoBlock(w[3 - j], cfg.kernel_size, cfg.expansion, panoramic) for _ in range(nb[3 - j])])
             for j in range(4)
         )
         self.pyramid = AlphaPyramid(4)

@@ -1,0 +1,134 @@
+"""Benchmark the pixel-flow renderer: one-step vs N-step rendering, and one training step.
+
+Cases (``tiny`` config, 128x256, batch 1, untrained weights: speed does not depend on them):
+splat-only (``no_pixel_flow``: no network, the reference floor), 1, 2, 4 and 8 sampler steps,
+and one MeanFlow training step (JVP + one-step path + backward). Ratios are against the 4-step
+sampler measured in the same run (the issue asks for one step >= 3x faster than four).
+
+Writes ``reports/bench_renderer.json`` and ``.md`` (median of several runs after a warm-up,
+hardware string, thread count). Run: ``.venv/bin/python benchmarks/bench_renderer.py [--threads N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+
+from image2sim.simulator.geometry.cameras import EquirectCamera
+from image2sim.simulator.renderer.condition import build_condition
+from image2sim.simulator.renderer.config import renderer_config_from_dict, tiny
+from image2sim.simulator.renderer.model import PixelFlowRenderer
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORTS = ROOT / "reports"
+
+
+def hardware() -> str:
+    cpu = platform.processor() or "unknown cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} "
+            f"({torch.get_num_threads()} threads); 1-min load {load:.1f} at start")
+
+
+def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
+    """Median wall time (s) of ``repeats`` runs after one warm-up, and all samples."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared 2-core box)")
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    cfg = tiny()
+    h, w = cfg.height, cfg.width
+    g = torch.Generator().manual_seed(0)
+    cond = build_condition(
+        torch.randn(1, 16, h, w, generator=g), torch.rand(1, 3, h, w, generator=g),
+        torch.rand(1, 1, h, w, generator=g) * 5, torch.rand(1, 1, h, w, generator=g), EquirectCamera(h, w).ray_map(),
+    )
+    noise = torch.randn(1, 4, h, w, generator=g)
+    model = PixelFlowRenderer(cfg).eval()
+    splat = PixelFlowRenderer(renderer_config_from_dict({"ablation": {"no_pixel_flow": True}}, preset="tiny"))
+    rows = []
+    started = hardware()
+    t_splat, s_splat = timeit(lambda: splat.render(cond, noise=noise), args.repeats)
+    rows.append({"case": "splat-only (no network)", "steps": 0, "median_s": t_splat, "samples_s": s_splat})
+    for steps in (1, 2, 4, 8):
+        t, s = timeit(lambda steps=steps: model.render(cond, steps=steps, noise=noise), args.repeats)
+        rows.append({"case": f"pixel flow, {steps} step(s)", "steps": steps, "median_s": t, "samples_s": s})
+    ref = next(r["median_s"] for r in rows if r["steps"] == 4)
+    for r in rows:
+        r["fps"] = 1.0 / r["median_s"] if r["median_s"] > 0 else float("inf")
+        r["speedup_vs_4_steps"] = ref / r["median_s"] if r["median_s"] > 0 else float("inf")
+
+    train = PixelFlowRenderer(cfg).train()
+    target_rgb, target_depth = torch.rand(2, 3, h, w, generator=g), torch.rand(2, 1, h, w, generator=g) * 5
+    cond2, noise2 = cond.expand(2, -1, -1, -1), noise.expand(2, -1, -1, -1)
+    r_t, t_t = torch.tensor([0.2, 0.7]), torch.tensor([0.7, 0.7])
+
+    def train_step():
+        out = train.losses(cond2, target_rgb, target_depth, noise2, r_t, t_t)
+        (out["flow"] + out["rec"]).backward()
+        train.zero_grad(set_to_none=True)
+
+    t_train, s_train = timeit(train_step, max(3, args.repeats // 2))
+    result = {
+        "benchmark": "renderer",
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "hardware": started,
+        "config": "tiny (128x256), batch 1 render, batch 2 train step",
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "reference": "pixel flow, 4 steps",
+        "render": rows,
+        "train_step_batch2_s": t_train,
+        "train_step_samples_s": s_train,
+    }
+    REPORTS.mkdir(exist_ok=True)
+    tmp = REPORTS / ".bench_renderer.json.tmp"
+    tmp.write_text(json.dumps(result, indent=2))
+    tmp.replace(REPORTS / "bench_renderer.json")
+    lines = [
+        "# Renderer speed (tiny, 128x256)",
+        "",
+        f"Hardware: {started}. {result['parameters']:,} parameters. Median of {args.repeats} runs after a warm-up; "
+        "ratio against the 4-step sampler in the same run.",
+        "",
+        "| case | median (ms) | FPS | speed-up vs 4 steps |",
+        "|---|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['case']} | {1000 * r['median_s']:.1f} | {r['fps']:.1f} | {r['speedup_vs_4_steps']:.2f}x |")
+    lines += ["", f"One MeanFlow training step (batch 2: JVP + one-step path + backward): {t_train:.2f} s.", ""]
+    tmp = REPORTS / ".bench_renderer.md.tmp"
+    tmp.write_text("\n".join(lines))
+    tmp.replace(REPORTS / "bench_renderer.md")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
