@@ -320,3 +320,40 @@ def test_captures_tour_several_rooms():
     assert len(set(rooms.tolist())) >= 3
     steps = np.linalg.norm(np.diff([v.position[:2] for v in views], axis=0), axis=1)
     assert (steps <= cfg.capture.spacing_max + 1e-9).all()
+
+
+def test_inspect_and_fuse_read_synthetic_scenes_without_special_cases(tmp_path):
+    from image2sim.dataengine.cli import app
+
+    runner = CliRunner()
+    cfg_file = tmp_path / "synth.json"
+    cfg_file.write_text(json.dumps({"capture": {"views": 3, "height": 32, "width": 64}, "noise": "middle"}))
+    made = runner.invoke(
+        app,
+        [
+            "synth",
+            "--preset",
+            "tiny",
+            "--config",
+            str(cfg_file),
+            "--scenes",
+            "1",
+            "--out",
+            str(tmp_path / "syn"),
+        ],
+    )
+    assert made.exit_code == 0, made.output
+    scene_dir = tmp_path / "syn" / "scene_000"
+    manifest = json.loads((scene_dir / "manifest.json").read_text())
+    assert manifest["metadata"]["noise"] == "middle" and manifest["num_frames"] == 3
+    inspected = runner.invoke(app, ["inspect", str(scene_dir)])
+    assert inspected.exit_code == 0, inspected.output
+    fused = runner.invoke(app, ["fuse", str(scene_dir), "--out", str(tmp_path / "cloud.ply")])
+    assert fused.exit_code == 0, fused.output
+    assert (tmp_path / "cloud.ply").stat().st_size > 1000
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"capture": {"viewz": 3}}))
+    rejected = runner.invoke(
+        app, ["synth", "--preset", "tiny", "--config", str(bad), "--out", str(tmp_path / "y")]
+    )
+    assert rejected.exit_code == 2 and "viewz" in rejected.output

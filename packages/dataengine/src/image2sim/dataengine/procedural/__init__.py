@@ -36,7 +36,7 @@ _EXPORTS = {
         "preset",
         "synth_config_from_dict",
     ),
-    "objects": ("CATEGORIES", "CATEGORY_BY_NAME", "STRUCTURE_CATEGORIES"),
+    "objects": ("CATEGORIES", "CATEGORY_BY_NAME", "STRUCTURE_CATEGORIES", "WALKABLE_CATEGORY_IDS"),
     "render": ("render",),
     "scene": ("ProceduralScene", "generate_scene"),
 }

@@ -20,6 +20,7 @@ __all__ = [
     "CATEGORIES",
     "CATEGORY_BY_NAME",
     "STRUCTURE_CATEGORIES",
+    "WALKABLE_CATEGORY_IDS",
     "ROOM_PROGRAMS",
     "SMALL_BY_ROOM",
     "Part",
@@ -119,6 +120,8 @@ CATEGORIES: tuple[Category, ...] = (
 builder, material family, "small" flag (long-tail items on surfaces), walkable flag (rugs)."""
 
 CATEGORY_BY_NAME = {c.name: c for c in CATEGORIES}
+WALKABLE_CATEGORY_IDS = frozenset([STRUCTURE_CATEGORIES["floor"]] + [c.id for c in CATEGORIES if c.walkable])
+"""Category ids an agent may stand on (floor and rugs): use these to find floor pixels in semantics."""
 CATEGORY_BY_ID = {c.id: c for c in CATEGORIES}
 
 ROOM_PROGRAMS: dict[str, tuple[tuple[str, int, int], ...]] = {
