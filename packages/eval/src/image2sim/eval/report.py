@@ -1,4 +1,4 @@
-"""Navigation reports: Markdown tables laid out like the paper's Table 2, DVC metrics, result files.
+"""Reports: Markdown tables laid out like the paper's Table 2 (navigation) and Table 1 (rendering).
 
 Every mean is printed with its protocol, and with its episode count whenever fewer episodes than the
 row's total entered it (metrics that are n/a for some episodes), so no episode disappears silently.
@@ -14,6 +14,7 @@ from typing import Any
 
 from image2sim.eval.metrics.nav import AggregateReport, MetricSummary
 from image2sim.eval.protocols import Protocol
+from image2sim.eval.render_scores import RenderCell
 from image2sim.eval.results import read_result_file, write_aggregate, write_json_atomic
 
 
@@ -118,3 +119,44 @@ def read_aggregate(path: str | Path) -> tuple[str, AggregateReport]:
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{path}: not an aggregate result ({type(exc).__name__}: {exc})") from exc
     return str(payload.get("label", Path(path).parent.name)), report
+
+
+RENDER_COLUMNS: tuple[Column, ...] = (
+    Column("lpips", "LPIPS↓", 1.0, 3),
+    Column("psnr", "PSNR↑", 1.0, 2),
+    Column("ssim", "SSIM↑", 1.0, 3),
+)
+"""The paper's Table 1 image metrics (FPS is appended per setting)."""
+
+
+def render_table_markdown(
+    rows: Sequence[tuple[str, Mapping[str, RenderCell]]],
+    settings: Sequence[str],
+    columns: Sequence[Column] = RENDER_COLUMNS,
+) -> str:
+    """Table-1 layout: one row per method, a LPIPS / PSNR / SSIM / FPS group per setting (noise tier).
+
+    LPIPS without configured weights prints ``n/a``; a missing setting prints ``–`` in its group; a
+    mean over fewer views than the cell's total shows ``(n=…)``.
+    """
+    header = [""]
+    for s in settings:
+        header += [f"{c.header} ({s})" for c in columns] + [f"FPS↑ ({s})"]
+    lines = ["| " + " | ".join(header) + " |", "|---" + "|---:" * (len(header) - 1) + "|"]
+    hardware: set[str] = set()
+    for label, cells in rows:
+        out = [label]
+        for s in settings:
+            cell = cells.get(s)
+            if cell is None:
+                out += ["–"] * (len(columns) + 1)
+                continue
+            out += [format_cell(cell.metrics.get(c.metric), cell.num_views, c) for c in columns]
+            out.append("n/a" if cell.fps is None else f"{cell.fps:.1f}")
+            if cell.hardware:
+                hardware.add(cell.hardware)
+        lines.append("| " + " | ".join(out) + " |")
+    text = "\n".join(lines) + "\n"
+    if hardware:
+        text += "\nFPS hardware: " + "; ".join(sorted(hardware)) + "\n"
+    return text

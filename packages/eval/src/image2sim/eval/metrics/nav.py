@@ -595,40 +595,56 @@ class AggregateReport:
         }
 
 
-def aggregate(results: Sequence[EpisodeResult], allow_inf: Collection[str] = ()) -> AggregateReport:
-    """Average per-episode metrics of one protocol, with an episode count for every mean.
+def summarize_records(
+    records: Sequence[tuple[str, Mapping[str, float | None]]],
+    allow_inf: Collection[str] = (),
+    kind: str = "episode",
+) -> dict[str, MetricSummary]:
+    """Per-metric :class:`MetricSummary` over ``(id, metrics)`` records, with the no-silent-drop rules.
 
-    Raises :class:`AggregationError` on an empty input, duplicate episode ids, episodes whose metric
-    keys differ, and non-finite values (naming the episode and metric), and
-    :class:`~image2sim.eval.protocols.ProtocolMismatchError` when protocols differ. Metrics named in
+    Raises :class:`AggregationError` on an empty input, duplicate ids, records whose metric keys
+    differ, and non-finite values (naming the ``kind`` and id and the metric). Metrics named in
     ``allow_inf`` may be infinite (e.g. PSNR of identical images is +inf, and so is the mean then);
-    they still refuse NaN.
+    they still refuse NaN. ``None`` values are n/a: counted as missing, never as 0.
     """
-    if not results:
-        raise AggregationError("no episode results to aggregate")
-    protocol = ensure_same_protocol(r.protocol for r in results)
-    keys = list(results[0].metrics)
+    if not records:
+        raise AggregationError(f"no {kind} results to aggregate")
+    first_id, first = records[0]
+    keys = list(first)
     seen: set[str] = set()
     columns: dict[str, list[float]] = {k: [] for k in keys}
     missing = dict.fromkeys(keys, 0)
-    for r in results:
-        if r.episode_id in seen:
-            raise AggregationError(f"episode {r.episode_id}: appears more than once")
-        seen.add(r.episode_id)
-        if set(r.metrics) != set(keys):
+    for rid, metrics in records:
+        if rid in seen:
+            raise AggregationError(f"{kind} {rid}: appears more than once")
+        seen.add(rid)
+        if set(metrics) != set(keys):
             raise AggregationError(
-                f"episode {r.episode_id}: metric keys {sorted(r.metrics)} differ from "
-                f"episode {results[0].episode_id}'s {sorted(keys)}"
+                f"{kind} {rid}: metric keys {sorted(metrics)} differ from {kind} {first_id}'s {sorted(keys)}"
             )
         for k in keys:
-            v = r.metrics[k]
+            v = metrics[k]
             if v is None:
                 missing[k] += 1
                 continue
             v = float(v)
             if math.isnan(v) or (math.isinf(v) and k not in allow_inf):
-                raise AggregationError(f"episode {r.episode_id}: metric {k!r} is {v}; non-finite values are "
-                                       "errors, not silently dropped")
+                raise AggregationError(
+                    f"{kind} {rid}: metric {k!r} is {v}; non-finite values are errors, not silently dropped"
+                )
             columns[k].append(v)
-    summaries = {k: summarize(columns[k], missing[k]) for k in keys}
+    return {k: summarize(columns[k], missing[k]) for k in keys}
+
+
+def aggregate(results: Sequence[EpisodeResult], allow_inf: Collection[str] = ()) -> AggregateReport:
+    """Average per-episode metrics of one protocol, with an episode count for every mean.
+
+    Applies :func:`summarize_records` (empty input, duplicate ids, key mismatches and non-finite
+    values are errors naming the episode) and raises
+    :class:`~image2sim.eval.protocols.ProtocolMismatchError` when protocols differ.
+    """
+    if not results:
+        raise AggregationError("no episode results to aggregate")
+    protocol = ensure_same_protocol(r.protocol for r in results)
+    summaries = summarize_records([(r.episode_id, r.metrics) for r in results], allow_inf, "episode")
     return AggregateReport(protocol, len(results), summaries)
