@@ -1,6 +1,7 @@
 """Navigation metrics (pure numpy): exact DTW, nDTW, sDTW, SPL, episode-level measures, aggregation.
 
-Definitions follow VLN-CE / Habitat (Anderson et al. 2018 for SPL, Ilharco et al. 2019 for nDTW):
+Definitions follow VLN-CE / Habitat (SPL: Anderson et al. 2018; nDTW: Magalhães et al. 2019,
+arXiv:1907.05446):
 
 * ``ndtw = exp(-DTW(path, reference) / (len(reference) * threshold))`` with **exact** DTW over
   Euclidean point distances (VLN-CE uses the approximate ``fastdtw``; we do not).
