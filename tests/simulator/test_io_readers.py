@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.io import (
@@ -20,8 +22,9 @@ from image2sim.simulator.io import (
     write_capture,
 )
 from image2sim.simulator.io.fusion import backproject_frame
-from image2sim.simulator.io.hm3d360 import hm3d_pixel_direction_gl
-from image2sim.simulator.io.realsee import realsee_pixel_direction
+from image2sim.simulator.io.hm3d360 import hm3d_pixel_direction_gl, hm3d_pose_to_cam_to_world
+from image2sim.simulator.io.realsee import realsee_pixel_direction, realsee_pose_to_cam_to_world
+from scipy.spatial.transform import Rotation
 
 from .test_io_room import (
     FACE_COLOURS,
@@ -64,6 +67,31 @@ def test_realsee_mapping_is_half_a_pixel_off_ours() -> None:
     np.testing.assert_allclose(theirs, at_index, atol=1e-12)  # their index u == our continuous u
     at_centre = cam.pixel_to_ray(torch.from_numpy(u + 0.5), torch.from_numpy(v + 0.5)).numpy()
     assert np.min(np.linalg.norm(theirs - at_centre, axis=-1)[1:]) > 0.04  # so a correction is needed
+
+
+@given(
+    st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
+    st.lists(st.floats(-50.0, 50.0), min_size=3, max_size=3),
+)
+def test_hm3d_pose_conversion_matches_scipy(q: list[float], t: list[float]) -> None:
+    q_xyzw = np.array(q) / np.linalg.norm(q)
+    pose = hm3d_pose_to_cam_to_world(np.array([*t, *q_xyzw]), "p")
+    r_gl = Rotation.from_quat(q_xyzw).as_matrix()
+    # OpenCV camera axes in the world: x = GL x, y = -GL y (down), z = -GL z (forward).
+    np.testing.assert_allclose(pose[:3, :3], r_gl * np.array([1.0, -1.0, -1.0]), atol=1e-12)
+    np.testing.assert_allclose(pose[:3, 3], t)
+    assert np.linalg.det(pose[:3, :3]) == pytest.approx(1.0)
+
+
+def test_realsee_world_conversion_maps_up_to_up() -> None:
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, -2.0, 3.0]  # Y-down: 2 m *above* the origin
+    ours = realsee_pose_to_cam_to_world(pose, "p")
+    np.testing.assert_allclose(ours[:3, 3], [1.0, 3.0, 2.0])
+    # An identity Realsee camera: its down axis (+y, world-down) must point down in ours (-Z), and
+    # its forward axis (Realsee world +z) becomes our +Y, since (x, y, z) -> (x, z, -y).
+    np.testing.assert_allclose(ours[:3, 1], [0.0, 0.0, -1.0])
+    np.testing.assert_allclose(ours[:3, 2], [0.0, 1.0, 0.0])
 
 
 # --- ground truth through each reader ---------------------------------------------------------
