@@ -182,3 +182,27 @@ def test_render_is_deterministic_and_rejects_bad_poses(furnished):
     bad[0, 3] = np.nan
     with pytest.raises(ValueError, match="finite"):
         render(furnished, camera, bad)
+
+
+@pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+def test_embree_misses_are_recast_exactly(furnished):
+    """Rays Embree reports as misses (float32 edge leaks) are re-cast by the exact slab test."""
+    from image2sim.dataengine.procedural.raycast import EmbreeCaster
+
+    scene = furnished
+    caster = EmbreeCaster(scene.box_lo, scene.box_hi)
+    camera = EquirectCamera(16, 32)
+    pose = _views(scene, 1, seed=5)[0]
+    _, dirs = _world_rays(camera, pose)
+    t_ok, box_ok, _ = caster.cast(pose[:3, 3], dirs)
+    real_run = caster._scene.run
+
+    def leaky_run(origins, directions, *args, **kwargs):
+        tri = np.array(real_run(origins, directions, *args, **kwargs))
+        tri[::3] = -1
+        return tri
+
+    caster._scene = type("Leaky", (), {"run": staticmethod(leaky_run)})()
+    t, box, _ = caster.cast(pose[:3, 3], dirs)
+    assert (box >= 0).all()
+    np.testing.assert_allclose(t, t_ok, atol=1e-9)

@@ -257,10 +257,11 @@ class SynthConfig:
                 f"layout.corridor_width ({lay.corridor_width} m) leaves no navigable floor for an agent of radius "
                 f"{cap.agent_radius} m"
             )
-        if lay.door_width_min <= 2 * cap.agent_radius:
+        if lay.door_width_min <= 2 * cap.agent_radius + 2 * cap.grid_resolution:
             raise ConfigError(
-                f"layout.door_width_min ({lay.door_width_min} m) must exceed the agent diameter "
-                f"(2 * capture.agent_radius = {2 * cap.agent_radius} m) or rooms cannot connect"
+                f"layout.door_width_min ({lay.door_width_min} m) must exceed the agent diameter plus two grid cells "
+                f"(2 * capture.agent_radius + 2 * capture.grid_resolution = "
+                f"{2 * cap.agent_radius + 2 * cap.grid_resolution:g} m) or rooms cannot connect"
             )
         for name in ("corridor_probability", "extra_door_probability"):
             if not 0.0 <= getattr(lay, name) <= 1.0:

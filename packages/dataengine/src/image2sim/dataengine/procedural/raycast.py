@@ -186,8 +186,17 @@ class EmbreeCaster:
         )
         box = np.where(tri >= 0, tri // 12, -1)
         face = np.where(tri >= 0, (tri % 12) // 2, 0)
+        miss = np.nonzero(box < 0)[0]
+        if miss.size:
+            # float32 triangles can let a ray slip through a shared edge; re-cast those exactly.
+            _, box[miss], face[miss] = self._fallback().cast(origin, dirs[miss])
         t = exact_face_distance(origin, dirs, self.lo, self.hi, box, face)
         return t, box, face
+
+    def _fallback(self) -> BoxCaster:
+        if getattr(self, "_exact", None) is None:
+            self._exact = BoxCaster(self.lo, self.hi, cull=False)
+        return self._exact
 
 
 def make_caster(kind: str, lo: np.ndarray, hi: np.ndarray):
