@@ -17,8 +17,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.cameras import EquirectCamera
+from image2sim.simulator.geometry.se3 import quat_to_matrix, quat_xyzw_to_wxyz
 from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.validation import (
@@ -28,7 +30,6 @@ from image2sim.simulator.io.validation import (
     check_same_size,
     read_matrix_txt,
 )
-from scipy.spatial.transform import Rotation
 
 __all__ = ["FORMAT", "is_hm3d_360", "read_hm3d_360", "hm3d_pose_to_cam_to_world", "hm3d_pixel_direction_gl"]
 
@@ -55,7 +56,8 @@ def hm3d_pose_to_cam_to_world(values: np.ndarray, source: str | Path) -> np.ndar
         raise CaptureError(f"{source}: translation contains non-finite values (inf/NaN)")
     quat_xyzw = check_quaternion(values[3:], source)
     pose_gl = np.eye(4)
-    pose_gl[:3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()  # SciPy order is scalar-last, like the file
+    q_wxyz = quat_xyzw_to_wxyz(torch.from_numpy(quat_xyzw))  # the file is scalar-last, our code scalar-first
+    pose_gl[:3, :3] = quat_to_matrix(q_wxyz).numpy()
     pose_gl[:3, 3] = values[:3]
     return check_pose(opengl_to_opencv_cam_to_world(pose_gl), source)
 
