@@ -79,6 +79,23 @@ inline double window_dx(const Grid& g, const TileView<double>& tv, const Window&
   return w.dx0 + i;
 }
 
+
+// Columns [i_lo, i_hi) of row offset dy whose pixels can satisfy q <= qlim: the chord of the
+// ellipse A dx^2 + 2 B dx dy + C dy^2 = qlim (A > 0), widened by a hair (the exact test follows).
+inline bool row_span(const Window& w, double A, double B, double C, double qlim, double dy, int64_t& i_lo,
+                     int64_t& i_hi) {
+  i_lo = w.i0;
+  i_hi = w.i1;
+  if (std::isnan(w.dx0)) return true;  // per-pixel wrapping: test every column
+  const double disc = B * B * dy * dy - A * (C * dy * dy - qlim);
+  if (disc < 0) return false;
+  const double sq = std::sqrt(disc), lo = (-B * dy - sq) / A, hi = (-B * dy + sq) / A;
+  const double pad = 1e-7 * (1.0 + std::abs(lo) + std::abs(hi));
+  i_lo = std::max<int64_t>(w.i0, (int64_t)std::ceil(lo - pad - w.dx0));
+  i_hi = std::min<int64_t>(w.i1, (int64_t)std::floor(hi + pad - w.dx0) + 1);
+  return i_lo < i_hi;
+}
+
 // Largest q at which alpha = o exp(-q/2) can still reach 1/255 (tiny margin: exact test follows).
 inline double q_limit(double o) {
   if (!(o >= kAlphaMin)) return -1.0;
@@ -119,7 +136,9 @@ void forward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* c
         const Window win = window(g, tv, mu, mv, radii[2 * gi], radii[2 * gi + 1]);
         for (int64_t j = win.j0; j < win.j1; ++j) {
           const double dy = win.dy0 + j;
-          for (int64_t i = win.i0; i < win.i1; ++i) {
+          int64_t i_lo, i_hi;
+          if (!row_span(win, A, B, C, qlim, dy, i_lo, i_hi)) continue;
+          for (int64_t i = i_lo; i < i_hi; ++i) {
             const int64_t p = j * tv.w + i;
             if (done[p]) continue;
             const double dx = window_dx(g, tv, win, mu, i);
@@ -202,12 +221,14 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
         const double qlim = q_limit(o);
         if (qlim < 0) continue;
         const Window win = window(g, tv, mu, mv, radii[2 * gi], radii[2 * gi + 1]);
-        for (int64_t j = win.j0; j < win.j1; ++j)
-        for (int64_t i = win.i0; i < win.i1; ++i) {
+        for (int64_t j = win.j0; j < win.j1; ++j) {
+        const double dy = win.dy0 + j;
+        int64_t i_lo, i_hi;
+        if (!row_span(win, A, B, C, qlim, dy, i_lo, i_hi)) continue;
+        for (int64_t i = i_lo; i < i_hi; ++i) {
           const int64_t p = j * tv.w + i;
           if (rank >= last[p]) continue;
           const double dx = window_dx(g, tv, win, mu, i);
-          const double dy = win.dy0 + j;
           const double q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy;
           if (!(q <= qlim)) continue;
           const double gauss = std::exp(-0.5 * q);
@@ -236,6 +257,7 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
           const double dqdx = 2.0 * (A * dx + B * dy), dqdy = 2.0 * (B * dx + C * dy);
           dmu -= dq * dqdx;
           dmv -= dq * dqdy;
+        }
         }
         if (!touched) continue;
         // One atomic add per (tile, Gaussian) rather than per pixel.
