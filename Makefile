@@ -15,7 +15,7 @@ export WANDB_MODE ?= offline
 
 PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/eval
 STAMP := $(VENV)/.image2sim-setup
-SETUP_INPUTS := constraints.txt requirements-dev.txt $(addsuffix /pyproject.toml,$(PACKAGES))
+SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
 .PHONY: setup test test-slow demo lint bench clean help
 
@@ -28,7 +28,7 @@ $(STAMP): $(SETUP_INPUTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade "pip>=24"
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q $(addprefix -e ,$(PACKAGES)) -r requirements-dev.txt
+	$(PIP) install -q $(addprefix -e ,$(PACKAGES)) -r requirements-dev.txt -r requirements-pipeline.txt
 	$(PY) -c "import importlib.util as u, sys; sys.exit(u.find_spec('torchvision') is not None)" \
 	  || (echo "torchvision got installed: it breaks transformers on this CPU stack" && exit 1)
 	touch $(STAMP)
