@@ -166,20 +166,38 @@ def radius_outlier_mask(points: np.ndarray, radius: float, min_neighbors: int) -
     return (np.asarray(counts) - 1) >= min_neighbors
 
 
+_KEY_BITS = 20
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+def _pack_keys(ijk: np.ndarray) -> np.ndarray:
+    """Integer voxel indices (N, 3) in [-2^19, 2^19) -> one int64 key each (fast 1D ``np.unique``)."""
+    m = np.int64(1 << _KEY_BITS)
+    q = ijk.astype(np.int64) + _KEY_OFFSET
+    if len(q) and (q.min() < 0 or q.max() >= m):
+        raise NavMapError(f"voxel indices exceed +-{_KEY_OFFSET} cells: the scene is implausibly large")
+    return (q[:, 0] * m + q[:, 1]) * m + q[:, 2]
+
+
+def _unpack_keys(keys: np.ndarray) -> np.ndarray:
+    m = np.int64(1 << _KEY_BITS)
+    return np.column_stack((keys // (m * m), (keys // m) % m, keys % m)) - _KEY_OFFSET
+
+
 def _voxel_reduce(
     ijk: np.ndarray, values: np.ndarray, weights: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Group rows by integer voxel ``ijk`` (N, 3): unique voxels, weighted mean values, summed weights."""
     if len(ijk) == 0:
-        return ijk.reshape(0, 3), values.reshape(0, values.shape[1]), weights.reshape(0)
-    uniq, inverse = np.unique(ijk, axis=0, return_inverse=True)
+        return ijk.reshape(0, 3).astype(np.int64), values.reshape(0, values.shape[1]), weights.reshape(0)
+    uniq, inverse = np.unique(_pack_keys(ijk), return_inverse=True)
     inverse = inverse.reshape(-1)
     wsum = np.bincount(inverse, weights=weights, minlength=len(uniq))
     means = np.stack(
         [np.bincount(inverse, weights=values[:, c] * weights, minlength=len(uniq)) for c in range(values.shape[1])],
         axis=1,
     ) / wsum[:, None]
-    return uniq.astype(np.int64), means, wsum
+    return _unpack_keys(uniq), means, wsum
 
 
 def _disk(radius: int) -> np.ndarray:
@@ -220,6 +238,9 @@ class NavMap:
         navigable: (F,) clearance >= safety buffer.
         obstacle_ij: (O, 2) int columns of obstacle voxels (after outlier removal).
         obstacle_xyz: (O, 3) mean position of the points of each obstacle voxel.
+        support_ij: (S, 2) columns of floor seen directly under obstacles (wall bases, risers): they
+            count as support for the unknown-space test but are not floor cells.
+        support_z: (S,) heights of those.
         level_heights: (L,) storey heights.
         level_planes: (L, 4) storey planes (a, b, c, d) with a x + b y + c z + d = 0, c > 0.
         rotation: (3, 3) map_from_world rotation (identity when no gravity correction was applied).
@@ -239,6 +260,8 @@ class NavMap:
     navigable: np.ndarray
     obstacle_ij: np.ndarray
     obstacle_xyz: np.ndarray
+    support_ij: np.ndarray
+    support_z: np.ndarray
     level_heights: np.ndarray
     level_planes: np.ndarray
     rotation: np.ndarray
@@ -319,24 +342,32 @@ class NavMap:
         heights = np.bincount(inv.reshape(-1), weights=self.floor_z) / np.bincount(inv.reshape(-1))
         return heights, inv.reshape(-1)
 
+    def band_obstacles(self, floor_height: float) -> np.ndarray:
+        """Boolean selector of obstacle voxels in the body band (floor + max step, floor + height]."""
+        emb = self.embodiment
+        z = self.obstacle_z
+        return (z > floor_height + emb.max_step_height + HEIGHT_TOLERANCE) & (z <= floor_height + emb.height)
+
+    def unsupported_mask(self, floor_height: float) -> np.ndarray:
+        """(nx, ny) columns without a floor within the maximum step height of ``floor_height``."""
+        support = np.zeros(self.shape2d, dtype=bool)
+        tol = self.embodiment.max_step_height + HEIGHT_TOLERANCE
+        near = np.abs(self.floor_z - floor_height) <= tol
+        support[self.floor_ij[near, 0], self.floor_ij[near, 1]] = True
+        near = np.abs(self.support_z - floor_height) <= tol
+        support[self.support_ij[near, 0], self.support_ij[near, 1]] = True
+        return ~support
+
     def blocked_mask(self, floor_height: float) -> np.ndarray:
         """(nx, ny) columns an agent standing at ``floor_height`` may not occupy.
 
         Blocked = an obstacle voxel in the body band (floor + max step, floor + height] or no floor
         within the maximum step height (unknown space, drops, holes).
         """
-        emb = self.embodiment
-        blocked = _band_columns(
-            self.obstacle_ij,
-            self.obstacle_z,
-            floor_height + emb.max_step_height + HEIGHT_TOLERANCE,
-            floor_height + emb.height,
-            self.shape2d,
-        )
-        support = np.zeros(self.shape2d, dtype=bool)
-        near = np.abs(self.floor_z - floor_height) <= emb.max_step_height + HEIGHT_TOLERANCE
-        support[self.floor_ij[near, 0], self.floor_ij[near, 1]] = True
-        return blocked | ~support
+        blocked = self.unsupported_mask(floor_height)
+        sel = self.band_obstacles(floor_height)
+        blocked[self.obstacle_ij[sel, 0], self.obstacle_ij[sel, 1]] = True
+        return blocked
 
     def blocked_stack(self) -> tuple[np.ndarray, np.ndarray]:
         """Blocked masks of every height bin: (bin heights (B,), masks (B, nx, ny))."""
@@ -369,6 +400,8 @@ class NavMap:
             "navigable": self.navigable,
             "obstacle_ij": self.obstacle_ij.astype(np.int32),
             "obstacle_xyz": self.obstacle_xyz.astype(np.float32),
+            "support_ij": self.support_ij.astype(np.int32),
+            "support_z": self.support_z.astype(np.float32),
             "level_heights": self.level_heights,
             "level_planes": self.level_planes,
             "rotation": self.rotation,
@@ -400,6 +433,8 @@ class NavMap:
                     navigable=data["navigable"].astype(bool),
                     obstacle_ij=data["obstacle_ij"].astype(np.int64),
                     obstacle_xyz=data["obstacle_xyz"].astype(np.float64),
+                    support_ij=data["support_ij"].astype(np.int64),
+                    support_z=data["support_z"].astype(np.float64),
                     level_heights=np.asarray(data["level_heights"], dtype=np.float64),
                     level_planes=np.asarray(data["level_planes"], dtype=np.float64),
                     rotation=np.asarray(data["rotation"], dtype=np.float64),
@@ -514,6 +549,7 @@ def extract_navmap(
     cfg = config or NavMapConfig()
     vox = cfg.voxel_size
     acc_keys, acc_vals, acc_w, cams = [], [], [], []
+    ray_cache: dict = {}
     frames = capture
     bar = None
     if progress:
@@ -525,11 +561,13 @@ def extract_navmap(
     try:
         for frame in frames:
             depth = np.asarray(frame.depth, dtype=np.float32)
-            d_t = torch.from_numpy(depth)
-            nrm = point_normals(d_t[None, None], frame.camera)[0].permute(1, 2, 0).numpy()
-            pts_c = frame.camera.unproject(d_t).numpy()
+            unit_points, small_camera, off = _strided_rays(frame.camera, cfg.pixel_stride, ray_cache)
             s = cfg.pixel_stride
-            depth_s, pts_s, nrm_s = depth[::s, ::s], pts_c[::s, ::s], nrm[::s, ::s]
+            depth_s = np.ascontiguousarray(depth[off::s, off::s][: unit_points.shape[0], : unit_points.shape[1]])
+            d_t = torch.from_numpy(np.where(np.isfinite(depth_s), depth_s, 0.0).astype(np.float32))
+            # Normals on the strided grid (the paper's 5x5 Sobel estimator); points from exact rays.
+            nrm_s = point_normals(d_t[None, None], small_camera)[0].permute(1, 2, 0).numpy()
+            pts_s = depth_s[..., None] * unit_points
             valid = np.isfinite(depth_s) & (depth_s > 0) & (depth_s <= cfg.max_range)
             pose = np.asarray(frame.cam_to_world, dtype=np.float64)
             p_w = pts_s[valid].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
@@ -537,13 +575,14 @@ def extract_navmap(
             is_floor = n_w[:, 2] >= cfg.normal_z_min
             sem = getattr(frame, "semantics", None)
             if sem is not None and cfg.floor_labels:
-                is_floor &= np.isin(np.asarray(sem)[::s, ::s][valid], cfg.floor_labels)
+                sem_s = np.asarray(sem)[off::s, off::s][: unit_points.shape[0], : unit_points.shape[1]]
+                is_floor &= np.isin(sem_s[valid], cfg.floor_labels)
             cams.append(pose[:3, 3])
             # Pre-merge per frame: key = (voxel ijk, floor flag) in a fixed world lattice.
             ijk = np.floor(p_w / vox).astype(np.int64)
-            key = np.column_stack((ijk, is_floor.astype(np.int64)))
+            key = np.column_stack((ijk[:, 0], ijk[:, 1], ijk[:, 2] * 2 + is_floor))
             uk, mean, wsum = _voxel_reduce(key, p_w, np.ones(len(p_w)))
-            acc_keys.append(uk[:, 3].astype(bool))
+            acc_keys.append((uk[:, 2] % 2).astype(bool))
             acc_vals.append(mean)
             acc_w.append(wsum)
             if bar is not None:
@@ -557,6 +596,34 @@ def extract_navmap(
     floor = np.concatenate(acc_keys)
     w = np.concatenate(acc_w)
     return _build_navmap(pts, floor, w, np.asarray(cams), emb, cfg)
+
+
+def _strided_rays(camera, stride: int, cache: dict):
+    """Depth-1 points (h, w, 3) at every ``stride``-th pixel centre (offset ``stride // 2``), the
+    camera model of that strided grid (for normals) and the offset; cached per camera."""
+    import torch
+
+    from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+
+    key = (camera, stride)
+    if key not in cache:
+        off = stride // 2
+        h = len(range(off, camera.height, stride))
+        w = len(range(off, camera.width, stride))
+        v = torch.arange(h, dtype=torch.float64) * stride + off + 0.5
+        u = torch.arange(w, dtype=torch.float64) * stride + off + 0.5
+        vv, uu = torch.meshgrid(v, u, indexing="ij")
+        rays = camera.pixel_to_ray(uu, vv)
+        if isinstance(camera, PinholeCamera):
+            rays = rays / rays[..., 2:3]  # pinhole depth is z: scale rays to z = 1
+            small = PinholeCamera(camera.fx / stride, camera.fy / stride, (camera.cx - off - 0.5) / stride + 0.5,
+                                  (camera.cy - off - 0.5) / stride + 0.5, h, w)
+        elif isinstance(camera, EquirectCamera):
+            small = EquirectCamera(h, w)  # half-pixel shift for even strides: negligible for normals
+        else:
+            raise NavMapError(f"unsupported camera model {type(camera).__name__}")
+        cache[key] = (rays.numpy().astype(np.float32), small, off)
+    return cache[key]
 
 
 def _build_navmap(
@@ -606,6 +673,25 @@ def _build_navmap(
     f_ijk, f_mean, f_w = _voxel_reduce(ijk[floor], pts[floor], weights[floor])
     o_ijk, o_mean, o_w = _voxel_reduce(ijk[~floor], pts[~floor], weights[~floor])
 
+    # Obstacle denoising: radius outlier removal on voxel centres (before obstacles judge floors).
+    if len(o_ijk):
+        inlier = radius_outlier_mask(o_ijk * vox, cfg.outlier_radius, int(cfg.outlier_min_neighbors))
+        if (~inlier).any():
+            notes.append(f"radius outlier removal dropped {int((~inlier).sum())} of {len(inlier)} obstacle voxels")
+        o_ijk, o_mean, o_w = o_ijk[inlier], o_mean[inlier], o_w[inlier]
+    # Floor candidates with an obstacle voxel right above them (within 2 voxels) belong to a vertical
+    # surface whose normals the Sobel window blended with a floor's (sides of beds, risers): they
+    # would otherwise form ramps joining the floor to furniture tops.
+    covered = _covered_from_above(f_ijk, o_ijk, 2)
+    support_ij, support_z = f_ijk[covered, :2], f_mean[covered, 2]
+    if covered.any():
+        o_ijk = np.concatenate((o_ijk, f_ijk[covered]))
+        o_mean = np.concatenate((o_mean, f_mean[covered]))
+        o_w = np.concatenate((o_w, f_w[covered]))
+        f_ijk, f_mean, f_w = f_ijk[~covered], f_mean[~covered], f_w[~covered]
+    if len(f_ijk) == 0:
+        raise NavMapError("every floor candidate lies directly under an obstacle: no floor to navigate")
+
     # 3. Floor cells: floor voxels stacked within one voxel in a column merge.
     cell_of_voxel, c_ij, c_z = _merge_floor_columns(f_ijk, f_mean[:, 2], f_w, shape)
 
@@ -622,12 +708,6 @@ def _build_navmap(
     o_w = np.concatenate((o_w, f_w[rejected_vox]))
     c_ij, c_z = c_ij[keep_cell], c_z[keep_cell]
 
-    # 5. Obstacle denoising: radius outlier removal on voxel centres.
-    if len(o_ijk):
-        inlier = radius_outlier_mask(o_ijk * vox, cfg.outlier_radius, int(cfg.outlier_min_neighbors))
-        if (~inlier).any():
-            notes.append(f"radius outlier removal dropped {int((~inlier).sum())} of {len(inlier)} obstacle voxels")
-        o_ijk, o_mean = o_ijk[inlier], o_mean[inlier]
     obstacle_ij, obstacle_z = o_ijk[:, :2], o_mean[:, 2]
     obstacle_xyz = o_mean
 
@@ -665,6 +745,8 @@ def _build_navmap(
         navigable=np.zeros(len(floor_z), dtype=bool),
         obstacle_ij=obstacle_ij.astype(np.int64),
         obstacle_xyz=obstacle_xyz,
+        support_ij=support_ij.astype(np.int64),
+        support_z=support_z,
         level_heights=level_heights,
         level_planes=level_planes,
         rotation=rotation,
@@ -672,21 +754,48 @@ def _build_navmap(
         config=cfg,
         notes=notes,
     )
-    # 7. Clearance per floor-height bin (EDT of the blocked columns); safety buffer. The EDT measures
-    # centre to centre; subtracting half a cell diagonal makes it a lower bound on the distance to
-    # any point inside the blocking cell, so a navigable cell is free for the true geometry too.
+    # 7. Clearance per floor-height bin: exact horizontal distance to the obstacle points in the body
+    # band, and EDT distance to unsupported columns minus half a cell (the floor reaches the edge of
+    # its last cell). Cells with clearance >= the safety buffer are navigable.
     heights, cell_bin = navmap.height_bins()
     clearance = np.zeros(len(floor_z))
+    cell_xy = navmap.cell_xy(floor_ij)
+    bound = 5.0 * emb.radius + 2.0 * vox
     for b, h in enumerate(heights):
-        free = ~navmap.blocked_mask(float(h))
-        dist = np.maximum(ndimage.distance_transform_edt(free) * vox - vox * math.sqrt(0.5), 0.0)
-        sel = cell_bin == b
-        clearance[sel] = dist[floor_ij[sel, 0], floor_ij[sel, 1]]
+        sel = np.flatnonzero(cell_bin == b)
+        void = navmap.unsupported_mask(float(h))
+        c = np.maximum(ndimage.distance_transform_edt(~void)[floor_ij[sel, 0], floor_ij[sel, 1]] * vox - 0.5 * vox, 0.0)
+        band = navmap.band_obstacles(float(h))
+        if band.any():
+            # Exact distance to the obstacle points near the cell; beyond ``bound`` (no effect on
+            # navigability or costs) the column EDT is precise enough.
+            d_obs, _ = cKDTree(obstacle_xyz[band, :2]).query(cell_xy[sel], distance_upper_bound=bound)
+            far = ~np.isfinite(d_obs)
+            if far.any():
+                cols = np.zeros(navmap.shape2d, dtype=bool)
+                cols[obstacle_ij[band, 0], obstacle_ij[band, 1]] = True
+                edt = ndimage.distance_transform_edt(~cols) * vox - 0.5 * vox
+                d_obs[far] = np.maximum(edt[floor_ij[sel[far], 0], floor_ij[sel[far], 1]], bound)
+            c = np.minimum(c, d_obs)
+        clearance[sel] = c
     navmap.clearance = clearance
     navmap.navigable = clearance >= navmap.safety_buffer - 1e-9
     if not navmap.navigable.any():
         notes.append("no floor cell has the required clearance: the map has no navigable cell")
     return navmap
+
+
+def _covered_from_above(f_ijk: np.ndarray, o_ijk: np.ndarray, n_above: int) -> np.ndarray:
+    """True for floor voxels that have an obstacle voxel 1..n_above voxels above in their column."""
+    if len(f_ijk) == 0 or len(o_ijk) == 0:
+        return np.zeros(len(f_ijk), dtype=bool)
+    okeys = np.sort(_pack_keys(o_ijk))
+    out = np.zeros(len(f_ijk), dtype=bool)
+    for dk in range(1, n_above + 1):
+        q = _pack_keys(f_ijk + np.array([0, 0, dk]))
+        pos = np.clip(np.searchsorted(okeys, q), 0, len(okeys) - 1)
+        out |= okeys[pos] == q
+    return out
 
 
 def _merge_floor_columns(
@@ -714,21 +823,47 @@ def _merge_floor_columns(
     return cell, ij, z
 
 
-def _floor_components(c_ij: np.ndarray, c_z: np.ndarray, max_step: float) -> np.ndarray:
-    """Connected-component id of every floor cell: 8-neighbours whose heights differ <= max_step."""
+def _floor_components(
+    c_ij: np.ndarray, c_z: np.ndarray, max_step: float, planar_tol: float = 0.03, bridge: int = 3
+) -> np.ndarray:
+    """Connected-component id of every floor cell.
+
+    Cells whose 8-neighbours (within the step height) all lie within ``planar_tol`` in height are
+    *planar*. Planar cells connect when they lie within ``bridge`` cells (Chebyshev) of each other
+    and their heights differ by at most ``max_step``: this crosses the two non-planar cells around a
+    stair riser, but not the steep "ramps" that blended normals leave on the sides of beds and
+    tables (those would chain the floor to furniture tops in steps below ``max_step``). Each
+    non-planar cell then joins the component of its planar neighbour closest in height.
+    """
     n = len(c_z)
     if n == 0:
         return np.zeros(0, np.int64)
-    # Chebyshev ball of radius 1 in (i, j, z / step) = 8-neighbourhood with |dz| <= step.
-    coords = np.column_stack((c_ij.astype(np.float64), c_z / max(max_step + HEIGHT_TOLERANCE, 1e-6)))
-    pairs = cKDTree(coords).query_pairs(r=1.0 + 1e-9, p=np.inf, output_type="ndarray")
-    adj = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix(
-        (n, n)
-    )
+    step = max(max_step + HEIGHT_TOLERANCE, 1e-6)
+    # Chebyshev ball in (i, j, z * bridge / step): |di|, |dj| <= bridge and |dz| <= step.
+    coords = np.column_stack((c_ij.astype(np.float64), c_z * (bridge / step)))
+    pairs = cKDTree(coords).query_pairs(r=bridge + 1e-9, p=np.inf, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(n, dtype=np.int64)
+    a, b = pairs[:, 0], pairs[:, 1]
+    cheb = np.abs(c_ij[a] - c_ij[b]).max(axis=1)
+    dz = np.abs(c_z[a] - c_z[b])
+    adjacent = cheb <= 1
+    spread = np.zeros(n)
+    np.maximum.at(spread, a[adjacent], dz[adjacent])
+    np.maximum.at(spread, b[adjacent], dz[adjacent])
+    planar = spread <= planar_tol
+    both = planar[a] & planar[b]
+    adj = coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n))
     _, labels = connected_components(adj, directed=False)
-    return labels.astype(np.int64)
-
-
+    labels = labels.astype(np.int64)
+    # Non-planar cells take the label of the planar neighbour (<= 2 cells) closest in height.
+    labels[~planar] = n + np.flatnonzero(~planar)  # singletons unless attached below
+    near = (cheb <= 2) & (planar[a] != planar[b])
+    src = np.where(planar[a[near]], a[near], b[near])
+    dst = np.where(planar[a[near]], b[near], a[near])
+    order = np.argsort(-dz[near], kind="stable")  # the smallest |dz| is written last and wins
+    labels[dst[order]] = labels[src[order]]
+    return labels
 def _select_components(
     comp: np.ndarray,
     c_ij: np.ndarray,
