@@ -70,6 +70,12 @@ def test_psnr_rejects_bad_inputs() -> None:
     bad[0, 0, 0] = math.nan
     with pytest.raises(ValueError, match="pred: contains NaN"):
         psnr(bad, x)
+    bad[0, 0, 0] = math.inf
+    with pytest.raises(ValueError, match="target: contains NaN or inf"):
+        psnr(x, bad)
+    # Huge but finite values overflow the fast finite-sum check; they must not be rejected.
+    huge = torch.full((1, 4, 4), 1e308, dtype=torch.float64)
+    assert psnr(huge, huge).item() == math.inf
     with pytest.raises(ValueError, match="data_range"):
         psnr(x, x, data_range=0.0)
     with pytest.raises(TypeError, match="mask: expected a bool"):

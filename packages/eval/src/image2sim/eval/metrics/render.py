@@ -33,7 +33,9 @@ def _as_images(x: torch.Tensor, name: str) -> torch.Tensor:
     if x.numel() == 0:
         raise ValueError(f"{name}: is empty (shape {tuple(x.shape)})")
     x = x.detach().to(torch.float64)
-    if not torch.isfinite(x).all():
+    # A finite sum proves every element finite and costs a fraction of an element-wise isfinite;
+    # the full check only runs to tell overflow of the sum from a real NaN/inf.
+    if not torch.isfinite(x.sum()) and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name}: contains NaN or inf")
     return x
 
@@ -73,16 +75,17 @@ def psnr(
     """
     data_range = _check_range(data_range)
     p, t = _pair(pred, target)
-    sq = (p - t) ** 2
+    diff = p - t
+    sq = diff.mul_(diff).flatten(-3)  # one flat reduction is faster than over three dims
     if mask is None:
-        mse = sq.mean(dim=(-3, -2, -1))
+        mse = sq.mean(dim=-1)
     else:
-        m = _as_mask(mask, p).to(torch.float64)
-        n = m.sum(dim=(-3, -2, -1))
+        m = _as_mask(mask, p).to(torch.float64).flatten(-3)
+        n = m.sum(dim=-1)
         if bool((n == 0).any()):
             bad = torch.nonzero(n == 0)[0].tolist()
             raise ValueError(f"mask: selects no pixel in image {bad}")
-        mse = (sq * m).sum(dim=(-3, -2, -1)) / n
+        mse = (sq * m).sum(dim=-1) / n
     return 10.0 * torch.log10(data_range**2 / mse)
 
 
