@@ -30,6 +30,17 @@ def _register_renderer_commands() -> None:
 _register_renderer_commands()
 
 
+def _register_navigation_commands() -> None:
+    # The navigation CLI module imports only typer; numpy/scipy load when a command runs.
+    from image2sim.simulator.navigation import cli as navigation_cli
+
+    sim_app.command("navmap")(navigation_cli.navmap_command)
+    sim_app.command("plan")(navigation_cli.plan_command)
+
+
+_register_navigation_commands()
+
+
 def build_app() -> typer.Typer:
     app = typer.Typer(
         help="Image2Sim: posed RGB-D captures -> neural simulators -> navigation data and policies.",

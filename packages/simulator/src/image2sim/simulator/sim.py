@@ -1,0 +1,283 @@
+"""NeuralSimulator: one reconstructed scene, a batch of kinematic agents, optional rendered observations.
+
+Motion comes from :mod:`image2sim.simulator.navigation` (navigable map, collision world, graph).
+Observations are produced by a *render function* ``render_fn(camera, cam_to_world) -> {"rgb": (H, W,
+3) float32 in [0, 1], "depth": (H, W) float32}``; :class:`GaussianRenderFn` builds one from a Gaussian
+scene through :func:`image2sim.simulator.splatting.splat` (plus an optional pixel-flow renderer that
+maps the splatted condition to the final image). Any callable with that signature can be injected
+(tests use analytic renderers). Positions are map-frame feet positions (see :class:`NavMap`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from image2sim.simulator.conventions import Action, camera_rotation_for_heading
+from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, PinholeCamera
+from image2sim.simulator.navigation.agent import Agent, CollisionWorld
+from image2sim.simulator.navigation.embodiment import ConfigError, _DictMixin
+from image2sim.simulator.navigation.graph import NavGraph
+from image2sim.simulator.navigation.navmap import NavMap
+from image2sim.simulator.navigation.planner import DistanceField, Planner
+
+__all__ = ["ObservationSpec", "GaussianRenderFn", "NeuralSimulator", "NavEnv", "RenderFn"]
+
+RenderFn = Callable[[Camera, np.ndarray], dict]
+
+
+@dataclass(frozen=True)
+class ObservationSpec(_DictMixin):
+    """Which observations each step returns, and their sizes."""
+
+    panorama: bool = True
+    """Return the equirectangular RGB-D panorama."""
+    pano_height: int = 256
+    """Panorama height in pixels (width = 2 x height)."""
+    pinhole: bool = False
+    """Return a pinhole crop rendered directly with a pinhole camera."""
+    pinhole_size: int = 336
+    """Pinhole crop size (square) in pixels."""
+    pinhole_hfov_deg: float = 90.0
+    """Pinhole horizontal (= vertical) field of view in degrees."""
+    ultrawide: bool = False
+    """Return the ultra-wide crop: the central part of the panorama resampled to a fixed size."""
+    ultrawide_width: int = 512
+    """Ultra-wide crop width in pixels."""
+    ultrawide_height: int = 336
+    """Ultra-wide crop height in pixels."""
+    ultrawide_hfov_deg: float = 180.0
+    """Ultra-wide horizontal field of view in degrees (centred on the heading)."""
+    ultrawide_vfov_deg: float = 118.0
+    """Ultra-wide vertical field of view in degrees (centred on the horizon)."""
+
+    def __post_init__(self) -> None:
+        for name in ("pano_height", "pinhole_size", "ultrawide_width", "ultrawide_height"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"ObservationSpec.{name} must be >= 1, got {getattr(self, name)!r}")
+        if not 0 < self.pinhole_hfov_deg < 180:
+            raise ConfigError(f"ObservationSpec.pinhole_hfov_deg must lie in (0, 180), got {self.pinhole_hfov_deg}")
+        if not (0 < self.ultrawide_hfov_deg <= 360 and 0 < self.ultrawide_vfov_deg <= 180):
+            raise ConfigError("ObservationSpec ultra-wide FOV must lie in (0, 360] x (0, 180] degrees")
+
+    @property
+    def any(self) -> bool:
+        return self.panorama or self.pinhole or self.ultrawide
+
+
+class GaussianRenderFn:
+    """Render function over a Gaussian scene via ``splat`` (+ optional pixel-flow renderer).
+
+    ``gaussians`` maps names to tensors: means (N, 3), scales (N, 3), quats (N, 4) (w, x, y, z),
+    opacities (N,), colors (N, 3) and optionally features (N, C). ``renderer`` (optional) is a
+    callable ``renderer(splat_output) -> rgb (1, 3, H, W)`` applied after splatting.
+    """
+
+    def __init__(self, gaussians: dict, renderer: Callable | None = None, backend: str = "auto") -> None:
+        missing = [k for k in ("means", "scales", "quats", "opacities", "colors") if k not in gaussians]
+        if missing:
+            raise ValueError(f"GaussianRenderFn: gaussians are missing {missing}")
+        self.gaussians = gaussians
+        self.renderer = renderer
+        self.backend = backend
+
+    def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
+        import torch
+
+        from image2sim.simulator.splatting import splat
+
+        g = self.gaussians
+        pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype)
+        with torch.no_grad():
+            out = splat(g["means"], g["scales"], g["quats"], g["opacities"], g["colors"], g.get("features"),
+                        camera, pose, backend=self.backend)
+            rgb = self.renderer(out) if self.renderer is not None else out.rgb
+            depth = out.normalized_depth()
+        return {
+            "rgb": rgb[0].permute(1, 2, 0).clamp(0, 1).float().numpy(),
+            "depth": depth[0, 0].float().numpy(),
+        }
+
+
+def _ultrawide_from_pano(pano: dict, spec: ObservationSpec) -> dict:
+    """Crop lon in +-hfov/2, lat in +-vfov/2 out of an equirect panorama and resample it (cv2)."""
+    import cv2
+
+    rgb, depth = pano["rgb"], pano["depth"]
+    h, w = depth.shape
+    u0 = w / 2 - w * spec.ultrawide_hfov_deg / 720.0
+    u1 = w / 2 + w * spec.ultrawide_hfov_deg / 720.0
+    v0 = h / 2 - h * spec.ultrawide_vfov_deg / 360.0
+    v1 = h / 2 + h * spec.ultrawide_vfov_deg / 360.0
+    # Map each output pixel centre to continuous panorama coordinates (pixel centres at +0.5).
+    xs = u0 + (np.arange(spec.ultrawide_width) + 0.5) * (u1 - u0) / spec.ultrawide_width - 0.5
+    ys = v0 + (np.arange(spec.ultrawide_height) + 0.5) * (v1 - v0) / spec.ultrawide_height - 0.5
+    mx, my = np.meshgrid(xs.astype(np.float32), ys.astype(np.float32))
+    out_rgb = cv2.remap(rgb.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    out_depth = cv2.remap(depth.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_WRAP)
+    return {"rgb": out_rgb, "depth": out_depth}
+
+
+class NeuralSimulator:
+    """A scene (navigation map + graph + optional renderer) and a batch of agents.
+
+    ``reset(positions, headings)`` places B agents; ``step(actions)`` applies one action per agent
+    and returns ``(observations, info)`` with info arrays ``position`` (B, 3), ``heading`` (B,),
+    ``collided`` (B,), ``stuck`` (B,). Observations are a list of per-agent dicts (``None`` when no
+    render function is set or ``observe=False``).
+    """
+
+    def __init__(
+        self,
+        navmap: NavMap,
+        graph: NavGraph | None = None,
+        render_fn: RenderFn | None = None,
+        observations: ObservationSpec | None = None,
+    ) -> None:
+        self.navmap = navmap
+        self.embodiment = navmap.embodiment
+        self.world = CollisionWorld(navmap)
+        self._graph = graph
+        self._planner: Planner | None = None
+        self.render_fn = render_fn
+        self.spec = observations or ObservationSpec()
+        self.agents: list[Agent] = []
+
+    @property
+    def graph(self) -> NavGraph:
+        """Navigation graph, built lazily on first use."""
+        if self._graph is None:
+            self._graph = NavGraph.build(self.navmap)
+        return self._graph
+
+    @property
+    def planner(self) -> Planner:
+        if self._planner is None:
+            self._planner = Planner(self.graph)
+        return self._planner
+
+    # --- agents ---------------------------------------------------------------------------
+    def reset(self, positions: np.ndarray, headings: np.ndarray | None = None, observe: bool = True):
+        """Place one agent per row of ``positions`` (B, 3); returns ``(observations, info)``."""
+        pos = np.atleast_2d(np.asarray(positions, dtype=np.float64))
+        heads = np.zeros(len(pos)) if headings is None else np.asarray(headings, dtype=np.float64).reshape(-1)
+        if len(heads) != len(pos):
+            raise ValueError(f"reset: {len(pos)} positions but {len(heads)} headings")
+        self.agents = [Agent(self.world, self.embodiment) for _ in range(len(pos))]
+        for agent, p, h in zip(self.agents, pos, heads):
+            agent.reset(p, float(h))
+        info = self._info(np.zeros(len(pos), bool), np.zeros(len(pos), bool))
+        return (self.observe_all() if observe else None), info
+
+    def step(self, actions, observe: bool = True):
+        """Apply one action per agent; returns ``(observations, info)``."""
+        acts = np.asarray(actions, dtype=np.int64).reshape(-1)
+        if len(acts) != len(self.agents):
+            raise ValueError(f"step: got {len(acts)} actions for {len(self.agents)} agents (call reset first)")
+        collided = np.zeros(len(acts), bool)
+        stuck = np.zeros(len(acts), bool)
+        for i, (agent, a) in enumerate(zip(self.agents, acts)):
+            if int(a) not in {int(x) for x in Action}:
+                raise ValueError(f"step: action {int(a)} of agent {i} is not one of {[int(x) for x in Action]}")
+            res = agent.step(int(a))
+            collided[i], stuck[i] = res.collided, res.stuck
+        return (self.observe_all() if observe else None), self._info(collided, stuck)
+
+    def _info(self, collided: np.ndarray, stuck: np.ndarray) -> dict:
+        return {
+            "position": np.array([a.state.position for a in self.agents]).reshape(-1, 3),
+            "heading": np.array([a.state.heading for a in self.agents]),
+            "collided": collided,
+            "stuck": stuck,
+        }
+
+    # --- observations ---------------------------------------------------------------------
+    def camera_pose(self, index: int) -> np.ndarray:
+        """World-frame camera-to-world (4, 4) of agent ``index`` (eye height, upright, heading yaw)."""
+        agent = self.agents[index]
+        pose = np.eye(4)
+        pose[:3, :3] = camera_rotation_for_heading(agent.state.heading)
+        pose[:3, 3] = agent.camera_position
+        # Map frame -> world frame (identity unless gravity was corrected).
+        r_wm = self.navmap.rotation.T
+        pose[:3, :3] = r_wm @ pose[:3, :3]
+        pose[:3, 3] = r_wm @ pose[:3, 3]
+        return pose
+
+    def observe(self, index: int) -> dict | None:
+        """Selected observations of one agent (``None`` without a render function)."""
+        if self.render_fn is None or not self.spec.any:
+            return None
+        pose = self.camera_pose(index)
+        out: dict = {}
+        if self.spec.panorama or self.spec.ultrawide:
+            pano = self.render_fn(EquirectCamera(self.spec.pano_height, 2 * self.spec.pano_height), pose)
+            if self.spec.panorama:
+                out["panorama"] = pano
+            if self.spec.ultrawide:
+                out["ultrawide"] = _ultrawide_from_pano(pano, self.spec)
+        if self.spec.pinhole:
+            s = self.spec.pinhole_size
+            cam = PinholeCamera.from_fov(self.spec.pinhole_hfov_deg, self.spec.pinhole_hfov_deg, s, s)
+            out["pinhole"] = self.render_fn(cam, pose)
+        return out
+
+    def observe_all(self) -> list:
+        return [self.observe(i) for i in range(len(self.agents))]
+
+
+class NavEnv:
+    """Gymnasium-style single-agent point-goal environment on a :class:`NeuralSimulator`.
+
+    ``reset(start, heading, goal) -> (obs, info)``; ``step(action) -> (obs, reward, terminated,
+    truncated, info)``. Reward: decrease of the geodesic distance to the goal minus a 0.01 slack per
+    step, + ``success_reward`` on STOP within ``success_distance``. ``info`` adds
+    ``distance_to_goal`` (geodesic, via a distance field computed once per episode) and ``success``.
+    """
+
+    def __init__(self, sim: NeuralSimulator, max_steps: int = 500, success_distance: float = 0.25,
+                 success_reward: float = 2.5, slack_reward: float = -0.01) -> None:
+        self.sim = sim
+        self.max_steps = int(max_steps)
+        self.success_distance = float(success_distance)
+        self.success_reward = float(success_reward)
+        self.slack_reward = float(slack_reward)
+        self.field: DistanceField | None = None
+        self._steps = 0
+        self._last = math.inf
+
+    def reset(self, start: np.ndarray, heading: float, goal: np.ndarray):
+        self.field = self.sim.planner.distance_field(np.asarray(goal, float))
+        obs, info = self.sim.reset(np.asarray(start, float)[None], np.array([heading]))
+        self._steps = 0
+        self._last = self.field(info["position"][0])
+        return (obs[0] if obs else None), self._single(info, self._last, False)
+
+    def step(self, action: int):
+        if self.field is None:
+            raise RuntimeError("NavEnv.step called before reset")
+        obs, info = self.sim.step([action])
+        self._steps += 1
+        d = self.field(info["position"][0])
+        terminated = int(action) == int(Action.STOP)
+        success = terminated and d <= self.success_distance
+        reward = (self._last - d if math.isfinite(d) and math.isfinite(self._last) else 0.0) + self.slack_reward
+        if success:
+            reward += self.success_reward
+        self._last = d
+        truncated = not terminated and self._steps >= self.max_steps
+        return (obs[0] if obs else None), float(reward), terminated, truncated, self._single(info, d, success)
+
+    @staticmethod
+    def _single(info: dict, d: float, success: bool) -> dict:
+        return {
+            "position": info["position"][0],
+            "heading": float(info["heading"][0]),
+            "collided": bool(info["collided"][0]),
+            "stuck": bool(info["stuck"][0]),
+            "distance_to_goal": float(d),
+            "success": bool(success),
+        }
