@@ -2,6 +2,7 @@
 
 from image2sim.eval.metrics.lpips import LPIPS, LpipsConfig, build_lpips, load_lpips, lpips_distance
 from image2sim.eval.metrics.nav import (
+    IncrementalNDTW,
     aggregate,
     dtw,
     evaluate_episode,
@@ -9,12 +10,14 @@ from image2sim.eval.metrics.nav import (
     path_length,
     sdtw,
     spl,
+    summarize_records,
 )
 from image2sim.eval.metrics.render import DepthMetrics, depth_metrics, psnr, ssim
 from image2sim.eval.metrics.timing import FpsMeasurement, hardware_string, measure_fps
 
 __all__ = [
     "LPIPS",
+    "IncrementalNDTW",
     "DepthMetrics",
     "FpsMeasurement",
     "LpipsConfig",
@@ -33,4 +36,5 @@ __all__ = [
     "sdtw",
     "spl",
     "ssim",
+    "summarize_records",
 ]
