@@ -41,6 +41,18 @@ def _register_navigation_commands() -> None:
 _register_navigation_commands()
 
 
+def _register_gaussian_commands() -> None:
+    # The gaussians CLI module imports only typer; torch loads when a command runs.
+    from image2sim.simulator.gaussians import cli as gaussians_cli
+
+    sim_app.command("build-scene")(gaussians_cli.build_scene_command)
+    sim_app.command("render")(gaussians_cli.render_command)
+    sim_app.command("train-geometry")(gaussians_cli.train_geometry_command)
+
+
+_register_gaussian_commands()
+
+
 def build_app() -> typer.Typer:
     app = typer.Typer(
         help="Image2Sim: posed RGB-D captures -> neural simulators -> navigation data and policies.",

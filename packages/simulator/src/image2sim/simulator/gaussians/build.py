@@ -1,0 +1,133 @@
+"""Capture -> :class:`GaussianScene`: frame selection, encoding (identity or learned) and fusion.
+
+Learned encoders are stored as ``<name>.safetensors`` (weights) next to ``<name>.json`` (the
+:class:`GaussianConfig` they were built with); no pickle anywhere.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict, gaussian_config_from_dict
+from image2sim.simulator.gaussians.encoder import GaussianEncoder, identity_gaussians
+from image2sim.simulator.gaussians.frames import prepare_frame
+from image2sim.simulator.gaussians.scene import GaussianScene, SceneError, _sha256
+from image2sim.simulator.geometry.cameras import EquirectCamera
+
+__all__ = ["save_encoder", "load_encoder", "build_scene", "nearest_frames", "encode_frames"]
+
+
+def save_encoder(encoder: GaussianEncoder, path: str | Path) -> Path:
+    """Write the encoder's trainable weights (safetensors) and its config (JSON, same stem)."""
+    from safetensors.torch import save_file
+
+    path = Path(path).with_suffix(".safetensors")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().contiguous() for k, v in encoder.state_dict().items() if not k.startswith("semantic.")}
+    tmp = path.with_name(f".{path.name}.tmp")
+    save_file(state, str(tmp))
+    tmp.replace(path)
+    meta = {"config": config_to_dict(encoder.cfg), "panoramic": encoder.panoramic}
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+    return path
+
+
+def load_encoder(path: str | Path, semantic_model: torch.nn.Module | None = None) -> GaussianEncoder:
+    """Inverse of :func:`save_encoder`; the semantic backbone is rebuilt from its config (local weights)."""
+    from safetensors.torch import load_file
+
+    from image2sim.simulator.gaussians.semantic import build_semantic
+
+    path = Path(path)
+    if path.is_dir():
+        found = sorted(path.glob("*.safetensors"))
+        if len(found) != 1:
+            raise SceneError(f"{path}: expected exactly one encoder .safetensors in the folder, found {len(found)}")
+        path = found[0]
+    meta_path = path.with_suffix(".json")
+    if not path.is_file() or not meta_path.is_file():
+        raise SceneError(f"{path}: encoder checkpoint needs {path.name} and {meta_path.name}")
+    meta = json.loads(meta_path.read_text())
+    cfg = gaussian_config_from_dict(meta["config"])
+    encoder = GaussianEncoder(cfg, build_semantic(cfg.semantic, semantic_model), panoramic=bool(meta["panoramic"]))
+    state = load_file(str(path))
+    missing, unexpected = encoder.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith("semantic.")]
+    if missing or unexpected:
+        raise SceneError(f"{path}: weights do not match the config (missing {missing[:5]}, unexpected {unexpected[:5]})")
+    return encoder.eval()
+
+
+def nearest_frames(poses: np.ndarray, target: int, k: int) -> list[int]:
+    """Indices of the k frames (excluding ``target``) whose camera centres are nearest to frame ``target``'s."""
+    centres = np.asarray(poses)[:, :3, 3]
+    d = np.linalg.norm(centres - centres[target], axis=1)
+    d[target] = np.inf
+    order = np.argsort(d, kind="stable")
+    return [int(i) for i in order[: min(k, len(order) - 1)]]
+
+
+def encode_frames(frames, cfg: GaussianConfig, encoder: GaussianEncoder | None):
+    """Per-frame Gaussian sets (identity when ``encoder`` is None) for a list of FrameInputs."""
+    if encoder is None:
+        return [identity_gaussians(f, cfg) for f in frames]
+    with torch.no_grad():
+        return encoder(frames)
+
+
+def build_scene(
+    capture_path: str | Path,
+    cfg: GaussianConfig,
+    encoder: str | Path | GaussianEncoder = "identity",
+    frames: Sequence[int] | None = None,
+    progress: bool = False,
+) -> GaussianScene:
+    """Open a capture (any format ``open_capture`` reads), encode the chosen frames and fuse them."""
+    from image2sim.simulator.io.registry import open_capture
+
+    capture = open_capture(capture_path)
+    indices = list(range(len(capture))) if frames is None else [int(i) for i in frames]
+    for i in indices:
+        if not 0 <= i < len(capture):
+            raise SceneError(f"{capture_path}: frame index {i} out of range (capture has {len(capture)} frames)")
+    if not indices:
+        raise SceneError(f"{capture_path}: no frames selected")
+    enc_info: dict = {"kind": "identity", "checkpoint": None, "sha256": None}
+    net = None
+    if isinstance(encoder, GaussianEncoder):
+        net, enc_info = encoder.eval(), {"kind": "learned", "checkpoint": None, "sha256": None}
+    elif str(encoder) != "identity":
+        net = load_encoder(encoder)
+        ckpt = Path(encoder)
+        ckpt = ckpt if ckpt.suffix == ".safetensors" else next(iter(sorted(ckpt.glob("*.safetensors"))), ckpt)
+        enc_info = {"kind": "learned", "checkpoint": str(Path(encoder).resolve()), "sha256": _sha256(ckpt)}
+    if net is not None:
+        cfg = net.cfg
+    h, w = cfg.encoder.height, cfg.encoder.width
+    scene = GaussianScene(fusion=cfg.fusion)
+    camera = None
+    it = indices
+    if progress:
+        from rich.progress import track
+
+        it = track(indices, description=f"encoding {len(indices)} frames")
+    for i in it:
+        inputs = prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance)
+        if net is not None and isinstance(inputs.camera, EquirectCamera) != net.panoramic:
+            raise SceneError(f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})")
+        camera = camera or inputs.camera
+        gs = encode_frames([inputs], cfg, net)[0]
+        scene.integrate(gs, frame_id=inputs.frame_id, index=i, cam_to_world=inputs.cam_to_world)
+    scene.info = {
+        "source": {"capture": str(Path(capture_path).resolve()), "format": capture.format, "scene_id": capture.scene_id,
+                   "num_frames": len(capture)},
+        "encoder": enc_info,
+        "camera": camera.to_dict() if camera is not None else None,
+        "config": config_to_dict(cfg),
+    }
+    return scene

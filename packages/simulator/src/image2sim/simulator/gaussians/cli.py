@@ -1,0 +1,183 @@
+"""``image2sim sim build-scene`` and ``image2sim sim render``. Imports only typer at module level."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+__all__ = ["build_scene_command", "render_command", "train_geometry_command"]
+
+
+def _parse_frames(text: str | None) -> list[int] | None:
+    """``"0,3,5-8"`` -> [0, 3, 5, 6, 7, 8]; None/'' -> all frames."""
+    if not text:
+        return None
+    out: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if "-" in part:
+            a, b = part.split("-", 1)
+            out += list(range(int(a), int(b) + 1))
+        elif part:
+            out.append(int(part))
+    return out
+
+
+def build_scene_command(
+    capture: Path = typer.Argument(..., help="Capture folder (any format `image2sim data inspect` reads)."),
+    out: Path = typer.Option(..., "--out", help="Scene folder to write (gaussians.safetensors + manifest.json)."),
+    encoder: str = typer.Option("identity", help="'identity' (no weights) or a trained encoder .safetensors."),
+    config: str = typer.Option("tiny", help="Preset (tiny, paper) or YAML/JSON overrides (identity only; a "
+                                           "checkpoint brings its own config)."),
+    frames: str = typer.Option("", help="Frame indices, e.g. '0,3,5-8' (default: all)."),
+    voxel_policy: str = typer.Option("", help="Override fusion.policy: footprint or fixed."),
+    voxel_size: float = typer.Option(0.0, help="Override fusion.voxel_size (fixed policy), metres."),
+    ply: bool = typer.Option(True, help="Also export <out>/gaussians.ply in the 3DGS layout."),
+    overwrite: bool = typer.Option(False, help="Replace an existing scene folder."),
+    threads: int = typer.Option(0, help="torch threads (0 = torch default)."),
+) -> None:
+    """Encode a capture's frames into a persistent feature-Gaussian scene."""
+    import dataclasses
+    import time
+
+    import torch
+
+    from image2sim.simulator.gaussians.build import build_scene
+    from image2sim.simulator.gaussians.config import ConfigError, load_gaussian_config
+    from image2sim.simulator.gaussians.scene import SceneError
+    from image2sim.simulator.io.records import CaptureError
+
+    if threads > 0:
+        torch.set_num_threads(threads)
+    try:
+        cfg = load_gaussian_config(config)
+        fusion = cfg.fusion
+        if voxel_policy:
+            if voxel_policy not in ("footprint", "fixed"):
+                raise ConfigError(f"--voxel-policy must be 'footprint' or 'fixed', got {voxel_policy!r}")
+            fusion = dataclasses.replace(fusion, policy=voxel_policy)
+        if voxel_size > 0:
+            fusion = dataclasses.replace(fusion, voxel_size=voxel_size)
+        cfg = dataclasses.replace(cfg, fusion=fusion).validate()
+        if out.exists() and not overwrite:
+            raise SceneError(f"{out}: already exists (pass --overwrite)")
+        t0 = time.perf_counter()
+        scene = build_scene(capture, cfg, encoder=encoder, frames=_parse_frames(frames), progress=True)
+        if encoder != "identity":
+            scene.fusion = fusion  # the checkpoint's config brings its own; CLI overrides still win
+        elapsed = time.perf_counter() - t0
+        scene.save(out, overwrite=overwrite)
+        if ply:
+            scene.export_ply(out / "gaussians.ply")
+    except (ConfigError, SceneError, CaptureError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    counts = scene.manifest()["counts"]
+    typer.echo(f"{out}: {counts['gaussians']} Gaussians from {counts['frames']} frames in {elapsed:.2f} s "
+               f"({counts['frames'] / max(elapsed, 1e-9):.2f} frames/s); per voxel size {counts['per_voxel_size']}")
+
+
+def _parse_pose(text: str):
+    """'tx ty tz qw qx qy qz' (7 numbers, quaternion w-first) or 16 numbers (row-major 4x4)."""
+    import numpy as np
+    import torch
+
+    from image2sim.simulator.geometry.se3 import quat_to_matrix
+
+    vals = [float(v) for v in text.replace(",", " ").split()]
+    if len(vals) == 16:
+        return np.asarray(vals, dtype=np.float64).reshape(4, 4)
+    if len(vals) == 7:
+        pose = np.eye(4)
+        pose[:3, :3] = quat_to_matrix(torch.tensor(vals[3:], dtype=torch.float64)).numpy()
+        pose[:3, 3] = vals[:3]
+        return pose
+    raise ValueError(f"--pose needs 7 numbers (tx ty tz qw qx qy qz) or 16 (4x4 row-major), got {len(vals)}")
+
+
+def render_command(
+    scene: Path = typer.Argument(..., help="Scene folder written by build-scene."),
+    out: Path = typer.Option(..., "--out", help="RGB image to write (PNG); <stem>_depth.png (uint16 mm) and "
+                                             "<stem>_alpha.png are written next to it."),
+    frame: int = typer.Option(-1, help="Render at the pose of this frame index of the source capture."),
+    pose: str = typer.Option("", help="Camera-to-world pose: 'tx ty tz qw qx qy qz' or 16 numbers."),
+    height: int = typer.Option(0, help="Output height (default: the scene's input camera)."),
+    width: int = typer.Option(0, help="Output width (default: the scene's input camera)."),
+    backend: str = typer.Option("auto", help="Splatting backend (auto, cpu, torch, reference)."),
+) -> None:
+    """Render a saved scene at a frame's pose or a given pose: RGB, depth and alpha images."""
+    import numpy as np
+    import torch
+
+    from image2sim.simulator.gaussians.frames import resize_camera
+    from image2sim.simulator.gaussians.scene import GaussianScene, SceneError
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.io.images import write_rgb_png, write_uint16_png
+
+    try:
+        sc = GaussianScene.load(scene)
+        if (frame >= 0) == bool(pose):
+            raise ValueError("give exactly one of --frame or --pose")
+        if pose:
+            c2w = _parse_pose(pose)
+        else:
+            c2w = _frame_pose(sc, frame)
+        camera = sc.camera() or EquirectCamera(256, 512)
+        if height or width:
+            camera = resize_camera(camera, height or camera.height, width or camera.width)
+        res = sc.render(camera, torch.as_tensor(c2w, dtype=sc.gaussians.means.dtype), backend=backend)
+    except (SceneError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    rgb = (res.rgb[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    depth = res.normalized_depth()[0, 0].numpy()
+    alpha = (res.alpha[0, 0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_rgb_png(out, rgb)
+    write_uint16_png(out.with_name(out.stem + "_depth.png"), np.clip(np.rint(depth * 1000), 0, 65535).astype(np.uint16))
+    write_rgb_png(out.with_name(out.stem + "_alpha.png"), np.repeat(alpha[..., None], 3, axis=2))
+    cover = float((res.alpha > 0.5).float().mean())
+    typer.echo(f"{out}: {camera.width}x{camera.height}, {len(sc)} Gaussians, alpha>0.5 on {cover:.1%} of pixels "
+               f"({res.backend} backend)")
+
+
+def _frame_pose(sc, frame: int):
+    """Pose of capture frame ``frame``: from the scene's frame list, else from the source capture."""
+    import numpy as np
+
+    for rec in sc.frames:
+        if rec.get("index") == frame and rec.get("cam_to_world") is not None:
+            return np.asarray(rec["cam_to_world"], dtype=np.float64)
+    source = (sc.info.get("source") or {}).get("capture")
+    if not source or not Path(source).exists():
+        raise ValueError(f"frame {frame} is not in the scene and its source capture {source!r} is unavailable")
+    from image2sim.simulator.io.registry import open_capture
+
+    cap = open_capture(source)
+    if not 0 <= frame < len(cap):
+        raise ValueError(f"--frame {frame} out of range: source capture {source} has {len(cap)} frames")
+    if cap.poses is not None:
+        return cap.poses[frame]
+    return cap[frame].cam_to_world
+
+
+def train_geometry_command(
+    data: list[Path] = typer.Argument(None, help="Capture folders to train on (default: procedural scenes)."),
+    out: Path = typer.Option(Path("runs/geometry"), "--out", help="Run folder (checkpoints, logs, encoder)."),
+    config: str = typer.Option("tiny", help="Preset (tiny, paper) or YAML/JSON overrides."),
+    steps: int = typer.Option(0, help="Override train.steps."),
+    resume: bool = typer.Option(True, help="Resume from <out>/checkpoints/last.ckpt when present."),
+) -> None:
+    """Stage-1 geometry training of the Gaussian encoder (Lightning)."""
+    import dataclasses
+
+    from image2sim.simulator.gaussians.config import load_gaussian_config
+    from image2sim.simulator.gaussians.train_geometry import train_stage1
+
+    cfg = load_gaussian_config(config)
+    if steps:
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=steps))
+    result = train_stage1(cfg, out, captures=list(data or []), resume=resume)
+    typer.echo(json.dumps(result, indent=2))

@@ -1,0 +1,341 @@
+"""Typed configuration of scene encoding and Gaussian scene construction (presets ``tiny`` / ``paper``).
+
+Every field carries a docstring. :func:`gaussian_config_from_dict` / :func:`load_gaussian_config`
+start from a named preset, overlay plain data (e.g. YAML/JSON) and reject unknown keys with the
+dotted path of the offending field, so a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+__all__ = [
+    "SemanticConfig",
+    "EncoderConfig",
+    "FusionConfig",
+    "Stage1Config",
+    "GaussianConfig",
+    "ConfigError",
+    "tiny",
+    "paper",
+    "PRESETS",
+    "gaussian_config_from_dict",
+    "load_gaussian_config",
+    "config_to_dict",
+]
+
+FEATURE_DIM = 16
+"""Channels of the per-Gaussian scene features (the renderer's condition expects 16)."""
+
+
+class ConfigError(ValueError):
+    """Invalid Gaussian/encoder configuration; the message names the field and the problem."""
+
+
+@dataclass
+class SemanticConfig:
+    """Semantic stream: a frozen DINOv3 ViT (patch tokens at H/patch) or none."""
+
+    backbone: Literal["none", "dinov3"] = "none"
+    """``dinov3``: frozen DINOv3 ViT loaded from ``weights``; ``none``: detail stream only (the paper's
+    "w/o semantic features" setting, and the CPU default when no weights exist)."""
+    weights: str | None = None
+    """Local folder with a transformers ``DINOv3ViTModel`` (config.json + safetensors). Never downloaded."""
+    dim: int = 1024
+    """Channels of the patch tokens (1024 for ViT-L/16). Checked against the loaded model."""
+    patch_size: int = 16
+    """ViT patch size in pixels; tokens live at H/patch_size x W/patch_size."""
+    mean: tuple[float, float, float] = (0.485, 0.456, 0.406)
+    """ImageNet normalisation mean applied by the hand-written preprocessing."""
+    std: tuple[float, float, float] = (0.229, 0.224, 0.225)
+    """ImageNet normalisation standard deviation."""
+
+
+@dataclass
+class EncoderConfig:
+    """Detail encoder, feature upsampler and heads of the learned encoder (paper appendix, Stage 1)."""
+
+    height: int = 128
+    """Input height in pixels (frames are area-resized to height x width); a multiple of 16."""
+    width: int = 256
+    """Input width in pixels; a multiple of 16 (2 x height for panoramas)."""
+    detail_widths: tuple[int, int, int, int] = (16, 24, 32, 48)
+    """Channels of the detail pyramid at H, H/2, H/4, H/8."""
+    bottleneck_width: int = 64
+    """Channels at H/16, where the semantic tokens (or a strided detail map) enter the upsampler."""
+    upsampler_widths: tuple[int, int, int, int] = (48, 32, 24, 16)
+    """Channels after each PixelShuffle stage of the FeatureUpsampler (H/8, H/4, H/2, H)."""
+    blocks_per_stage: int = 1
+    """PanoBlocks after every fusion (detail levels and upsampler stages)."""
+    kernel_size: int = 7
+    """Depth-wise kernel size of the PanoBlocks."""
+    expansion: int = 4
+    """Inverted-bottleneck expansion of the PanoBlocks."""
+    feature_dim: int = FEATURE_DIM
+    """Scene feature channels per Gaussian."""
+    depth_scale: float = 10.0
+    """Metres per unit of the normalised depth input channel."""
+    scale_min: float = 0.002
+    """Lower bound of every Gaussian standard deviation, metres."""
+    scale_max: float = 0.5
+    """Upper bound of every Gaussian standard deviation, metres."""
+    scale_init: float = 0.6
+    """Initial standard deviation as a multiple of the pixel footprint (the identity baseline's value)."""
+    opacity_init: float = 0.95
+    """Initial opacity of every Gaussian (the opacity head's bias)."""
+
+
+@dataclass
+class FusionConfig:
+    """How per-pixel Gaussians of many frames are fused into the scene memory (MemoryState)."""
+
+    policy: Literal["footprint", "fixed"] = "footprint"
+    """``footprint``: each point is fused at a voxel size that follows its observed pixel footprint
+    (range x angular pixel size), quantised to power-of-two levels of ``base_voxel``; where a finer
+    level already models a cell, coarser observations of it are dropped. ``fixed``: one voxel size."""
+    voxel_size: float = 0.05
+    """Voxel edge of the ``fixed`` policy, metres."""
+    base_voxel: float = 0.01
+    """Finest voxel edge (level 0) of the ``footprint`` policy, metres."""
+    levels: int = 6
+    """Number of power-of-two levels of the ``footprint`` policy (level l has edge base_voxel * 2^l)."""
+    footprint_factor: float = 1.0
+    """Footprint voxel target = this x pixel footprint (1: about one Gaussian per pixel at first sight)."""
+    cover_factor: float = 0.5
+    """Fused Gaussians get standard deviations of at least this x their voxel edge so merged points
+    leave no holes (0 disables the floor)."""
+    min_range: float = 0.1
+    """Pixels observed closer than this (metres) are dropped."""
+    max_range: float = 20.0
+    """Pixels observed farther than this (metres) are dropped (depth is unreliable there)."""
+    min_opacity: float = 0.01
+    """Gaussians with lower opacity are pruned."""
+    edge_tolerance: float = 0.1
+    """When frames are area-resized, a block whose valid depths spread by more than this fraction
+    keeps its nearest depth instead of the mean, so no point floats between two surfaces."""
+
+
+@dataclass
+class Stage1Config:
+    """Stage-1 (geometry initialisation) training of the encoder."""
+
+    num_sources: int = 3
+    """K source frames per sample; the Gaussians of all K are splatted at one held-out target."""
+    steps: int = 100
+    """Optimisation steps."""
+    lr: float = 3e-4
+    """AdamW learning rate."""
+    weight_decay: float = 0.01
+    """AdamW weight decay."""
+    w_rgb: float = 1.0
+    """Weight of the masked L1 RGB reconstruction."""
+    w_depth: float = 0.5
+    """Weight of the masked L1 depth reconstruction (depth in units of encoder.depth_scale)."""
+    w_align: float = 0.1
+    """Weight of the cosine alignment of projected features to the target's DINOv3 tokens (only with a
+    semantic backbone)."""
+    w_scale: float = 0.01
+    """Weight of the scale regulariser (mean log of scale / footprint, squared)."""
+    min_alpha: float = 0.5
+    """Target pixels with lower splatted alpha are excluded from the reconstruction mask."""
+    backend: str = "auto"
+    """Splatting backend used in training."""
+    seed: int = 0
+    """Seed of the sample order."""
+    log_every: int = 10
+    """Steps between scalar logs."""
+    image_every: int = 50
+    """Steps between image grids written to the log folder (0 disables)."""
+    checkpoint_every: int = 50
+    """Steps between resumable checkpoints."""
+    wandb: bool = False
+    """Log to Weights & Biases (offline unless WANDB_MODE says otherwise); CSV logging is always on."""
+
+
+@dataclass
+class GaussianConfig:
+    """Everything that turns posed RGB-D frames into a Gaussian scene."""
+
+    name: str = "tiny"
+    """Preset name this config started from (recorded in manifests)."""
+    semantic: SemanticConfig = field(default_factory=SemanticConfig)
+    """Semantic stream."""
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    """Detail stream, upsampler and heads."""
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    """Scene memory fusion and pruning."""
+    train: Stage1Config = field(default_factory=Stage1Config)
+    """Stage-1 training."""
+
+    def validate(self) -> GaussianConfig:
+        """Check value ranges; raises :class:`ConfigError` naming the field."""
+        e, f, s = self.encoder, self.fusion, self.semantic
+        if e.height <= 0 or e.width <= 0 or e.height % 16 or e.width % 16:
+            raise ConfigError(f"encoder.height/width must be positive multiples of 16, got {e.height}x{e.width}")
+        for name in ("detail_widths", "upsampler_widths"):
+            widths = getattr(e, name)
+            if len(widths) != 4 or any(int(w) <= 0 for w in widths):
+                raise ConfigError(f"encoder.{name} needs 4 positive widths, got {widths}")
+        if e.bottleneck_width <= 0 or e.feature_dim < 0 or e.blocks_per_stage < 0 or e.expansion < 1:
+            raise ConfigError("encoder.bottleneck_width > 0, feature_dim >= 0, blocks_per_stage >= 0, expansion >= 1")
+        if e.kernel_size < 1 or e.kernel_size % 2 == 0:
+            raise ConfigError(f"encoder.kernel_size must be odd and positive, got {e.kernel_size}")
+        if not 0 < e.scale_min < e.scale_max:
+            raise ConfigError(f"encoder needs 0 < scale_min < scale_max, got {e.scale_min}, {e.scale_max}")
+        if not 0 < e.opacity_init < 1 or e.scale_init <= 0 or e.depth_scale <= 0:
+            raise ConfigError("encoder.opacity_init must lie in (0, 1); scale_init and depth_scale must be > 0")
+        if s.backbone not in ("none", "dinov3"):
+            raise ConfigError(f"semantic.backbone must be 'none' or 'dinov3', got {s.backbone!r}")
+        if s.patch_size <= 0 or s.dim <= 0 or len(s.mean) != 3 or len(s.std) != 3 or min(s.std) <= 0:
+            raise ConfigError("semantic.patch_size/dim must be > 0, mean/std 3 values with std > 0")
+        if f.policy not in ("footprint", "fixed"):
+            raise ConfigError(f"fusion.policy must be 'footprint' or 'fixed', got {f.policy!r}")
+        if not (f.voxel_size > 0 and f.base_voxel > 0 and f.footprint_factor > 0):
+            raise ConfigError("fusion.voxel_size, base_voxel and footprint_factor must be > 0")
+        if not 1 <= f.levels <= 24:
+            raise ConfigError(f"fusion.levels must lie in [1, 24], got {f.levels}")
+        if f.cover_factor < 0 or not 0 <= f.min_range < f.max_range or not 0 <= f.min_opacity < 1:
+            raise ConfigError("fusion needs cover_factor >= 0, 0 <= min_range < max_range, 0 <= min_opacity < 1")
+        if f.edge_tolerance <= 0:
+            raise ConfigError(f"fusion.edge_tolerance must be > 0, got {f.edge_tolerance}")
+        t = self.train
+        if t.num_sources < 1 or t.steps < 0 or t.lr <= 0:
+            raise ConfigError("train.num_sources >= 1, steps >= 0 and lr > 0 are required")
+        return self
+
+
+def tiny() -> GaussianConfig:
+    """CPU preset: no semantic backbone, 128x256 panoramas, small widths."""
+    return GaussianConfig(name="tiny").validate()
+
+
+def paper() -> GaussianConfig:
+    """Paper preset: frozen DINOv3 ViT-L/16 (1024-d tokens at H/16), 512x1024 panoramas, paper widths."""
+    return GaussianConfig(
+        name="paper",
+        semantic=SemanticConfig(backbone="dinov3", weights=None, dim=1024, patch_size=16),
+        encoder=EncoderConfig(
+            height=512,
+            width=1024,
+            detail_widths=(64, 128, 256, 512),
+            bottleneck_width=1024,
+            upsampler_widths=(512, 256, 128, 64),
+            blocks_per_stage=2,
+        ),
+        train=Stage1Config(num_sources=4, steps=100_000, lr=1e-4, wandb=True),
+    ).validate()
+
+
+PRESETS = {"tiny": tiny, "paper": paper}
+"""Named presets (factories returning fresh configs)."""
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, value, where)
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{where}: {value!r} is not one of {list(args)}")
+        return value
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        if value is None and type(None) in args:
+            return None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, where)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{where}: {value!r} does not match {hint}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true/false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _build(cls: type, data: Any, where: str, base: Any = None) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise ConfigError(f"unknown config key(s) {[prefix + k for k in unknown]} (valid: {names})")
+    current = base if base is not None else cls()
+    values = {}
+    for name in names:
+        path = f"{where}.{name}" if where else name
+        if name in data:
+            sub = getattr(current, name)
+            if dataclasses.is_dataclass(hints[name]):
+                values[name] = _build(hints[name], data[name], path, sub)
+            else:
+                values[name] = _coerce(data[name], hints[name], path)
+        else:
+            values[name] = getattr(current, name)
+    return cls(**values)
+
+
+def gaussian_config_from_dict(data: dict, preset: str | None = None) -> GaussianConfig:
+    """Build a config from plain data over a preset (``data["preset"]`` or ``preset``, default tiny)."""
+    data = dict(data)
+    name = data.pop("preset", None) or preset or data.get("name") or "tiny"
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r} (expected one of {sorted(PRESETS)})")
+    return _build(GaussianConfig, data, "", PRESETS[name]()).validate()
+
+
+def load_gaussian_config(path_or_name: str | Path) -> GaussianConfig:
+    """A preset name (``tiny``/``paper``) or a YAML/JSON file of overrides over its ``preset``."""
+    text = str(path_or_name)
+    if text in PRESETS:
+        return PRESETS[text]()
+    path = Path(text)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such config file (and not a preset name {sorted(PRESETS)})")
+    raw = path.read_text()
+    if path.suffix == ".json":
+        data = json.loads(raw)
+    else:
+        import yaml
+
+        data = yaml.safe_load(raw) or {}
+    try:
+        return gaussian_config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def config_to_dict(cfg: GaussianConfig) -> dict:
+    """JSON-serialisable nested dict (tuples become lists); inverse of :func:`gaussian_config_from_dict`."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
