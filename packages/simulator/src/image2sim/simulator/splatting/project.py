@@ -180,8 +180,11 @@ def project_gaussians(
     n = means.shape[0]
     m = means.to(dt)
     c2w = cam_to_world.to(dtype=dt, device=means.device)
-    cov = covariance_3d(scales.to(dt), quats.to(dt))
-    p, cov_c = world_to_camera(m, cov, c2w)
+    rot_wc = c2w[:3, :3]
+    # Camera-frame means; the translation is subtracted first so large coordinates keep precision.
+    p = (m - c2w[:3, 3]) @ rot_wc
+    # R diag(s): Sigma = (R S)(R S)^T, so Sigma_2D = L L^T with L = J R_cw R S (no 3x3 products).
+    rs = quat_to_rotmat(quats.to(dt)) * scales.to(dt).unsqueeze(-2)
 
     equirect = isinstance(camera, EquirectCamera)
     depth = torch.linalg.vector_norm(p, dim=-1) if equirect else p[:, 2]
@@ -195,23 +198,27 @@ def project_gaussians(
     # Culled points get a safe stand-in so no inf/NaN reaches values or gradients.
     safe_point = torch.tensor([0.0, 0.0, 1.0], dtype=dt, device=means.device)
     p_s = torch.where(valid.unsqueeze(-1), p, safe_point)
-    cov_s = torch.where(valid[:, None, None], cov_c, torch.eye(3, dtype=dt, device=means.device))
 
     if equirect:
         uv, jac = equirect_jacobian(p_s, camera)
     else:
         uv, _, _ = camera.project(p_s)
         jac = camera.pixel_jacobian(p_s)
-    cov2 = jac @ cov_s @ jac.transpose(-1, -2)
-    a = cov2[:, 0, 0] + DILATION
-    b = cov2[:, 0, 1]
-    c = cov2[:, 1, 1] + DILATION
+    k = (jac.reshape(-1, 3) @ rot_wc.transpose(0, 1)).reshape(n, 2, 3)  # J R_cw
+    el = (k.unsqueeze(-1) * rs.unsqueeze(1)).sum(2)  # (N, 2, 3) = J R_cw R S
+    el = torch.where(valid[:, None, None], el, torch.zeros_like(el))
+    cov2 = torch.stack(
+        ((el[:, 0] * el[:, 0]).sum(-1), (el[:, 0] * el[:, 1]).sum(-1), (el[:, 1] * el[:, 1]).sum(-1)), dim=-1
+    )
+    a = cov2[:, 0] + DILATION
+    b = cov2[:, 1]
+    c = cov2[:, 2] + DILATION
     if equirect:
         # Clamp the u extent to the full width: 3.5 * sigma_u <= W / 2 (scale u row/col by k).
         max_sigma_u = 0.5 * camera.width / CUTOFF_SIGMA
-        k = torch.clamp(max_sigma_u / torch.sqrt(a.clamp_min(1e-300)), max=1.0)
-        a = a * k * k
-        b = b * k
+        shrink = torch.clamp(max_sigma_u / torch.sqrt(a.clamp_min(1e-300)), max=1.0)
+        a = a * shrink * shrink
+        b = b * shrink
     det = a * c - b * b
     ok = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c) & (det > 0)
     valid = valid & ok

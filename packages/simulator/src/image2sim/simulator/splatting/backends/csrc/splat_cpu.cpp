@@ -111,7 +111,9 @@ void forward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* c
 #pragma omp parallel num_threads(at::get_num_threads())
   {
     const int64_t P = g.tile * g.tile;
-    std::vector<double> T(P), acc(P * D), asum(P);
+    // Channel sums in scalar_t keep a float tile (256 x D) in L1; transmittance stays double.
+    std::vector<double> T(P), asum(P);
+    std::vector<scalar_t> acc(P * D);
     std::vector<int64_t> last(P);
     std::vector<char> done(P);
 #pragma omp for schedule(dynamic, 1)
@@ -119,7 +121,7 @@ void forward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* c
       const auto tv = tile_view(g, t);
       const int64_t np = tv.w * tv.h;
       std::fill(T.begin(), T.begin() + np, 1.0);
-      std::fill(acc.begin(), acc.begin() + np * D, 0.0);
+      std::fill(acc.begin(), acc.begin() + np * D, scalar_t(0));
       std::fill(asum.begin(), asum.begin() + np, 0.0);
       std::fill(last.begin(), last.begin() + np, 0);
       std::fill(done.begin(), done.begin() + np, 0);
@@ -147,8 +149,9 @@ void forward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* c
             const double a = std::min(kAlphaMax, o * std::exp(-0.5 * q));
             if (a < kAlphaMin) continue;
             const double w = a * T[p];
-            double* ap = acc.data() + p * D;
-            for (int64_t c = 0; c < D; ++c) ap[c] += w * v[c];
+            const scalar_t ws = static_cast<scalar_t>(w);
+            scalar_t* ap = acc.data() + p * D;
+            for (int64_t c = 0; c < D; ++c) ap[c] += ws * v[c];
             asum[p] += w;
             T[p] *= (1.0 - a);
             last[p] = k - begin + 1;
@@ -182,7 +185,8 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
 #pragma omp parallel num_threads(at::get_num_threads())
   {
     const int64_t P = g.tile * g.tile;
-    std::vector<double> T(P), S(P * D), Sa(P), G(P * D), Ga(P), dv(D);
+    std::vector<double> T(P), Sa(P), Ga(P), dv(D);
+    std::vector<scalar_t> S(P * D), G(P * D);
     std::vector<int64_t> last(P);
     double* d_bg = d_bg_threads + omp_get_thread_num() * D;
 #pragma omp for schedule(dynamic, 1)
@@ -200,8 +204,8 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
         double gbg = 0.0;
         for (int64_t c = 0; c < D; ++c) {
           const double gc = g_out[c * HW + pix];
-          G[p * D + c] = gc;
-          S[p * D + c] = 0.0;
+          G[p * D + c] = static_cast<scalar_t>(gc);
+          S[p * D + c] = scalar_t(0);
           gbg += gc * bg[c];
           d_bg[c] += gc * (1.0 - static_cast<double>(alpha_out[pix]));
         }
@@ -239,14 +243,18 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
           const double one_m = 1.0 - a;
           T[p] /= one_m;  // transmittance in front of this Gaussian
           const double w = a * T[p];
-          const double* gp = G.data() + p * D;
-          double* sp = S.data() + p * D;
+          const scalar_t* gp = G.data() + p * D;
+          scalar_t* sp = S.data() + p * D;
           double da = Ga[p] * (T[p] - Sa[p] / one_m);
+          const double tp = T[p], inv = 1.0 / one_m;
+          const scalar_t ws = static_cast<scalar_t>(w);
+          double dsum = 0.0;
           for (int64_t c = 0; c < D; ++c) {
             dv[c] += w * gp[c];
-            da += gp[c] * (T[p] * v[c] - sp[c] / one_m);
-            sp[c] += w * v[c];
+            dsum += gp[c] * (tp * v[c] - sp[c] * inv);
+            sp[c] += ws * v[c];
           }
+          da += dsum;
           Sa[p] += w;
           if (raw > kAlphaMax) continue;  // clamped alpha: no gradient to opacity or shape
           dop += da * gauss;

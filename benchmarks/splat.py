@@ -1,0 +1,260 @@
+"""Benchmark ``splat``: ms per frame per backend, forward and forward+backward, plus peak memory.
+
+Scenes are Gaussians on the walls, floor and ceiling of a 8 x 6 x 3 m room around the camera (sizes
+set so the surfaces are covered, as in a lifted capture), float32, 16 feature channels.
+
+Cases
+* headline (the brief): 20k Gaussians into a 256x512 panorama and a 256x256 90-degree pinhole view,
+  every backend; the dense reference only on a small case (it is O(pixels x Gaussians)).
+* grid (the issue): N in {10k, 100k, 1M} x {128x256, 256x512, 512x1024} panoramas for the compiled
+  backend; the torch backend on the N <= 100k, 256x512 cases; ratio torch / cpu in the same run.
+* memory: peak RSS of a fresh process doing one forward+backward with the compiled backend, to
+  show linear growth in N and in pixels.
+
+Timing: median of ``--repeats`` (>= 5) runs after one warm-up; the CPU model, thread count and the
+load average (the machine is shared) are recorded. Writes ``reports/splat.json`` and
+``reports/splat.md``. Run: ``.venv/bin/python benchmarks/splat.py [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+from rich.progress import Progress
+
+from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+from image2sim.simulator.splatting import available_backends, splat
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORTS = ROOT / "reports"
+
+
+def hardware() -> str:
+    cpu = platform.processor() or "unknown cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({torch.get_num_threads()} threads)"
+
+
+def room_scene(n: int, seed: int = 0, channels: int = 16) -> list[torch.Tensor]:
+    """N Gaussians on the six faces of an 8 x 6 x 3 m room centred on the origin (camera at 1.5 m)."""
+    g = torch.Generator().manual_seed(seed)
+    size = torch.tensor([8.0, 6.0, 3.0])
+    areas = torch.tensor([6 * 3, 6 * 3, 8 * 3, 8 * 3, 8 * 6, 8 * 6], dtype=torch.float32)
+    face = torch.multinomial(areas, n, replacement=True, generator=g)
+    pts = (torch.rand(n, 3, generator=g) - 0.5) * size
+    axis = face // 2
+    side = (face % 2).float() * 2 - 1
+    pts[torch.arange(n), axis] = side * size[axis] / 2
+    pts[:, 2] += 1.5 - 0.0  # camera at height 1.5 above the floor centre -> floor at z = -1.5
+    pts[:, 2] -= 1.5
+    spacing = math.sqrt(float(areas.sum()) / n)
+    scales = spacing * (0.4 + 0.4 * torch.rand(n, 3, generator=g))
+    scales[torch.arange(n), axis] *= 0.1  # flat on the surface
+    quats = torch.randn(n, 4, generator=g)
+    opac = 0.3 + 0.7 * torch.rand(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    feats = torch.randn(n, channels, generator=g)
+    return [pts, scales, quats, opac, colors, feats]
+
+
+def upright_pose() -> torch.Tensor:
+    """Camera at the origin looking along world +X, upright (OpenCV axes, world Z up)."""
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    return pose
+
+
+def time_case(scene, camera, backend: str, backward: bool, repeats: int) -> dict:
+    """Median seconds per frame (one warm-up) of forward or forward+backward."""
+    pose = upright_pose()
+    if backward:
+        inputs = [t.clone().requires_grad_() for t in scene]
+    else:
+        inputs = scene
+
+    def run():
+        if backward:
+            out = splat(*inputs, camera, pose, backend=backend)
+            loss = out.rgb.sum() + out.depth.sum() + out.alpha.sum() + out.features.sum()
+            loss.backward()
+            for t in inputs:
+                t.grad = None
+            return out
+        with torch.no_grad():
+            return splat(*inputs, camera, pose, backend=backend)
+
+    out = run()
+    times, cpu_times = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        run()
+        times.append(time.perf_counter() - t0)
+        cpu_times.append(time.process_time() - c0)
+    return {
+        "ms": 1000 * statistics.median(times),
+        "ms_min": 1000 * min(times),
+        "cpu_ms": 1000 * statistics.median(cpu_times),
+        "runs": repeats,
+        "mean_alpha": float(out.alpha.detach().mean()),
+    }
+
+
+_MEM_CHILD = r"""
+import json, resource, sys, torch
+sys.path.insert(0, sys.argv[1])
+from splat import room_scene, upright_pose
+from image2sim.simulator.geometry.cameras import EquirectCamera
+from image2sim.simulator.splatting import splat
+n, h, w = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+scene = [t.requires_grad_() for t in room_scene(n)]
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+out = splat(*scene, EquirectCamera(h, w), upright_pose(), backend="cpu")
+(out.rgb.sum() + out.features.sum() + out.depth.sum()).backward()
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"peak_rss_mb": peak / 1024, "baseline_rss_mb": base / 1024}))
+"""
+
+
+def peak_memory(n: int, h: int, w: int) -> dict:
+    """Peak RSS (MB) of a fresh process: scene built (baseline) and after one forward+backward."""
+    with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
+        f.write(_MEM_CHILD)
+    try:
+        res = subprocess.run([sys.executable, f.name, str(Path(__file__).parent), str(n), str(h), str(w)],
+                             capture_output=True, text=True, check=True)
+    finally:
+        os.unlink(f.name)
+    data = json.loads(res.stdout.strip().splitlines()[-1])
+    data["splat_mb"] = data["peak_rss_mb"] - data["baseline_rss_mb"]
+    return data
+
+
+def write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="headline cases only")
+    args = ap.parse_args()
+    if args.repeats < 5:
+        raise SystemExit("--repeats must be >= 5")
+    backends = available_backends()
+    if "cpu" not in backends:
+        raise SystemExit("compiled CPU backend unavailable; nothing to benchmark against")
+    load_before = os.getloadavg()
+
+    pano = EquirectCamera(256, 512)
+    pin = PinholeCamera.from_fov(90.0, 90.0, 256, 256)
+    plan: list[tuple[str, int, object, str, bool]] = []
+    for cam_name, cam in (("equirect 256x512", pano), ("pinhole 256x256", pin)):
+        for be in ("cpu", "torch"):
+            for bw in (False, True):
+                plan.append(("headline", 20_000, cam, be, bw))
+    plan += [("dense", 2_000, EquirectCamera(64, 128), be, bw) for be in ("cpu", "torch", "reference") for bw in (False, True)]
+    if not args.quick:
+        for n in (10_000, 100_000, 1_000_000):
+            for h, w in ((128, 256), (256, 512), (512, 1024)):
+                for bw in (False, True):
+                    plan.append(("grid", n, EquirectCamera(h, w), "cpu", bw))
+        plan.append(("grid", 10_000, EquirectCamera(256, 512), "torch", True))
+        for n in (10_000, 100_000):
+            plan.append(("grid", n, EquirectCamera(256, 512), "torch", False))
+
+    scenes: dict[int, list[torch.Tensor]] = {}
+    rows = []
+    with Progress() as progress:
+        task = progress.add_task("splat benchmark", total=len(plan))
+        for group, n, cam, be, bw in plan:
+            scene = scenes.setdefault(n, room_scene(n))
+            reps = args.repeats
+            res = time_case(scene, cam, be, bw, reps)
+            rows.append({
+                "group": group, "n": n, "camera": cam.model, "height": cam.height, "width": cam.width,
+                "backend": be, "pass": "forward+backward" if bw else "forward", **res,
+            })
+            progress.advance(task)
+
+    # ratios against the torch backend (and the dense reference) measured in this run
+    def find(group, n, model, h, w, be, ps):
+        for r in rows:
+            if (r["group"], r["n"], r["camera"], r["height"], r["width"], r["backend"], r["pass"]) == (group, n, model, h, w, be, ps):
+                return r
+        return None
+
+    for r in rows:
+        t = find(r["group"], r["n"], r["camera"], r["height"], r["width"], "torch", r["pass"])
+        if t is not None:
+            r["speedup_vs_torch"] = t["ms"] / r["ms"]
+            r["cpu_speedup_vs_torch"] = t["cpu_ms"] / r["cpu_ms"]
+        d = find(r["group"], r["n"], r["camera"], r["height"], r["width"], "reference", r["pass"])
+        if d is not None:
+            r["speedup_vs_dense_reference"] = d["ms"] / r["ms"]
+
+    memory = []
+    if not args.quick:
+        for n, h, w in ((10_000, 256, 512), (100_000, 256, 512), (1_000_000, 256, 512), (100_000, 128, 256),
+                        (100_000, 512, 1024)):
+            memory.append({"n": n, "height": h, "width": w, **peak_memory(n, h, w)})
+
+    report = {
+        "benchmark": "splat",
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "hardware": hardware(),
+        "threads": torch.get_num_threads(),
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
+        "note": "shared 2-core machine: other jobs ran concurrently (see load averages); medians of "
+                f"{args.repeats} runs after one warm-up; float32, 16 feature channels",
+        "cases": rows,
+        "memory": memory,
+    }
+    REPORTS.mkdir(exist_ok=True)
+    write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
+
+    lines = [
+        "# splat benchmark", "",
+        f"{report['date']} · {report['hardware']} · load average before/after "
+        f"{load_before[0]:.1f} / {report['load_average_after'][0]:.1f} (shared machine)", "",
+        "ms/frame is wall clock (median); CPU ms is the process CPU time per frame (all threads), which",
+        "is far less sensitive to the other jobs on this machine.", "",
+        "| group | N | camera | HxW | backend | pass | ms/frame (median) | frames/s | CPU ms | vs torch | vs dense |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        vs_t = f"{r['speedup_vs_torch']:.1f}x" if "speedup_vs_torch" in r and r["backend"] != "torch" else ""
+        vs_d = f"{r['speedup_vs_dense_reference']:.1f}x" if "speedup_vs_dense_reference" in r and r["backend"] != "reference" else ""
+        lines.append(f"| {r['group']} | {r['n']:,} | {r['camera']} | {r['height']}x{r['width']} | {r['backend']} | "
+                     f"{r['pass']} | {r['ms']:.1f} | {1000 / r['ms']:.1f} | {r['cpu_ms']:.1f} | {vs_t} | {vs_d} |")
+    if memory:
+        lines += ["", "Peak RSS of a fresh process, one forward+backward (compiled backend):", "",
+                  "| N | HxW | peak RSS MB | above scene baseline MB |", "|---|---|---|---|"]
+        for m in memory:
+            lines.append(f"| {m['n']:,} | {m['height']}x{m['width']} | {m['peak_rss_mb']:.0f} | {m['splat_mb']:.0f} |")
+    write_atomic(REPORTS / "splat.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
