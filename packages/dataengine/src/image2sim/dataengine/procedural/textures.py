@@ -110,8 +110,11 @@ class MaterialTable:
         return len(self.pattern) - 1
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """Column arrays for vectorised evaluation."""
-        return {
+        """Column arrays for vectorised evaluation (cached until the next :meth:`add`)."""
+        cached = self.__dict__.get("_arrays")
+        if cached is not None and cached[0] == len(self):
+            return cached[1]
+        arrays = {
             "pattern": np.asarray(self.pattern, dtype=np.int64),
             "color_a": np.asarray(self.color_a, dtype=np.float64).reshape(-1, 3),
             "color_b": np.asarray(self.color_b, dtype=np.float64).reshape(-1, 3),
@@ -119,6 +122,8 @@ class MaterialTable:
             "direction": np.asarray(self.direction, dtype=np.int64),
             "seed": np.asarray(self.seed, dtype=np.uint64),
         }
+        self.__dict__["_arrays"] = (len(self), arrays)
+        return arrays
 
     def to_list(self) -> list[dict]:
         """JSON-friendly description of every material."""
