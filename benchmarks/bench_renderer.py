@@ -22,7 +22,6 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
-
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.renderer.condition import build_condition
 from image2sim.simulator.renderer.config import renderer_config_from_dict, tiny
@@ -42,8 +41,10 @@ def hardware() -> str:
     except OSError:
         pass
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} "
-            f"({torch.get_num_threads()} threads); 1-min load {load:.1f} at start")
+    return (
+        f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} "
+        f"({torch.get_num_threads()} threads); 1-min load {load:.1f} at start"
+    )
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, list[float], float]:
@@ -62,7 +63,9 @@ def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, list[float], 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared 2-core box)")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch threads (1 is fastest on a shared 2-core box)"
+    )
     parser.add_argument("--repeats", type=int, default=7)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -71,8 +74,11 @@ def main() -> None:
     h, w = cfg.height, cfg.width
     g = torch.Generator().manual_seed(0)
     cond = build_condition(
-        torch.randn(1, 16, h, w, generator=g), torch.rand(1, 3, h, w, generator=g),
-        torch.rand(1, 1, h, w, generator=g) * 5, torch.rand(1, 1, h, w, generator=g), EquirectCamera(h, w).ray_map(),
+        torch.randn(1, 16, h, w, generator=g),
+        torch.rand(1, 3, h, w, generator=g),
+        torch.rand(1, 1, h, w, generator=g) * 5,
+        torch.rand(1, 1, h, w, generator=g),
+        EquirectCamera(h, w).ray_map(),
     )
     noise = torch.randn(1, 4, h, w, generator=g)
     model = PixelFlowRenderer(cfg).eval()
@@ -80,12 +86,26 @@ def main() -> None:
     rows = []
     started = hardware()
     t_splat, s_splat, c_splat = timeit(lambda: splat.render(cond, noise=noise), args.repeats)
-    rows.append({"case": "splat-only (no network)", "steps": 0, "median_s": t_splat, "samples_s": s_splat,
-                 "median_cpu_s": c_splat})
+    rows.append(
+        {
+            "case": "splat-only (no network)",
+            "steps": 0,
+            "median_s": t_splat,
+            "samples_s": s_splat,
+            "median_cpu_s": c_splat,
+        }
+    )
     for steps in (1, 2, 4, 8):
         t, s, c = timeit(lambda steps=steps: model.render(cond, steps=steps, noise=noise), args.repeats)
-        rows.append({"case": f"pixel flow, {steps} step(s)", "steps": steps, "median_s": t, "samples_s": s,
-                     "median_cpu_s": c})
+        rows.append(
+            {
+                "case": f"pixel flow, {steps} step(s)",
+                "steps": steps,
+                "median_s": t,
+                "samples_s": s,
+                "median_cpu_s": c,
+            }
+        )
     ref = next(r["median_s"] for r in rows if r["steps"] == 4)
     ref_cpu = next(r["median_cpu_s"] for r in rows if r["steps"] == 4)
     for r in rows:
@@ -134,8 +154,12 @@ def main() -> None:
             f"| {r['case']} | {1000 * r['median_s']:.1f} | {r['fps']:.1f} | {r['speedup_vs_4_steps']:.2f}x "
             f"| {1000 * r['median_cpu_s']:.1f} | {r['cpu_speedup_vs_4_steps']:.2f}x |"
         )
-    lines += ["", f"One MeanFlow training step (batch 2: JVP + one-step path + backward): {t_train:.2f} s wall, "
-              f"{c_train:.2f} s CPU.", ""]
+    lines += [
+        "",
+        f"One MeanFlow training step (batch 2: JVP + one-step path + backward): {t_train:.2f} s wall, "
+        f"{c_train:.2f} s CPU.",
+        "",
+    ]
     tmp = REPORTS / ".bench_renderer.md.tmp"
     tmp.write_text("\n".join(lines))
     tmp.replace(REPORTS / "bench_renderer.md")

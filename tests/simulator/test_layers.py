@@ -7,8 +7,6 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-from torch.nn.attention import SDPBackend, sdpa_kernel
-
 from image2sim.simulator.layers import (
     GRN,
     LayerNorm2d,
@@ -20,6 +18,7 @@ from image2sim.simulator.layers import (
     circular_pad_width,
     sincos_positional_encoding,
 )
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -168,7 +167,9 @@ def test_positional_encoding_is_resolution_agnostic_and_periodic():
     w = 8
     lon = 2 * math.pi * (torch.arange(w, dtype=torch.float64) + 0.5) / w - math.pi
     f = torch.arange(1, dim // 4 + 1, dtype=torch.float64)
-    shifted = torch.cat((torch.sin((lon[None] + 2 * math.pi) * f[:, None]), torch.cos((lon[None] + 2 * math.pi) * f[:, None])))
+    shifted = torch.cat(
+        (torch.sin((lon[None] + 2 * math.pi) * f[:, None]), torch.cos((lon[None] + 2 * math.pi) * f[:, None]))
+    )
     assert torch.allclose(coarse[: dim // 2, 0], shifted, atol=1e-12)
     # Distinct positions get distinct codes.
     flat = coarse.flatten(1).T

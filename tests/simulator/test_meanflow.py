@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.condition import build_condition
@@ -31,8 +30,14 @@ def small_cfg(**overrides):
         "height": H,
         "width": W,
         "aligner": {"stem_widths": [8, 8, 12, 16], "token_dim": 16, "heads": 2, "depth": 1},
-        "decoder": {"widths": [8, 8, 12, 16], "bottleneck_dim": 16, "bottleneck_depth": 1, "heads": 2,
-                    "time_dim": 16, "kernel_size": 3},
+        "decoder": {
+            "widths": [8, 8, 12, 16],
+            "bottleneck_dim": 16,
+            "bottleneck_depth": 1,
+            "heads": 2,
+            "time_dim": 16,
+            "kernel_size": 3,
+        },
     }
     for key, value in overrides.items():
         base.setdefault(key, {}).update(value) if isinstance(value, dict) else base.__setitem__(key, value)
@@ -159,7 +164,7 @@ def test_sample_time_pairs_distribution():
     assert abs(frac_equal - 0.3) < 0.02
     assert abs(t.mean().item() - 0.5) < 0.01
     # r = t * U(0, 1) when not equal: r / t is uniform with mean 1/2
-    ratio = (r[r != t] / t[r != t])
+    ratio = r[r != t] / t[r != t]
     assert abs(ratio.mean().item() - 0.5) < 0.01
     r1, t1 = mf.sample_time_pairs(100, 1.0, generator=g)
     assert torch.equal(r1, t1)
@@ -253,7 +258,9 @@ def test_loss_and_grads_finite_on_degenerate_conditions(stability_model, case):
     cond, rgb, depth, noise = make_batch(**kwargs)
     t = torch.tensor([0.9, 1e-3])
     r = torch.tensor([0.0, 1e-3])
-    out, total, grads = _losses_and_grads(model, teacher.module, cond, rgb, depth, noise, r, t, autocast=case == "bf16")
+    out, total, grads = _losses_and_grads(
+        model, teacher.module, cond, rgb, depth, noise, r, t, autocast=case == "bf16"
+    )
     assert torch.isfinite(total) and all(torch.isfinite(g).all() for g in grads)
     if case == "depth0":  # no valid depth: only RGB enters the reconstruction term
         pred_rgb = out["x_one_step"][:, :3]
@@ -266,10 +273,14 @@ def test_nan_and_inf_in_splat_outputs_are_sanitised():
     feats[0, 0, 0, 0] = float("nan")
     rgb = torch.rand(2, 3, H, W)
     rgb[1, 1, 2, 3] = float("inf")
-    c = build_condition(feats, rgb, torch.rand(2, 1, H, W), torch.rand(2, 1, H, W) * 2, EquirectCamera(H, W).ray_map())
+    c = build_condition(
+        feats, rgb, torch.rand(2, 1, H, W), torch.rand(2, 1, H, W) * 2, EquirectCamera(H, W).ray_map()
+    )
     assert torch.isfinite(c).all() and c[:, 20].max() <= 1.0
     with pytest.raises(ValueError):
-        build_condition(feats[:, :8], rgb, torch.rand(2, 1, H, W), torch.rand(2, 1, H, W), EquirectCamera(H, W).ray_map())
+        build_condition(
+            feats[:, :8], rgb, torch.rand(2, 1, H, W), torch.rand(2, 1, H, W), EquirectCamera(H, W).ray_map()
+        )
 
 
 def test_model_tangent_option_runs_and_differs_from_target_tangent():

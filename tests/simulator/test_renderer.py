@@ -7,8 +7,6 @@ import logging
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import save_file
-
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.aligner import SemanticAligner, alignment_loss
 from image2sim.simulator.renderer.config import (
@@ -18,10 +16,21 @@ from image2sim.simulator.renderer.config import (
     renderer_config_from_dict,
     tiny,
 )
-from image2sim.simulator.renderer.decoder import AlphaGatedSkip, AlphaPyramid, DualTimeEmbedding, SemanticInjector
-from image2sim.simulator.renderer.distill import EMATeacher, distillation_loss, ema_update_, normalised_level_weights
+from image2sim.simulator.renderer.decoder import (
+    AlphaGatedSkip,
+    AlphaPyramid,
+    DualTimeEmbedding,
+    SemanticInjector,
+)
+from image2sim.simulator.renderer.distill import (
+    EMATeacher,
+    distillation_loss,
+    ema_update_,
+    normalised_level_weights,
+)
 from image2sim.simulator.renderer.losses import LPIPS, load_lpips, reconstruction_loss, saturation_penalty
 from image2sim.simulator.renderer.model import PixelFlowRenderer
+from safetensors.torch import save_file
 
 from .test_meanflow import H, W, make_batch, small_cfg
 
@@ -109,7 +118,7 @@ def test_ema_update_matches_formula_and_copies_buffers():
     teacher.train()
     assert not teacher.module.training
     ema_update_(teacher.module, student, 0.0)  # decay 0 -> exact copy
-    assert all(torch.equal(a, b) for a, b in zip(teacher.module.parameters(), student.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(teacher.module.parameters(), student.parameters(), strict=False))
     with pytest.raises(ValueError):
         ema_update_(teacher.module, torch.nn.Linear(3, 4), 0.5)
     with pytest.raises(ValueError):
@@ -123,7 +132,7 @@ def test_distillation_loss_ground_truth():
     # Opposite directions: cos = -1 -> 1 - cos = 2; squared term mean_c (2f)^2.
     neg = [-f for f in fs]
     w = normalised_level_weights([3.0, 1.0])
-    expected = sum(wk * (2.0 + 0.5 * (2 * f).pow(2).mean(1)).mean() for wk, f in zip(w, fs))
+    expected = sum(wk * (2.0 + 0.5 * (2 * f).pow(2).mean(1)).mean() for wk, f in zip(w, fs, strict=False))
     assert torch.allclose(distillation_loss(fs, neg, [3.0, 1.0], beta=0.5), expected, atol=1e-5)
     assert w == [0.75, 0.25]
     # The teacher gets no gradient.
@@ -139,7 +148,7 @@ def test_distillation_loss_ground_truth():
 
 def test_default_level_weights_emphasise_deeper_levels():
     w = normalised_level_weights(tiny().distill.level_weights)
-    assert abs(sum(w) - 1) < 1e-12 and all(a > b for a, b in zip(w, w[1:]))
+    assert abs(sum(w) - 1) < 1e-12 and all(a > b for a, b in zip(w, w[1:], strict=False))
 
 
 def test_teacher_distillation_is_zero_when_student_equals_teacher_and_sources_match():
@@ -353,8 +362,14 @@ def test_tiny_model_overfits_one_target():
     """The renderer fits one panorama (PSNR > 30 dB, one-step) from a half-empty splat."""
     torch.manual_seed(0)
     cfg = small_cfg(
-        height=32, width=64,
-        decoder={"widths": [16, 16, 24, 32], "bottleneck_dim": 32, "time_dim": 32, "blocks_per_level": [1, 1, 1, 1]},
+        height=32,
+        width=64,
+        decoder={
+            "widths": [16, 16, 24, 32],
+            "bottleneck_dim": 32,
+            "time_dim": 32,
+            "blocks_per_level": [1, 1, 1, 1],
+        },
         aligner={"stem_widths": [8, 8, 16, 16], "token_dim": 32},
     )
     model = PixelFlowRenderer(cfg)
@@ -368,11 +383,15 @@ def test_tiny_model_overfits_one_target():
     from image2sim.simulator.renderer.condition import build_condition
 
     cond = build_condition(
-        torch.zeros(1, 16, h, w), target_rgb * alpha, target_depth * alpha, alpha, EquirectCamera(h, w).ray_map()
+        torch.zeros(1, 16, h, w),
+        target_rgb * alpha,
+        target_depth * alpha,
+        alpha,
+        EquirectCamera(h, w).ray_map(),
     )
     noise = torch.randn(1, 4, h, w, generator=g)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for step in range(600):
+    for _step in range(600):
         r, t = mf.sample_time_pairs(1, 0.5, generator=g)
         out = model.losses(cond, target_rgb, target_depth, noise, r, t)
         loss = out["flow"] + 10.0 * out["rec"]

@@ -95,8 +95,14 @@ class PanoConv2d(nn.Conv2d):
         panoramic: bool = True,
     ) -> None:
         super().__init__(
-            in_channels, out_channels, kernel_size, stride=stride, padding=0, dilation=dilation,
-            groups=groups, bias=bias,
+            in_channels,
+            out_channels,
+            kernel_size,
+            stride=stride,
+            padding=0,
+            dilation=dilation,
+            groups=groups,
+            bias=bias,
         )
         self.panoramic = bool(panoramic)
         kh, kw = _pair(kernel_size)
@@ -175,7 +181,9 @@ class PanoBlock(nn.Module):
     GRN -> 1x1 project back. Keeps shape ``(B, C, H, W)``.
     """
 
-    def __init__(self, channels: int, kernel_size: int = 7, expansion: int = 4, panoramic: bool = True) -> None:
+    def __init__(
+        self, channels: int, kernel_size: int = 7, expansion: int = 4, panoramic: bool = True
+    ) -> None:
         super().__init__()
         hidden = int(channels * expansion)
         self.dwconv = PanoConv2d(channels, channels, kernel_size, groups=channels, panoramic=panoramic)
@@ -197,7 +205,12 @@ class PixelShuffleUpsample(nn.Module):
     """
 
     def __init__(
-        self, in_channels: int, out_channels: int, scale: int = 2, kernel_size: int = 3, panoramic: bool = True
+        self,
+        in_channels: int,
+        out_channels: int,
+        scale: int = 2,
+        kernel_size: int = 3,
+        panoramic: bool = True,
     ) -> None:
         super().__init__()
         if scale < 1:

@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from image2sim.simulator.layers import LayerNorm2d, PanoConv2d, TransformerBlock, sincos_positional_encoding
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, AlignerConfig
+from torch import nn
 
 __all__ = ["SemanticAligner", "alignment_loss"]
 
@@ -21,14 +20,20 @@ __all__ = ["SemanticAligner", "alignment_loss"]
 class SemanticAligner(nn.Module):
     """``(B, 24, H, W)`` condition -> ``(B, token_dim, H/16, W/16)`` tokens (H, W divisible by 16)."""
 
-    def __init__(self, cfg: AlignerConfig, in_channels: int = CONDITION_CHANNELS, panoramic: bool = True) -> None:
+    def __init__(
+        self, cfg: AlignerConfig, in_channels: int = CONDITION_CHANNELS, panoramic: bool = True
+    ) -> None:
         super().__init__()
         self.cfg = cfg
         self.panoramic = panoramic
         stages: list[nn.Module] = []
         prev = in_channels
-        for i, width in enumerate(cfg.stem_widths):
-            stages += [PanoConv2d(prev, width, 3, stride=1, panoramic=panoramic), LayerNorm2d(width), nn.GELU()]
+        for _i, width in enumerate(cfg.stem_widths):
+            stages += [
+                PanoConv2d(prev, width, 3, stride=1, panoramic=panoramic),
+                LayerNorm2d(width),
+                nn.GELU(),
+            ]
             # 2x2 stride-2 conv: halves H and W exactly (no padding, so the seam stays aligned).
             stages.append(PanoConv2d(width, width, 2, stride=2, panoramic=panoramic))
             prev = width
@@ -50,7 +55,9 @@ class SemanticAligner(nn.Module):
         if h % 16 or w % 16:
             raise ValueError(f"SemanticAligner needs H and W divisible by 16, got {h}x{w}")
         x = self.to_tokens(self.stem(condition))
-        pe = sincos_positional_encoding(x.shape[-2], x.shape[-1], x.shape[1], self.panoramic, x.dtype, x.device)
+        pe = sincos_positional_encoding(
+            x.shape[-2], x.shape[-1], x.shape[1], self.panoramic, x.dtype, x.device
+        )
         x = x + pe.unsqueeze(0)
         for block in self.blocks:
             x = block(x)

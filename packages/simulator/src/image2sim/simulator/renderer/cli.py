@@ -30,7 +30,9 @@ def _targets(data: list[Path], height: int, width: int, max_frames: int | None):
 
 def _split(targets: list, holdout_every: int) -> tuple[list, list]:
     held = [t for i, t in enumerate(targets) if holdout_every and i % holdout_every == holdout_every - 1]
-    train = [t for i, t in enumerate(targets) if not (holdout_every and i % holdout_every == holdout_every - 1)]
+    train = [
+        t for i, t in enumerate(targets) if not (holdout_every and i % holdout_every == holdout_every - 1)
+    ]
     return train, held
 
 
@@ -51,7 +53,6 @@ def train_command(
 ) -> None:
     """Train the pixel-flow renderer with the three-stage curriculum."""
     import torch
-
     from image2sim.simulator.renderer.config import load_renderer_config
     from image2sim.simulator.renderer.data import DegradedPanoramaDataset
     from image2sim.simulator.renderer.module import fit
@@ -63,8 +64,18 @@ def train_command(
     typer.echo(f"{len(train)} training / {len(held)} held-out panoramas at {cfg.height}x{cfg.width}")
     ds = DegradedPanoramaDataset(train, cfg.curriculum.total_steps * cfg.curriculum.batch_size)
     ckpt = str(out / "checkpoints" / "last.ckpt") if resume == "last" else (resume or None)
-    fit(cfg, ds, str(out), max_steps=None if max_steps < 0 else max_steps, seed=seed, resume=ckpt, bf16=bf16,
-        logger=logger, checkpoint_every=checkpoint_every, grid_every=grid_every)
+    fit(
+        cfg,
+        ds,
+        str(out),
+        max_steps=None if max_steps < 0 else max_steps,
+        seed=seed,
+        resume=ckpt,
+        bf16=bf16,
+        logger=logger,
+        checkpoint_every=checkpoint_every,
+        grid_every=grid_every,
+    )
 
 
 def eval_command(
@@ -74,14 +85,15 @@ def eval_command(
     holdout_every: int = typer.Option(8, help="Same split as training."),
     max_frames: int = typer.Option(-1, help="At most this many frames per capture (-1: all)."),
     steps: list[int] = typer.Option([1, 2, 4, 8], help="Sampler steps to evaluate."),
-    report: Path = typer.Option(Path("reports/renderer_eval"), help="Report path stem (.json and .md written)."),
+    report: Path = typer.Option(
+        Path("reports/renderer_eval"), help="Report path stem (.json and .md written)."
+    ),
     threads: int = typer.Option(1, help="torch threads."),
 ) -> None:
     """PSNR / SSIM / depth AbsRel / FPS of splat-only vs 1..N-step rendering on held-out views."""
     import time
 
     import torch
-
     from image2sim.simulator.renderer.config import load_renderer_config
     from image2sim.simulator.renderer.data import DegradedPanoramaDataset
     from image2sim.simulator.renderer.metrics import abs_rel, psnr_per_image, ssim_per_image
@@ -97,7 +109,7 @@ def eval_command(
     ds.cfg.seed = 12345  # evaluation degradations differ from every training sample
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)["state_dict"]
     model = PixelFlowRenderer(cfg)
-    model.load_state_dict({k[len("renderer."):]: v for k, v in state.items() if k.startswith("renderer.")})
+    model.load_state_dict({k[len("renderer.") :]: v for k, v in state.items() if k.startswith("renderer.")})
     model.eval()
     rows: dict[str, dict[str, list[float]]] = {}
     for i in range(len(ds)):
@@ -107,7 +119,9 @@ def eval_command(
         pose[0, 3] = float(i)
         cases = {"splat-only": lambda: (cond[:, 16:19], cond[:, 19:20])}
         for n in steps:
-            cases[f"{n}-step"] = lambda n=n: (lambda o: (o.rgb, o.depth))(model.render(cond, steps=n, poses=[pose]))
+            cases[f"{n}-step"] = lambda n=n: (lambda o: (o.rgb, o.depth))(
+                model.render(cond, steps=n, poses=[pose])
+            )
         for name, fn in cases.items():
             t0 = time.perf_counter()
             pred_rgb, pred_depth = fn()
@@ -126,17 +140,30 @@ def eval_command(
         }
         for name, v in rows.items()
     }
-    result = {"checkpoint": str(checkpoint), "config": cfg.name, "held_out_views": len(ds),
-              "data": [str(d) for d in data] or ["procedural box rooms"], "threads": threads, "results": summary}
+    result = {
+        "checkpoint": str(checkpoint),
+        "config": cfg.name,
+        "held_out_views": len(ds),
+        "data": [str(d) for d in data] or ["procedural box rooms"],
+        "threads": threads,
+        "results": summary,
+    }
     report.parent.mkdir(parents=True, exist_ok=True)
     tmp = report.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(result, indent=2))
     os.replace(tmp, report.with_suffix(".json"))
-    lines = [f"# Renderer evaluation ({cfg.name}, {len(ds)} held-out views)", "",
-             f"Checkpoint `{checkpoint}`; data {result['data']}; {threads} thread(s).", "",
-             "| method | PSNR (dB) | SSIM | depth AbsRel | FPS |", "|---|---:|---:|---:|---:|"]
+    lines = [
+        f"# Renderer evaluation ({cfg.name}, {len(ds)} held-out views)",
+        "",
+        f"Checkpoint `{checkpoint}`; data {result['data']}; {threads} thread(s).",
+        "",
+        "| method | PSNR (dB) | SSIM | depth AbsRel | FPS |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for name, m in summary.items():
-        lines.append(f"| {name} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['depth_absrel']:.4f} | {m['fps']:.2f} |")
+        lines.append(
+            f"| {name} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['depth_absrel']:.4f} | {m['fps']:.2f} |"
+        )
     tmp = report.with_suffix(".md.tmp")
     tmp.write_text("\n".join(lines) + "\n")
     os.replace(tmp, report.with_suffix(".md"))

@@ -12,7 +12,6 @@ The flow state is ``[RGB, depth / depth_scale]`` (4 channels).
 from __future__ import annotations
 
 import torch
-
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, CONDITION_FEATURES
 
 __all__ = [
@@ -40,7 +39,9 @@ def _check(name: str, x: torch.Tensor, channels: int, ref: torch.Tensor | None) 
     if x.dim() != 4 or x.shape[1] != channels:
         raise ValueError(f"build_condition: {name} must be (B, {channels}, H, W), got {tuple(x.shape)}")
     if ref is not None and (x.shape[0] != ref.shape[0] or x.shape[-2:] != ref.shape[-2:]):
-        raise ValueError(f"build_condition: {name} {tuple(x.shape)} does not match features {tuple(ref.shape)}")
+        raise ValueError(
+            f"build_condition: {name} {tuple(x.shape)} does not match features {tuple(ref.shape)}"
+        )
 
 
 def build_condition(
@@ -64,7 +65,11 @@ def build_condition(
 
 
 def unpremultiply(
-    rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, background: float = 0.0, min_alpha: float = 1e-3
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    alpha: torch.Tensor,
+    background: float = 0.0,
+    min_alpha: float = 1e-3,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Composited ``rgb = sum w c + (1 - alpha) bg`` and weighted ``depth = sum w rho`` ->
     expected colour and range ``(rgb - (1 - alpha) bg) / alpha``, ``depth / alpha``; 0 where
@@ -73,7 +78,9 @@ def unpremultiply(
     ok = a >= min_alpha
     safe = torch.where(ok, a, torch.ones_like(a))
     colour = ((rgb - (1.0 - a) * background) / safe).clamp(0.0, 1.0)
-    return torch.where(ok, colour, torch.zeros_like(colour)), torch.where(ok, depth / safe, torch.zeros_like(depth))
+    return torch.where(ok, colour, torch.zeros_like(colour)), torch.where(
+        ok, depth / safe, torch.zeros_like(depth)
+    )
 
 
 def condition_alpha(condition: torch.Tensor) -> torch.Tensor:

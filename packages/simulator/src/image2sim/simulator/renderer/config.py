@@ -219,11 +219,15 @@ class RendererConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field when the configuration is inconsistent."""
         if self.height <= 0 or self.width <= 0 or self.height % 16 or self.width % 16:
-            raise ValueError(f"renderer height/width must be positive multiples of 16, got {self.height}x{self.width}")
+            raise ValueError(
+                f"renderer height/width must be positive multiples of 16, got {self.height}x{self.width}"
+            )
         if len(self.decoder.widths) != 4:
             raise ValueError(f"decoder.widths needs 4 levels (H..H/8), got {self.decoder.widths}")
         if len(self.decoder.blocks_per_level) != 4 or min(self.decoder.blocks_per_level) < 0:
-            raise ValueError(f"decoder.blocks_per_level needs 4 non-negative counts, got {self.decoder.blocks_per_level}")
+            raise ValueError(
+                f"decoder.blocks_per_level needs 4 non-negative counts, got {self.decoder.blocks_per_level}"
+            )
         if len(self.aligner.stem_widths) != 4:
             raise ValueError(f"aligner.stem_widths needs 4 stride-2 stages, got {self.aligner.stem_widths}")
         if self.decoder.bottleneck_dim % self.decoder.heads:
@@ -233,7 +237,9 @@ class RendererConfig:
         if self.decoder.bottleneck_dim % 4 or self.aligner.token_dim % 4 or self.decoder.time_dim % 2:
             raise ValueError("bottleneck_dim and token_dim must be multiples of 4, time_dim even")
         if len(self.distill.level_weights) != 4 or any(w < 0 for w in self.distill.level_weights):
-            raise ValueError(f"distill.level_weights needs 4 non-negative values, got {self.distill.level_weights}")
+            raise ValueError(
+                f"distill.level_weights needs 4 non-negative values, got {self.distill.level_weights}"
+            )
         if sum(self.distill.level_weights) <= 0:
             raise ValueError("distill.level_weights must not all be zero")
         if not 0.0 <= self.distill.ema_decay <= 1.0:
@@ -266,11 +272,18 @@ def tiny() -> RendererConfig:
         width=256,
         aligner=AlignerConfig(stem_widths=(16, 32, 48, 64), token_dim=64, depth=2, heads=4),
         decoder=DecoderConfig(
-            widths=(16, 24, 32, 48), blocks_per_level=(0, 0, 1, 1), expansion=2, bottleneck_dim=64,
-            bottleneck_depth=2, heads=4, time_dim=64,
+            widths=(16, 24, 32, 48),
+            blocks_per_level=(0, 0, 1, 1),
+            expansion=2,
+            bottleneck_dim=64,
+            bottleneck_depth=2,
+            heads=4,
+            time_dim=64,
         ),
         # The paper's 1:2:1 stage proportions, scaled to ~1 s/step on a 2-core CPU.
-        curriculum=CurriculumConfig(stage2_start=750, stage3_start=2250, total_steps=3000, lr=1e-3, min_lr=1e-5),
+        curriculum=CurriculumConfig(
+            stage2_start=750, stage3_start=2250, total_steps=3000, lr=1e-3, min_lr=1e-5
+        ),
     )
 
 
@@ -280,9 +293,15 @@ def paper() -> RendererConfig:
         name="paper",
         height=512,
         width=1024,
-        aligner=AlignerConfig(stem_widths=(64, 128, 256, 512), token_dim=1024, depth=2, heads=16, target_dim=1024),
+        aligner=AlignerConfig(
+            stem_widths=(64, 128, 256, 512), token_dim=1024, depth=2, heads=16, target_dim=1024
+        ),
         decoder=DecoderConfig(
-            widths=(64, 128, 256, 512), blocks_per_level=(2, 2, 2, 2), bottleneck_dim=768, bottleneck_depth=8, heads=12,
+            widths=(64, 128, 256, 512),
+            blocks_per_level=(2, 2, 2, 2),
+            bottleneck_dim=768,
+            bottleneck_depth=8,
+            heads=12,
             time_dim=256,
         ),
         curriculum=CurriculumConfig(),
@@ -306,7 +325,7 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
             return tuple(_coerce(v, item, f"{where}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
             raise ValueError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=False)))
     if annotation is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if annotation in (int, float, bool, str) and not isinstance(value, annotation):
@@ -354,7 +373,9 @@ def load_renderer_config(path_or_name: str | Path) -> RendererConfig:
         return PRESETS[str(path_or_name)]()
     path = Path(path_or_name)
     if not path.is_file():
-        raise FileNotFoundError(f"renderer config {path} does not exist (and is not one of {sorted(PRESETS)})")
+        raise FileNotFoundError(
+            f"renderer config {path} does not exist (and is not one of {sorted(PRESETS)})"
+        )
     import yaml
 
     try:

@@ -24,13 +24,18 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import Dataset, Sampler
-
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.renderer.condition import build_condition
+from torch.utils.data import Dataset, Sampler
 
-__all__ = ["DegradeConfig", "degrade_to_condition", "DegradedPanoramaDataset", "ConditionDataset", "StepSampler",
-           "load_capture_targets"]
+__all__ = [
+    "DegradeConfig",
+    "degrade_to_condition",
+    "DegradedPanoramaDataset",
+    "ConditionDataset",
+    "StepSampler",
+    "load_capture_targets",
+]
 
 
 @dataclass
@@ -56,7 +61,9 @@ def _wrap_upsample(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     h, w = x.shape[-2:]
     padded = torch.cat((x[..., -1:], x, x[..., :1]), dim=-1)
     sx = size[1] / w
-    big = F.interpolate(padded, size=(size[0], int(round((w + 2) * sx))), mode="bilinear", align_corners=False)
+    big = F.interpolate(
+        padded, size=(size[0], int(round((w + 2) * sx))), mode="bilinear", align_corners=False
+    )
     start = int(round(sx))
     return big[..., start : start + size[1]]
 
@@ -69,7 +76,10 @@ def degrade_to_condition(
     lo = (max(1, cfg.hole_scale // 2), max(2, cfg.hole_scale))
     field_lo = torch.rand(1, 1, *lo, generator=generator)
     field = _wrap_upsample(field_lo, (h, w))[0]
-    frac = float(cfg.hole_fraction[0] + (cfg.hole_fraction[1] - cfg.hole_fraction[0]) * torch.rand(1, generator=generator))
+    frac = float(
+        cfg.hole_fraction[0]
+        + (cfg.hole_fraction[1] - cfg.hole_fraction[0]) * torch.rand(1, generator=generator)
+    )
     thr = torch.quantile(field.flatten(), frac)
     alpha = torch.sigmoid((field - thr) * cfg.edge_sharpness * lo[1])
     alpha = alpha * (depth > 0)
@@ -78,7 +88,10 @@ def degrade_to_condition(
     observed = (alpha > 1e-3).to(rgb.dtype)
     prior_rgb, prior_depth = noisy_rgb * observed, noisy_depth * observed
     proj = torch.randn(16, 5, generator=torch.Generator().manual_seed(cfg.seed + 7919))
-    feats = torch.tanh(torch.einsum("fc,chw->fhw", proj, torch.cat((prior_rgb, prior_depth / 5, alpha), 0))) * alpha
+    feats = (
+        torch.tanh(torch.einsum("fc,chw->fhw", proj, torch.cat((prior_rgb, prior_depth / 5, alpha), 0)))
+        * alpha
+    )
     rays = EquirectCamera(h, w).ray_map(rgb.dtype)
     return build_condition(feats[None], prior_rgb[None], prior_depth[None], alpha[None], rays)[0]
 
@@ -87,8 +100,12 @@ class DegradedPanoramaDataset(Dataset):
     """``len = num_samples`` virtual samples over the given targets; sample ``i`` uses target
     ``i mod N`` and a degradation seeded by ``(cfg.seed, i)``."""
 
-    def __init__(self, targets: Sequence[tuple[torch.Tensor, torch.Tensor]], num_samples: int,
-                 cfg: DegradeConfig | None = None) -> None:
+    def __init__(
+        self,
+        targets: Sequence[tuple[torch.Tensor, torch.Tensor]],
+        num_samples: int,
+        cfg: DegradeConfig | None = None,
+    ) -> None:
         if not targets:
             raise ValueError("DegradedPanoramaDataset needs at least one target panorama")
         self.targets = list(targets)
@@ -112,7 +129,9 @@ class DegradedPanoramaDataset(Dataset):
 class ConditionDataset(Dataset):
     """Precomputed ``(condition, target_rgb, target_depth)`` triples (e.g. cached splats)."""
 
-    def __init__(self, conditions: torch.Tensor, target_rgb: torch.Tensor, target_depth: torch.Tensor) -> None:
+    def __init__(
+        self, conditions: torch.Tensor, target_rgb: torch.Tensor, target_depth: torch.Tensor
+    ) -> None:
         if not (len(conditions) == len(target_rgb) == len(target_depth)):
             raise ValueError("conditions and targets differ in length")
         self.conditions, self.target_rgb, self.target_depth = conditions, target_rgb, target_depth
@@ -121,8 +140,12 @@ class ConditionDataset(Dataset):
         return len(self.conditions)
 
     def __getitem__(self, index: int) -> dict:
-        return {"condition": self.conditions[index], "target_rgb": self.target_rgb[index],
-                "target_depth": self.target_depth[index], "index": int(index)}
+        return {
+            "condition": self.conditions[index],
+            "target_rgb": self.target_rgb[index],
+            "target_depth": self.target_depth[index],
+            "index": int(index),
+        }
 
 
 class StepSampler(Sampler[int]):
@@ -148,7 +171,9 @@ class StepSampler(Sampler[int]):
             yield self.index_at(pos)
 
 
-def load_capture_targets(path, height: int, width: int, max_frames: int | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+def load_capture_targets(
+    path, height: int, width: int, max_frames: int | None = None
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Target panoramas of a capture (any format ``open_capture`` reads), area-resized to
     ``height x width``: list of ``(rgb (3, H, W) in [0, 1], depth (1, H, W) metres)``. Depth is
     averaged over valid source pixels only (an invalid 0 never drags a mean down)."""

@@ -19,8 +19,6 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from image2sim.simulator.layers import (
     LayerNorm2d,
     PanoBlock,
@@ -31,6 +29,7 @@ from image2sim.simulator.layers import (
 )
 from image2sim.simulator.renderer.condition import ALPHA
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, STATE_CHANNELS, DecoderConfig
+from torch import nn
 
 __all__ = [
     "timestep_embedding",
@@ -43,7 +42,9 @@ __all__ = [
 ]
 
 
-def timestep_embedding(t: torch.Tensor, dim: int, scale: float = 1000.0, max_period: float = 10000.0) -> torch.Tensor:
+def timestep_embedding(
+    t: torch.Tensor, dim: int, scale: float = 1000.0, max_period: float = 10000.0
+) -> torch.Tensor:
     """Sinusoidal embedding ``(B, dim)`` of times ``(B,)``: ``[cos(s t f_i), sin(s t f_i)]`` with
     geometric frequencies ``f_i = max_period^(-i / (dim/2))``. Smooth in t (JVP-friendly)."""
     half = dim // 2
@@ -64,7 +65,8 @@ class DualTimeEmbedding(nn.Module):
 
     def forward(self, t: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
         emb = torch.cat(
-            (timestep_embedding(t, self.dim, self.scale), timestep_embedding(t - r, self.dim, self.scale)), dim=-1
+            (timestep_embedding(t, self.dim, self.scale), timestep_embedding(t - r, self.dim, self.scale)),
+            dim=-1,
         )
         return self.mlp(emb)
 
@@ -113,11 +115,19 @@ class AlphaGatedSkip(nn.Module):
     is the plain skip ``F'_enc + F_dec``.
     """
 
-    def __init__(self, enc_channels: int, dec_channels: int, gate_bias: float = 2.0, gated: bool = True,
-                 panoramic: bool = True) -> None:
+    def __init__(
+        self,
+        enc_channels: int,
+        dec_channels: int,
+        gate_bias: float = 2.0,
+        gated: bool = True,
+        panoramic: bool = True,
+    ) -> None:
         super().__init__()
         self.adapter = nn.Sequential(
-            PanoConv2d(enc_channels, dec_channels, 1, panoramic=panoramic), LayerNorm2d(dec_channels), nn.GELU()
+            PanoConv2d(enc_channels, dec_channels, 1, panoramic=panoramic),
+            LayerNorm2d(dec_channels),
+            nn.GELU(),
         )
         self.gated = bool(gated)
         if self.gated:
@@ -155,8 +165,9 @@ class DecoderOutput:
 class RenderingDecoder(nn.Module):
     """UNet-style x-prediction network over ``[C_p, z_t]`` (see module docstring)."""
 
-    def __init__(self, cfg: DecoderConfig, token_dim: int | None, gated_skips: bool = True,
-                 panoramic: bool = True) -> None:
+    def __init__(
+        self, cfg: DecoderConfig, token_dim: int | None, gated_skips: bool = True, panoramic: bool = True
+    ) -> None:
         super().__init__()
         self.cfg = cfg
         self.panoramic = panoramic
@@ -174,7 +185,9 @@ class RenderingDecoder(nn.Module):
         )
         self.time_embed = DualTimeEmbedding(cfg.time_dim, cfg.time_scale)
         self.injectors = (
-            nn.ModuleList(SemanticInjector(cfg.bottleneck_dim, token_dim) for _ in range(cfg.bottleneck_depth))
+            nn.ModuleList(
+                SemanticInjector(cfg.bottleneck_dim, token_dim) for _ in range(cfg.bottleneck_depth)
+            )
             if token_dim is not None
             else None
         )
@@ -190,7 +203,9 @@ class RenderingDecoder(nn.Module):
             AlphaGatedSkip(w[3 - j], w[3 - j], cfg.gate_bias, gated_skips, panoramic) for j in range(4)
         )
         self.dec_blocks = nn.ModuleList(
-            nn.Sequential(*[PanoBlock(w[3 - j], cfg.kernel_size, cfg.expansion, panoramic) for _ in range(nb[3 - j])])
+            nn.Sequential(
+                *[PanoBlock(w[3 - j], cfg.kernel_size, cfg.expansion, panoramic) for _ in range(nb[3 - j])]
+            )
             for j in range(4)
         )
         self.pyramid = AlphaPyramid(4)
@@ -219,12 +234,14 @@ class RenderingDecoder(nn.Module):
         alphas = self.pyramid(condition[:, ALPHA])
         x = self.stem(torch.cat((condition, z), dim=1))
         skips = []
-        for blocks, down in zip(self.enc_blocks, self.downs):
+        for blocks, down in zip(self.enc_blocks, self.downs, strict=False):
             x = blocks(x)
             skips.append(x)
             x = down(x)
         temb = self.time_embed(t, r)
-        x = x + sincos_positional_encoding(x.shape[-2], x.shape[-1], x.shape[1], self.panoramic, x.dtype, x.device)
+        x = x + sincos_positional_encoding(
+            x.shape[-2], x.shape[-1], x.shape[1], self.panoramic, x.dtype, x.device
+        )
         for i, block in enumerate(self.blocks):
             if self.injectors is not None:
                 x = self.injectors[i](x, tokens)

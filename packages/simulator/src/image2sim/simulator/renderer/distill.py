@@ -94,7 +94,7 @@ def distillation_loss(
         )
     w = normalised_level_weights(weights)
     total = student[0].new_zeros((), dtype=torch.float32)
-    for fs, ft, wk in zip(student, teacher, w):
+    for fs, ft, wk in zip(student, teacher, w, strict=False):
         if fs.shape != ft.shape:
             raise ValueError(f"distillation level shapes differ: {tuple(fs.shape)} vs {tuple(ft.shape)}")
         fs32, ft32 = fs.float(), ft.detach().float()

@@ -17,7 +17,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["reconstruction_loss", "saturation_penalty", "LPIPS", "load_lpips", "VGG16_LAYERS", "LPIPS_CHANNELS"]
+__all__ = [
+    "reconstruction_loss",
+    "saturation_penalty",
+    "LPIPS",
+    "load_lpips",
+    "VGG16_LAYERS",
+    "LPIPS_CHANNELS",
+]
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +85,12 @@ class LPIPS(nn.Module):
 
     def state_dict_names(self) -> list[str]:
         """Names expected in a weight file."""
-        names = [f"features.{i}.{p}" for i, m in enumerate(self.features) if isinstance(m, nn.Conv2d)
-                 for p in ("weight", "bias")]
+        names = [
+            f"features.{i}.{p}"
+            for i, m in enumerate(self.features)
+            if isinstance(m, nn.Conv2d)
+            for p in ("weight", "bias")
+        ]
         return names + [f"lin{k}.model.1.weight" for k in range(len(self.lins))]
 
     def load_weights(self, path: str | Path) -> None:
@@ -105,7 +116,9 @@ class LPIPS(nn.Module):
     @staticmethod
     def _copy(dst: torch.Tensor, src: torch.Tensor, path: Path, name: str) -> None:
         if tuple(src.shape) != tuple(dst.shape):
-            raise ValueError(f"LPIPS weights {path}: {name} has shape {tuple(src.shape)}, expected {tuple(dst.shape)}")
+            raise ValueError(
+                f"LPIPS weights {path}: {name} has shape {tuple(src.shape)}, expected {tuple(dst.shape)}"
+            )
         dst.copy_(src.to(dst.dtype))
 
     def _taps(self, x: torch.Tensor) -> list[torch.Tensor]:
@@ -122,7 +135,7 @@ class LPIPS(nn.Module):
         xa = ((a * 2.0 - 1.0) - self.shift) / self.scale
         xb = ((b * 2.0 - 1.0) - self.shift) / self.scale
         total = a.new_zeros(a.shape[0])
-        for fa, fb, lin in zip(self._taps(xa), self._taps(xb), self.lins):
+        for fa, fb, lin in zip(self._taps(xa), self._taps(xb), self.lins, strict=False):
             na = fa * torch.rsqrt(fa.pow(2).sum(1, keepdim=True) + 1e-20)
             nb = fb * torch.rsqrt(fb.pow(2).sum(1, keepdim=True) + 1e-20)
             total = total + lin((na - nb).pow(2)).mean(dim=(1, 2, 3))

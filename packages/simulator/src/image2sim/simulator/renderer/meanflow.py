@@ -64,7 +64,7 @@ def _per_channel(values: Sequence[float], groups: Sequence[int], like: torch.Ten
         raise ValueError(f"expected {len(groups)} per-group values, got {len(values)}")
     if sum(groups) != like.shape[1]:
         raise ValueError(f"channel groups {tuple(groups)} do not cover {like.shape[1]} channels")
-    vals = [float(v) for v, n in zip(values, groups) for _ in range(n)]
+    vals = [float(v) for v, n in zip(values, groups, strict=False) for _ in range(n)]
     return torch.tensor(vals, dtype=like.dtype, device=like.device).view(1, -1, 1, 1)
 
 
@@ -213,11 +213,11 @@ def sample_n_steps(
             raise ValueError(f"sampler needs at least one step, got {steps}")
         times = np.linspace(1.0, 0.0, steps + 1).tolist()
     times = [float(s) for s in times]
-    if len(times) < 2 or any(b >= a for a, b in zip(times, times[1:])):
+    if len(times) < 2 or any(b >= a for a, b in zip(times, times[1:], strict=False)):
         raise ValueError(f"sampler times must decrease strictly, got {times}")
     z = z_src
     b = z.shape[0]
-    for t_val, r_val in zip(times, times[1:]):
+    for t_val, r_val in zip(times, times[1:], strict=False):
         t = torch.full((b,), t_val, dtype=z.dtype, device=z.device)
         r = torch.full((b,), r_val, dtype=z.dtype, device=z.device)
         u = average_velocity(z, x_fn(z, r, t), t, eps)
@@ -228,7 +228,9 @@ def sample_n_steps(
 def pose_seed(pose: torch.Tensor | np.ndarray, base_seed: int = 0, decimals: int = 4) -> int:
     """A 63-bit seed from a camera-to-world pose rounded to ``decimals`` (0.1 mm / 1e-4 rad): the
     same pose always gets the same seed, independent of device, dtype and process."""
-    arr = np.asarray(pose.detach().cpu().numpy() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+    arr = np.asarray(
+        pose.detach().cpu().numpy() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64
+    )
     if arr.shape != (4, 4):
         raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {arr.shape}")
     if not np.isfinite(arr).all():

@@ -12,8 +12,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from torch import nn
-
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.aligner import SemanticAligner, alignment_loss
 from image2sim.simulator.renderer.condition import from_state, prior_state, to_state
@@ -21,6 +19,7 @@ from image2sim.simulator.renderer.config import CONDITION_CHANNELS, STATE_CHANNE
 from image2sim.simulator.renderer.decoder import DecoderOutput, RenderingDecoder
 from image2sim.simulator.renderer.distill import distillation_loss
 from image2sim.simulator.renderer.losses import reconstruction_loss, saturation_penalty
+from torch import nn
 
 __all__ = ["RenderOutput", "PixelFlowRenderer"]
 
@@ -42,24 +41,36 @@ class PixelFlowRenderer(nn.Module):
         super().__init__()
         self.cfg = cfg
         ab = cfg.ablation
-        self.aligner = None if ab.no_semantic or ab.no_pixel_flow else SemanticAligner(cfg.aligner, panoramic=panoramic)
+        self.aligner = (
+            None if ab.no_semantic or ab.no_pixel_flow else SemanticAligner(cfg.aligner, panoramic=panoramic)
+        )
         token_dim = None if self.aligner is None else cfg.aligner.token_dim
         self.decoder = (
-            None if ab.no_pixel_flow
-            else RenderingDecoder(cfg.decoder, token_dim, gated_skips=not ab.no_alpha_gate, panoramic=panoramic)
+            None
+            if ab.no_pixel_flow
+            else RenderingDecoder(
+                cfg.decoder, token_dim, gated_skips=not ab.no_alpha_gate, panoramic=panoramic
+            )
         )
 
     # ----------------------------------------------------------------------------------------
     def _check_condition(self, condition: torch.Tensor) -> None:
         if condition.dim() != 4 or condition.shape[1] != CONDITION_CHANNELS:
-            raise ValueError(f"condition must be (B, {CONDITION_CHANNELS}, H, W), got {tuple(condition.shape)}")
+            raise ValueError(
+                f"condition must be (B, {CONDITION_CHANNELS}, H, W), got {tuple(condition.shape)}"
+            )
 
     def tokens(self, condition: torch.Tensor) -> torch.Tensor | None:
         """Aligned semantic tokens (None with ``no_semantic``)."""
         return None if self.aligner is None else self.aligner(condition)
 
     def predict(
-        self, z: torch.Tensor, condition: torch.Tensor, r: torch.Tensor, t: torch.Tensor, tokens: torch.Tensor | None
+        self,
+        z: torch.Tensor,
+        condition: torch.Tensor,
+        r: torch.Tensor,
+        t: torch.Tensor,
+        tokens: torch.Tensor | None,
     ) -> DecoderOutput:
         """x_theta(z, r, t | C_p, tokens)."""
         if self.decoder is None:
@@ -69,7 +80,9 @@ class PixelFlowRenderer(nn.Module):
     def source(self, condition: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Alpha-gated source z_src from C_p's RGB-D prior and alpha."""
         prior, alpha = prior_state(condition, self.cfg.meanflow.depth_scale)
-        return mf.alpha_gated_source(prior, alpha, noise, self.cfg.meanflow.sigma_small, self.cfg.meanflow.sigma_large)
+        return mf.alpha_gated_source(
+            prior, alpha, noise, self.cfg.meanflow.sigma_small, self.cfg.meanflow.sigma_large
+        )
 
     def privileged_source(self, target_state: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """The teacher's source from the ground truth: alpha = 1 everywhere (X + sigma_small eps)."""
@@ -177,8 +190,12 @@ class PixelFlowRenderer(nn.Module):
         out = self.predict(z_src, condition, zeros, ones, tokens)
         rgb, depth = from_state(out.x, m.depth_scale)
         rec = reconstruction_loss(
-            rgb, depth / m.depth_scale, target_rgb, target_depth / m.depth_scale,
-            cfg.loss.rgb_weight_in_rec, cfg.loss.depth_weight_in_rec,
+            rgb,
+            depth / m.depth_scale,
+            target_rgb,
+            target_depth / m.depth_scale,
+            cfg.loss.rgb_weight_in_rec,
+            cfg.loss.depth_weight_in_rec,
         )
         align = zero
         if tokens is not None and target_tokens is not None:
@@ -188,7 +205,9 @@ class PixelFlowRenderer(nn.Module):
             with torch.no_grad():
                 z_gt = teacher.privileged_source(target, noise)
                 t_out = teacher.predict(z_gt, condition, zeros, ones, teacher.tokens(condition))
-            distill = distillation_loss(out.features, t_out.features, cfg.distill.level_weights, cfg.distill.beta)
+            distill = distillation_loss(
+                out.features, t_out.features, cfg.distill.level_weights, cfg.distill.beta
+            )
         perc = zero
         if perceptual is not None:
             perc = perceptual(rgb.float(), target_rgb.float()).mean()

@@ -17,20 +17,25 @@ from a checkpoint lands in the right stage with the right modules frozen. Per-st
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import lightning as L
 import torch
-from torch import nn
-
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.config import RendererConfig
 from image2sim.simulator.renderer.distill import EMATeacher
 from image2sim.simulator.renderer.losses import load_lpips
 from image2sim.simulator.renderer.model import PixelFlowRenderer
+from torch import nn
 
-__all__ = ["stage_at", "stage_weights", "frozen_prefixes", "apply_stage", "RendererModule", "RendererDataModule",
-           "psnr"]
+__all__ = [
+    "stage_at",
+    "stage_weights",
+    "frozen_prefixes",
+    "apply_stage",
+    "RendererModule",
+    "RendererDataModule",
+    "psnr",
+]
 
 FROZEN_IN_STAGE3: tuple[str, ...] = (
     "aligner.",
@@ -89,15 +94,18 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 class RendererModule(L.LightningModule):
     """Renderer + EMA teacher + curriculum; AdamW with a cosine schedule (per step)."""
 
-    def __init__(self, cfg: RendererConfig, seed: int = 0, lpips_path: str | None = None,
-                 grid_every: int = 0) -> None:
+    def __init__(
+        self, cfg: RendererConfig, seed: int = 0, lpips_path: str | None = None, grid_every: int = 0
+    ) -> None:
         super().__init__()
         self.cfg = cfg
         self.seed = int(seed)
         self.grid_every = int(grid_every)
         self.renderer = PixelFlowRenderer(cfg)
-        self.teacher = None if cfg.ablation.no_distill or cfg.ablation.no_pixel_flow else EMATeacher(
-            self.renderer, cfg.distill.ema_decay
+        self.teacher = (
+            None
+            if cfg.ablation.no_distill or cfg.ablation.no_pixel_flow
+            else EMATeacher(self.renderer, cfg.distill.ema_decay)
         )
         self.register_buffer("teacher_started", torch.zeros((), dtype=torch.bool))
         self.perceptual = load_lpips(lpips_path or cfg.loss.lpips_weights)
@@ -133,8 +141,16 @@ class RendererModule(L.LightningModule):
                 self.teacher_started.fill_(True)
             teacher = self.teacher.module
         out = self.renderer.losses(
-            cond, rgb, depth, noise, r, t, teacher=teacher, target_tokens=batch.get("target_tokens"),
-            perceptual=self.perceptual if weights["perc"] > 0 else None, spatial_focus=stage >= 2,
+            cond,
+            rgb,
+            depth,
+            noise,
+            r,
+            t,
+            teacher=teacher,
+            target_tokens=batch.get("target_tokens"),
+            perceptual=self.perceptual if weights["perc"] > 0 else None,
+            spatial_focus=stage >= 2,
         )
         total = sum(weights[k] * out[k] for k in weights)
         log = {f"train/{k}": out[k].detach() for k in ("flow", "flow_raw", "rec", "align", "distill", "perc")}
@@ -175,9 +191,12 @@ class RendererModule(L.LightningModule):
         """prior | one-step | target | alpha for the first sample, to the logger (W&B) or a PNG."""
         from image2sim.simulator.renderer.condition import ALPHA, RGB
 
-        row = torch.cat(
-            (cond[0, RGB], x[0, :3].clamp(0, 1), rgb[0], cond[0, ALPHA].expand(3, -1, -1)), dim=-1
-        ).detach().float().cpu()
+        row = (
+            torch.cat((cond[0, RGB], x[0, :3].clamp(0, 1), rgb[0], cond[0, ALPHA].expand(3, -1, -1)), dim=-1)
+            .detach()
+            .float()
+            .cpu()
+        )
         image = (row.permute(1, 2, 0).numpy() * 255).round().astype("uint8")
         logger = self.logger
         if logger is not None and hasattr(logger, "log_image"):
@@ -198,7 +217,9 @@ class RendererDataModule(L.LightningDataModule):
     """Serves a map-style dataset in :class:`StepSampler` order; remembers its position in
     checkpoints so a resumed run continues with the next unseen batch."""
 
-    def __init__(self, dataset, batch_size: int, total_steps: int, seed: int = 0, num_workers: int = 0) -> None:
+    def __init__(
+        self, dataset, batch_size: int, total_steps: int, seed: int = 0, num_workers: int = 0
+    ) -> None:
         super().__init__()
         self.dataset = dataset
         self.batch_size = int(batch_size)
@@ -215,16 +236,22 @@ class RendererDataModule(L.LightningDataModule):
         self._start_step = int(state.get("position_step", 0))
 
     def train_dataloader(self):
+        from image2sim.simulator.renderer.data import StepSampler
         from torch.utils.data import DataLoader
 
-        from image2sim.simulator.renderer.data import StepSampler
-
         sampler = StepSampler(
-            len(self.dataset), self.seed, start=self._start_step * self.batch_size,
+            len(self.dataset),
+            self.seed,
+            start=self._start_step * self.batch_size,
             total=self.total_steps * self.batch_size,
         )
-        return DataLoader(self.dataset, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers,
-                          drop_last=True)
+        return DataLoader(
+            self.dataset,
+            batch_size=self.batch_size,
+            sampler=sampler,
+            num_workers=self.num_workers,
+            drop_last=True,
+        )
 
 
 def fit(
@@ -266,12 +293,22 @@ def fit(
         from lightning.pytorch.loggers import CSVLogger
 
         log = CSVLogger(str(out), name="logs")
-    ckpt = ModelCheckpoint(dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True,
-                           save_top_k=-1)
+    ckpt = ModelCheckpoint(
+        dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True, save_top_k=-1
+    )
     trainer = L.Trainer(
-        accelerator="cpu", devices=1, max_steps=steps, gradient_clip_val=cfg.curriculum.grad_clip,
-        precision="bf16-mixed" if bf16 else "32-true", logger=log, callbacks=[ckpt], enable_progress_bar=progress,
-        enable_model_summary=False, log_every_n_steps=1, num_sanity_val_steps=0, limit_val_batches=0,
+        accelerator="cpu",
+        devices=1,
+        max_steps=steps,
+        gradient_clip_val=cfg.curriculum.grad_clip,
+        precision="bf16-mixed" if bf16 else "32-true",
+        logger=log,
+        callbacks=[ckpt],
+        enable_progress_bar=progress,
+        enable_model_summary=False,
+        log_every_n_steps=1,
+        num_sanity_val_steps=0,
+        limit_val_batches=0,
         deterministic=False,
     )
     trainer.fit(module, datamodule=data, ckpt_path=resume)
