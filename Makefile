@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup test test-slow demo lint bench clean help
+.PHONY: setup test test-slow demo lint bench clean help train-sim-tiny
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -44,6 +44,10 @@ demo: setup  ## the main job on the embedded default data
 
 bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports/)
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+
+RENDERER_DATA ?= $(wildcard ../shared/data/hm3d_360/00000-kfPV7w3FaU5)
+train-sim-tiny: setup  ## train the tiny pixel-flow renderer on CPU (HM3D sample if present, else procedural rooms)
+	$(VENV)/bin/image2sim sim train --config tiny --out outputs/renderer-tiny $(addprefix --data ,$(RENDERER_DATA))
 
 lint: setup
 	$(VENV)/bin/ruff check packages tests benchmarks
