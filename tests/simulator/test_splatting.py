@@ -458,3 +458,50 @@ def test_auto_uses_compiled_kernel_when_available():
         pytest.skip("compiled kernel unavailable on this machine")
     out = splat(*make_scene(5, 1, PH, 0), PH, EYE)
     assert out.backend == "cpu"
+
+
+# --- projection internals ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("camera", [EQ, PH], ids=["equirect", "pinhole"])
+def test_projected_covariance_matches_textbook_ewa(camera):
+    """The fast L L^T form equals J W Sigma W^T J^T + 0.3 I computed the readable way."""
+    from image2sim.simulator.splatting.project import covariance_3d, world_to_camera
+
+    means, scales, quats, opac, _, _ = make_scene(25, 0, camera, 9)
+    pose = _yaw_pose(20.0)
+    pose[:3, 3] = torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)
+    proj = project_gaussians(means, scales, quats, opac, camera, pose)
+    p, cov_cam = world_to_camera(means, covariance_3d(scales, quats), pose)
+    jac = camera.pixel_jacobian(p)
+    want = jac @ cov_cam @ jac.transpose(-1, -2) + DILATION * torch.eye(2, dtype=torch.float64)
+    v = proj.valid
+    assert v.sum() > 10
+    if isinstance(camera, EquirectCamera):  # away from the poles the width clamp is inactive
+        v = v & (want[:, 0, 0].sqrt() * CUTOFF_SIGMA < camera.width / 2)
+    got = proj.cov2d[v]
+    torch.testing.assert_close(got, torch.stack((want[v, 0, 0], want[v, 0, 1], want[v, 1, 1]), -1), rtol=1e-9, atol=1e-9)
+    uv, _, _ = camera.project(p)
+    torch.testing.assert_close(proj.means2d[v], uv[v], rtol=0, atol=1e-9)
+    inv = torch.linalg.inv(want[v])
+    torch.testing.assert_close(proj.conics[v], torch.stack((inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]), -1),
+                               rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("wrap", [0.0, 48.0])
+def test_compiled_binning_matches_torch_binning(wrap):
+    if "cpu" not in BACKENDS:
+        pytest.skip("compiled kernel unavailable on this machine")
+    from image2sim.simulator.splatting.backends import cpu_kernel, torch_tiles
+
+    g = torch.Generator().manual_seed(1)
+    means2d = torch.rand(200, 2, generator=g, dtype=torch.float64) * torch.tensor([48.0, 24.0])
+    radii = torch.rand(200, 2, generator=g, dtype=torch.float64) * 12
+    radii[0] = torch.tensor([24.0, 3.0])  # spans the full width
+    off_t, ids_t = torch_tiles.bin_gaussians(means2d, radii, 24, 48, wrap, tile=8)
+    off_c, ids_c = cpu_kernel.bin_gaussians(means2d, radii, 24, 48, wrap, tile=8)
+    assert torch.equal(off_t, off_c) and torch.equal(ids_t, ids_c)
+    if wrap:
+        n_tx = 6
+        assert (off_t[1:] - off_t[:-1]).sum() == ids_t.numel()
+        tiles_of_0 = [t for t in range(n_tx * 3) if 0 in ids_t[off_t[t]:off_t[t + 1]].tolist()]
+        assert len({t % n_tx for t in tiles_of_0}) == n_tx  # every column of tiles, no duplicates
