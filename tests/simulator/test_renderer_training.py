@@ -172,3 +172,19 @@ def test_interrupted_and_resumed_training_reproduces_the_losses(tmp_path):
     assert not any(
         p.requires_grad for n, p in resumed.renderer.named_parameters() if n.startswith("aligner.")
     )
+
+
+@pytest.mark.realdata
+def test_capture_targets_from_the_real_hm3d_sample(hm3d_scene_dir):
+    """Real panoramas load at the renderer's resolution with metric range kept (valid-only mean)."""
+    from image2sim.simulator.renderer.data import load_capture_targets
+
+    targets = load_capture_targets(hm3d_scene_dir, 32, 64, max_frames=2)
+    assert len(targets) == 2
+    rgb, depth = targets[0]
+    assert rgb.shape == (3, 32, 64) and depth.shape == (1, 32, 64)
+    assert 0 <= rgb.min() and rgb.max() <= 1 and rgb.std() > 0.02
+    valid = depth[depth > 0]
+    assert valid.numel() > 0.95 * depth.numel() and 0.3 < valid.min() and valid.max() < 9.0
+    cond = degrade_to_condition(rgb, depth, torch.Generator().manual_seed(0), DegradeConfig(hole_scale=4))
+    assert cond.shape == (24, 32, 64) and torch.isfinite(cond).all()
