@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -142,15 +143,18 @@ def main() -> None:
         add("lpips-vgg16 forward", f"1x3x{lh}x{lw}", seconds(lambda: model(xi, yi), 1, max(3, runs // 2)),
             "-", None)
 
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None  # shared machines: context
     result = {"benchmark": "eval_metrics", "hardware": hardware_string(), "runs": runs,
-              "statistic": "median seconds after warm-up", "rows": rows}
+              "load_average_1min": load, "statistic": "median seconds after warm-up", "rows": rows}
     REPORTS.mkdir(exist_ok=True)
     write_json_atomic(REPORTS / "bench_eval_metrics.json", result)
     lines = [
         "# Evaluation metrics benchmark",
         "",
         f"Hardware: {result['hardware']}. Median of {runs} timed runs after warm-up "
-        "(`benchmarks/bench_eval_metrics.py`).",
+        "(`benchmarks/bench_eval_metrics.py`). "
+        f"1-min load average at the end: {'n/a' if load is None else f'{load:.1f}'} "
+        "(absolute times on a shared machine are noisy; compare the ratios).",
         "",
         "| case | size | ours (ms) | reference | reference (ms) | speed-up |",
         "|---|---|---:|---|---:|---:|",
