@@ -206,3 +206,22 @@ def test_embree_misses_are_recast_exactly(furnished):
     t, box, _ = caster.cast(pose[:3, 3], dirs)
     assert (box >= 0).all()
     np.testing.assert_allclose(t, t_ok, atol=1e-9)
+
+
+def test_rays_that_leave_the_house_are_invalid_not_nan(furnished):
+    """A camera outside the house: rays that hit nothing get depth 0, label 0 and black colour."""
+    camera = EquirectCamera(16, 32)
+    x0, y0, x1, y1 = furnished.layout.bounds()
+    pose = _pose(x0 - 3.0, 0.5 * (y0 + y1), 1.4, 0.0)
+    out = render(furnished, camera, pose)
+    miss = out["box"] < 0
+    assert miss.any() and (~miss).any()
+    assert np.isfinite(out["depth"]).all()
+    assert (
+        (out["depth"][miss] == 0).all()
+        and (out["semantics"][miss] == 0).all()
+        and (out["rgb"][miss] == 0).all()
+    )
+    assert (out["semantics"][~miss] == WALL).mean() > 0.5  # the outside of the exterior walls
+    empty = BoxCaster(furnished.box_lo, furnished.box_hi).cast(np.zeros(3), np.zeros((0, 3)))
+    assert all(a.size == 0 for a in empty)

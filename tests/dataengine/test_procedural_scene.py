@@ -7,6 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from image2sim.dataengine.procedural.config import (
     CaptureConfig,
     ConfigError,
@@ -276,3 +278,27 @@ def test_seed_must_be_a_non_negative_integer():
     with pytest.raises(ValueError, match="seed"):
         generate_scene(preset("tiny"), -1)
     assert isinstance(SynthConfig().validate(), SynthConfig)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(min_value=0, max_value=2**32 - 1), rooms=st.integers(min_value=1, max_value=8))
+def test_invariants_hold_for_any_seed_and_room_count(seed, rooms):
+    cfg = dataclasses.replace(
+        preset("default"),
+        layout=dataclasses.replace(preset("default").layout, rooms_min=rooms, rooms_max=rooms),
+        objects=ObjectConfig(furniture_scale=0.5, small_per_surface_max=1),
+    )
+    scene = generate_scene(cfg, seed)
+    lay = scene.layout
+    assert len(lay.rooms) == rooms
+    assert scene.grid.num_components == 1
+    assert len(lay.doors) >= rooms - 1
+    for obj in scene.objects:
+        x0, y0, x1, y1 = lay.rooms[obj.room].interior(lay.wall_thickness)
+        lo, hi = obj.aabb
+        assert x0 - 1e-9 <= lo[0] and hi[0] <= x1 + 1e-9 and y0 - 1e-9 <= lo[1] and hi[1] <= y1 + 1e-9
+        if not obj.category.walkable:
+            rows, cols = rasterise_box(
+                scene.grid.navigable.shape, scene.grid.origin, scene.grid.resolution, lo, hi
+            )
+            assert not scene.grid.navigable[rows, cols].any()

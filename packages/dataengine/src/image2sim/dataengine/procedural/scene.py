@@ -366,6 +366,8 @@ class _Placer:
         if ocfg.small_per_surface_max == 0:
             return
         for support in list(self.objects):
+            if support.category.walkable:
+                continue  # nothing stands on rugs: their footprint stays navigable
             small = SMALL_BY_ROOM[self.layout.rooms[support.room].room_type]
             for surface in support.surfaces:
                 if self.rng.uniform() >= ocfg.small_probability:
