@@ -274,8 +274,9 @@ def train_bc(
 
     L.seed_everything(tc.seed, workers=True, verbose=False)
     policy = policy or build_policy(cfg, seed=tc.seed)
+    policy.model.train()
     module = NavBCModule(policy, cfg, dataset)
-    loggers = [CSVLogger(str(out), name="logs", version="")]
+    loggers = [CSVLogger(str(out), name="logs")]  # version_N per (re)start: resumes never overwrite
     if tc.wandb:
         from lightning.pytorch.loggers import WandbLogger
 
@@ -298,6 +299,7 @@ def train_bc(
         enable_progress_bar=True,
         enable_model_summary=False,
         num_sanity_val_steps=0,
+        use_distributed_sampler=False,  # StepSampler already splits positions across ranks
         default_root_dir=str(out),
     )
     ckpt_path = None
