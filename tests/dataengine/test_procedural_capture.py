@@ -209,7 +209,7 @@ def test_written_scene_reads_back_and_is_byte_identical(tmp_path):
     np.testing.assert_allclose(np.asarray(true["00000"]), poses[0])
 
 
-def test_pinhole_captures_store_z_depth():
+def test_pinhole_captures_store_z_depth(tmp_path):
     """The camera model's own unproject (z-depth for pinhole) puts every pixel on the box it hit."""
     import torch
 
@@ -232,6 +232,14 @@ def test_pinhole_captures_store_z_depth():
     rng_local = local / np.linalg.norm(local, axis=1, keepdims=True) * out["depth"].reshape(-1, 1)
     wrong = rng_local @ pose[:3, :3].T + pose[:3, 3]
     assert not np.all(np.any((np.abs(wrong - lo) < tol) | (np.abs(wrong - hi) < tol), axis=1))
+    # A pinhole capture round-trips through the canonical format with its intrinsics.
+    written = open_capture(
+        write_scene(
+            generate_scene(dataclasses.replace(cfg, capture=dataclasses.replace(cfg.capture, views=2)), 4),
+            tmp_path / "pin",
+        )
+    )
+    assert written[0].camera == camera and written[0].depth.shape == (48, 64)
 
 
 def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
