@@ -25,7 +25,7 @@ def protocols_cmd(
         typer.echo(json.dumps(get_protocol(name).to_dict(), indent=2))
         return
     for p in PROTOCOLS.values():
-        typer.echo(f"{p.name:12s} {describe_protocol(p)}")
+        typer.echo(f"{p.name:14s} {describe_protocol(p)}")
 
 
 @app.command("aggregate")
