@@ -1,0 +1,285 @@
+"""Navigable-map extraction against analytic worlds, procedural ground truth and the real HM3D sample."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from image2sim.simulator.navigation import synthetic as syn
+from image2sim.simulator.navigation.embodiment import ConfigError, Embodiment, NavMapConfig
+from image2sim.simulator.navigation.navmap import (
+    NavMap,
+    NavMapError,
+    extract_navmap_from_points,
+    fit_plane_ransac,
+    render_topdown,
+    rotation_aligning,
+)
+
+RADIUS = Embodiment().radius
+SPACING = 0.04  # surface sampling: finer than the 0.05 m voxels, coarse enough to be fast
+
+
+@functools.lru_cache(maxsize=None)
+def world(name: str) -> syn.SyntheticWorld:
+    return {
+        "box": lambda: syn.box_room(spacing=SPACING),
+        "gap": lambda: syn.wall_with_gap(spacing=SPACING),
+        "narrow": lambda: syn.wall_with_gap(gap_width=0.25, spacing=SPACING),
+        "L": lambda: syn.l_room(spacing=SPACING),
+        "stairs": lambda: syn.two_levels_with_stairs(spacing=SPACING),
+        "table": lambda: syn.box_room(boxes=[((2.0, 1.5, 0.0), (3.2, 2.3, 0.75))], spacing=SPACING),
+    }[name]()
+
+
+@functools.lru_cache(maxsize=None)
+def navmap(name: str) -> NavMap:
+    w = world(name)
+    return extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
+
+
+def analytic_navigable(w: syn.SyntheticWorld, xy: np.ndarray) -> np.ndarray:
+    """Ground truth: floor at the cell centre and the exact obstacle distance >= radius."""
+    return np.isfinite(w.floor_height(xy)) & (w.obstacle_distance(xy) >= RADIUS - 1e-9)
+
+
+def iou_against_analytic(name: str) -> float:
+    w, m = world(name), navmap(name)
+    lo, hi = w.bounds
+    xs = np.arange(lo[0] + 0.025, hi[0], 0.05)
+    ys = np.arange(lo[1] + 0.025, hi[1], 0.05)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    xy = np.column_stack((gx.ravel(), gy.ravel()))
+    gt = analytic_navigable(w, xy)
+    pred = np.zeros(len(xy), dtype=bool)
+    ij = np.floor((m.points[:, :2] - lo + 1e-9) / 0.05).astype(int)
+    pred[ij[:, 0] * len(ys) + ij[:, 1]] = True
+    return float((gt & pred).sum() / (gt | pred).sum())
+
+
+@pytest.mark.parametrize("name", ["box", "gap", "L", "table"])
+def test_navigable_cells_match_analytic_ground_truth(name):
+    assert iou_against_analytic(name) >= 0.97
+
+
+@pytest.mark.parametrize("name", ["box", "gap", "L", "table", "stairs"])
+def test_navigable_cells_are_safe_and_on_the_floor(name):
+    w, m = world(name), navmap(name)
+    pts = m.points
+    assert pts.ndim == 2 and pts.shape[1] == 3 and len(pts) > 100
+    # Every navigable cell centre has a floor at the reported height ...
+    assert np.allclose(w.floor_height(pts[:, :2]), pts[:, 2], atol=m.embodiment.max_step_height + 0.011)
+    # ... and the agent's footprint fits there (no obstacle point of the body band within the radius).
+    from image2sim.simulator.navigation.agent import CollisionWorld
+
+    cw = CollisionWorld(m)
+    mp = m.map_points
+    for p in mp[:: max(1, len(mp) // 400)]:
+        ok, z, _ = cw.check(p[:2], p[2])
+        assert ok and z == pytest.approx(p[2], abs=1e-9)
+
+
+def test_tabletop_is_an_obstacle_not_floor():
+    m = navmap("table")
+    top = (m.points[:, 0] > 2.0) & (m.points[:, 0] < 3.2) & (m.points[:, 1] > 1.5) & (m.points[:, 1] < 2.3)
+    assert not top.any()
+    assert np.all(np.abs(m.points[:, 2]) < 0.02)
+    assert m.num_levels == 1
+
+
+def test_narrow_gap_has_no_navigable_cell_inside():
+    m = navmap("narrow")
+    in_gap = np.abs(m.points[:, 0] - 3.0) < 0.1
+    assert not in_gap.any()
+
+
+def test_two_levels_found_and_cliff_buffered():
+    w, m = world("stairs"), navmap("stairs")
+    assert m.num_levels == 2
+    assert np.allclose(sorted(m.level_heights), [0.0, 1.2], atol=0.02)
+    for lvl in range(2):
+        assert m.navigable_area(lvl) > 5.0
+    # Upper storey cells near the drop at x = x_s (beside the stairs) keep the radius from the edge.
+    upper = m.points[m.points[:, 2] > 1.1]
+    x_s = 4.0 - 8 * 0.3 / 2
+    beside = upper[(upper[:, 1] > 1.2 + RADIUS + 0.05)]
+    assert beside[:, 0].min() >= x_s + RADIUS - 0.05 - 1e-9
+
+
+def test_gravity_is_corrected_and_points_stay_in_world_frame():
+    w = world("box")
+    tilt = rotation_aligning(np.array([0.0, 0.0, 1.0]), np.array([math.sin(math.radians(5)), 0.0, math.cos(math.radians(5))]))
+    pts = w.points @ tilt.T
+    nrm = w.normals @ tilt.T
+    cams = w.camera_positions @ tilt.T
+    m = extract_navmap_from_points(pts, nrm, camera_positions=cams)
+    assert abs(m.summary()["gravity_correction_deg"] - 5.0) < 0.2
+    up = tilt @ np.array([0.0, 0.0, 1.0])
+    # World-frame navigable points lie on the tilted floor plane through the origin.
+    assert np.abs(m.points @ up).max() < 0.03
+    assert abs(m.navigable_area() - navmap("box").navigable_area()) / navmap("box").navigable_area() < 0.08
+
+
+def test_occlusion_hole_is_filled_on_the_plane():
+    w = world("box")
+    hole = (np.abs(w.points[:, 0] - 3.0) < 0.08) & (np.abs(w.points[:, 1] - 2.0) < 0.08) & (w.points[:, 2] < 0.01)
+    m = extract_navmap_from_points(w.points[~hole], w.normals[~hole], camera_positions=w.camera_positions)
+    assert m.floor_filled.sum() > 0
+    filled = m.floor_points[m.floor_filled]
+    assert np.abs(filled[:, 2]).max() < 0.01
+    assert np.all(np.abs(filled[:, :2] - [3.0, 2.0]).max(axis=1) < 0.15)
+    assert m.navigable_area() == pytest.approx(navmap("box").navigable_area(), abs=0.01)
+
+
+def test_isolated_obstacle_noise_is_removed():
+    w = world("box")
+    rng = np.random.default_rng(0)
+    noise = np.column_stack((rng.uniform(1, 5, 30), rng.uniform(1, 3, 30), rng.uniform(0.3, 1.2, 30)))
+    m = extract_navmap_from_points(
+        np.vstack((w.points, noise)), np.vstack((w.normals, np.tile([1.0, 0, 0], (30, 1)))),
+        camera_positions=w.camera_positions,
+    )
+    assert m.navigable_area() == pytest.approx(navmap("box").navigable_area(), abs=0.01)
+    assert any("outlier" in n for n in m.notes)
+
+
+def test_pca_normals_without_given_normals():
+    w = syn.box_room(3.0, 2.0, spacing=SPACING)
+    ref = extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
+    m = extract_navmap_from_points(w.points, None, camera_positions=w.camera_positions)
+    assert abs(m.navigable_area() - ref.navigable_area()) < 0.1 * ref.navigable_area()
+
+
+def test_semantic_floor_labels_restrict_floor():
+    w = world("box")
+    labels = np.where(w.normals[:, 2] > 0.9, 1, 2)
+    labels[(w.points[:, 0] < 3.0) & (w.points[:, 2] < 0.01)] = 7  # left half of the floor is "rug" (not floor)
+    m = extract_navmap_from_points(w.points, w.normals, labels, w.camera_positions, config=NavMapConfig(floor_labels=(1,)))
+    assert m.points[:, 0].min() > 3.0
+
+
+def test_save_load_round_trip(tmp_path):
+    m = navmap("stairs")
+    path = m.save(tmp_path / "navmap.npz")
+    back = NavMap.load(path)
+    assert np.allclose(back.points, m.points, atol=1e-5)
+    assert np.array_equal(back.navigable, m.navigable)
+    assert back.embodiment == m.embodiment and back.config == m.config
+    img = render_topdown(back)
+    assert img.dtype == np.uint8 and img.ndim == 3
+
+
+def test_load_errors_name_the_file(tmp_path):
+    with pytest.raises(NavMapError, match="not found"):
+        NavMap.load(tmp_path / "missing.npz")
+    np.savez(tmp_path / "bad.npz", x=np.zeros(2))
+    with pytest.raises(NavMapError, match="bad.npz"):
+        NavMap.load(tmp_path / "bad.npz")
+
+
+def test_degenerate_inputs_raise_clear_errors():
+    with pytest.raises(NavMapError, match="no finite points|floor"):
+        extract_navmap_from_points(np.zeros((0, 3)), np.zeros((0, 3)))
+    with pytest.raises(NavMapError, match=r"\(N, 3\)"):
+        extract_navmap_from_points(np.zeros((5, 2)))
+    wall = syn.plane_patch((0, 0, 0), (3, 0, 0), (0, 0, 2), (0, 1, 0), 0.05)
+    with pytest.raises(NavMapError, match="floor"):
+        extract_navmap_from_points(*wall)
+    nan_pts = world("box").points.copy()
+    nan_pts[::50] = np.nan
+    m = extract_navmap_from_points(nan_pts, world("box").normals, camera_positions=world("box").camera_positions)
+    assert np.isfinite(m.points).all()
+
+
+def test_configs_reject_unknown_and_bad_fields():
+    with pytest.raises(ConfigError, match="unknown"):
+        NavMapConfig.from_dict({"voxel": 0.1})
+    with pytest.raises(ConfigError, match="radius"):
+        Embodiment(radius=-1.0)
+    assert Embodiment.from_dict(Embodiment().to_dict()) == Embodiment()
+    emb = Embodiment()
+    assert (emb.radius, emb.eye_height, emb.forward_step, emb.turn_angle_deg, emb.max_step_height) == (
+        0.15, 1.25, 0.25, 15.0, 0.15
+    )
+
+
+def test_ransac_plane_recovers_plane_with_outliers():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-2, 2, (500, 2))
+    n_true = np.array([0.1, -0.05, 1.0]) / np.linalg.norm([0.1, -0.05, 1.0])
+    z = -(n_true[0] * xy[:, 0] + n_true[1] * xy[:, 1] - 0.3) / n_true[2]
+    pts = np.column_stack((xy, z))
+    pts[:100] += rng.normal(0, 0.5, (100, 3))
+    n, d, inl = fit_plane_ransac(pts, 0.01, 200, rng)
+    # A few noisy outliers fall inside the 1 cm band and nudge the least-squares refit.
+    assert np.allclose(n, n_true, atol=2e-3) and d == pytest.approx(-0.3, abs=2e-3)
+    assert inl[100:].all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Procedural scenes: exact navigable grid at 0.05 m.
+# ---------------------------------------------------------------------------------------------
+
+
+def procedural_iou(seed: int) -> float:
+    proc = pytest.importorskip("image2sim.dataengine.procedural")
+    from image2sim.simulator.navigation.navmap import extract_navmap
+
+    base = proc.preset("tiny")
+    cfg = dataclasses.replace(base, capture=dataclasses.replace(base.capture, views=16, height=128, width=256))
+    scene = proc.generate_scene(cfg, seed=seed)
+    frames, _ = proc.capture_frames(scene)
+    m = extract_navmap(frames, config=NavMapConfig(pixel_stride=1))
+    g = scene.grid
+    h, w = g.navigable.shape
+    ix = np.floor((m.points[:, 0] - g.origin[0]) / g.resolution).astype(int)
+    iy = np.floor((m.points[:, 1] - g.origin[1]) / g.resolution).astype(int)
+    inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    pred = np.zeros((h, w), dtype=bool)
+    pred[iy[inside], ix[inside]] = True
+    assert inside.mean() > 0.99  # nothing navigable outside the scene
+    return float((pred & g.navigable).sum() / (pred | g.navigable).sum())
+
+
+@pytest.mark.slow  # ~10 s idle, > 60 s on the shared 2-core machine (scene rendering + normals)
+def test_procedural_navigable_iou():
+    ious = [procedural_iou(seed) for seed in (0, 1, 2)]
+    # Per scene the captures miss a few occluded corners; the mean is the contract.
+    assert np.mean(ious) >= 0.9, ious
+    assert min(ious) >= 0.85, ious
+
+
+# ---------------------------------------------------------------------------------------------
+# Real data: HM3D panoramas of a two-storey house.
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_hm3d_cameras_stand_above_navigable_floor(hm3d_scene_dir, capsys):
+    from image2sim.simulator.io import open_capture
+    from image2sim.simulator.navigation.navmap import extract_navmap
+
+    cap = open_capture(hm3d_scene_dir)
+    m = extract_navmap(cap, config=NavMapConfig(pixel_stride=4))
+    cams = m.to_map(np.array([f.cam_to_world[:3, 3] for f in cap]))
+
+    def nearest_below(pts: np.ndarray, c: np.ndarray) -> float:
+        below = pts[(pts[:, 2] < c[2] - 0.3) & (pts[:, 2] > c[2] - 2.5)]
+        return float(np.linalg.norm(below[:, :2] - c[:2], axis=1).min()) if len(below) else np.inf
+
+    floor_d = np.array([nearest_below(m.floor_points, c) for c in cams])
+    nav_d = np.array([nearest_below(m.map_points, c) for c in cams])
+    # Every camera stands on extracted floor; cameras on the staircase landing stand on floor too
+    # narrow to be navigable for a 0.15 m radius agent, so navigability is asserted for 95 %.
+    assert floor_d.max() < 0.3, floor_d
+    assert (nav_d < 0.3).mean() >= 0.95, np.sort(nav_d)[-5:]
+    heights = sorted(m.level_heights)
+    assert heights[-1] - heights[0] > 2.0
+    with capsys.disabled():
+        for lvl, h in enumerate(m.level_heights):
+            print(f"\nHM3D storey {lvl} at z={h:.2f} m: navigable {m.navigable_area(lvl):.1f} m^2")
+        print(f"cameras without navigable floor within 0.3 m: {int((nav_d >= 0.3).sum())} of {len(cams)}")
