@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-
 from image2sim.dataengine.procedural.textures import PATTERNS, MaterialTable, evaluate_albedo, value_noise
 
 
