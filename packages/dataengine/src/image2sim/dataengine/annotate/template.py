@@ -1,0 +1,146 @@
+"""Offline, deterministic template annotator: instructions from macro-steps, rooms and mined objects.
+
+Three styles (R2R, REVERIE, Demand) with structure and tone variants and synonym choices drawn from a
+per-episode seed, so instructions vary lexically but the same request always gives the same text.
+Only objects of the request's allow-list (visible at a macro-step start, or the goal) are named.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from image2sim.dataengine.annotate.prompts import Annotation, AnnotationRequest
+
+__all__ = ["TemplateAnnotator", "compose"]
+
+_VERB_SYNONYMS = {
+    "walk forward": ["walk forward", "go straight", "head straight ahead", "continue forward", "move ahead"],
+    "turn left": ["turn left", "make a left", "rotate to your left", "face left"],
+    "turn right": ["turn right", "make a right", "rotate to your right", "face right"],
+    "walk forward while turning left": ["walk forward while bearing left", "curve to the left as you walk",
+                                        "veer left while moving ahead"],
+    "walk forward while turning right": ["walk forward while bearing right", "curve to the right as you walk",
+                                         "veer right while moving ahead"],
+    "turn left and walk forward": ["turn left and walk ahead", "go left and continue", "take a left and keep going"],
+    "turn right and walk forward": ["turn right and walk ahead", "go right and continue", "take a right and keep going"],
+    "turn around to the left": ["turn around", "turn all the way around to your left"],
+    "turn around to the right": ["turn around", "turn all the way around to your right"],
+    "stay in place": ["pause for a moment"],
+}
+_STOP = ["stop next to the {g}", "wait beside the {g}", "stop when you reach the {g}", "halt near the {g}",
+         "your destination is the {g}"]
+_PASS = ["past the {l}", "towards the {l}", "by the {l}", "alongside the {l}"]
+_JOIN = ["then", "and then", "after that", "next"]
+_DEMAND = {
+    "fridge": ["I'm thirsty, can you grab me something cold?", "Could you get me a cold drink?"],
+    "sofa": ["I'm tired and need to sit down somewhere comfy.", "Find me a place to relax, please."],
+    "armchair": ["I'd like to sit down for a bit.", "Find me a comfortable seat."],
+    "bed": ["I'm exhausted, I need somewhere to lie down.", "Take me where I can take a nap."],
+    "tv": ["I want to watch the news.", "Let's watch a show."],
+    "stove": ["I want to cook some pasta.", "Let's heat up dinner."],
+    "sink": ["My hands are dirty, I need to wash them.", "I need some water to rinse this cup."],
+    "toilet": ["I really need the restroom.", "Where can I go to the toilet?"],
+    "bathtub": ["I'd love a warm bath.", "I want to soak for a while."],
+    "desk": ["I need somewhere to write a letter.", "I have to get some work done at a table."],
+    "bookshelf": ["I'm looking for something to read.", "Fetch me a good book."],
+    "book_stack": ["I'm looking for something to read.", "Grab me a book, would you?"],
+    "laptop": ["I need to check my email.", "Could you bring me the computer?"],
+    "kettle": ["I'd like a cup of tea.", "Let's boil some water."],
+    "microwave": ["I want to warm up my leftovers.", "Heat this up for me."],
+    "cup": ["I need something to drink from.", "Bring me a mug, please."],
+    "plant": ["The plants need watering.", "I want to check on the greenery."],
+    "small_plant": ["The little plant needs water.", "Check whether the potted plant is dry."],
+    "washing_machine": ["I need to do the laundry.", "These clothes need washing."],
+    "wardrobe": ["I need a clean shirt.", "Get me a jacket, please."],
+    "mirror": ["I want to check how I look.", "Is my hair a mess?"],
+    "clock": ["What time is it?", "I need to check the time."],
+    "dining_table": ["Let's have dinner.", "Where can we eat?"],
+    "floor_lamp": ["It's too dark in here.", "Could you turn on some light?"],
+    "table_lamp": ["It's too dark to read.", "I need more light."],
+}
+_POLITE = ["Please ", "Could you ", "Kindly "]
+
+
+def _name(cat: str) -> str:
+    return cat.replace("_", " ")
+
+
+def _pick(rng: np.random.Generator, options):
+    return options[int(rng.integers(len(options)))]
+
+
+def _room(room: str | None) -> str:
+    return _name(room) if room else ""
+
+
+def compose(req: AnnotationRequest) -> str:
+    """The instruction text of one request (deterministic in ``req.seed``)."""
+    rng = np.random.default_rng([req.seed, 7])
+    goal = _name(req.goal.get("category", "object"))
+    room = _room(req.goal.get("room_type"))
+    moves = [m for m in req.movements if m != "stop" and m != "stay in place"]
+    # Collapse consecutive duplicates ("walk forward, walk forward" -> one clause).
+    merged: list[tuple[str, int]] = []
+    for i, m in enumerate(req.movements):
+        if m in ("stop", "stay in place"):
+            continue
+        if merged and merged[-1][0] == m:
+            continue
+        merged.append((m, i))
+    if req.style == "r2r":
+        clauses = []
+        used: set[str] = set()
+        for m, i in merged:
+            c = _pick(rng, _VERB_SYNONYMS.get(m, [m]))
+            marks = [v for v in (req.visible[i] if i < len(req.visible) else []) if v not in used and v != req.goal.get("category")]
+            if marks and req.structure != "compact" and rng.random() < 0.6:
+                lm = marks[int(rng.integers(len(marks)))]
+                used.add(lm)
+                c += " " + _pick(rng, _PASS).format(l=_name(lm))
+            clauses.append(c)
+        if req.structure == "compact" and len(clauses) > 3:
+            clauses = [clauses[0], clauses[len(clauses) // 2], clauses[-1]]
+        stop = _pick(rng, _STOP).format(g=goal) + (f" in the {room}" if room and rng.random() < 0.5 else "")
+        if req.structure == "landmark_first":
+            head = f"Your target is the {goal}" + (f" in the {room}" if room else "") + ". "
+        else:
+            head = ""
+        body = ""
+        for k, c in enumerate(clauses):
+            body += c if k == 0 else f", {_pick(rng, _JOIN)} {c}"
+        text = head + (body + ", and " if body else "") + stop + "."
+    elif req.style == "reverie":
+        where = f" in the {room}" if room else ""
+        near = [v for v in sorted(req.allowed_objects) if v != req.goal.get("category")]
+        near_txt = f" near the {_name(_pick(rng, near))}" if near and rng.random() < 0.7 else ""
+        first = _pick(rng, [f"The {goal}{where}{near_txt} should be inspected",
+                            f"The {goal}{where}{near_txt} needs to be checked",
+                            f"The {goal}{near_txt}{where} is to be found",
+                            f"The {goal}{where} has been left{near_txt} and must be located"])
+        if req.structure == "sequential" and moves:
+            route = _pick(rng, _VERB_SYNONYMS.get(moves[0], [moves[0]]))
+            text = f"{first}; it is reached if you {route} and keep going until it is close."
+        else:
+            text = first + "."
+    else:  # demand
+        need = _pick(rng, _DEMAND.get(req.goal.get("category", ""), [f"I need the {goal}.",
+                                                                     f"Can you find the {goal} for me?"]))
+        ask = _pick(rng, [f" Go to the {goal}.", f" Find the {goal}" + (f" in the {room}" if room else "") + ".",
+                          " Take me there.", f" Head over to the {goal} and wait there."])
+        text = need if req.structure == "compact" else need + ask
+    if req.tone == "polite" and req.style != "demand":
+        text = _pick(rng, _POLITE) + text[0].lower() + text[1:]
+        if text.startswith("Could you "):
+            text = text.rstrip(".") + "?"
+    elif req.tone == "terse":
+        text = text.replace(", and then ", ", ").replace(", after that ", ", ")
+    return text[0].upper() + text[1:]
+
+
+class TemplateAnnotator:
+    """The offline default backend (never rejects: its inputs come from verified rollouts)."""
+
+    name = "template"
+
+    def annotate(self, requests: list[AnnotationRequest]) -> list[Annotation]:
+        return [Annotation(r.episode_id, compose(r), r.style, r.structure, r.tone, True) for r in requests]

@@ -1,0 +1,401 @@
+"""One scene -> verified, annotated episodes and a training shard (the unit of work of the data engine).
+
+``process_scene(scene_dir, out_dir, config)``:
+  1. resolve the scene: a capture folder (``image2sim-capture``) or a built scene folder (Gaussian scene
+     ``manifest.json`` whose ``source.capture`` points at the capture); navigation map, graph and object
+     database are taken from the scene folder when present, else built and cached in
+     ``{out}/scenes/{name}/``;
+  2. sample plans (:mod:`.trajectories`), roll them out with the oracle follower in the
+     :class:`NeuralSimulator` (:mod:`.rollout`), replay every accepted rollout and assert it reaches the
+     same final position without collision;
+  3. macro-steps, style routing, annotation (template / VLM) with the quality gate;
+  4. observations along each kept rollout (render function: the exact procedural renderer, the
+     Gaussian scene via ``splat``, or none), a shard, and ``{out}/scenes/{name}/episodes.json``
+     written atomically; ``done.json`` last.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import zlib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from image2sim.dataengine.chunking import ChunkConfig, macro_steps
+from image2sim.dataengine.episodes import atomic_write_bytes, episode_record
+from image2sim.dataengine.mining import MiningConfig
+from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
+from image2sim.dataengine.trajectories import SamplingConfig, episode_capacity, sample_plans
+
+__all__ = ["EngineConfig", "SceneInputs", "resolve_scene", "process_scene", "scene_name", "DONE_FILE",
+           "EPISODES_FILE"]
+
+DONE_FILE = "done.json"
+EPISODES_FILE = "episodes.json"
+RENDER_MODES = ("auto", "procedural", "gaussians", "none")
+
+
+@dataclass
+class EngineConfig:
+    """Everything a scene task needs (plain data, so it travels to Ray workers)."""
+
+    per_scene: int | None = None
+    """Episodes planned per scene; None = area-based capacity (paper: clamped to [50, 1000])."""
+    annotator: str = "template"
+    """template, transformers or openai."""
+    annotator_options: dict = field(default_factory=dict)
+    """Backend options (openai: base_url, model, timeout, ...; transformers: path)."""
+    render: str = "auto"
+    """Observation renderer: auto (procedural for procedural captures, else gaussians), procedural,
+    gaussians or none (no frames, no shard)."""
+    view: str = "pinhole"
+    """Observation stored in the shard: pinhole (90 degrees, square) or ultrawide (180 x 118 degrees)."""
+    obs_height: int = 336
+    """Pinhole size / ultra-wide height in pixels (ultra-wide width = height x 512 / 336)."""
+    annotation_view_height: int = 168
+    """Height of the 180 degree views given to VLM annotators (width = 2 x height x 180 / 118)."""
+    detector: str = "gt"
+    """Object detector: gt or yolo-world."""
+    detector_weights: str | None = None
+    """Local YOLO-World weights (yolo-world only)."""
+    seed: int = 0
+    """Base seed; each scene uses a stream derived from (seed, scene name)."""
+    split: str = "train"
+    """Split name of the written episode files."""
+    sampling: dict = field(default_factory=dict)
+    """Overrides of :class:`SamplingConfig` fields."""
+    rollout: dict = field(default_factory=dict)
+    """Overrides of :class:`RolloutConfig` fields."""
+    mining: dict = field(default_factory=dict)
+    """Overrides of :class:`MiningConfig` fields."""
+    visible_distance: float = 3.5
+    """Objects within this distance and inside the 180 degree view count as visible at a macro-step."""
+
+    def __post_init__(self) -> None:
+        if self.render not in RENDER_MODES:
+            raise ValueError(f"EngineConfig.render must be one of {RENDER_MODES}, got {self.render!r}")
+        if self.view not in ("pinhole", "ultrawide"):
+            raise ValueError(f"EngineConfig.view must be pinhole or ultrawide, got {self.view!r}")
+        if self.per_scene is not None and self.per_scene < 1:
+            raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
+        if self.obs_height < 8:
+            raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
+
+    @classmethod
+    def from_dict(cls, data: dict) -> EngineConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"EngineConfig: unknown field(s) {unknown}; known: {sorted(known)}")
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class SceneInputs:
+    """Resolved inputs of one scene."""
+
+    name: str
+    scene_id: str
+    capture_dir: Path
+    scene_dir: Path
+    """The folder given on the command line (capture or built scene)."""
+    procedural: bool
+    gaussian_dir: Path | None
+
+
+def scene_name(path: Path) -> str:
+    return Path(path).name
+
+
+def resolve_scene(path: str | Path) -> SceneInputs:
+    """Identify a capture folder or a built scene folder (see the module docstring)."""
+    path = Path(path)
+    man_path = path / "manifest.json"
+    if not man_path.is_file():
+        raise FileNotFoundError(f"{path}: no manifest.json (neither a capture nor a built scene folder)")
+    man = json.loads(man_path.read_text())
+    gaussian_dir = None
+    if (path / "gaussians.safetensors").is_file():
+        src = (man.get("source") or {}).get("capture")
+        if not src or not (Path(src) / "manifest.json").is_file():
+            raise FileNotFoundError(f"{man_path}: field 'source.capture' ({src!r}) does not point at a capture")
+        gaussian_dir, capture_dir = path, Path(src)
+        man = json.loads((capture_dir / "manifest.json").read_text())
+    else:
+        capture_dir = path
+    meta = man.get("metadata") or {}
+    procedural = meta.get("generator") == "image2sim.dataengine.procedural"
+    return SceneInputs(path.name, str(man.get("scene_id") or path.name), capture_dir, path, procedural, gaussian_dir)
+
+
+# ---------------------------------------------------------------------------------------- assets
+
+
+def _navigation(inputs: SceneInputs, cache: Path):
+    from image2sim.simulator.navigation import NavMap, NavMapConfig, extract_navmap
+    from image2sim.simulator.navigation.graph import NavGraph
+
+    for folder in (inputs.scene_dir, cache):
+        if (folder / "navmap.npz").is_file() and (folder / "navgraph.npz").is_file():
+            return NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz")
+    from image2sim.simulator.io.registry import open_capture
+
+    cap = open_capture(inputs.capture_dir)
+    labels = (1, 10) if inputs.procedural else ()  # procedural floor + rug categories
+    navmap = extract_navmap(cap, config=NavMapConfig(floor_labels=labels))
+    graph = NavGraph.build(navmap)
+    navmap.save(cache / "navmap.npz")
+    graph.save(cache / "navgraph.npz")
+    return navmap, graph
+
+
+def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
+    from image2sim.dataengine import mining
+
+    for folder in (inputs.scene_dir, cache):
+        if (folder / "objects.json").is_file():
+            try:
+                return mining.load_objects(folder / "objects.json")
+            except ValueError:
+                if folder == inputs.scene_dir:
+                    continue  # a foreign objects.json (e.g. a GT file): mine our own
+                raise
+    from image2sim.simulator.io.registry import open_capture
+
+    mcfg = MiningConfig.from_dict(cfg.mining) if cfg.mining else MiningConfig()
+    cap = open_capture(inputs.capture_dir)
+    small: set[str] = set()
+    if cfg.detector == "gt":
+        cats, small = mining.load_categories(inputs.capture_dir)
+        det = mining.GTDetector(cats)
+    elif cfg.detector == "yolo-world":
+        if not cfg.detector_weights:
+            raise ValueError("detector yolo-world needs detector_weights (a local file)")
+        vocab = sorted(small)
+        det = mining.YoloWorldDetector(cfg.detector_weights, vocab)
+    else:
+        raise ValueError(f"unknown detector {cfg.detector!r} (gt or yolo-world)")
+    objs, stats = mining.mine_capture(cap, det, mcfg, small)
+    mining.attach_gt_metadata(objs, inputs.capture_dir)
+    mining.save_objects(cache / "objects.json", objs, {"detector": det.name, "stats": stats,
+                                                       "config": asdict(mcfg)})
+    return objs
+
+
+def _render_fn(inputs: SceneInputs, cache: Path, mode: str):
+    """(render function or None, mode actually used)."""
+    if mode == "auto":
+        mode = "procedural" if inputs.procedural else "gaussians"
+    if mode == "none":
+        return None, mode
+    if mode == "procedural":
+        if not inputs.procedural:
+            raise ValueError(f"{inputs.capture_dir}: render=procedural needs a procedural capture")
+        from image2sim.dataengine.procedural import generate_scene, preset, synth_config_from_dict
+        from image2sim.dataengine.procedural.render import render
+
+        meta = json.loads((inputs.capture_dir / "manifest.json").read_text())["metadata"]
+        scene = generate_scene(synth_config_from_dict(meta["config"], base=preset("default")), int(meta["seed"]))
+
+        def fn(camera, pose):
+            out = render(scene, camera, np.asarray(pose))
+            return {"rgb": out["rgb"].astype(np.float32) / 255.0, "depth": out["depth"], "instances": out["instances"]}
+
+        return fn, mode
+    from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
+    from image2sim.simulator.sim import GaussianRenderFn
+
+    folder = inputs.gaussian_dir or cache / "gaussians"
+    if not (folder / "gaussians.safetensors").is_file():
+        build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True)
+    g = GaussianScene.load(folder).gaussians
+    return GaussianRenderFn({k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")}), mode
+
+
+# ---------------------------------------------------------------------------------------- helpers
+
+
+def _rng(seed: int, name: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
+
+
+def _visible(objects, pos_world: np.ndarray, heading: float, max_dist: float) -> list[str]:
+    """Categories inside the forward 180 degree half-space and within ``max_dist`` (sorted, unique)."""
+    out = set()
+    d = np.array([math.cos(heading), math.sin(heading)])
+    for o in objects:
+        v = np.asarray(o.position[:2]) - pos_world[:2]
+        dist = float(np.linalg.norm(v))
+        if dist <= max_dist and float(v @ d) >= 0:
+            out.add(o.category)
+    return sorted(out)
+
+
+def _room_at(objects, pos_world: np.ndarray) -> str | None:
+    best, room = math.inf, None
+    for o in objects:
+        if o.room_type is None:
+            continue
+        dist = float(np.linalg.norm(np.asarray(o.position[:2]) - pos_world[:2]))
+        if dist < best:
+            best, room = dist, o.room_type
+    return room
+
+
+def _to_uint8(rgb: np.ndarray) -> np.ndarray:
+    return np.clip(np.asarray(rgb, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _observation_spec(cfg: EngineConfig, pano_height: int):
+    from image2sim.simulator.sim import ObservationSpec
+
+    h = int(cfg.obs_height)
+    if cfg.view == "pinhole":
+        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h)
+    return ObservationSpec(panorama=False, ultrawide=True, pano_height=pano_height, ultrawide_height=h,
+                           ultrawide_width=int(round(h * 512 / 336)))
+
+
+# ---------------------------------------------------------------------------------------- the task
+
+
+def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConfig | dict) -> dict:
+    """Run the whole engine on one scene; returns the scene summary (also written to ``done.json``)."""
+    from image2sim.dataengine.annotate import AnnotationRequest, build_annotator, route_style
+    from image2sim.simulator.navigation.follower import OracleFollower
+    from image2sim.simulator.sim import NeuralSimulator
+
+    cfg = config if isinstance(config, EngineConfig) else EngineConfig.from_dict(config)
+    t0 = time.perf_counter()
+    inputs = resolve_scene(scene_dir)
+    out = Path(out_dir) / "scenes" / inputs.name
+    out.mkdir(parents=True, exist_ok=True)
+    navmap, graph = _navigation(inputs, out)
+    objects = _objects(inputs, out, cfg)
+    scfg = SamplingConfig(**cfg.sampling) if cfg.sampling else SamplingConfig()
+    rcfg = RolloutConfig(**cfg.rollout) if cfg.rollout else RolloutConfig()
+    area = navmap.navigable_area()
+    n = cfg.per_scene if cfg.per_scene is not None else episode_capacity(area, scfg)
+    rng = _rng(cfg.seed, inputs.name)
+    sim = NeuralSimulator(navmap, graph)
+    follower = OracleFollower(sim.planner)
+    plans, plan_stats = sample_plans(graph, sim.planner, objects, n, scfg, rng, navmap.to_map)
+    drops: dict[str, int] = {}
+    kept = []
+    for plan in plans:
+        r = rollout_plan(sim, follower, plan, rcfg)
+        if not r.ok:
+            drops[r.reason] = drops.get(r.reason, 0) + 1
+            continue
+        pos, _, col = replay(sim, plan.start, plan.heading, r.actions)
+        if np.abs(pos[-1] - r.positions[-1]).max() > 1e-6 or any(col):
+            drops["replay_mismatch"] = drops.get("replay_mismatch", 0) + 1
+            continue
+        kept.append((plan, r))
+    # Annotation requests.
+    vlm = cfg.annotator != "template"
+    render_fn, render_mode = (None, "none") if cfg.render == "none" else _render_fn(inputs, out, cfg.render)
+    if vlm and render_fn is None:
+        raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
+    requests, chunks = [], []
+    for k, (plan, r) in enumerate(kept):
+        eid = f"{inputs.name}-{k:05d}"
+        steps = macro_steps(r.actions, r.positions, r.headings, ChunkConfig())
+        world = navmap.to_world(r.positions)
+        vis = [_visible(objects, world[m.start], float(r.headings[m.start]), cfg.visible_distance) for m in steps]
+        rooms = [_room_at(objects, world[m.start]) for m in steps]
+        style, structure, tone = route_style(rng)
+        images = []
+        if vlm:
+            images = [_annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
+        requests.append(AnnotationRequest(eid, [m.text for m in steps], images, plan.goal_object, vis, rooms, style,
+                                          structure, tone, seed=int(rng.integers(2**31))))
+        chunks.append(steps)
+    vocab = sorted({o.category for o in objects})
+    annotator = build_annotator(cfg.annotator, vocabulary=vocab, **cfg.annotator_options)
+    annotations = annotator.annotate(requests) if requests else []
+    # Episodes, gt and shard.
+    episodes, gt = [], {}
+    writer = None
+    if render_fn is not None:
+        from image2sim.dataengine.shards import SceneShardWriter
+
+        writer = SceneShardWriter(out / "shard", {"view": cfg.view, "height": cfg.obs_height, "render": render_mode})
+    try:
+        for (plan, r), steps, req, ann in zip(kept, chunks, requests, annotations):
+            if not ann.accepted:
+                drops[f"annotation: {ann.reason}"] = drops.get(f"annotation: {ann.reason}", 0) + 1
+                continue
+            world = navmap.to_world(r.positions)
+            ref_idx = sorted({0, *[m.start for m in steps], len(world) - 1})
+            goal_w = navmap.to_world(np.asarray(plan.goal))
+            heading_w = _world_heading(navmap, plan.heading)
+            extra = {"style": ann.style, "structure": ann.structure, "tone": ann.tone, "goal_object": plan.goal_object,
+                     "bucket": plan.bucket, "path_length": r.path_length, "num_steps": len(r.actions),
+                     "truncated_stuck": r.truncated_stuck, "macro_steps": [m.text for m in steps]}
+            rec = episode_record(req.episode_id, inputs.scene_id, world[0], heading_w, goal_w, plan.goal_radius,
+                                 world[ref_idx], ann.text, plan.geodesic_distance, extra)
+            episodes.append(rec)
+            gt[req.episode_id] = {"locations": [[float(v) for v in p] for p in world], "actions": list(r.actions),
+                                  "forward_steps": r.forward_steps}
+            if writer is not None:
+                frames = _render_rollout(sim, render_fn, plan, r, cfg)
+                writer.add(req.episode_id, inputs.scene_id, ann.text, r.actions, frames, list(range(len(r.actions))),
+                           {"style": ann.style, "start_position": rec["start_position"],
+                            "start_rotation": rec["start_rotation"]})
+        if writer is not None:
+            writer.close()
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    summary = {"scene": inputs.name, "scene_id": inputs.scene_id, "navigable_area": area, "capacity": n,
+               "planned": len(plans), "rolled_out_ok": len(kept), "episodes": len(episodes), "drops": drops,
+               "plan_stats": plan_stats, "objects": len(objects), "render": render_mode,
+               "seconds": time.perf_counter() - t0}
+    atomic_write_bytes(out / EPISODES_FILE, json.dumps({"episodes": episodes, "gt": gt}).encode())
+    atomic_write_bytes(out / DONE_FILE, json.dumps(summary, indent=1).encode())
+    return summary
+
+
+def _world_heading(navmap, heading: float) -> float:
+    d = navmap.to_world(np.array([math.cos(heading), math.sin(heading), 0.0]))
+    return math.atan2(d[1], d[0])
+
+
+def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> np.ndarray:
+    """Observation before every action of the rollout (T frames), by re-executing it with rendering on."""
+    sim.render_fn = render_fn
+    sim.spec = _observation_spec(cfg, pano_height=max(64, int(cfg.obs_height)))
+    key = "pinhole" if cfg.view == "pinhole" else "ultrawide"
+    try:
+        obs, _ = sim.reset(np.asarray(plan.start, float)[None], np.array([plan.heading]))
+        frames = [_to_uint8(obs[0][key]["rgb"])]
+        for a in r.actions[:-1]:
+            obs, _ = sim.step([a])
+            frames.append(_to_uint8(obs[0][key]["rgb"]))
+    finally:
+        sim.render_fn = None
+    return np.stack(frames)
+
+
+def _annotation_view(sim, render_fn, plan, r, state: int, cfg: EngineConfig) -> np.ndarray:
+    """180 degree view (equirect crop of the panorama) at rollout state ``state``."""
+    from image2sim.simulator.sim import ObservationSpec
+
+    h = int(cfg.annotation_view_height)
+    sim.render_fn = render_fn
+    sim.spec = ObservationSpec(panorama=False, ultrawide=True, pano_height=max(64, h), ultrawide_height=h,
+                               ultrawide_width=int(round(h * 2 * 180 / 118)))
+    try:
+        sim.reset(np.asarray(r.positions[state], float)[None], np.array([r.headings[state]]), observe=False)
+        return _to_uint8(sim.observe(0)["ultrawide"]["rgb"])
+    finally:
+        sim.render_fn = None

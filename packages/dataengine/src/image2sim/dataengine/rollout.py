@@ -1,0 +1,120 @@
+"""Oracle rollouts of episode plans in the :class:`NeuralSimulator`, stuck truncation and replay.
+
+A rollout resets one agent at the plan's start, lets the :class:`OracleFollower` drive it to the goal
+standing point and records every state. Rules (paper appendix): the stuck detector (4-step window,
+< 0.1 m net displacement and < 15 degrees of yaw) truncates the rollout at the start of the stuck
+window and appends STOP; rollouts with a collision, that do not end within the goal radius, or that
+are shorter than ``min_steps`` are dropped with a reason. :func:`replay` re-executes actions from the
+start in a fresh simulator (the executability test every written episode passes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from image2sim.simulator.conventions import Action
+
+__all__ = ["RolloutConfig", "Rollout", "rollout_plan", "replay"]
+
+
+@dataclass(frozen=True)
+class RolloutConfig:
+    """Rollout limits and acceptance rules."""
+
+    max_steps: int = 500
+    """Hard cap on actions per episode (the rollout is dropped when reached)."""
+    min_steps: int = 8
+    """Episodes with fewer actions (STOP included) are dropped."""
+    allow_collisions: bool = False
+    """Keep rollouts in which a forward step was blocked (wall sliding). Off: every episode is clean."""
+
+    def __post_init__(self) -> None:
+        if self.max_steps < 1 or self.min_steps < 1 or self.min_steps > self.max_steps:
+            raise ValueError(f"RolloutConfig: need 1 <= min_steps <= max_steps, got {self.min_steps}, {self.max_steps}")
+
+
+@dataclass
+class Rollout:
+    """A recorded trajectory: T actions and the T + 1 states around them (map frame)."""
+
+    actions: list[int]
+    positions: np.ndarray
+    """(T + 1, 3) feet positions; row t is the state before action t, the last row the final state."""
+    headings: np.ndarray
+    """(T + 1,) headings in radians."""
+    collided: list[bool]
+    """Per action: a forward micro-step was blocked."""
+    reason: str = ""
+    """"" when accepted, else why it was dropped."""
+    truncated_stuck: bool = False
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.reason
+
+    @property
+    def forward_steps(self) -> int:
+        return sum(1 for a in self.actions if a == int(Action.MOVE_FORWARD))
+
+    @property
+    def path_length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.positions[:, :2], axis=0), axis=1).sum())
+
+
+def rollout_plan(sim, follower, plan, config: RolloutConfig | None = None) -> Rollout:
+    """Drive one agent from ``plan.start`` to ``plan.goal`` with the oracle follower."""
+    cfg = config or RolloutConfig()
+    _, info = sim.reset(np.asarray(plan.start, float)[None], np.array([plan.heading]), observe=False)
+    positions = [info["position"][0].copy()]
+    headings = [float(info["heading"][0])]
+    actions: list[int] = []
+    collided: list[bool] = []
+    res = follower.reset(positions[0], np.asarray(plan.goal, float))
+    if not res.reachable:
+        return Rollout([], np.array(positions), np.array(headings), [], reason=f"unplannable: {res.reason}")
+    was_collided, stuck_at = False, None
+    for _ in range(cfg.max_steps):
+        a = int(follower.act(sim.agents[0].state, was_collided))
+        _, info = sim.step([a], observe=False)
+        actions.append(a)
+        positions.append(info["position"][0].copy())
+        headings.append(float(info["heading"][0]))
+        was_collided = bool(info["collided"][0])
+        collided.append(was_collided)
+        if a == int(Action.STOP):
+            break
+        if bool(info["stuck"][0]):
+            stuck_at = len(actions)
+            break
+    else:
+        return Rollout(actions, np.array(positions), np.array(headings), collided, reason="max_steps")
+    truncated = False
+    if stuck_at is not None:
+        # Cut the stuck window (it made no progress) and stop where the agent got stuck.
+        keep = max(0, stuck_at - int(sim.embodiment.stuck_window))
+        actions, collided = actions[:keep] + [int(Action.STOP)], collided[:keep] + [False]
+        positions, headings = positions[: keep + 1] + [positions[keep]], headings[: keep + 1] + [headings[keep]]
+        truncated = True
+    r = Rollout(actions, np.array(positions), np.array(headings), collided, truncated_stuck=truncated)
+    if not cfg.allow_collisions and any(collided):
+        r.reason = "collision"
+    elif len(actions) < cfg.min_steps:
+        r.reason = "too_short"
+    elif np.linalg.norm(r.positions[-1, :2] - np.asarray(plan.goal)[:2]) > plan.goal_radius:
+        r.reason = "outside_goal_radius"
+    return r
+
+
+def replay(sim, start: np.ndarray, heading: float, actions) -> tuple[np.ndarray, np.ndarray, list[bool]]:
+    """Re-execute ``actions`` from (start, heading) -> (positions (T + 1, 3), headings, collided per action)."""
+    _, info = sim.reset(np.asarray(start, float)[None], np.array([heading]), observe=False)
+    pos, head, col = [info["position"][0].copy()], [float(info["heading"][0])], []
+    for a in actions:
+        _, info = sim.step([int(a)], observe=False)
+        pos.append(info["position"][0].copy())
+        head.append(float(info["heading"][0]))
+        col.append(bool(info["collided"][0]))
+    return np.array(pos), np.array(head), col

@@ -1,0 +1,258 @@
+"""Topologically-aware trajectory sampling (paper appendix).
+
+Per scene: a capacity from the navigable area (clamped to [50, 1000]); for each episode a path-length
+bucket drawn by roulette (short 3-6 m 20 %, medium 6-10 m 30 %, long 10-15 m 50 %, geodesic
+metres); a start chosen by furthest-point sampling against earlier starts (coverage); a goal object
+drawn with IDF weights over categories (rare categories favoured); a goal standing point within the
+object's radius (1.5 m small items, 3.0 m large objects, Euclidean) that passes a geodesic check
+(its geodesic distance to the object's nearest navigable point is at most ``geodesic_slack`` times
+the radius, so a point behind a wall is rejected), preferring points far from earlier goals (FPS).
+Everything draws from one seeded generator, so a scene's plans are reproducible.
+
+Positions are map-frame feet positions of the :class:`NavGraph` (see :mod:`..navigation`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "Bucket",
+    "SamplingConfig",
+    "EpisodePlan",
+    "DEFAULT_BUCKETS",
+    "episode_capacity",
+    "draw_buckets",
+    "idf_weights",
+    "farthest_point",
+    "coverage_radius",
+    "sample_plans",
+]
+
+
+@dataclass(frozen=True)
+class Bucket:
+    """A geodesic path-length bucket."""
+
+    name: str
+    """Bucket name (short, medium, long)."""
+    min_length: float
+    """Lower bound in metres (inclusive)."""
+    max_length: float
+    """Upper bound in metres (exclusive)."""
+    weight: float
+    """Roulette weight."""
+
+
+DEFAULT_BUCKETS = (
+    Bucket("short", 3.0, 6.0, 0.2),
+    Bucket("medium", 6.0, 10.0, 0.3),
+    Bucket("long", 10.0, 15.0, 0.5),
+)
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """Trajectory sampling knobs (defaults = the paper's)."""
+
+    buckets: tuple[Bucket, ...] = DEFAULT_BUCKETS
+    """Path-length buckets and their roulette weights."""
+    episodes_per_m2: float = 2.0
+    """Capacity = navigable area x this, clamped to [min_episodes, max_episodes]."""
+    min_episodes: int = 50
+    """Lower clamp of the area-based capacity."""
+    max_episodes: int = 1000
+    """Upper clamp of the area-based capacity."""
+    small_radius: float = 1.5
+    """Goal radius (metres, Euclidean) of small, manipulable items."""
+    large_radius: float = 3.0
+    """Goal radius (metres, Euclidean) of large objects."""
+    geodesic_slack: float = 1.5
+    """A standing point is valid when its geodesic distance to the object's nearest navigable point is
+    at most this times the goal radius (rejects points behind walls)."""
+    start_candidates: int = 32
+    """Random candidate starts among which furthest-point sampling picks the best-covering one."""
+    min_path_length: float = 1.0
+    """Fallback lower bound (metres) when no bucket is feasible in a small scene."""
+    bucket_fallback: bool = True
+    """Small scenes: when the drawn bucket has no candidate, try the other buckets, then any length
+    >= ``min_path_length`` (recorded as bucket ``fallback``)."""
+    max_attempts: int = 20
+    """Starts tried per episode before the episode is given up."""
+    seed: int = 0
+    """Base seed (combined with the scene id)."""
+
+    def __post_init__(self) -> None:
+        if not self.buckets:
+            raise ValueError("SamplingConfig.buckets must not be empty")
+        for b in self.buckets:
+            if not (0 <= b.min_length < b.max_length and b.weight > 0):
+                raise ValueError(f"SamplingConfig.buckets: invalid bucket {b}")
+        if not (1 <= self.min_episodes <= self.max_episodes):
+            raise ValueError("SamplingConfig: need 1 <= min_episodes <= max_episodes")
+        for name in ("episodes_per_m2", "small_radius", "large_radius", "geodesic_slack", "min_path_length"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SamplingConfig.{name} must be positive, got {getattr(self, name)!r}")
+        if self.start_candidates < 1 or self.max_attempts < 1:
+            raise ValueError("SamplingConfig.start_candidates and max_attempts must be >= 1")
+
+
+@dataclass
+class EpisodePlan:
+    """A sampled start/goal pair (map frame) before the rollout."""
+
+    start: np.ndarray
+    heading: float
+    goal: np.ndarray
+    """Goal standing point (feet position)."""
+    goal_object: dict
+    """The goal object's record (category, position, object_id, small, radius)."""
+    goal_radius: float
+    bucket: str
+    geodesic_distance: float
+    extra: dict = field(default_factory=dict)
+
+
+def episode_capacity(navigable_area: float, config: SamplingConfig) -> int:
+    """Per-scene episode count: area x density clamped to [min_episodes, max_episodes]."""
+    if not math.isfinite(navigable_area) or navigable_area < 0:
+        raise ValueError(f"navigable area must be a finite non-negative number, got {navigable_area!r}")
+    n = int(round(navigable_area * config.episodes_per_m2))
+    return int(min(config.max_episodes, max(config.min_episodes, n)))
+
+
+def draw_buckets(n: int, buckets: Sequence[Bucket], rng: np.random.Generator) -> list[Bucket]:
+    """``n`` independent roulette draws over the bucket weights."""
+    w = np.array([b.weight for b in buckets], dtype=np.float64)
+    idx = rng.choice(len(buckets), size=n, p=w / w.sum())
+    return [buckets[int(i)] for i in idx]
+
+
+def idf_weights(categories: Sequence[str]) -> dict[str, float]:
+    """Per-object-category weight log(1 + N / n_c): categories with fewer instances weigh more."""
+    counts = Counter(categories)
+    total = sum(counts.values())
+    return {c: math.log(1.0 + total / n) for c, n in counts.items()}
+
+
+def farthest_point(candidates: np.ndarray, chosen: np.ndarray) -> int:
+    """Index of the candidate whose distance to the nearest already-chosen point is largest."""
+    if len(candidates) == 0:
+        raise ValueError("farthest_point: no candidates")
+    if len(chosen) == 0:
+        return 0
+    d = np.linalg.norm(candidates[:, None, :2] - np.asarray(chosen)[None, :, :2], axis=-1).min(axis=1)
+    return int(np.argmax(d))
+
+
+def coverage_radius(points: np.ndarray, domain: np.ndarray) -> float:
+    """Largest distance from a domain point to its nearest chosen point (lower = better coverage)."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(np.asarray(points)[:, :2]).query(np.asarray(domain)[:, :2])
+    return float(np.max(d))
+
+
+def _object_radius(obj, config: SamplingConfig) -> float:
+    return config.small_radius if obj.small else config.large_radius
+
+
+def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConfig,
+                 rng: np.random.Generator, to_map=None) -> tuple[list[EpisodePlan], dict]:
+    """Sample up to ``n`` episode plans on one scene -> (plans, statistics of rejections).
+
+    ``objects`` are :class:`~image2sim.dataengine.mining.SceneObject` (world frame positions);
+    ``to_map`` converts world points to the map frame (identity when None).
+    """
+    from scipy.sparse.csgraph import dijkstra
+
+    stats = Counter()
+    nodes = graph.nodes
+    if graph.num_nodes == 0 or not objects:
+        stats["no_nodes" if graph.num_nodes == 0 else "no_objects"] += 1
+        return [], dict(stats)
+    # The largest connected component: every plan must be reachable.
+    comp = graph.components
+    main = int(np.bincount(comp).argmax())
+    in_main = np.nonzero(comp == main)[0]
+    conv = (lambda p: np.asarray(p, float)) if to_map is None else to_map
+    # Per object: its nearest navigable node and the candidate standing nodes within the radius.
+    obj_info = []
+    for o in objects:
+        p = conv(np.asarray(o.position, float))
+        r = _object_radius(o, config)
+        d_xy = np.linalg.norm(nodes[in_main, :2] - p[:2], axis=1)
+        near = in_main[d_xy <= r]
+        if len(near) == 0:
+            stats["object_unreachable"] += 1
+            continue
+        anchor = int(in_main[np.argmin(d_xy)])
+        d_geo = dijkstra(graph.length_matrix, directed=False, indices=anchor)
+        ok = near[d_geo[near] <= config.geodesic_slack * r]
+        stats["stand_rejected_geodesic"] += int(len(near) - len(ok))
+        if len(ok) == 0:
+            continue
+        obj_info.append((o, r, ok))
+    if not obj_info:
+        stats["no_valid_goal_object"] += 1
+        return [], dict(stats)
+    idf = idf_weights([o.category for o, _, _ in obj_info])
+    w = np.array([idf[o.category] for o, _, _ in obj_info])
+    w = w / w.sum()
+    starts: list[np.ndarray] = []
+    goals: list[np.ndarray] = []
+    plans: list[EpisodePlan] = []
+    for bucket in draw_buckets(n, config.buckets, rng):
+        plan = None
+        for _ in range(config.max_attempts):
+            cand = nodes[rng.choice(in_main, size=min(config.start_candidates, len(in_main)), replace=False)]
+            start = cand[farthest_point(cand, np.array(starts).reshape(-1, 3))]
+            k = int(rng.choice(len(obj_info), p=w))
+            obj, radius, stand = obj_info[k]
+            s_node = int(graph.snap(start[None])[0][0])
+            dist = dijkstra(graph.length_matrix, directed=False, indices=s_node)[stand]
+            plan = _pick_goal(start, nodes[stand], dist, bucket, config, goals, rng, stats)
+            if plan is None:
+                continue
+            goal, geo, bname = plan
+            heading = float(rng.uniform(-math.pi, math.pi))
+            rec = {"object_id": int(obj.object_id), "category": obj.category,
+                   "position": [float(v) for v in obj.position], "small": bool(obj.small), "radius": radius,
+                   "room_type": obj.room_type}
+            plan = EpisodePlan(start.copy(), heading, goal.copy(), rec, radius, bname, float(geo))
+            break
+        if plan is None:
+            stats["episode_given_up"] += 1
+            continue
+        starts.append(plan.start)
+        goals.append(plan.goal)
+        plans.append(plan)
+    stats["planned"] = len(plans)
+    return plans, dict(stats)
+
+
+def _pick_goal(start, stand_pts, dist, bucket: Bucket, config: SamplingConfig, goals, rng, stats):
+    """Choose a standing point whose geodesic distance falls in the bucket (FPS over earlier goals)."""
+    finite = np.isfinite(dist)
+    tries = [bucket]
+    if config.bucket_fallback:
+        tries += [b for b in config.buckets if b is not bucket]
+    for b in tries:
+        sel = finite & (dist >= b.min_length) & (dist < b.max_length)
+        if sel.any():
+            i = np.nonzero(sel)[0]
+            j = i[farthest_point(stand_pts[i], np.array(goals).reshape(-1, 3))]
+            return stand_pts[j], float(dist[j]), b.name
+        stats[f"bucket_{b.name}_infeasible"] += 1
+    if config.bucket_fallback:
+        sel = finite & (dist >= config.min_path_length)
+        if sel.any():
+            i = np.nonzero(sel)[0]
+            j = i[int(np.argmax(dist[i]))]  # longest feasible path in a small scene
+            return stand_pts[j], float(dist[j]), "fallback"
+    return None
