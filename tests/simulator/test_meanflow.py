@@ -296,3 +296,17 @@ def test_model_tangent_option_runs_and_differs_from_target_tangent():
         losses[tangent] = out["flow_raw"].item()
         assert np.isfinite(losses[tangent])
     assert losses["target"] != losses["model"]
+
+
+def test_flow_loss_alone_trains_every_parameter_through_the_jvp_primal():
+    """u from torch.func.jvp keeps its autograd graph: the aligner (whose tokens enter the JVP as
+    captured tensors) and every decoder parameter receive gradient from the flow term alone."""
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg())
+    for p in model.parameters():  # off the zero inits, which block some paths at initialisation
+        p.data.add_(0.05 * torch.randn_like(p))
+    cond, rgb, depth, noise = make_batch()
+    out = model.losses(cond, rgb, depth, noise, torch.tensor([0.2, 0.1]), torch.tensor([0.7, 0.5]))
+    out["flow"].backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert missing == []
