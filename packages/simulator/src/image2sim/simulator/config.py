@@ -1,0 +1,172 @@
+"""Typed configs for every component: dataclasses with a docstring per field, loaded from YAML.
+
+One mechanism for the whole repository (nerfstudio style): a component defines frozen dataclasses
+and named presets (``tiny``, ``paper``, ...); :func:`merge_config` overlays plain data (YAML/JSON/CLI)
+on a preset, rejecting unknown keys and wrong types with the dotted path of the offending field;
+:func:`save_config` writes the resolved config beside a run's outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import types
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+__all__ = ["ConfigError", "merge_config", "config_from_dict", "config_to_dict", "load_config", "save_config"]
+
+
+class ConfigError(ValueError):
+    """A config has an unknown key, a wrong type or an impossible value; the message names the field."""
+
+
+def _strip_optional(annotation: Any) -> tuple[Any, bool]:
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        optional = len(args) < len(typing.get_args(annotation))
+        if len(args) == 1:
+            return args[0], optional
+    return annotation, False
+
+
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    annotation, optional = _strip_optional(annotation)
+    if value is None:
+        if optional or annotation is Any:
+            return None
+        raise ConfigError(f"{where}: may not be null")
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        if value not in typing.get_args(annotation):
+            raise ConfigError(f"{where}: {value!r} is not one of {list(typing.get_args(annotation))}")
+        return value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {type(value).__name__} ({value!r})")
+        args = typing.get_args(annotation)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(args) != len(value):
+                raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+            items = [_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value))]
+        else:
+            item_type = args[0] if args else Any
+            items = [_coerce(v, item_type, f"{where}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if dataclasses.is_dataclass(annotation) and isinstance(annotation, type):
+        return merge_config(annotation(), value, where)
+    if annotation is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if annotation in (int, float) and isinstance(value, bool):
+        raise ConfigError(f"{where}: expected {annotation.__name__}, got a boolean")
+    if annotation in (int, float, bool, str) and not isinstance(value, annotation):
+        raise ConfigError(f"{where}: expected {annotation.__name__}, got {type(value).__name__} ({value!r})")
+    return value
+
+
+def merge_config(base: T, data: Mapping[str, Any] | None, where: str = "") -> T:
+    """Return a copy of dataclass instance ``base`` with ``data`` applied (recursively).
+
+    Unknown keys and wrong types raise :class:`ConfigError` naming the dotted field path; errors
+    raised by the dataclass's own ``__post_init__`` validation are re-raised with the path.
+    """
+    if data is None:
+        return base
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where or type(base).__name__}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(type(base))
+    names = [f.name for f in dataclasses.fields(base)]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise ConfigError(f"unknown config key(s) {[prefix + k for k in unknown]}; known: {sorted(names)}")
+    updates = {}
+    for key, value in data.items():
+        sub = f"{where}.{key}" if where else key
+        current = getattr(base, key)
+        if dataclasses.is_dataclass(current) and isinstance(value, Mapping):
+            updates[key] = merge_config(current, value, sub)
+        else:
+            updates[key] = _coerce(value, hints[key], sub)
+    try:
+        return dataclasses.replace(base, **updates)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{where or type(base).__name__}: {err}") from err
+
+
+def config_from_dict(cls: type[T], data: Mapping[str, Any] | None, where: str = "") -> T:
+    """Build dataclass ``cls`` from its defaults overlaid with ``data``."""
+    return merge_config(cls(), data, where)
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """Plain-data (YAML/JSON-safe) view of a config dataclass; tuples become lists."""
+
+    def plain(value: Any) -> Any:
+        if dataclasses.is_dataclass(value):
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, Path):
+            return str(value)
+        return value
+
+    return plain(config)
+
+
+def load_config(
+    presets: Mapping[str, Callable[[], T]],
+    name_or_path: str | os.PathLike,
+    overrides: Mapping[str, Any] | None = None,
+) -> T:
+    """A preset name, or a YAML file of overrides (optionally naming its ``base`` preset), plus
+    ``overrides``. The first preset in ``presets`` is the default base of a YAML file."""
+    key = str(name_or_path)
+    if key in presets:
+        config = presets[key]()
+    else:
+        path = Path(key)
+        if not path.is_file():
+            raise ConfigError(f"config {key!r} is neither a preset {sorted(presets)} nor an existing file")
+        import yaml
+
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            raise ConfigError(f"{path}: not valid YAML ({err})") from err
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+        base = data.pop("base", next(iter(presets)))
+        if base not in presets:
+            raise ConfigError(f"{path}: base {base!r} is not a preset {sorted(presets)}")
+        try:
+            config = merge_config(presets[base](), data)
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from err
+    return merge_config(config, overrides)
+
+
+def save_config(config: Any, path: str | os.PathLike) -> Path:
+    """Write the resolved config as YAML atomically (temp file + rename); returns the path."""
+    import yaml
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            yaml.safe_dump(config_to_dict(config), handle, sort_keys=False)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
