@@ -9,7 +9,6 @@ import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
-
 from image2sim.navpolicy.agent import Image2NavAgent, select_context_frames
 from image2sim.navpolicy.data import synthetic_trajectories
 from image2sim.simulator.conventions import Action
@@ -50,9 +49,9 @@ def test_streaming_equals_recomputation_over_60_steps(tiny_policy, tiny_cfg):
     slow, a2 = _run_episode(tiny_policy, tiny_cfg, frames, reuse=False)
     assert fast == slow
     assert all(len(a) == 2 and all(isinstance(x, Action) for x in a) for a in fast)
-    for h1, h2 in zip(a1.history, a2.history):
+    for h1, h2 in zip(a1.history, a2.history, strict=True):
         assert h1.generated_ids == h2.generated_ids and h1.context_tokens == h2.context_tokens
-        for l1, l2 in zip(h1.step_logits, h2.step_logits):
+        for l1, l2 in zip(h1.step_logits, h2.step_logits, strict=True):
             torch.testing.assert_close(l1, l2, rtol=1e-4, atol=1e-4)
     # The cache was really reused: everything while the context only grows, the prefix afterwards.
     reused = [h.reused_tokens for h in a1.history]

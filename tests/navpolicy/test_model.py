@@ -7,7 +7,6 @@ import copy
 import numpy as np
 import pytest
 import torch
-
 from image2sim.navpolicy.config import ConfigError, load_config, paper_config
 from image2sim.navpolicy.data import NavCollator, make_sample, synthetic_trajectories
 from image2sim.navpolicy.model import (
@@ -24,8 +23,10 @@ from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 def batch(tiny_policy, tiny_cfg):
     trajs = synthetic_trajectories(2, min_len=8, max_len=30, seed=5)
     samples = [make_sample(t, 6, 12, np.random.default_rng(i)) for i, t in enumerate(trajs)]
-    col = NavCollator(PromptBuilder(tiny_policy.tokenizer, tiny_policy.codec, tiny_cfg.system_prompt),
-                      tiny_policy.image_processor)
+    col = NavCollator(
+        PromptBuilder(tiny_policy.tokenizer, tiny_policy.codec, tiny_cfg.system_prompt),
+        tiny_policy.image_processor,
+    )
     return col(samples)
 
 
@@ -49,7 +50,9 @@ def test_forward_backward_interleaved_images(tiny_policy, batch):
     out.loss.backward()
     g = _grads(model)
     vis = {n: v for n, v in g.items() if n.startswith("model.visual.")}
-    tower = {n: v for n, v in vis.items() if not n.startswith(("model.visual.merger.", "model.visual.deepstack"))}
+    tower = {
+        n: v for n, v in vis.items() if not n.startswith(("model.visual.merger.", "model.visual.deepstack"))
+    }
     assert tower and all(v is None for v in tower.values()), "the vision tower must get no gradient"
     merger = [v for n, v in vis.items() if n.startswith("model.visual.merger.")]
     assert merger and all(v is not None and v.abs().sum() > 0 for v in merger)
@@ -93,8 +96,9 @@ def test_lora_trains_only_adapters_and_merges_back(tiny_cfg, batch):
     cfg.model.lora.dropout = 0.0
     pol = build_policy(cfg, seed=0)
     trainable = {n for n, p in pol.model.named_parameters() if p.requires_grad}
-    assert trainable and all(("lora_" in n) or (".visual.merger." in n) or (".visual.deepstack" in n)
-                             for n in trainable)
+    assert trainable and all(
+        ("lora_" in n) or (".visual.merger." in n) or (".visual.deepstack" in n) for n in trainable
+    )
     assert any("language_model" in n and "lora_" in n for n in trainable)
     assert not any(".visual." in n and "lora_" in n for n in trainable)
     frozen_before = {n: p.detach().clone() for n, p in pol.model.named_parameters() if not p.requires_grad}

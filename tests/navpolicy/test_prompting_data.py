@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-
 from image2sim.navpolicy.data import (
     InMemoryNavDataset,
     NavCollator,
@@ -58,7 +57,8 @@ def test_prompt_text_layout(builder, tiny_policy):
         "Instruction: go to the sofa<|im_end|>\n"
         f"<|im_start|>user\n<|vision_start|>{pad}<|vision_end|><|im_end|>\n"
         "<|im_start|>assistant\nFORWARD FORWARD<|im_end|>\n"
-        f"<|im_start|>user\nExecuted: FORWARD FORWARD LEFT RIGHT\n<|vision_start|>{pad}<|vision_end|><|im_end|>\n"
+        "<|im_start|>user\nExecuted: FORWARD FORWARD LEFT RIGHT\n"
+        f"<|vision_start|>{pad}<|vision_end|><|im_end|>\n"
         "<|im_start|>assistant\nLEFT STOP<|im_end|>\n"
     )
     assert text.startswith("<|im_start|>system\nYou are a navigation agent")
@@ -126,7 +126,12 @@ def test_collator_masks_everything_but_action_tokens(tiny_policy, builder):
     trajs = synthetic_trajectories(3, min_len=5, max_len=70, seed=1)
     samples = [make_sample(t, 32, 64, np.random.default_rng(i)) for i, t in enumerate(trajs)]
     batch = NavCollator(builder, tiny_policy.image_processor)(samples)
-    ids, labels, mm, attn = batch["input_ids"], batch["labels"], batch["mm_token_type_ids"], batch["attention_mask"]
+    ids, labels, mm, attn = (
+        batch["input_ids"],
+        batch["labels"],
+        batch["mm_token_type_ids"],
+        batch["attention_mask"],
+    )
     n_images = sum(len(s.steps) for s in samples)
     assert batch["image_grid_thw"].shape == (n_images, 3)
     assert batch["pixel_values"].shape[0] == int(batch["image_grid_thw"].prod(-1).sum())
@@ -155,7 +160,7 @@ def test_shard_roundtrip_and_dataset(tmp_path):
     manifest = json.loads((root / "manifest.json").read_text())
     assert manifest["format"] == "image2sim-navshard" and manifest["num_trajectories"] == 4
     reader = ShardReader(root)
-    for a, b in zip(trajs, (reader[i] for i in range(len(reader)))):
+    for a, b in zip(trajs, (reader[i] for i in range(len(reader))), strict=True):
         assert a.actions == b.actions and a.frame_steps == b.frame_steps and a.instruction == b.instruction
         assert np.array_equal(a.frames, b.frames)
     ds = NavShardDataset([root, root], max_observations=4, max_action_labels=8, seed=3)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from image2sim.navpolicy.actions import (
     ACTION_TEXT,
     ActionCodec,

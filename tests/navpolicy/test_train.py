@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, make_sample, synthetic_trajectories
 from image2sim.navpolicy.prompting import PromptBuilder
 from image2sim.navpolicy.train import (
@@ -58,7 +57,9 @@ def test_schedule_and_sampler_units():
 
 
 def _heldout_loss(policy, cfg, trajs) -> float:
-    col = NavCollator(PromptBuilder(policy.tokenizer, policy.codec, cfg.system_prompt), policy.image_processor)
+    col = NavCollator(
+        PromptBuilder(policy.tokenizer, policy.codec, cfg.system_prompt), policy.image_processor
+    )
     batch = col([make_sample(t, 4, 8, None) for t in trajs])
     policy.model.eval()
     with torch.no_grad():
@@ -72,7 +73,9 @@ def test_bc_reduces_the_loss(tiny_cfg, trajs, tmp_path):
     policy = build_policy(cfg, seed=0)
     held = synthetic_trajectories(4, min_len=6, max_len=24, seed=99)
     before = _heldout_loss(policy, cfg, held)
-    res = train_bc(cfg, tmp_path / "run", dataset=InMemoryNavDataset(trajs, 4, 8), policy=policy, export=False)
+    res = train_bc(
+        cfg, tmp_path / "run", dataset=InMemoryNavDataset(trajs, 4, 8), policy=policy, export=False
+    )
     after = _heldout_loss(policy, cfg, held)
     assert res.global_step == 25
     assert after < 0.6 * before, (before, after)
@@ -84,9 +87,13 @@ def test_bc_reduces_the_loss(tiny_cfg, trajs, tmp_path):
 def test_resume_continues_with_the_same_step_and_data(tiny_cfg, trajs, tmp_path):
     cfg = _cfg(tiny_cfg, 6)
     full = train_bc(cfg, tmp_path / "full", dataset=InMemoryNavDataset(trajs, 4, 8), export=False)
-    first = train_bc(cfg, tmp_path / "split", dataset=InMemoryNavDataset(trajs, 4, 8), export=False, max_steps=3)
+    first = train_bc(
+        cfg, tmp_path / "split", dataset=InMemoryNavDataset(trajs, 4, 8), export=False, max_steps=3
+    )
     assert first.global_step == 3 and first.last_checkpoint is not None
-    second = train_bc(cfg, tmp_path / "split", dataset=InMemoryNavDataset(trajs, 4, 8), export=True, resume="last")
+    second = train_bc(
+        cfg, tmp_path / "split", dataset=InMemoryNavDataset(trajs, 4, 8), export=True, resume="last"
+    )
     assert second.global_step == 6
     assert first.module.seen + second.module.seen == full.module.seen
     np.testing.assert_allclose(first.module.losses + second.module.losses, full.module.losses, rtol=1e-4)

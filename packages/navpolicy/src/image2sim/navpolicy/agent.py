@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-
 from image2sim.navpolicy.actions import ACTIONS_PER_STEP, parse_actions
 from image2sim.navpolicy.config import AgentConfig
 from image2sim.navpolicy.data import image_token_counts
@@ -97,7 +96,9 @@ class Image2NavAgent:
         idx = select_context_frames(n, self.cfg.sparse_frames, self.cfg.dense_frames)
         turns, prev = [], None
         for k in idx:
-            executed = () if prev is None else tuple(a for j in range(prev + 1, k + 1) for a in self.executed[j])
+            executed = (
+                () if prev is None else tuple(a for j in range(prev + 1, k + 1) for a in self.executed[j])
+            )
             n_tok = image_token_counts(self._image(k)[1], self.policy.image_processor.merge_size)[0]
             target = self.replies[k] if k < n - 1 else None
             turns.append(Turn(frame_key=k, num_image_tokens=n_tok, executed=executed, target=target))
@@ -111,7 +112,9 @@ class Image2NavAgent:
         text = torch.arange(len(ids)).view(1, 1, -1)
         if grids is None:
             return text.expand(4, 1, -1)
-        rope, _ = self.qwen.model.get_rope_index(t_ids, mm_token_type_ids=torch.tensor([mm]), image_grid_thw=grids)
+        rope, _ = self.qwen.model.get_rope_index(
+            t_ids, mm_token_type_ids=torch.tensor([mm]), image_grid_thw=grids
+        )
         return torch.cat([text, rope], dim=0)
 
     def _run(self, ids, mm, keys, frame_idx: list[int], start: int):
@@ -211,6 +214,14 @@ class Image2NavAgent:
                 fallback = True
                 actions = actions + [Action(self.cfg.fallback_action)] * (ACTIONS_PER_STEP - len(actions))
         self.replies.append(tuple(int(a) for a in actions))
-        self.history.append(StepInfo(actions=list(actions), generated_ids=generated, context_tokens=len(enc),
-                                     reused_tokens=start, fallback=fallback, step_logits=step_logits))
+        self.history.append(
+            StepInfo(
+                actions=list(actions),
+                generated_ids=generated,
+                context_tokens=len(enc),
+                reused_tokens=start,
+                fallback=fallback,
+                step_logits=step_logits,
+            )
+        )
         return list(actions)

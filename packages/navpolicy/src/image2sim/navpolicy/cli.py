@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -21,45 +22,58 @@ def _config(config: str, overrides: dict | None = None):
 
 @app.command("tokenizer")
 def tokenizer_cmd(
-    config: str = typer.Option("tiny", help="Preset (tiny|paper) or YAML; its model.source picks the tokenizer."),
+    config: Annotated[
+        str, typer.Option(help="Preset (tiny|paper) or YAML; its model.source picks the tokenizer.")
+    ] = "tiny",
 ) -> None:
     """Show the special-token ids and how each action tokenizes (single token or not)."""
     from image2sim.navpolicy.actions import ActionCodec
     from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
 
     cfg = _config(config)
-    tok = build_tiny_tokenizer(cfg.model.tiny.tokenizer_vocab_size) if cfg.model.source == "tiny" \
+    tok = (
+        build_tiny_tokenizer(cfg.model.tiny.tokenizer_vocab_size)
+        if cfg.model.source == "tiny"
         else load_tokenizer(cfg.model.source)
+    )
     codec = ActionCodec.from_tokenizer(tok)
-    typer.echo(json.dumps({
-        "vocab_size": len(tok),
-        "special_tokens": check_special_tokens(tok),
-        "actions_first": {a.name: list(v) for a, v in codec.first.items()},
-        "actions_following": {a.name: list(v) for a, v in codec.following.items()},
-        "single_token": codec.single_token,
-    }, indent=2))
+    typer.echo(
+        json.dumps(
+            {
+                "vocab_size": len(tok),
+                "special_tokens": check_special_tokens(tok),
+                "actions_first": {a.name: list(v) for a, v in codec.first.items()},
+                "actions_following": {a.name: list(v) for a, v in codec.following.items()},
+                "single_token": codec.single_token,
+            },
+            indent=2,
+        )
+    )
 
 
 @app.command("synth-shard")
 def synth_shard(
-    out: Path = typer.Argument(..., help="Shard folder to create."),
-    n: int = typer.Option(32, help="Number of trajectories."),
-    size: int = typer.Option(64, help="Square frame size in pixels."),
-    seed: int = typer.Option(0, help="Random seed."),
+    out: Annotated[Path, typer.Argument(help="Shard folder to create.")],
+    n: Annotated[int, typer.Option(help="Number of trajectories.")] = 32,
+    size: Annotated[int, typer.Option(help="Square frame size in pixels.")] = 64,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
 ) -> None:
     """Write a toy shard (colour-coded frames) to smoke-test training without the data engine."""
     from image2sim.navpolicy.data import synthetic_trajectories, write_shard
 
-    write_shard(out, synthetic_trajectories(n, height=size, width=size, seed=seed),
-                observation={"camera": "synthetic", "height": size, "width": size})
+    write_shard(
+        out,
+        synthetic_trajectories(n, height=size, width=size, seed=seed),
+        observation={"camera": "synthetic", "height": size, "width": size},
+    )
     typer.echo(f"wrote {n} trajectories to {out}")
 
 
 @app.command("inspect")
 def inspect_cmd(
-    shard: Path = typer.Argument(..., help="Shard folder."),
-    index: int = typer.Option(0, help="Trajectory index."),
-    config: str = typer.Option("tiny", help="Preset or YAML."),
+    shard: Annotated[Path, typer.Argument(help="Shard folder.")],
+    index: Annotated[int, typer.Option(help="Trajectory index.")] = 0,
+    config: Annotated[str, typer.Option(help="Preset or YAML.")] = "tiny",
 ) -> None:
     """Print the training prompt of one sample, marking the labelled (action) tokens with [[...]]."""
     from image2sim.navpolicy.data import NavCollator, ShardReader, make_sample
@@ -69,9 +83,11 @@ def inspect_cmd(
     cfg = _config(config)
     pol = build_policy(cfg, seed=0)
     sample = make_sample(ShardReader(shard)[index], cfg.data.max_observations, cfg.data.max_action_labels)
-    batch = NavCollator(PromptBuilder(pol.tokenizer, pol.codec, cfg.system_prompt), pol.image_processor)([sample])
+    batch = NavCollator(PromptBuilder(pol.tokenizer, pol.codec, cfg.system_prompt), pol.image_processor)(
+        [sample]
+    )
     pieces = []
-    for t, lab in zip(batch["input_ids"][0].tolist(), batch["labels"][0].tolist()):
+    for t, lab in zip(batch["input_ids"][0].tolist(), batch["labels"][0].tolist(), strict=True):
         s = pol.tokenizer.decode([t])
         pieces.append(f"[[{s}]]" if lab != IGNORE_INDEX else s)
     text = "".join(pieces)
@@ -79,24 +95,35 @@ def inspect_cmd(
     while pad * 2 in text:
         text = text.replace(pad * 2, pad)
     typer.echo(text.replace(pad, "<image>"))
-    typer.echo(f"tokens={batch['input_ids'].shape[1]} labels={int((batch['labels'] != IGNORE_INDEX).sum())} "
-               f"images={batch['image_grid_thw'].shape[0]}")
+    typer.echo(
+        f"tokens={batch['input_ids'].shape[1]} labels={int((batch['labels'] != IGNORE_INDEX).sum())} "
+        f"images={batch['image_grid_thw'].shape[0]}"
+    )
 
 
 @app.command("train")
 def train_cmd(
-    stage: str = typer.Option("bc", help="bc (behaviour cloning) or dagger."),
-    config: str = typer.Option("tiny", help="Preset (tiny|paper) or YAML file."),
-    shards: list[Path] = typer.Option([], "--shard", help="Shard folder(s); overrides data.shards."),
-    out: Path = typer.Option(Path("outputs/nav-bc"), help="Run folder."),
-    resume: str = typer.Option("", help="Checkpoint to resume from ('last' = the run folder's last)."),
-    max_steps: int = typer.Option(0, help="Override train.max_steps (0 = keep)."),
-    threads: int = typer.Option(0, help="torch threads (0 = torch default; tiny models prefer 1)."),
+    stage: Annotated[str, typer.Option(help="bc (behaviour cloning) or dagger.")] = "bc",
+    config: Annotated[str, typer.Option(help="Preset (tiny|paper) or YAML file.")] = "tiny",
+    shards: Annotated[
+        list[Path] | None, typer.Option("--shard", help="Shard folder(s); overrides data.shards.")
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Run folder.")] = Path("outputs/nav-bc"),
+    resume: Annotated[
+        str, typer.Option(help="Checkpoint to resume from ('last' = the run folder's last).")
+    ] = "",
+    max_steps: Annotated[int, typer.Option(help="Override train.max_steps (0 = keep).")] = 0,
+    threads: Annotated[
+        int, typer.Option(help="torch threads (0 = torch default; tiny models prefer 1).")
+    ] = 0,
 ) -> None:
     """Train the policy. Writes config.json, CSV/W&B logs, checkpoints and a merged export."""
     if stage == "dagger":
-        raise typer.BadParameter("online DAgger needs the NeuralSimulator rollout loop, which this build "
-                                 "does not include yet; run --stage bc", param_hint="--stage")
+        raise typer.BadParameter(
+            "online DAgger needs the NeuralSimulator rollout loop, which this build "
+            "does not include yet; run --stage bc",
+            param_hint="--stage",
+        )
     if stage != "bc":
         raise typer.BadParameter(f"unknown stage {stage!r}; use bc or dagger", param_hint="--stage")
     overrides: dict = {}
@@ -114,23 +141,33 @@ def train_cmd(
     from image2sim.navpolicy.train import train_bc
 
     res = train_bc(cfg, out, resume=resume or None)
-    typer.echo(json.dumps({"out_dir": str(res.out_dir), "global_step": res.global_step,
-                           "last_checkpoint": str(res.last_checkpoint), "export": str(res.export_dir),
-                           "final_loss": res.module.losses[-1] if res.module.losses else None}, indent=2))
+    typer.echo(
+        json.dumps(
+            {
+                "out_dir": str(res.out_dir),
+                "global_step": res.global_step,
+                "last_checkpoint": str(res.last_checkpoint),
+                "export": str(res.export_dir),
+                "final_loss": res.module.losses[-1] if res.module.losses else None,
+            },
+            indent=2,
+        )
+    )
 
 
 @app.command("replay")
 def replay_cmd(
-    shard: Path = typer.Argument(..., help="Shard folder with recorded trajectories."),
-    model: str = typer.Option("tiny", help="Exported policy folder, or 'tiny' for an untrained model."),
-    config: str = typer.Option("tiny", help="Preset or YAML (agent and observation settings)."),
-    episodes: int = typer.Option(4, help="How many trajectories to replay."),
-    out: Path = typer.Option(Path("outputs/nav-replay.json"), help="JSON report."),
+    shard: Annotated[Path, typer.Argument(help="Shard folder with recorded trajectories.")],
+    model: Annotated[
+        str, typer.Option(help="Exported policy folder, or 'tiny' for an untrained model.")
+    ] = "tiny",
+    config: Annotated[str, typer.Option(help="Preset or YAML (agent and observation settings).")] = "tiny",
+    episodes: Annotated[int, typer.Option(help="How many trajectories to replay.")] = 4,
+    out: Annotated[Path, typer.Option(help="JSON report.")] = Path("outputs/nav-replay.json"),
 ) -> None:
     """Open-loop check: stream each recorded episode's frames through the agent (expert actions are
     what gets executed) and compare its two predicted actions with the expert's next two."""
     import numpy as np
-
     from image2sim.navpolicy.agent import Image2NavAgent
     from image2sim.navpolicy.data import ShardReader, next_actions
     from image2sim.navpolicy.model import build_policy
@@ -144,15 +181,21 @@ def replay_cmd(
         traj = reader[e]
         agent.reset(traj.instruction)
         hits, prev = [], None
-        for frame, step in zip(traj.frames, traj.frame_steps):
+        for frame, step in zip(traj.frames, traj.frame_steps, strict=True):
             executed = None if prev is None else list(traj.actions[prev:step])
             pred = [int(a) for a in agent.act(frame, executed=executed)]
-            hits.append([p == t for p, t in zip(pred, next_actions(traj.actions, step))])
+            hits.append([p == t for p, t in zip(pred, next_actions(traj.actions, step), strict=True)])
             prev = step
         h = np.asarray(hits, dtype=float)
-        report.append({"episode_id": traj.episode_id, "steps": len(hits), "first_action_acc": float(h[:, 0].mean()),
-                       "pair_acc": float(h.all(1).mean()),
-                       "fallbacks": sum(s.fallback for s in agent.history)})
+        report.append(
+            {
+                "episode_id": traj.episode_id,
+                "steps": len(hits),
+                "first_action_acc": float(h[:, 0].mean()),
+                "pair_acc": float(h.all(1).mean()),
+                "fallbacks": sum(s.fallback for s in agent.history),
+            }
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(out.suffix + ".tmp")
     tmp.write_text(json.dumps(report, indent=2))

@@ -223,7 +223,9 @@ class NavPolicyConfig:
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         if self.observation.camera not in ("pinhole", "equirect"):
-            raise ConfigError(f"observation.camera must be pinhole or equirect, not {self.observation.camera!r}")
+            raise ConfigError(
+                f"observation.camera must be pinhole or equirect, not {self.observation.camera!r}"
+            )
         if self.agent.sparse_frames < 0 or self.agent.dense_frames < 1:
             raise ConfigError("agent.dense_frames must be >= 1 and agent.sparse_frames >= 0")
         if self.train.strategy not in ("auto", "ddp", "deepspeed_zero2"):
@@ -251,7 +253,9 @@ def from_dict(cls, data: dict[str, Any], where: str = ""):
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ConfigError(f"{where or cls.__name__}: unknown key(s) {unknown}; valid keys are {sorted(names)}")
+        raise ConfigError(
+            f"{where or cls.__name__}: unknown key(s) {unknown}; valid keys are {sorted(names)}"
+        )
     kwargs = {}
     for key, value in data.items():
         tp = _strip_optional(hints[key])
@@ -291,8 +295,17 @@ def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPol
         observation=ObservationConfig(camera="pinhole", height=336, width=336, hfov_deg=90.0, vfov_deg=90.0),
         data=DataConfig(max_observations=32, max_action_labels=64, num_workers=8),
         train=TrainConfig(
-            batch_size=1, max_steps=70_000, lr=2e-5, weight_decay=0.0, warmup_steps=500, precision="bf16-mixed",
-            strategy="deepspeed_zero2", accelerator="gpu", devices=8, log_every=10, checkpoint_every=1000,
+            batch_size=1,
+            max_steps=70_000,
+            lr=2e-5,
+            weight_decay=0.0,
+            warmup_steps=500,
+            precision="bf16-mixed",
+            strategy="deepspeed_zero2",
+            accelerator="gpu",
+            devices=8,
+            log_every=10,
+            checkpoint_every=1000,
             wandb=True,
         ),
     ).validate()

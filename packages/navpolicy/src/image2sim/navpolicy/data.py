@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from image2sim.navpolicy.actions import ACTIONS_PER_STEP
 from image2sim.navpolicy.model import MERGE_SIZE
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder, Turn
@@ -78,8 +77,11 @@ class Trajectory:
         steps = list(self.frame_steps)
         if len(steps) != f.shape[0] or not steps:
             raise ShardError(f"{where}: {f.shape[0]} frames but {len(steps)} frame_steps")
-        if any(b <= a for a, b in zip(steps, steps[1:])) or steps[0] < 0 or steps[-1] >= len(self.actions):
-            raise ShardError(f"{where}: frame_steps must increase strictly inside [0, {len(self.actions) - 1}]")
+        increasing = all(b > a for a, b in zip(steps, steps[1:], strict=False))
+        if not increasing or steps[0] < 0 or steps[-1] >= len(self.actions):
+            raise ShardError(
+                f"{where}: frame_steps must increase strictly inside [0, {len(self.actions) - 1}]"
+            )
         return self
 
 
@@ -230,7 +232,9 @@ class ShardWriter:
             self.close()
 
 
-def write_shard(root: str | Path, trajectories: Sequence[Trajectory], observation: dict | None = None) -> Path:
+def write_shard(
+    root: str | Path, trajectories: Sequence[Trajectory], observation: dict | None = None
+) -> Path:
     """Write ``trajectories`` as one shard at ``root``."""
     with ShardWriter(root, observation) as w:
         for t in trajectories:
@@ -248,8 +252,10 @@ class ShardReader:
             raise ShardError(f"{mpath}: missing (not a {SHARD_FORMAT} folder)")
         self.manifest = json.loads(mpath.read_text())
         if self.manifest.get("format") != SHARD_FORMAT or self.manifest.get("version") != SHARD_VERSION:
-            raise ShardError(f"{mpath}: format {self.manifest.get('format')!r} v{self.manifest.get('version')} "
-                             f"is not {SHARD_FORMAT} v{SHARD_VERSION}")
+            raise ShardError(
+                f"{mpath}: format {self.manifest.get('format')!r} v{self.manifest.get('version')} "
+                f"is not {SHARD_FORMAT} v{SHARD_VERSION}"
+            )
         ids = self.manifest.get("action_ids", {})
         if ids and ids != {a.name: int(a) for a in Action}:
             raise ShardError(f"{mpath}: action_ids {ids} disagree with the conventions")
@@ -259,8 +265,10 @@ class ShardReader:
         except (OSError, json.JSONDecodeError) as exc:
             raise ShardError(f"{jpath}: {exc}") from exc
         if len(self.records) != self.manifest.get("num_trajectories"):
-            raise ShardError(f"{jpath}: {len(self.records)} records but the manifest says "
-                             f"{self.manifest.get('num_trajectories')}")
+            raise ShardError(
+                f"{jpath}: {len(self.records)} records but the manifest says "
+                f"{self.manifest.get('num_trajectories')}"
+            )
 
     def __len__(self) -> int:
         return len(self.records)
@@ -320,8 +328,14 @@ class NavShardDataset(torch.utils.data.Dataset):
 class InMemoryNavDataset(torch.utils.data.Dataset):
     """Samples over trajectories held in memory (tests, DAgger's online buffer)."""
 
-    def __init__(self, trajectories: Sequence[Trajectory], max_observations: int = 32,
-                 max_action_labels: int = 64, jitter: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self,
+        trajectories: Sequence[Trajectory],
+        max_observations: int = 32,
+        max_action_labels: int = 64,
+        jitter: bool = True,
+        seed: int = 0,
+    ) -> None:
         self.trajectories = list(trajectories)
         self.max_observations, self.max_action_labels = max_observations, max_action_labels
         self.jitter, self.seed, self.epoch = jitter, seed, 0
@@ -373,8 +387,14 @@ class NavCollator:
         for s in samples:
             turns = []
             for j in range(len(s.observations)):
-                turns.append(Turn(frame_key=s.steps[j], num_image_tokens=counts[k],
-                                  executed=tuple(s.executed[j]), target=tuple(s.targets[j])))
+                turns.append(
+                    Turn(
+                        frame_key=s.steps[j],
+                        num_image_tokens=counts[k],
+                        executed=tuple(s.executed[j]),
+                        target=tuple(s.targets[j]),
+                    )
+                )
                 k += 1
             encs.append(self.prompts.encode(s.instruction, turns))
         length = max(len(e) for e in encs)
@@ -432,7 +452,14 @@ def synthetic_trajectories(
         base = _ACTION_COLOURS[np.array(acts)][:, None, None, :]
         noise = rng.normal(0.0, 12.0, size=(T, height, width, 3)).astype(np.float32)
         frames = np.clip(base * (0.65 + ramp[None]) + noise, 0, 255).astype(np.uint8)
-        out.append(Trajectory(instruction=f"synthetic episode {k}: follow the coloured cues and stop on white",
-                              actions=acts, frames=frames, frame_steps=list(range(T)),
-                              episode_id=f"synthetic-{seed}-{k:05d}", scene_id="synthetic"))
+        out.append(
+            Trajectory(
+                instruction=f"synthetic episode {k}: follow the coloured cues and stop on white",
+                actions=acts,
+                frames=frames,
+                frame_steps=list(range(T)),
+                episode_id=f"synthetic-{seed}-{k:05d}",
+                scene_id="synthetic",
+            )
+        )
     return out

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-
 from image2sim.navpolicy.actions import ActionCodec
 from image2sim.navpolicy.config import ModelConfig, NavPolicyConfig, ObservationConfig
 from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
@@ -121,8 +120,20 @@ def load_image_processor(path: str | Path):
     if not p.is_file():
         raise FileNotFoundError(f"{p} not found: a local Qwen3-VL checkpoint needs its preprocessor config")
     raw = json.loads(p.read_text())
-    keep = {"patch_size", "merge_size", "temporal_patch_size", "size", "image_mean", "image_std",
-            "min_pixels", "max_pixels", "do_rescale", "rescale_factor", "do_normalize", "do_convert_rgb"}
+    keep = {
+        "patch_size",
+        "merge_size",
+        "temporal_patch_size",
+        "size",
+        "image_mean",
+        "image_std",
+        "min_pixels",
+        "max_pixels",
+        "do_rescale",
+        "rescale_factor",
+        "do_normalize",
+        "do_convert_rgb",
+    }
     return Qwen2VLImageProcessorPil(**{k: v for k, v in raw.items() if k in keep})
 
 
@@ -188,11 +199,14 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None) -> NavPolicy:
         path = Path(mc.source)
         if not path.is_dir():
             raise FileNotFoundError(
-                f"model.source {mc.source!r} is not 'tiny' nor a local checkpoint folder (hub ids are refused)"
+                f"model.source {mc.source!r} is neither 'tiny' nor a local folder (hub ids are refused)"
             )
         tokenizer = load_tokenizer(path)
         model = Qwen3VLForConditionalGeneration.from_pretrained(
-            str(path), local_files_only=True, dtype=_torch_dtype(mc.dtype), attn_implementation=mc.attn_implementation
+            str(path),
+            local_files_only=True,
+            dtype=_torch_dtype(mc.dtype),
+            attn_implementation=mc.attn_implementation,
         )
         image_processor = make_image_processor(cfg.observation, int(model.config.vision_config.patch_size))
         pre = load_image_processor(path)
@@ -222,7 +236,9 @@ def trainable_summary(model: torch.nn.Module) -> dict[str, int]:
     trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
     vis = base_qwen(model).model.visual
     vis_trainable = sum(
-        p.numel() for n, p in vis.named_parameters() if p.requires_grad and not n.startswith(_PROJECTOR_PREFIXES)
+        p.numel()
+        for n, p in vis.named_parameters()
+        if p.requires_grad and not n.startswith(_PROJECTOR_PREFIXES)
     )
     return {"total": total, "trainable": trainable, "vision_tower_trainable": vis_trainable}
 

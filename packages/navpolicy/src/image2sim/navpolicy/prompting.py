@@ -4,7 +4,8 @@ Layout (Qwen chat format; ``<img>`` = ``<|vision_start|>`` + n x ``<|image_pad|>
 
     <|im_start|>system\\n{system prompt}\\nInstruction: {instruction}<|im_end|>\\n
     <|im_start|>user\\n<img><|im_end|>\\n<|im_start|>assistant\\nFORWARD FORWARD<|im_end|>\\n
-    <|im_start|>user\\nExecuted: FORWARD FORWARD LEFT\\n<img><|im_end|>\\n<|im_start|>assistant\\nLEFT FORWARD<|im_end|>\\n
+    <|im_start|>user\\nExecuted: FORWARD FORWARD LEFT\\n<img><|im_end|>\\n
+    <|im_start|>assistant\\nLEFT FORWARD<|im_end|>\\n
     ...
     <|im_start|>user\\nExecuted: ...\\n<img><|im_end|>\\n<|im_start|>assistant\\n        <- generation prompt
 
@@ -98,7 +99,9 @@ class PromptBuilder:
         """The system turn's content."""
         return f"{self.system_prompt}\nInstruction: {instruction.strip()}"
 
-    def encode(self, instruction: str, turns: Sequence[Turn], add_generation_prompt: bool = False) -> EncodedPrompt:
+    def encode(
+        self, instruction: str, turns: Sequence[Turn], add_generation_prompt: bool = False
+    ) -> EncodedPrompt:
         """Encode a conversation. With ``add_generation_prompt`` the last turn must have no target and
         the prompt ends right after ``<|im_start|>assistant\\n``; otherwise every turn needs a target."""
         if not turns:
@@ -108,7 +111,9 @@ class PromptBuilder:
         for k, turn in enumerate(turns):
             last = k == len(turns) - 1
             if turn.target is None and not (last and add_generation_prompt):
-                raise ValueError(f"turn {k} has no target actions (only the last turn of a generation prompt may)")
+                raise ValueError(
+                    f"turn {k} has no target actions (only the last turn of a generation prompt may)"
+                )
             if turn.target is not None and last and add_generation_prompt:
                 raise ValueError("the last turn of a generation prompt must not have a target")
             if turn.num_image_tokens <= 0:

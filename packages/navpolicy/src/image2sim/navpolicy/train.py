@@ -22,7 +22,6 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-
 from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
 from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, NavShardDataset, make_sample
 from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
@@ -84,7 +83,9 @@ class StepSampler(torch.utils.data.Sampler):
         self.start, self.stop, self.rank, self.world_size = start, stop, rank, world_size
 
     def __iter__(self) -> Iterator[int]:
-        return iter(range(self.start * self.world_size + self.rank, self.stop * self.world_size, self.world_size))
+        return iter(
+            range(self.start * self.world_size + self.rank, self.stop * self.world_size, self.world_size)
+        )
 
     def __len__(self) -> int:
         return max(0, self.stop - self.start)
@@ -169,8 +170,9 @@ class NavBCModule(L.LightningModule):
         self.policy = policy
         self.cfg = cfg
         self.dataset = dataset
-        self.collator = NavCollator(PromptBuilder(policy.tokenizer, policy.codec, cfg.system_prompt),
-                                    policy.image_processor)
+        self.collator = NavCollator(
+            PromptBuilder(policy.tokenizer, policy.codec, cfg.system_prompt), policy.image_processor
+        )
         self.seen: list[list[str]] = []
         """Episode ids per training batch (lets tests check the data order across resumes)."""
         self.losses: list[float] = []
@@ -178,8 +180,13 @@ class NavBCModule(L.LightningModule):
     def train_dataloader(self):
         tc = self.cfg.train
         if self.dataset is None:
-            self.dataset = NavShardDataset(self.cfg.data.shards, self.cfg.data.max_observations,
-                                           self.cfg.data.max_action_labels, self.cfg.data.jitter, tc.seed)
+            self.dataset = NavShardDataset(
+                self.cfg.data.shards,
+                self.cfg.data.max_observations,
+                self.cfg.data.max_action_labels,
+                self.cfg.data.jitter,
+                tc.seed,
+            )
         per_step = tc.batch_size * tc.accumulate_grad_batches
         start = self.trainer.global_step * per_step
         stop = tc.max_steps * per_step
@@ -282,8 +289,14 @@ def train_bc(
 
         os.environ.setdefault("WANDB_MODE", "offline")
         loggers.append(WandbLogger(project=tc.wandb_project, save_dir=str(out), config=cfg.to_dict()))
-    ckpt = ModelCheckpoint(dirpath=str(out / "checkpoints"), every_n_train_steps=tc.checkpoint_every,
-                           save_last=True, save_top_k=-1, filename="step{step:06d}", auto_insert_metric_name=False)
+    ckpt = ModelCheckpoint(
+        dirpath=str(out / "checkpoints"),
+        every_n_train_steps=tc.checkpoint_every,
+        save_last=True,
+        save_top_k=-1,
+        filename="step{step:06d}",
+        auto_insert_metric_name=False,
+    )
     strategy = make_strategy(tc)
     trainer = L.Trainer(
         accelerator=tc.accelerator,
