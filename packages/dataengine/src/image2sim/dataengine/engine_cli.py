@@ -1,0 +1,117 @@
+"""``image2sim data mine | episodes | stats``: the navigation data engine commands."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from image2sim.dataengine.cli import app
+
+
+def _parse_options(items: list[str] | None) -> dict:
+    """``key=value`` pairs; values are JSON when they parse (numbers, booleans), else strings."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise typer.BadParameter(f"expected key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+@app.command("mine")
+def mine_command(
+    scene: Path = typer.Argument(..., help="Capture folder (or a folder of captures with --all)."),
+    out: Path = typer.Option(None, "--out", help="objects.json path (default: <scene>/objects.json is NOT "
+                             "touched; writes ./objects_<scene>.json)."),
+    detector: str = typer.Option("gt", "--detector", help="gt or yolo-world."),
+    weights: Path | None = typer.Option(None, "--weights", help="Local YOLO-World weights (yolo-world)."),
+    vocabulary: str | None = typer.Option(None, "--vocabulary", help="Comma separated classes (yolo-world)."),
+) -> None:
+    """Mine goal objects of one capture into an object database (paper filters, 3D grounding, merging)."""
+    from image2sim.dataengine import mining
+    from image2sim.simulator.io.registry import open_capture
+
+    cap = open_capture(scene)
+    small: set[str] = set()
+    if detector == "gt":
+        cats, small = mining.load_categories(scene)
+        det = mining.GTDetector(cats)
+    elif detector == "yolo-world":
+        if weights is None or not vocabulary:
+            typer.echo("error: yolo-world needs --weights and --vocabulary", err=True)
+            raise typer.Exit(2)
+        det = mining.YoloWorldDetector(weights, [v.strip() for v in vocabulary.split(",") if v.strip()])
+    else:
+        typer.echo(f"error: unknown detector {detector!r}", err=True)
+        raise typer.Exit(2)
+    objs, stats = mining.mine_capture(cap, det, mining.MiningConfig(), small, progress=True)
+    mining.attach_gt_metadata(objs, scene)
+    path = out or Path(f"objects_{scene.name}.json")
+    mining.save_objects(path, objs, {"detector": det.name, "stats": stats})
+    typer.echo(json.dumps({"objects": len(objs), **stats, "file": str(path)}))
+
+
+@app.command("episodes")
+def episodes_command(
+    scenes: Path = typer.Option(..., "--scenes", help="Folder of capture folders (e.g. `data synth` output) or of "
+                                "built scene folders."),
+    out: Path = typer.Option(..., "--out", help="Output folder (episodes, gt, shards, per-scene caches)."),
+    per_scene: str = typer.Option("auto", "--per-scene", help="auto (area-based capacity) or N episodes."),
+    annotator: str = typer.Option("template", "--annotator", help="template, transformers or openai."),
+    annotator_option: list[str] = typer.Option(None, "--annotator-option", "-A",
+                                               help="Backend option key=value (repeatable), e.g. base_url=..."),
+    render: str = typer.Option("auto", "--render", help="auto, procedural, gaussians or none."),
+    view: str = typer.Option("pinhole", "--view", help="Stored observation: pinhole or ultrawide."),
+    obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
+    split: str = typer.Option("train", "--split", help="Split name of the episode files."),
+    seed: int = typer.Option(0, "--seed", help="Base seed."),
+    executor: str = typer.Option("ray", "--executor", help="ray or local (in-process)."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Ray workers (local cluster)."),
+    address: str | None = typer.Option(None, "--address", help="Join a Ray cluster at this address."),
+    min_steps: int | None = typer.Option(None, "--min-steps", help="Drop episodes with fewer actions."),
+) -> None:
+    """Sample, roll out, render and annotate episodes for every scene (resumable; one Ray task per scene)."""
+    from image2sim.dataengine.distributed import RunError, run_engine
+    from image2sim.dataengine.pipeline import EngineConfig
+
+    try:
+        n = None if per_scene == "auto" else int(per_scene)
+    except ValueError:
+        typer.echo(f"error: --per-scene must be auto or an integer, got {per_scene!r}", err=True)
+        raise typer.Exit(2) from None
+    try:
+        cfg = EngineConfig(per_scene=n, annotator=annotator, annotator_options=_parse_options(annotator_option),
+                           render=render, view=view, obs_height=obs_height, split=split, seed=seed,
+                           rollout={} if min_steps is None else {"min_steps": min_steps})
+        summary = run_engine(scenes, out, cfg, executor=executor, workers=workers, address=address)
+    except (RunError, ValueError) as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    for name, err in summary["failed"].items():
+        typer.echo(f"scene {name} failed: {err.splitlines()[0]}", err=True)
+    typer.echo(json.dumps({k: v for k, v in summary.items() if k != "failed"} | {"failed": sorted(summary["failed"])},
+                          indent=1))
+
+
+@app.command("stats")
+def stats_command(
+    episodes: Path = typer.Argument(..., help="Episode file ({split}.json.gz) or an `episodes` output folder."),
+    out: Path | None = typer.Option(None, "--out", help="Folder for stats.json / stats.png (default: beside)."),
+    split: str = typer.Option("train", "--split", help="Split to read when EPISODES is a folder."),
+) -> None:
+    """Style mix, instruction length, trajectory length and step histograms (JSON + PNG)."""
+    from image2sim.dataengine.stats import write_stats
+
+    path = episodes / split / f"{split}.json.gz" if episodes.is_dir() else episodes
+    if not path.is_file():
+        typer.echo(f"error: {path}: episode file not found", err=True)
+        raise typer.Exit(2)
+    gt = path.with_name(path.name.replace(".json.gz", "_gt.json.gz"))
+    stats = write_stats(path, out or path.parent / "stats", gt)
+    typer.echo(json.dumps({k: stats[k] for k in ("episodes", "scenes", "style_mix", "distinct_instructions")}, indent=1))
