@@ -160,3 +160,25 @@ def test_configs_are_strict(tmp_path):
     assert (paper.data.max_observations, paper.data.max_action_labels) == (32, 64)
     assert paper.train.strategy == "deepspeed_zero2" and paper.model.gradient_checkpointing
     assert load_config("paper").to_dict() == paper.to_dict()
+
+
+def test_collator_matches_the_qwen3vl_processor(tiny_policy, tiny_cfg):
+    """Our id-level prompt building equals the stock processor on the same chat text and images."""
+    from image2sim.navpolicy.model import make_processor
+
+    sample = make_sample(synthetic_trajectories(1, 10, 10, seed=1)[0], 4, 8)
+    col = NavCollator(
+        PromptBuilder(tiny_policy.tokenizer, tiny_policy.codec, tiny_cfg.system_prompt),
+        tiny_policy.image_processor,
+    )
+    ours = col([sample])
+    text = tiny_policy.tokenizer.decode(ours["input_ids"][0])
+    pad = "<|image_pad|>"
+    while pad * 2 in text:  # the processor expands one placeholder per image itself
+        text = text.replace(pad * 2, pad)
+    assert text.count(pad) == 4
+    ref = make_processor(tiny_policy)(text=[text], images=list(sample.observations), return_tensors="pt")
+    assert torch.equal(ref["input_ids"], ours["input_ids"])
+    assert torch.equal(ref["mm_token_type_ids"].long(), ours["mm_token_type_ids"])
+    assert torch.equal(ref["pixel_values"], ours["pixel_values"])
+    assert torch.equal(ref["image_grid_thw"], ours["image_grid_thw"])

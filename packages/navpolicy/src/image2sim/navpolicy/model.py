@@ -273,3 +273,24 @@ def export_policy(policy: NavPolicy, out_dir: str | Path) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def make_processor(policy: NavPolicy):
+    """A ``Qwen3VLProcessor`` over the policy's tokenizer and PIL image processor, without video.
+
+    The stock class insists on a (torchvision) video processor; this subclass accepts ``None``.
+    ``save_pretrained`` is not supported on it: save the tokenizer and image processor separately
+    (as :func:`export_policy` does). The collator builds ids itself; this processor is the reference
+    it is tested against and the entry point for callers that prefer chat text.
+    """
+    from transformers import Qwen3VLProcessor
+
+    class _ImageOnlyQwen3VLProcessor(Qwen3VLProcessor):
+        def check_argument_for_proper_class(self, argument_name, argument):
+            if argument_name == "video_processor" and argument is None:
+                return None
+            return super().check_argument_for_proper_class(argument_name, argument)
+
+    return _ImageOnlyQwen3VLProcessor(
+        image_processor=policy.image_processor, tokenizer=policy.tokenizer, video_processor=None
+    )
