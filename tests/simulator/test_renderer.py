@@ -118,7 +118,9 @@ def test_ema_update_matches_formula_and_copies_buffers():
     teacher.train()
     assert not teacher.module.training
     ema_update_(teacher.module, student, 0.0)  # decay 0 -> exact copy
-    assert all(torch.equal(a, b) for a, b in zip(teacher.module.parameters(), student.parameters(), strict=False))
+    assert all(
+        torch.equal(a, b) for a, b in zip(teacher.module.parameters(), student.parameters(), strict=False)
+    )
     with pytest.raises(ValueError):
         ema_update_(teacher.module, torch.nn.Linear(3, 4), 0.5)
     with pytest.raises(ValueError):
@@ -402,3 +404,22 @@ def test_tiny_model_overfits_one_target():
     mse = (pred.rgb - target_rgb).pow(2).mean()
     psnr = -10 * torch.log10(mse)
     assert psnr > 30, psnr
+
+
+def test_save_and_load_renderer_round_trip(tmp_path):
+    from image2sim.simulator.renderer.model import load_renderer, save_renderer
+
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg(ablation={"no_alpha_gate": True})).eval()
+    path = tmp_path / "r.safetensors"
+    save_renderer(model, path)
+    loaded = load_renderer(path)
+    assert loaded.cfg == model.cfg and not loaded.decoder.skips[0].gated
+    cond, *_ = make_batch()
+    noise = torch.randn(2, 4, H, W)
+    assert torch.equal(model.render(cond, noise=noise).rgb, loaded.render(cond, noise=noise).rgb)
+    (tmp_path / "bad.safetensors").write_bytes(b"not a file")
+    with pytest.raises(Exception):
+        load_renderer(tmp_path / "bad.safetensors")
+    with pytest.raises(FileNotFoundError):
+        load_renderer(tmp_path / "none.safetensors")

@@ -80,7 +80,6 @@ def train_command(
 
 def eval_command(
     checkpoint: Path = typer.Argument(..., help="Lightning checkpoint of the renderer."),
-    config: str = typer.Option("tiny", help="Config the checkpoint was trained with."),
     data: list[Path] = typer.Option([], help="Capture directories (the held-out split is evaluated)."),
     holdout_every: int = typer.Option(8, help="Same split as training."),
     max_frames: int = typer.Option(-1, help="At most this many frames per capture (-1: all)."),
@@ -94,23 +93,19 @@ def eval_command(
     import time
 
     import torch
-    from image2sim.simulator.renderer.config import load_renderer_config
     from image2sim.simulator.renderer.data import DegradedPanoramaDataset
     from image2sim.simulator.renderer.metrics import abs_rel, psnr_per_image, ssim_per_image
-    from image2sim.simulator.renderer.model import PixelFlowRenderer
+    from image2sim.simulator.renderer.model import load_renderer
 
     torch.set_num_threads(threads)
-    cfg = load_renderer_config(config)
+    model = load_renderer(checkpoint)  # the config travels with the weights
+    cfg = model.cfg
     targets = _targets(data, cfg.height, cfg.width, None if max_frames < 0 else max_frames)
     _, held = _split(targets, holdout_every)
     if not held:
         raise typer.BadParameter("no held-out frames (holdout_every = 0?)")
     ds = DegradedPanoramaDataset(held, len(held))
     ds.cfg.seed = 12345  # evaluation degradations differ from every training sample
-    state = torch.load(checkpoint, map_location="cpu", weights_only=True)["state_dict"]
-    model = PixelFlowRenderer(cfg)
-    model.load_state_dict({k[len("renderer.") :]: v for k, v in state.items() if k.startswith("renderer.")})
-    model.eval()
     rows: dict[str, dict[str, list[float]]] = {}
     for i in range(len(ds)):
         s = ds[i]

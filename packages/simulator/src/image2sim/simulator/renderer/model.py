@@ -21,7 +21,7 @@ from image2sim.simulator.renderer.distill import distillation_loss
 from image2sim.simulator.renderer.losses import reconstruction_loss, saturation_penalty
 from torch import nn
 
-__all__ = ["RenderOutput", "PixelFlowRenderer"]
+__all__ = ["RenderOutput", "PixelFlowRenderer", "save_renderer", "load_renderer"]
 
 
 @dataclass
@@ -220,3 +220,64 @@ class PixelFlowRenderer(nn.Module):
             "perc": perc,
             "x_one_step": out.x.detach(),
         }
+
+
+def save_renderer(model: PixelFlowRenderer, path) -> None:
+    """Inference weights as one ``.safetensors`` file; the resolved config rides in its metadata
+    (JSON), so :func:`load_renderer` needs nothing else. Written atomically (temp + rename)."""
+    import json
+    import os
+    from dataclasses import asdict
+    from pathlib import Path
+
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    tmp = path.with_name(f".{path.name}.tmp")
+    save_file(
+        tensors,
+        str(tmp),
+        metadata={"format": "image2sim-renderer-v1", "config": json.dumps(asdict(model.cfg))},
+    )
+    os.replace(tmp, path)
+
+
+def load_renderer(path, map_location: str = "cpu") -> PixelFlowRenderer:
+    """Inverse of :func:`save_renderer`; also accepts a Lightning checkpoint of ``RendererModule``
+    (read with ``weights_only=True``)."""
+    import json
+    from pathlib import Path
+
+    from image2sim.simulator.renderer.config import renderer_config_from_dict
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"renderer weights {path} do not exist")
+    if path.suffix == ".safetensors":
+        from safetensors import safe_open
+        from safetensors.torch import load_file
+
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+        if meta.get("format") != "image2sim-renderer-v1" or "config" not in meta:
+            raise ValueError(
+                f"{path}: not an image2sim renderer file (metadata format {meta.get('format')!r})"
+            )
+        cfg = renderer_config_from_dict(json.loads(meta["config"]))
+        state = load_file(str(path), device=map_location)
+    else:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        try:
+            cfg = renderer_config_from_dict(ckpt["hyper_parameters"]["config"])
+        except KeyError as exc:
+            raise ValueError(f"{path}: checkpoint has no renderer config in hyper_parameters") from exc
+        state = {k[len("renderer.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("renderer.")}
+    model = PixelFlowRenderer(cfg)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(
+            f"{path}: weights do not match the config (missing {missing[:3]}, unexpected {unexpected[:3]})"
+        )
+    return model.eval()
