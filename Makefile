@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup test test-slow demo lint bench clean help train-sim-tiny
+.PHONY: setup test test-slow demo lint bench clean help profile train-sim-tiny
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -39,8 +39,8 @@ test: setup  ## fast test suite (CPU, a few minutes)
 test-slow: setup  ## slow tests only
 	$(PY) -m pytest -q -m slow
 
-demo: setup  ## the main job on the embedded default data
-	$(PY) -m image2sim.demo
+demo: setup  ## the main job: `dvc repro` on the active profile (params.yaml), then a summary
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" bash scripts/demo.sh
 
 bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports/)
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
@@ -54,3 +54,8 @@ lint: setup
 
 clean:
 	rm -rf $(VENV) .pytest_cache outputs
+
+PROFILE ?= demo
+profile:  ## switch the pipeline profile: make profile PROFILE=demo|ci|paper
+	cp configs/profiles/$(PROFILE).yaml params.yaml
+	@echo "params.yaml <- configs/profiles/$(PROFILE).yaml"
