@@ -115,6 +115,9 @@ class FusionConfig:
     """Pixels observed farther than this (metres) are dropped (depth is unreliable there)."""
     min_opacity: float = 0.01
     """Gaussians with lower opacity are pruned."""
+    threads: int = 1
+    """torch threads while fusing: its many small gather/unique ops are dominated by thread start-up
+    on a shared CPU (measured 30x slower with 2 threads under load); 0 leaves torch's setting."""
     edge_tolerance: float = 0.1
     """When frames are area-resized, a block whose valid depths spread by more than this fraction
     keeps its nearest depth instead of the mean, so no point floats between two surfaces."""
@@ -201,6 +204,8 @@ class GaussianConfig:
             raise ConfigError(f"fusion.levels must lie in [1, 24], got {f.levels}")
         if f.cover_factor < 0 or not 0 <= f.min_range < f.max_range or not 0 <= f.min_opacity < 1:
             raise ConfigError("fusion needs cover_factor >= 0, 0 <= min_range < max_range, 0 <= min_opacity < 1")
+        if f.threads < 0:
+            raise ConfigError(f"fusion.threads must be >= 0, got {f.threads}")
         if f.edge_tolerance <= 0:
             raise ConfigError(f"fusion.edge_tolerance must be > 0, got {f.edge_tolerance}")
         t = self.train

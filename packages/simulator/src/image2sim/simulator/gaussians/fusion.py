@@ -13,6 +13,8 @@ saturates as frames repeat views. Policy ``fixed``: level 0 with edge ``voxel_si
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import torch
 
 from image2sim.simulator.gaussians.config import FusionConfig
@@ -70,8 +72,22 @@ def _unique(levels: torch.Tensor, keys: torch.Tensor) -> tuple[torch.Tensor, tor
 
 
 def _settle_levels(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]) -> torch.Tensor:
-    """Move each Gaussian down to the finest level already present in its cell (ascending sweep)."""
+    """Move each Gaussian down to the finest level present in its cell, until nothing moves.
+
+    One ascending sweep is not enough: a Gaussian moved from level 2 to 0 can land in the level-1
+    cell of a Gaussian the sweep already passed. Levels only decrease, so the loop terminates
+    (usually after two sweeps); the fixpoint makes :func:`fuse` idempotent.
+    """
     levels = levels.clone()
+    while True:
+        before = levels.clone()
+        levels = _sweep(means, levels, sizes)
+        if torch.equal(before, levels):
+            return levels
+
+
+def _sweep(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]) -> torch.Tensor:
+    """One ascending sweep over the present levels (see :func:`_settle_levels`)."""
     present = sorted(set(levels.tolist())) if levels.numel() else []
     for L in present[1:]:
         coarse = levels == L
@@ -92,6 +108,19 @@ def _settle_levels(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]
     return levels
 
 
+@contextmanager
+def torch_threads(n: int):
+    """Temporarily run torch ops on ``n`` threads (0: unchanged)."""
+    before = torch.get_num_threads()
+    if n > 0 and n != before:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != before:
+            torch.set_num_threads(before)
+
+
 def fuse(gaussians: GaussianSet, cfg: FusionConfig) -> GaussianSet:
     """Voxel-average a set of Gaussians (already-fused ones keep their levels and weights).
 
@@ -100,6 +129,11 @@ def fuse(gaussians: GaussianSet, cfg: FusionConfig) -> GaussianSet:
     floored at ``cover_factor`` x the cell edge so merged points leave no holes. Deterministic:
     the output is ordered by (level, cell key).
     """
+    with torch_threads(cfg.threads):
+        return _fuse(gaussians, cfg)
+
+
+def _fuse(gaussians: GaussianSet, cfg: FusionConfig) -> GaussianSet:
     n = len(gaussians)
     if n == 0:
         return gaussians

@@ -89,10 +89,13 @@ class GaussianScene:
         """Fuse one frame's Gaussians into memory (levels from their footprints); returns the new count."""
         from image2sim.simulator.gaussians.fusion import assign_levels
 
-        new = prune(new.detach(), self.fusion)
-        new = GaussianSet(**{**new.tensors(), "levels": assign_levels(new.footprints, self.fusion)})
-        merged = new if self.gaussians is None else GaussianSet.cat([self.gaussians, new])
-        self.gaussians = prune(fuse(merged, self.fusion), self.fusion)
+        from image2sim.simulator.gaussians.fusion import torch_threads
+
+        with torch_threads(self.fusion.threads):
+            new = prune(new.detach(), self.fusion)
+            new = GaussianSet(**{**new.tensors(), "levels": assign_levels(new.footprints, self.fusion)})
+            merged = new if self.gaussians is None else GaussianSet.cat([self.gaussians, new])
+            self.gaussians = prune(fuse(merged, self.fusion), self.fusion)
         pose = None if cam_to_world is None else np.asarray(cam_to_world, dtype=np.float64).tolist()
         self.frames.append({"index": index, "frame_id": frame_id, "cam_to_world": pose})
         return len(self)

@@ -1,0 +1,256 @@
+"""Stage-1 training (geometry initialisation) of the Gaussian encoder as a Lightning module.
+
+One sample = one scene, K source frames and a held-out target frame. The encoder turns the sources
+into Gaussians (no fusion: everything stays differentiable), they are splatted at the target pose,
+and the loss is the paper's masked L1 reconstruction of RGB and depth (+ the cosine alignment of
+tokenised projected features to the target's DINOv3 tokens when a semantic backbone is
+configured, + a scale regulariser). The sample order is a pure function of (seed, step), so a run
+resumed from ``last.ckpt`` continues exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import DataLoader, Dataset
+
+from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict
+from image2sim.simulator.gaussians.encoder import GaussianEncoder, pixel_maps_to_gaussians
+from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
+from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, camera_from_dict
+
+__all__ = ["GeometryDataset", "GeometryDataModule", "GeometryModule", "stage1_losses", "train_stage1",
+           "load_scene_frames"]
+
+
+def load_scene_frames(path: str | Path, cfg: GaussianConfig, max_frames: int | None = None) -> list[FrameInputs]:
+    """All frames of a capture at the encoder resolution."""
+    from image2sim.simulator.gaussians.frames import prepare_frame
+    from image2sim.simulator.io.registry import open_capture
+
+    cap = open_capture(path)
+    n = len(cap) if max_frames is None else min(len(cap), max_frames)
+    e = cfg.encoder
+    return [prepare_frame(cap[i], e.height, e.width, cfg.fusion.edge_tolerance) for i in range(n)]
+
+
+class GeometryDataset(Dataset):
+    """``length`` virtual samples over scenes (each a list of :class:`FrameInputs` sharing one camera).
+
+    Sample ``i`` (seeded by ``(seed, i)``) picks a scene, a target frame and K sources drawn from
+    the 2K frames nearest to the target (by camera centre), never the target itself.
+    """
+
+    def __init__(self, scenes: Sequence[Sequence[FrameInputs]], num_sources: int, length: int, seed: int = 0) -> None:
+        self.scenes = [list(s) for s in scenes if len(s) >= 2]
+        if not self.scenes:
+            raise ValueError("GeometryDataset needs at least one scene with >= 2 frames")
+        self.k, self.length, self.seed = int(num_sources), int(length), int(seed)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def indices(self, index: int) -> tuple[int, int, list[int]]:
+        """(scene, target, sources) of sample ``index``."""
+        rng = np.random.default_rng([self.seed, int(index)])
+        s = int(rng.integers(len(self.scenes)))
+        frames = self.scenes[s]
+        t = int(rng.integers(len(frames)))
+        centres = np.stack([f.cam_to_world[:3, 3].numpy() for f in frames])
+        d = np.linalg.norm(centres - centres[t], axis=1)
+        d[t] = np.inf
+        pool = np.argsort(d, kind="stable")[: min(2 * self.k, len(frames) - 1)]
+        k = min(self.k, len(pool))
+        return s, t, sorted(int(i) for i in rng.choice(pool, size=k, replace=False))
+
+    def __getitem__(self, index: int) -> dict:
+        s, t, src = self.indices(index)
+        frames = self.scenes[s]
+        tgt = frames[t]
+        return {
+            "src_rgb": torch.cat([frames[i].rgb for i in src]),
+            "src_depth": torch.cat([frames[i].depth for i in src]),
+            "src_pose": torch.stack([frames[i].cam_to_world for i in src]),
+            "tgt_rgb": tgt.rgb[0],
+            "tgt_depth": tgt.depth[0],
+            "tgt_pose": tgt.cam_to_world,
+            "camera": json.dumps(tgt.camera.to_dict()),
+            "index": int(index),
+        }
+
+
+def _collate(items: list[dict]) -> dict:
+    if len(items) != 1:
+        raise ValueError("stage-1 batches hold one scene (batch_size=1)")
+    return items[0]
+
+
+class GeometryDataModule(L.LightningDataModule):
+    """Serves :class:`GeometryDataset` samples in step order (resumable: the start step is saved)."""
+
+    def __init__(self, scenes: Sequence[Sequence[FrameInputs]], cfg: GaussianConfig) -> None:
+        super().__init__()
+        t = cfg.train
+        self.dataset = GeometryDataset(scenes, t.num_sources, max(1, t.steps), t.seed)
+        self._start = 0
+
+    def state_dict(self) -> dict:
+        step = int(self.trainer.global_step) if self.trainer is not None else self._start
+        return {"start_step": step}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._start = int(state.get("start_step", 0))
+
+    def train_dataloader(self) -> DataLoader:
+        order = list(range(self._start, len(self.dataset)))
+        return DataLoader(self.dataset, batch_size=1, sampler=order, collate_fn=_collate, num_workers=0)
+
+
+def stage1_losses(
+    encoder: GaussianEncoder, batch: dict, camera: Camera, align_head: torch.nn.Module | None = None,
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """Loss terms and the splatted target images of one sample (see the module docstring)."""
+    cfg = encoder.cfg
+    t, e = cfg.train, cfg.encoder
+    maps = encoder.forward_maps(batch["src_rgb"], batch["src_depth"], camera)
+    sets = pixel_maps_to_gaussians(maps, batch["src_rgb"], batch["src_depth"], camera, batch["src_pose"], cfg)
+    g = GaussianSet.cat(sets)
+    out = g.render(camera, batch["tgt_pose"].to(g.means.dtype), backend=t.backend)
+    alpha = out.alpha[0]
+    safe = alpha.clamp_min(1e-6)
+    pred_rgb, pred_depth = out.rgb[0] / safe, out.depth[0] / safe
+    tgt_rgb, tgt_depth = batch["tgt_rgb"], batch["tgt_depth"]
+    mask = ((tgt_depth > 0) & (alpha.detach() >= t.min_alpha)).to(alpha.dtype)
+    denom = mask.sum().clamp_min(1.0)
+    l_rgb = ((pred_rgb - tgt_rgb).abs() * mask).sum() / (3 * denom)
+    l_depth = ((pred_depth - tgt_depth).abs() * mask).sum() / (denom * e.depth_scale)
+    ref = (g.footprints * e.scale_init).clamp(e.scale_min, e.scale_max)[:, None]
+    l_scale = torch.log(g.scales / ref).pow(2).mean() if len(g) else alpha.sum() * 0
+    losses = {"rgb": l_rgb, "depth": l_depth, "scale": l_scale}
+    total = t.w_rgb * l_rgb + t.w_depth * l_depth + t.w_scale * l_scale
+    if encoder.semantic is not None and align_head is not None and out.features.shape[1]:
+        tokens = encoder.semantic(tgt_rgb[None])  # (1, D, h, w), frozen
+        feats = out.features / safe[None]
+        pooled = F.adaptive_avg_pool2d(feats, tokens.shape[-2:])
+        proj = align_head(pooled.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
+        l_align = (1 - F.cosine_similarity(proj, tokens, dim=1)).mean()
+        losses["align"] = l_align
+        total = total + t.w_align * l_align
+    losses["total"] = total
+    with torch.no_grad():
+        mse = (((pred_rgb - tgt_rgb) ** 2) * mask).sum() / (3 * denom)
+        losses["psnr_masked"] = -10 * torch.log10(mse.clamp_min(1e-10))
+        losses["coverage"] = (alpha >= t.min_alpha).float().mean()
+    images = {"pred_rgb": pred_rgb.detach().clamp(0, 1), "tgt_rgb": tgt_rgb, "alpha": alpha.detach()}
+    return losses, images
+
+
+class GeometryModule(L.LightningModule):
+    """Trains :class:`GaussianEncoder` (and the feature->token head of the alignment loss)."""
+
+    def __init__(self, cfg: GaussianConfig, semantic_model: torch.nn.Module | None = None, panoramic: bool = True,
+                 image_dir: str | None = None) -> None:
+        super().__init__()
+        from image2sim.simulator.gaussians.semantic import build_semantic
+
+        self.save_hyperparameters({"config": config_to_dict(cfg), "panoramic": bool(panoramic)})
+        self.cfg = cfg
+        semantic = build_semantic(cfg.semantic, semantic_model)
+        self.encoder = GaussianEncoder(cfg, semantic, panoramic=panoramic)
+        self.align_head = (torch.nn.Linear(cfg.encoder.feature_dim, semantic.dim)
+                           if semantic is not None and cfg.encoder.feature_dim else None)
+        self.image_dir = image_dir
+        self.history: list[float] = []
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        camera = camera_from_dict(json.loads(batch["camera"]))
+        losses, images = stage1_losses(self.encoder, batch, camera, self.align_head)
+        t = self.cfg.train
+        self.log_dict({f"train/{k}": v.detach() for k, v in losses.items()}, on_step=True, prog_bar=False,
+                      batch_size=1)
+        self.history.append(float(losses["total"].detach()))
+        step = int(self.global_step)
+        if self.image_dir and t.image_every and step % t.image_every == 0:
+            _write_grid(Path(self.image_dir) / f"step_{step:07d}.png", images)
+        return losses["total"]
+
+    def configure_optimizers(self):
+        t = self.cfg.train
+        params = [p for p in self.parameters() if p.requires_grad]
+        return torch.optim.AdamW(params, lr=t.lr, weight_decay=t.weight_decay)
+
+
+def _write_grid(path: Path, images: dict[str, torch.Tensor]) -> None:
+    """Target | prediction | alpha, stacked vertically, as one PNG."""
+    from image2sim.simulator.io.images import write_rgb_png
+
+    alpha = images["alpha"].expand(3, -1, -1)
+    grid = torch.cat((images["tgt_rgb"], images["pred_rgb"], alpha), dim=1).clamp(0, 1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_rgb_png(path, (grid.permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+
+
+def train_stage1(
+    cfg: GaussianConfig,
+    out_dir: str | Path,
+    captures: Sequence[str | Path] = (),
+    scenes: Sequence[Sequence[FrameInputs]] | None = None,
+    resume: bool = True,
+    semantic_model: torch.nn.Module | None = None,
+    max_frames: int | None = None,
+    progress: bool = True,
+) -> dict:
+    """Train (or resume) stage 1; writes checkpoints, CSV (+ W&B offline) logs, image grids and the
+    final encoder (``encoder.safetensors`` + ``encoder.json``) under ``out_dir``. Returns a summary."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import CSVLogger
+
+    from image2sim.simulator.gaussians.build import save_encoder
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if scenes is None:
+        if not captures:
+            raise ValueError("train_stage1: give capture folders or in-memory scenes")
+        scenes = [load_scene_frames(p, cfg, max_frames) for p in captures]
+    cams = {json.dumps(f.camera.to_dict()) for s in scenes for f in s}
+    panoramic = all(isinstance(f.camera, EquirectCamera) for s in scenes for f in s)
+    if len(cams) != 1:
+        raise ValueError(f"train_stage1: all frames must share one camera at the encoder size, got {len(cams)}")
+    tmp = out / ".config.json.tmp"
+    tmp.write_text(json.dumps(config_to_dict(cfg), indent=2))
+    os.replace(tmp, out / "config.json")
+    L.seed_everything(cfg.train.seed, workers=True, verbose=False)
+    module = GeometryModule(cfg, semantic_model, panoramic=panoramic, image_dir=str(out / "images"))
+    data = GeometryDataModule(scenes, cfg)
+    loggers = [CSVLogger(str(out), name="logs")]
+    if cfg.train.wandb:
+        from lightning.pytorch.loggers import WandbLogger
+
+        os.environ.setdefault("WANDB_MODE", "offline")
+        loggers.append(WandbLogger(save_dir=str(out), project="image2sim-geometry", offline=True))
+    ckpt = ModelCheckpoint(dirpath=str(out / "checkpoints"), every_n_train_steps=max(1, cfg.train.checkpoint_every),
+                           save_last=True, save_top_k=-1)
+    trainer = L.Trainer(
+        accelerator="cpu", devices=1, max_steps=cfg.train.steps, logger=loggers, callbacks=[ckpt],
+        enable_progress_bar=progress, enable_model_summary=False, log_every_n_steps=max(1, cfg.train.log_every),
+        num_sanity_val_steps=0, limit_val_batches=0, gradient_clip_val=1.0,
+    )
+    last = out / "checkpoints" / "last.ckpt"
+    trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume and last.is_file() else None)
+    path = save_encoder(module.encoder, out / "encoder.safetensors")
+    return {
+        "steps": int(trainer.global_step),
+        "losses": module.history,
+        "encoder": str(path),
+        "checkpoint": str(last) if last.is_file() else None,
+    }
+
+
