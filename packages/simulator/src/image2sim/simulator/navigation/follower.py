@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from image2sim.simulator.conventions import Action
-from image2sim.simulator.navigation.agent import AgentState, wrap_angle
+from image2sim.simulator.navigation.agent import AgentState, Kinematics, wrap_angle
 from image2sim.simulator.navigation.embodiment import Embodiment, FollowerConfig
 from image2sim.simulator.navigation.planner import PathResult, Planner
 
@@ -49,9 +49,17 @@ class OracleFollower:
     """Plans with a :class:`Planner`, smooths the waypoints and emits discrete actions (pure pursuit)."""
 
     def __init__(
-        self, planner: Planner, embodiment: Embodiment | None = None, config: FollowerConfig | None = None
+        self,
+        planner: Planner,
+        embodiment: Embodiment | None = None,
+        config: FollowerConfig | None = None,
+        kinematics: Kinematics | None = None,
     ) -> None:
+        """``kinematics`` (optional) lets the oracle predict a forward step: a step that would collide
+        is replaced by a turn towards the target (the oracle knows the simulator)."""
         self.planner = planner
+        self.kinematics = kinematics
+        self._blocked_turn: int | None = None
         self.embodiment = embodiment or planner.graph.embodiment
         self.config = config or FollowerConfig()
         tol = self.config.turn_tolerance_deg
@@ -91,7 +99,19 @@ class OracleFollower:
             dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
             nearest = int(np.argmin(dist))
         self._progress = nearest
-        return pure_pursuit_action(state, self._target(pos, dist, nearest)[:2], self.turn_tolerance)
+        target = self._target(pos, dist, nearest)
+        action = pure_pursuit_action(state, target[:2], self.turn_tolerance)
+        if action == Action.MOVE_FORWARD and self.kinematics is not None:
+            _, would_collide, _ = self.kinematics.apply(state, Action.MOVE_FORWARD)
+            if would_collide:
+                # Keep turning the same way until the forward step is free (no left/right dithering).
+                if self._blocked_turn is None:
+                    d = target[:2] - pos[:2]
+                    err = wrap_angle(math.atan2(d[1], d[0]) - state.heading)
+                    self._blocked_turn = int(Action.TURN_LEFT if err >= 0 else Action.TURN_RIGHT)
+                return self._blocked_turn
+        self._blocked_turn = None
+        return action
 
     def _target(self, pos: np.ndarray, dist: np.ndarray, nearest: int) -> np.ndarray:
         """Farthest path point within the lookahead that the agent sees through navigable cells.
@@ -111,4 +131,8 @@ class OracleFollower:
         n = max(2, int(np.ceil(np.linalg.norm(b[:2] - a[:2]) / (0.5 * graph.voxel_size))) + 1)
         t = np.linspace(0.0, 1.0, n)[:, None]
         idx, off = graph.snap(a + (b - a) * t)
-        return bool((idx >= 0).all() and (off <= 0.75 * graph.voxel_size).all())
+        if not ((idx >= 0).all() and (off <= 0.75 * graph.voxel_size).all()):
+            return False
+        # Discrete turns leave up to half a turn of heading error: keep that much lateral margin.
+        margin = self.config.lookahead * math.sin(self.turn_tolerance)
+        return bool((graph.clearance[idx[1:]] >= self.embodiment.radius + margin).all())
