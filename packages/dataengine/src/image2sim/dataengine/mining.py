@@ -14,6 +14,7 @@ datasets); ``yolo-world`` wraps an Ultralytics YOLO-World checkpoint loaded from
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -236,14 +237,11 @@ def pinhole_views(frame, config: MiningConfig) -> list[View]:
     if not isinstance(frame.camera, EquirectCamera):
         raise ValueError(f"mining: unsupported camera {type(frame.camera).__name__}")
     s = int(config.view_size)
-    cam = PinholeCamera.from_fov(config.view_hfov_deg, config.view_hfov_deg, s, s)
-    base = cam.ray_map(dtype=torch.float64).permute(1, 2, 0).numpy()  # unit rays (s, s, 3)
     pano_cam = frame.camera
     views = []
     for yaw_deg in config.yaws_deg:
-        rays_c = base @ _yaw_rotation(math.radians(yaw_deg)).T  # rays in the panorama's camera frame
-        uv, _, _ = pano_cam.project(torch.from_numpy(rays_c.reshape(-1, 3)))
-        uv = uv.numpy().reshape(s, s, 2)
+        rays_c, uv = _view_lookup(int(pano_cam.height), int(pano_cam.width), s, float(config.view_hfov_deg),
+                                  float(yaw_deg))
         rgb = _sample_bilinear_wrap(np.asarray(frame.rgb, dtype=np.float32), uv)
         iu = np.floor(uv[..., 0]).astype(np.int64) % pano_cam.width
         iv = np.clip(np.floor(uv[..., 1]).astype(np.int64), 0, pano_cam.height - 1)
@@ -253,6 +251,26 @@ def pinhole_views(frame, config: MiningConfig) -> list[View]:
             None if inst is None else np.asarray(inst)[iv, iu], f"{frame.frame_id}@{yaw_deg:g}",
         ))
     return views
+
+
+@functools.lru_cache(maxsize=32)
+def _view_lookup(pano_h: int, pano_w: int, size: int, hfov_deg: float, yaw_deg: float):
+    """Unit rays (size, size, 3) of a yawed pinhole view in the panorama camera frame and their panorama uv.
+
+    Cached: the lookup depends only on the sizes, the field of view and the yaw, not on the frame.
+    """
+    import torch
+
+    from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+
+    cam = PinholeCamera.from_fov(hfov_deg, hfov_deg, size, size)
+    base = cam.ray_map(dtype=torch.float64).permute(1, 2, 0).numpy()  # unit rays (s, s, 3)
+    rays_c = base @ _yaw_rotation(math.radians(yaw_deg)).T
+    uv, _, _ = EquirectCamera(pano_h, pano_w).project(torch.from_numpy(rays_c.reshape(-1, 3)))
+    rays_c.setflags(write=False)
+    uv = uv.numpy().reshape(size, size, 2)
+    uv.setflags(write=False)
+    return rays_c, uv
 
 
 def _sample_bilinear_wrap(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
