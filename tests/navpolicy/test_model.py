@@ -148,7 +148,7 @@ def test_configs_are_strict(tmp_path):
     cfg = load_config(p)
     assert cfg.train.max_steps == 3 and cfg.train.lr == 1.0 and cfg.model.lora.enabled
     p.write_text("train:\n  max_stepz: 3\n")
-    with pytest.raises(ConfigError, match=r"train: unknown key\(s\) \['max_stepz'\]"):
+    with pytest.raises(ConfigError, match=r"unknown config key\(s\) \['train.max_stepz'\]"):
         load_config(p)
     p.write_text("train:\n  max_steps: three\n")
     with pytest.raises(ConfigError, match="train.max_steps: expected int"):
@@ -160,6 +160,11 @@ def test_configs_are_strict(tmp_path):
     assert (paper.data.max_observations, paper.data.max_action_labels) == (32, 64)
     assert paper.train.strategy == "deepspeed_zero2" and paper.model.gradient_checkpointing
     assert load_config("paper").to_dict() == paper.to_dict()
+    wide = load_config("paper-wide").observation
+    got = (wide.camera, wide.width, wide.height, wide.hfov_deg, wide.vfov_deg)
+    assert got == ("equirect", 512, 336, 180, 118)
+    with pytest.raises(ConfigError, match="observation.camera"):
+        load_config("tiny", {"observation": {"camera": "fisheye"}})
 
 
 def test_collator_matches_the_qwen3vl_processor(tiny_policy, tiny_cfg):

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import copy
-import json
 import math
 
 import numpy as np
 import pytest
 import torch
+from image2sim.navpolicy.config import load_config
 from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, make_sample, synthetic_trajectories
 from image2sim.navpolicy.prompting import PromptBuilder
 from image2sim.navpolicy.train import (
@@ -80,7 +80,8 @@ def test_bc_reduces_the_loss(tiny_cfg, trajs, tmp_path):
     assert res.global_step == 25
     assert after < 0.6 * before, (before, after)
     assert np.mean(res.module.losses[-5:]) < np.mean(res.module.losses[:5])
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["max_steps"] == 25
+    saved = load_config(tmp_path / "run" / "config.yaml")
+    assert saved.to_dict() == cfg.to_dict()
     assert (tmp_path / "run" / "logs" / "version_0" / "metrics.csv").is_file()
 
 

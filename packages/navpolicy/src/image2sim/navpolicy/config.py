@@ -8,16 +8,11 @@ reject unknown keys, naming the offending key path.
 
 from __future__ import annotations
 
-import dataclasses
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-
-class ConfigError(ValueError):
-    """A config file or dict has an unknown key, a wrong type or a bad value."""
+from image2sim.simulator.config import ConfigError  # one error type repository-wide
 
 
 @dataclass
@@ -235,50 +230,10 @@ class NavPolicyConfig:
         return self
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Plain data (YAML/JSON-safe)."""
+        from image2sim.simulator.config import config_to_dict
 
-
-def _strip_optional(tp):
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return args[0] if len(args) == 1 else tp
-    return tp
-
-
-def from_dict(cls, data: dict[str, Any], where: str = ""):
-    """Build dataclass ``cls`` from ``data`` recursively, rejecting unknown keys and wrong types."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ConfigError(
-            f"{where or cls.__name__}: unknown key(s) {unknown}; valid keys are {sorted(names)}"
-        )
-    kwargs = {}
-    for key, value in data.items():
-        tp = _strip_optional(hints[key])
-        path = f"{where}.{key}" if where else key
-        if dataclasses.is_dataclass(tp):
-            kwargs[key] = from_dict(tp, value, path)
-            continue
-        origin = typing.get_origin(tp) or tp
-        if origin is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if origin in (int, float, str, bool, list, dict) and not isinstance(value, origin):
-            raise ConfigError(f"{path}: expected {origin.__name__}, got {type(value).__name__} ({value!r})")
-        if origin is int and isinstance(value, bool):
-            raise ConfigError(f"{path}: expected int, got bool")
-        kwargs[key] = value
-    return cls(**kwargs)
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
+        return config_to_dict(self)
 
 
 def tiny_config() -> NavPolicyConfig:
@@ -311,28 +266,31 @@ def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPol
     ).validate()
 
 
-PRESETS = {"tiny": tiny_config, "paper": paper_config}
+def paper_wide_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPolicyConfig:
+    """The paper's ultra-wide setting: 512x336 equirectangular crop at 180 deg HFOV x 118 deg VFOV."""
+    cfg = paper_config(checkpoint)
+    cfg.name = "paper-wide"
+    cfg.observation = ObservationConfig(
+        camera="equirect", height=336, width=512, hfov_deg=180.0, vfov_deg=118.0
+    )
+    return cfg.validate()
+
+
+PRESETS = {"tiny": tiny_config, "paper": paper_config, "paper-wide": paper_wide_config}
 
 
 def load_config(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> NavPolicyConfig:
-    """A preset name (``tiny``/``paper``) or a YAML file (which may set ``base: tiny|paper``),
-    with optional nested ``overrides``; unknown keys raise :class:`ConfigError`."""
-    s = str(name_or_path)
-    if s in PRESETS:
-        data = PRESETS[s]().to_dict()
-    else:
-        import yaml
+    """A preset name (``tiny``/``paper``/``paper-wide``) or a YAML file of overrides (which may name
+    its ``base`` preset), plus nested ``overrides``; unknown keys or wrong types raise
+    :class:`ConfigError` naming the dotted field. Uses the repository's one config mechanism
+    (:mod:`image2sim.simulator.config`)."""
+    from image2sim.simulator import config as shared
 
-        p = Path(s)
-        if not p.is_file():
-            raise ConfigError(f"config {s!r} is neither a preset {sorted(PRESETS)} nor an existing YAML file")
-        loaded = yaml.safe_load(p.read_text()) or {}
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{p}: top level must be a mapping")
-        base = loaded.pop("base", "tiny")
-        if base not in PRESETS:
-            raise ConfigError(f"{p}: base {base!r} is not one of {sorted(PRESETS)}")
-        data = _merge(PRESETS[base]().to_dict(), loaded)
-    if overrides:
-        data = _merge(data, overrides)
-    return from_dict(NavPolicyConfig, data).validate()
+    return shared.load_config(PRESETS, name_or_path, overrides).validate()
+
+
+def from_dict(data: dict[str, Any]) -> NavPolicyConfig:
+    """A config from plain data over the ``tiny`` defaults (e.g. a saved ``config.yaml``)."""
+    from image2sim.simulator.config import config_from_dict
+
+    return config_from_dict(NavPolicyConfig, data).validate()

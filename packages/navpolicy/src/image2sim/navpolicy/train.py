@@ -257,7 +257,7 @@ def train_bc(
     max_steps: int | None = None,
     policy: NavPolicy | None = None,
 ) -> TrainResult:
-    """Run (or resume) behaviour cloning; writes ``config.json``, CSV logs, checkpoints, export.
+    """Run (or resume) behaviour cloning; writes ``config.yaml``, CSV logs, checkpoints, export.
 
     Args:
         cfg: the run config (``cfg.data.shards`` is used when ``dataset`` is None).
@@ -275,9 +275,9 @@ def train_bc(
     tc = cfg.train
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / ".config.json.tmp"
-    tmp.write_text(json.dumps(cfg.to_dict(), indent=2))
-    os.replace(tmp, out / "config.json")
+    from image2sim.simulator.config import save_config
+
+    save_config(cfg, out / "config.yaml")
 
     L.seed_everything(tc.seed, workers=True, verbose=False)
     policy = policy or build_policy(cfg, seed=tc.seed)
