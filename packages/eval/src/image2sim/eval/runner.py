@@ -1,0 +1,746 @@
+"""Navigation runner: episode loop over a simulator backend and an agent, resumable, parallel over scenes.
+
+Pieces (small and separately testable):
+
+* **Backends** (:class:`NeuralSimBackend`; :class:`HabitatBackend` behind an import guard) place the
+  agent at an episode's start, apply discrete actions and report world-frame positions and the
+  geodesic distance to the goal.
+* **Agents**: the baselines ``random`` (VLN-CE's random action distribution), ``forward`` (N forward
+  steps then STOP), ``oracle`` (the shortest-path follower of :mod:`image2sim.simulator.navigation`)
+  and ``image2nav`` (navpolicy's streaming agent, imported lazily inside the adapter).
+* :func:`run_episode` scores one episode with the protocol's measures
+  (:mod:`image2sim.eval.metrics.nav`); :func:`run_scene` appends every finished episode to a per-scene
+  JSONL :class:`~image2sim.eval.results.EpisodeLog` (a killed run resumes by skipping the episode ids
+  already logged); :func:`run_nav` fans scenes out over processes and aggregates the logs.
+* :func:`nav_summary` turns an aggregate into the headline record of ``metrics/nav.json`` (``sr``,
+  ``spl``, ``ne``, ``osr``, ``ndtw``, ``n_episodes`` and 95 % intervals ``sr_ci`` (Wilson) and
+  ``spl_ci`` (percentile bootstrap)).
+
+Seeds: every episode's seed is :func:`episode_seed` ``(run_seed, episode_id)``, a pure function, so an
+episode gives the same trajectory whether it runs first, last, in another process or after a resume.
+The seed and the action sequence of each episode are written to a per-scene trajectory JSONL.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import zlib
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Protocol as TypingProtocol
+
+import numpy as np
+from image2sim.eval.datasets import NavEpisode
+from image2sim.eval.metrics.nav import (
+    DEFAULT_MEASURES,
+    AgentState,
+    AggregateReport,
+    EpisodeResult,
+    Measurements,
+    aggregate,
+)
+from image2sim.eval.protocols import Protocol
+from image2sim.eval.results import EpisodeLog, read_episode_log, read_result_file, write_result_file
+from image2sim.simulator.conventions import Action
+
+__all__ = [
+    "AGENTS",
+    "AgentSpec",
+    "BackendUnavailable",
+    "ForwardAgent",
+    "HabitatBackend",
+    "Image2NavAdapter",
+    "NavAgent",
+    "NeuralSimBackend",
+    "OracleAgent",
+    "RandomAgent",
+    "RunConfig",
+    "RunnerError",
+    "StepObservation",
+    "bootstrap_ci",
+    "check_embodiment",
+    "embodiment_for",
+    "episode_seed",
+    "load_scene_backend",
+    "make_agent",
+    "nav_summary",
+    "run_episode",
+    "run_nav",
+    "run_scene",
+    "sample_point_goal_episodes",
+    "update_nav_metrics",
+    "wilson_interval",
+]
+
+
+class RunnerError(RuntimeError):
+    """The run cannot proceed as configured (message names the scene / episode / field)."""
+
+
+class BackendUnavailable(ImportError):
+    """An optional simulator backend is not installed."""
+
+
+# ------------------------------------------------------------------------------------------ seeds
+
+
+def episode_seed(run_seed: int, episode_id: str) -> int:
+    """Seed of one episode: a pure function of the run seed and the episode id (order-independent)."""
+    return zlib.crc32(f"{int(run_seed)}:{episode_id}".encode()) & 0x7FFFFFFF
+
+
+# ------------------------------------------------------------------------------------------ backends
+
+
+@dataclass
+class StepObservation:
+    """What a backend reports after reset and after every action (world frame)."""
+
+    position: np.ndarray
+    """(3,) feet position, world metres (Z-up)."""
+    heading: float
+    """Heading in radians (map frame yaw; equal to world yaw without gravity correction)."""
+    distance_to_goal: float
+    """Geodesic distance to the goal in metres (inf when off the graph / unreachable)."""
+    collided: bool = False
+    """The last action hit an obstacle."""
+    rgb: np.ndarray | None = None
+    """(H, W, 3) uint8 observation when the backend renders and the agent asked for it."""
+
+
+class Backend(TypingProtocol):
+    """Minimal simulator interface the runner needs."""
+
+    def reset(self, episode: NavEpisode, observe: bool) -> StepObservation: ...
+
+    def step(self, action: int, observe: bool) -> StepObservation: ...
+
+
+def embodiment_for(protocol: Protocol, base: Any | None = None):
+    """The simulator :class:`Embodiment` implied by ``protocol`` (other fields from ``base``)."""
+    from image2sim.simulator.navigation.embodiment import Embodiment
+
+    b = base or Embodiment()
+    kw = b.to_dict()
+    kw.update(
+        radius=protocol.agent_radius_m,
+        eye_height=protocol.agent_height_m,
+        forward_step=protocol.forward_step_m,
+        turn_angle_deg=protocol.turn_angle_deg,
+        wall_sliding=protocol.allow_sliding,
+    )
+    kw["height"] = max(kw["height"], protocol.agent_height_m)
+    return Embodiment(**kw)
+
+
+def check_embodiment(embodiment: Any, protocol: Protocol, where: str = "scene") -> None:
+    """Raise :class:`RunnerError` when the simulator's body/actions differ from the protocol's."""
+    pairs = {
+        "forward_step": (embodiment.forward_step, protocol.forward_step_m),
+        "turn_angle_deg": (embodiment.turn_angle_deg, protocol.turn_angle_deg),
+        "radius": (embodiment.radius, protocol.agent_radius_m),
+        "eye_height": (embodiment.eye_height, protocol.agent_height_m),
+        "wall_sliding": (embodiment.wall_sliding, protocol.allow_sliding),
+    }
+    bad = {k: v for k, v in pairs.items() if (v[0] != v[1] if isinstance(v[0], bool) else abs(v[0] - v[1]) > 1e-9)}
+    if bad:
+        detail = ", ".join(f"{k}: simulator {a!r} vs protocol {b!r}" for k, (a, b) in bad.items())
+        raise RunnerError(
+            f"{where}: the navigation map was built for another embodiment than protocol "
+            f"{protocol.name!r} ({detail}); rebuild it with eval.runner.embodiment_for(protocol)"
+        )
+
+
+class NeuralSimBackend:
+    """:class:`~image2sim.simulator.sim.NeuralSimulator` as a runner backend (one agent).
+
+    Episodes are in the world frame; the simulator works in the navigation map's frame
+    (``navmap.to_map`` / ``to_world``). The geodesic distance comes from one distance field per
+    episode (a single Dijkstra from the goal).
+    """
+
+    def __init__(self, sim: Any, protocol: Protocol, name: str = "scene") -> None:
+        check_embodiment(sim.embodiment, protocol, name)
+        self.sim = sim
+        self.protocol = protocol
+        self.name = name
+        self.field = None
+        cam = protocol.camera
+        self._camera = None
+        if sim.render_fn is not None:
+            from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+
+            if cam.kind == "pinhole":
+                self._camera = PinholeCamera.from_fov(cam.hfov_deg, cam.vfov_deg, cam.width, cam.height)
+            else:
+                self._camera = EquirectCamera(cam.height, cam.width)
+
+    @property
+    def planner(self):
+        return self.sim.planner
+
+    def _heading_to_map(self, heading: float) -> float:
+        d = self.sim.navmap.rotation @ np.array([math.cos(heading), math.sin(heading), 0.0])
+        return float(math.atan2(d[1], d[0]))
+
+    def _obs(self, info: dict, collided: bool, observe: bool) -> StepObservation:
+        pos_map = info["position"][0]
+        rgb = None
+        if observe:
+            if self._camera is None:
+                raise RunnerError(f"{self.name}: the agent needs images but the scene has no render function")
+            out = self.sim.render_fn(self._camera, self.sim.camera_pose(0))
+            rgb = np.clip(np.asarray(out["rgb"], np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        return StepObservation(
+            position=np.asarray(self.sim.navmap.to_world(pos_map), dtype=np.float64).reshape(3),
+            heading=float(info["heading"][0]),
+            distance_to_goal=self.field(pos_map),
+            collided=collided,
+            rgb=rgb,
+        )
+
+    def reset(self, episode: NavEpisode, observe: bool = False) -> StepObservation:
+        start = np.asarray(self.sim.navmap.to_map(episode.start_position), dtype=np.float64).reshape(3)
+        goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
+        self.goal_map = goal
+        self.field = self.sim.planner.distance_field(goal)
+        _, info = self.sim.reset(start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False)
+        return self._obs(info, False, observe)
+
+    def step(self, action: int, observe: bool = False) -> StepObservation:
+        _, info = self.sim.step([int(action)], observe=False)
+        return self._obs(info, bool(info["collided"][0]), observe)
+
+    def agent_state(self):
+        """The simulator's kinematic state of the agent (map frame), for privileged agents."""
+        return self.sim.agents[0].state
+
+
+class HabitatBackend:
+    """habitat-sim as a backend, for users who have it (no Linux wheel on PyPI; never a hard dependency).
+
+    Only the import guard and the frame conversion are provided here: habitat-sim is not installable
+    on the machines this project is developed on, so an untested loop is deliberately not shipped.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        try:
+            import habitat_sim  # noqa: F401
+        except ImportError as exc:
+            raise BackendUnavailable(
+                "the Habitat backend needs habitat-sim (conda install habitat-sim -c aihabitat); "
+                "use the NeuralSimulator backend (--backend neural) otherwise"
+            ) from exc
+        raise NotImplementedError(
+            "HabitatBackend: habitat-sim was found, but the Habitat episode loop is not implemented yet"
+        )
+
+
+def load_scene_backend(scene_dir: str | Path, protocol: Protocol, render: bool = False) -> NeuralSimBackend:
+    """A :class:`NeuralSimBackend` from a scene folder holding ``navmap.npz`` and ``navgraph.npz``.
+
+    With ``render``, observations come from a Gaussian scene in the folder (``gaussians.safetensors``
+    here or under ``gaussians/``) through :class:`~image2sim.simulator.sim.GaussianRenderFn`.
+    """
+    from image2sim.simulator.navigation import NavMap
+    from image2sim.simulator.navigation.graph import NavGraph
+    from image2sim.simulator.sim import NeuralSimulator
+
+    scene_dir = Path(scene_dir)
+    for name in ("navmap.npz", "navgraph.npz"):
+        if not (scene_dir / name).is_file():
+            raise RunnerError(f"{scene_dir}: missing {name} (run `image2sim sim navmap` or the data engine first)")
+    navmap = NavMap.load(scene_dir / "navmap.npz")
+    graph = NavGraph.load(scene_dir / "navgraph.npz")
+    render_fn = None
+    if render:
+        folder = next((f for f in (scene_dir, scene_dir / "gaussians") if (f / "gaussians.safetensors").is_file()), None)
+        if folder is None:
+            raise RunnerError(f"{scene_dir}: the agent needs images but there is no gaussians.safetensors")
+        from image2sim.simulator.gaussians import GaussianScene
+        from image2sim.simulator.sim import GaussianRenderFn
+
+        g = GaussianScene.load(folder).gaussians
+        render_fn = GaussianRenderFn({k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")})
+    return NeuralSimBackend(NeuralSimulator(navmap, graph, render_fn), protocol, scene_dir.name)
+
+
+# ------------------------------------------------------------------------------------------ agents
+
+
+class NavAgent(TypingProtocol):
+    """An agent: ``reset`` per episode, then ``act`` once per step (one action id)."""
+
+    needs_images: bool
+
+    def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None: ...
+
+    def act(self, obs: StepObservation) -> int: ...
+
+
+@dataclass
+class RandomAgent:
+    """VLN-CE's random baseline: i.i.d. actions from the R2R-CE training action distribution."""
+
+    probabilities: tuple[float, float, float, float] = (0.02, 0.68, 0.15, 0.15)
+    """P(STOP), P(FORWARD), P(LEFT), P(RIGHT) (VLN-CE, Krantz et al. 2020, Sec. 5 'Random')."""
+    needs_images: bool = False
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.probabilities, dtype=np.float64)
+        if p.shape != (4,) or (p < 0).any() or not math.isclose(float(p.sum()), 1.0, abs_tol=1e-9):
+            raise ValueError(f"RandomAgent.probabilities must be 4 non-negative numbers summing to 1, got {self.probabilities}")
+        self._p = p
+        self._rng = np.random.default_rng(0)
+
+    def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None:
+        self._rng = np.random.default_rng(seed)
+
+    def act(self, obs: StepObservation) -> int:
+        return int(self._rng.choice(4, p=self._p))
+
+
+@dataclass
+class ForwardAgent:
+    """Blind baseline: ``forward_steps`` MOVE_FORWARD actions, then STOP."""
+
+    forward_steps: int = 37
+    """Forward actions before STOP (VLN-CE's hand-crafted baseline uses 37, the mean R2R-CE length)."""
+    needs_images: bool = False
+
+    def __post_init__(self) -> None:
+        if int(self.forward_steps) < 0:
+            raise ValueError(f"ForwardAgent.forward_steps must be >= 0, got {self.forward_steps}")
+        self._t = 0
+
+    def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None:
+        self._t = 0
+
+    def act(self, obs: StepObservation) -> int:
+        self._t += 1
+        return int(Action.MOVE_FORWARD) if self._t <= self.forward_steps else int(Action.STOP)
+
+
+@dataclass
+class OracleAgent:
+    """Privileged shortest-path follower (:class:`~image2sim.simulator.navigation.OracleFollower`)."""
+
+    follower: dict = field(default_factory=dict)
+    """:class:`FollowerConfig` overrides (smoothing_window, lookahead, stop_radius, ...)."""
+    needs_images: bool = False
+
+    def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None:
+        from image2sim.simulator.navigation import FollowerConfig, OracleFollower
+
+        if not isinstance(backend, NeuralSimBackend):
+            raise RunnerError("the oracle agent needs the NeuralSimulator backend (planner access)")
+        self.backend = backend
+        cfg = FollowerConfig.from_dict(self.follower, "oracle.follower")
+        self._f = OracleFollower(backend.planner, backend.sim.embodiment, cfg)
+        self._f.reset(backend.agent_state().position, backend.goal_map)
+
+    def act(self, obs: StepObservation) -> int:
+        return int(self._f.act(self.backend.agent_state(), obs.collided))
+
+
+class Image2NavAdapter:
+    """navpolicy's streaming Image2Nav agent (two actions per model call) as a runner agent.
+
+    navpolicy is imported here and only here (lazily), so ``image2sim.eval`` works without it.
+    ``model``: an exported policy folder or ``"tiny"`` (an untrained tiny model, for plumbing runs).
+    """
+
+    needs_images = True
+
+    def __init__(self, model: str = "tiny", config: str = "tiny") -> None:
+        try:
+            from image2sim.navpolicy.agent import Image2NavAgent
+            from image2sim.navpolicy.config import load_config
+            from image2sim.navpolicy.model import build_policy
+        except ImportError as exc:
+            raise RunnerError(f"the image2nav agent needs image2sim-navpolicy installed ({exc})") from exc
+        cfg = load_config(config, {"model": {"source": model}} if model != "tiny" else None)
+        self._agent = Image2NavAgent(build_policy(cfg, seed=0), cfg.agent, cfg.system_prompt)
+        self._queue: list[int] = []
+        self._executed: list[int] | None = None
+
+    def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None:
+        import torch
+
+        torch.manual_seed(seed)
+        self._agent.reset(episode.instruction.text, seed=seed)
+        self._queue, self._executed = [], None
+
+    def act(self, obs: StepObservation) -> int:
+        if not self._queue:
+            if obs.rgb is None:
+                raise RunnerError("image2nav: no image in the observation")
+            self._queue = [int(a) for a in self._agent.act(obs.rgb, executed=self._executed)]
+            self._executed = []
+        a = self._queue.pop(0)
+        self._executed.append(a)
+        if a == int(Action.STOP):
+            self._queue = []
+        return a
+
+    @property
+    def wants_image(self) -> bool:
+        """An image is needed at the next step only when the action queue is empty."""
+        return not self._queue
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """A picklable agent description: registry name + constructor options."""
+
+    name: str
+    """``random``, ``forward``, ``oracle`` or ``image2nav``."""
+    options: Mapping[str, Any] = field(default_factory=dict)
+    """Keyword arguments of the agent class."""
+
+
+AGENTS: dict[str, Callable[..., Any]] = {
+    "random": RandomAgent,
+    "forward": ForwardAgent,
+    "oracle": OracleAgent,
+    "image2nav": Image2NavAdapter,
+}
+"""Agent registry."""
+
+
+def make_agent(spec: AgentSpec) -> Any:
+    """Build an agent from its spec; unknown names and options are errors naming them."""
+    if spec.name not in AGENTS:
+        raise RunnerError(f"unknown agent {spec.name!r}; known: {sorted(AGENTS)}")
+    try:
+        return AGENTS[spec.name](**dict(spec.options))
+    except TypeError as exc:
+        raise RunnerError(f"agent {spec.name!r}: bad options {dict(spec.options)} ({exc})") from exc
+
+
+# ------------------------------------------------------------------------------------------ episodes
+
+
+def run_episode(
+    backend: Any, agent: Any, episode: NavEpisode, protocol: Protocol, seed: int
+) -> tuple[EpisodeResult, list[int]]:
+    """Run one episode to STOP or the protocol's step limit; returns its result and the actions."""
+    ms = Measurements(protocol, DEFAULT_MEASURES)
+    wants = (lambda: getattr(agent, "wants_image", True)) if agent.needs_images else (lambda: False)
+    obs = backend.reset(episode, observe=bool(agent.needs_images))
+    agent.reset(episode, backend, seed)
+    ms.reset(episode.metric_spec(), AgentState(obs.position, obs.distance_to_goal))
+    actions: list[int] = []
+    for _ in range(protocol.max_steps):
+        a = int(agent.act(obs))
+        if a not in {int(x) for x in Action}:
+            raise RunnerError(f"episode {episode.episode_id}: agent returned action {a!r}")
+        actions.append(a)
+        if a == int(Action.STOP):
+            ms.update(a, AgentState(obs.position, obs.distance_to_goal))
+            break
+        obs = backend.step(a, observe=bool(agent.needs_images and wants()))
+        ms.update(a, AgentState(obs.position, obs.distance_to_goal))
+    return EpisodeResult(episode.episode_id, ms.values(), protocol), actions
+
+
+@dataclass
+class RunConfig:
+    """One navigation evaluation run (one agent, one protocol, many scenes)."""
+
+    agent: str = "oracle"
+    """Agent registry name: random, forward, oracle, image2nav."""
+    agent_options: dict = field(default_factory=dict)
+    """Agent constructor options (e.g. {"forward_steps": 20})."""
+    seed: int = 0
+    """Run seed; episode seeds derive from it and the episode id (:func:`episode_seed`)."""
+    workers: int = 1
+    """Scene-level processes (1 = in this process)."""
+    max_episodes_per_scene: int | None = None
+    """Evaluate at most this many episodes per scene (file order), None = all."""
+
+    def __post_init__(self) -> None:
+        if self.agent not in AGENTS:
+            raise RunnerError(f"RunConfig.agent: unknown agent {self.agent!r}; known: {sorted(AGENTS)}")
+        if int(self.workers) < 1:
+            raise RunnerError(f"RunConfig.workers must be >= 1, got {self.workers}")
+        if self.max_episodes_per_scene is not None and int(self.max_episodes_per_scene) < 1:
+            raise RunnerError("RunConfig.max_episodes_per_scene must be >= 1 or None")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str = "run config") -> RunConfig:
+        """Build from a mapping; unknown keys are an error naming them."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise RunnerError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(names)}")
+        return cls(**dict(data))
+
+
+def _append_jsonl(path: Path, obj: Any) -> None:
+    line = json.dumps(obj, separators=(",", ":")) + "\n"
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(line)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def run_scene(
+    backend: Any,
+    episodes: Sequence[NavEpisode],
+    protocol: Protocol,
+    config: RunConfig,
+    log_path: str | Path,
+    progress: Callable[[int], None] | None = None,
+    agent: Any | None = None,
+) -> int:
+    """Run the scene's episodes not yet in ``log_path``; returns how many ran now.
+
+    Each finished episode is appended (flushed + fsynced) to the JSONL log and its seed and actions
+    to ``<log>.traj.jsonl``, so killing the process loses at most the episode in flight.
+    """
+    log = EpisodeLog(log_path, protocol)
+    done = log.done_ids()
+    traj_path = Path(str(log_path) + ".traj.jsonl")
+    agent = agent if agent is not None else make_agent(AgentSpec(config.agent, config.agent_options))
+    ran = 0
+    for ep in episodes:
+        if ep.episode_id in done:
+            continue
+        seed = episode_seed(config.seed, ep.episode_id)
+        result, actions = run_episode(backend, agent, ep, protocol, seed)
+        _append_jsonl(traj_path, {"episode_id": ep.episode_id, "seed": seed, "actions": actions})
+        log.append(result)
+        done.add(ep.episode_id)
+        ran += 1
+        if progress is not None:
+            progress(1)
+    return ran
+
+
+def _scene_task(task: dict) -> tuple[str, int]:
+    """Worker entry point (top level so it pickles): load the scene and run its episodes."""
+    import torch
+
+    torch.set_num_threads(1)  # one process per core
+    protocol = Protocol.from_dict(task["protocol"])
+    config = RunConfig(**task["config"])
+    render = AGENTS[config.agent] is Image2NavAdapter
+    backend = load_scene_backend(task["scene_dir"], protocol, render=render)
+    n = run_scene(backend, task["episodes"], protocol, config, task["log"])
+    return task["scene"], n
+
+
+def _group_by_scene(episodes: Iterable[NavEpisode], limit: int | None) -> dict[str, list[NavEpisode]]:
+    groups: dict[str, list[NavEpisode]] = {}
+    for ep in episodes:
+        groups.setdefault(ep.scene_name, []).append(ep)
+    if limit is not None:
+        groups = {k: v[: int(limit)] for k, v in groups.items()}
+    return groups
+
+
+def run_nav(
+    episodes: Sequence[NavEpisode],
+    scenes_root: str | Path,
+    protocol: Protocol,
+    config: RunConfig,
+    out_dir: str | Path,
+    show_progress: bool = True,
+) -> AggregateReport:
+    """Evaluate ``config.agent`` on ``episodes``; scenes are looked up as ``scenes_root/<scene_name>``.
+
+    Logs go to ``out_dir/<agent>/<scene>.jsonl`` (one per scene, so parallel workers never share a
+    file) and ``out_dir/<agent>/run.json`` records the configuration and seed rule. Rerunning the
+    same call resumes: finished episodes are skipped. Returns the aggregate over every episode of the
+    given list (from the logs, so a resumed run aggregates exactly like an uninterrupted one).
+    """
+    scenes_root, out = Path(scenes_root), Path(out_dir) / config.agent
+    out.mkdir(parents=True, exist_ok=True)
+    groups = _group_by_scene(episodes, config.max_episodes_per_scene)
+    if not groups:
+        raise RunnerError("no episodes to evaluate")
+    for name in groups:
+        if not (scenes_root / name).is_dir():
+            raise RunnerError(f"scene {name!r}: folder {scenes_root / name} not found (episodes reference it)")
+    manifest = {
+        "config": asdict(config),
+        "seed_rule": "episode_seed = crc32(f'{seed}:{episode_id}') & 0x7fffffff",
+        "scenes": sorted(groups),
+        "episodes": sum(len(v) for v in groups.values()),
+    }
+    write_result_file(out / "run.json", protocol, manifest)
+    tasks = [
+        {
+            "scene": name,
+            "scene_dir": str(scenes_root / name),
+            "episodes": eps,
+            "protocol": protocol.to_dict(),
+            "config": asdict(config),
+            "log": str(out / f"{name}.jsonl"),
+        }
+        for name, eps in sorted(groups.items())
+    ]
+    total = sum(len(t["episodes"]) for t in tasks)
+    bar = None
+    if show_progress:
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        bar.start()
+        task_id = bar.add_task(f"{config.agent}: scenes", total=len(tasks))
+    try:
+        if config.workers == 1 or len(tasks) == 1:
+            for t in tasks:
+                _scene_task(t)
+                if bar is not None:
+                    bar.advance(task_id)
+        else:
+            import multiprocessing as mp
+
+            # spawn: torch and OpenMP do not survive fork reliably.
+            with ProcessPoolExecutor(min(config.workers, len(tasks)), mp_context=mp.get_context("spawn")) as pool:
+                for _ in pool.map(_scene_task, tasks):
+                    if bar is not None:
+                        bar.advance(task_id)
+    finally:
+        if bar is not None:
+            bar.stop()
+    wanted = {ep.episode_id for eps in groups.values() for ep in eps}
+    results: list[EpisodeResult] = []
+    for t in tasks:
+        _, rs = read_episode_log(t["log"])
+        results += [r for r in rs if r.episode_id in wanted]
+    if len(results) != total:
+        raise RunnerError(f"expected {total} episode results in the logs under {out}, found {len(results)}")
+    return aggregate(results)
+
+
+# ------------------------------------------------------------------------------------------ episodes from a planner
+
+
+def sample_point_goal_episodes(
+    sim: Any, n: int, seed: int = 0, min_distance: float = 1.0, scene_id: str = "scene", max_tries: int = 2000
+) -> list[NavEpisode]:
+    """Point-goal episodes on a scene's navigation graph (for smoke runs when no dataset exists).
+
+    Start and goal are navigable nodes of one connected component at least ``min_distance`` metres
+    apart (geodesic); the reference path is the planner's shortest path (world frame); the heading is
+    uniform. Raises :class:`RunnerError` when fewer than ``n`` such pairs are found.
+    """
+    from image2sim.eval.datasets import Instruction
+
+    rng = np.random.default_rng(seed)
+    graph, planner, navmap = sim.graph, sim.planner, sim.navmap
+    pts = np.asarray(graph.nodes, dtype=np.float64)  # map frame
+    out: list[NavEpisode] = []
+    for _ in range(max_tries):
+        if len(out) >= n:
+            break
+        i, j = rng.integers(0, len(pts), size=2)
+        res = planner.shortest_path(pts[i], pts[j])
+        if not res.reachable or not res.length >= min_distance:
+            continue
+        heading = float(rng.uniform(-math.pi, math.pi))
+        ref = np.asarray(navmap.to_world(res.waypoints), dtype=np.float64).reshape(-1, 3)
+        out.append(
+            NavEpisode(
+                episode_id=f"{scene_id}-{len(out):04d}",
+                scene_id=scene_id,
+                start_position=np.asarray(navmap.to_world(pts[i]), dtype=np.float64).reshape(3),
+                start_rotation=np.array([math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2)]),
+                start_heading=heading,
+                goal_position=np.asarray(navmap.to_world(pts[j]), dtype=np.float64).reshape(3),
+                goal_radius=None,
+                geodesic_distance=float(res.length),
+                reference_path=ref,
+                instruction=Instruction(text="Go to the goal."),
+            )
+        )
+    if len(out) < n:
+        raise RunnerError(f"{scene_id}: found only {len(out)} of {n} start/goal pairs >= {min_distance} m apart")
+    return out
+
+
+# ------------------------------------------------------------------------------------------ summaries
+
+
+def wilson_interval(successes: float, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (95 % by default); (0, 1) for n = 0."""
+    if n <= 0:
+        return (0.0, 1.0)
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    # At p = 0 / p = 1 the bound is exactly 0 / 1; rounding would put it a hair inside.
+    lo = 0.0 if successes <= 0 else max(0.0, centre - half)
+    hi = 1.0 if successes >= n else min(1.0, centre + half)
+    return (lo, hi)
+
+
+def bootstrap_ci(values: Sequence[float], n_boot: int = 2000, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean (seeded, so it is reproducible)."""
+    x = np.asarray(values, dtype=np.float64)
+    if len(x) == 0:
+        raise ValueError("bootstrap_ci: no values")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("bootstrap_ci: non-finite values")
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(x), size=(n_boot, len(x)))
+    means = x[idx].mean(axis=1)
+    a = (1.0 - level) / 2.0
+    return (float(np.quantile(means, a)), float(np.quantile(means, 1.0 - a)))
+
+
+def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str, Any]:
+    """Headline record of one agent for ``metrics/nav.json``.
+
+    ``sr``, ``spl``, ``ne``, ``osr``, ``ndtw`` (None when no episode has a reference path), ``sdtw``,
+    ``path_length``, ``steps``, ``n_episodes``, ``sr_ci`` (Wilson 95 %) and ``spl_ci`` (bootstrap 95 %).
+    """
+    report = aggregate(results)
+    m = report.metrics
+
+    def mean(k: str) -> float | None:
+        s = m.get(k)
+        return None if s is None or s.mean is None else float(s.mean)
+
+    sr_vals = [float(r.metrics["success"]) for r in results]
+    spl_vals = [float(r.metrics["spl"]) for r in results]
+    return {
+        "sr": mean("success"),
+        "spl": mean("spl"),
+        "ne": mean("distance_to_goal"),
+        "osr": mean("oracle_success"),
+        "ndtw": mean("ndtw"),
+        "sdtw": mean("sdtw"),
+        "path_length": mean("path_length"),
+        "steps": mean("steps"),
+        "n_episodes": report.num_episodes,
+        "sr_ci": list(wilson_interval(sum(sr_vals), len(sr_vals))),
+        "spl_ci": list(bootstrap_ci(spl_vals, seed=ci_seed)),
+        "ci_method": {"sr_ci": "wilson 95%", "spl_ci": "percentile bootstrap 95%, 2000 resamples"},
+    }
+
+
+def update_nav_metrics(path: str | Path, protocol: Protocol, agent: str, summary: Mapping[str, Any]) -> Path:
+    """Insert/replace one agent's summary in ``metrics/nav.json`` (atomic; same protocol enforced)."""
+    from image2sim.eval.protocols import ProtocolMismatchError
+
+    path = Path(path)
+    agents: dict[str, Any] = {}
+    if path.is_file():
+        existing, payload = read_result_file(path)
+        if existing != protocol:
+            raise ProtocolMismatchError(
+                f"{path}: holds results of protocol {existing.name!r}; refusing to add {agent!r} under "
+                f"{protocol.name!r} (write to another file)"
+            )
+        agents = dict(payload.get("agents", {}))
+    agents[agent] = dict(summary)
+    return write_result_file(path, protocol, {"agents": agents})
