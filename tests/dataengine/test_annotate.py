@@ -1,0 +1,287 @@
+"""Instruction annotation: quality-gate parsing, anti-hallucination, template variety, OpenAI backend on loopback."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+import pytest
+
+from image2sim.dataengine.annotate import (
+    AnnotationRequest,
+    MalformedReply,
+    TemplateAnnotator,
+    build_annotator,
+    build_messages,
+    compose,
+    hallucinated_objects,
+    parse_reply,
+    route_style,
+)
+from image2sim.dataengine.annotate.openai_vlm import OpenAIAnnotator, OpenAIConfig, TransportError
+
+VOCAB = ["sofa", "fridge", "table_lamp", "lamp", "chair", "dining_table", "bed"]
+
+
+def _req(eid="e0", style="r2r", structure="sequential", tone="neutral", seed=0, images=()):
+    return AnnotationRequest(
+        episode_id=eid,
+        movements=["walk forward", "turn left", "walk forward while turning right", "stop"],
+        images=list(images),
+        goal={"category": "fridge", "room_type": "kitchen"},
+        visible=[["sofa", "chair"], ["chair"], ["fridge"], ["fridge"]],
+        rooms=["living_room", "living_room", "kitchen", "kitchen"],
+        style=style, structure=structure, tone=tone, seed=seed,
+    )
+
+
+# ----------------------------------------------------------------------------------------- parsing
+
+
+def test_invalid_inside_reasoning_does_not_reject():
+    r = parse_reply("REASONING: frames look fine, nothing INVALID here, no clipping.\n"
+                    "VERDICT: VALID\nISSUES: none\nINSTRUCTION: Walk to the fridge.")
+    assert r.valid and r.instruction == "Walk to the fridge." and r.issues == ()
+
+
+def test_invalid_verdict_rejects_even_if_reasoning_says_valid():
+    r = parse_reply("REASONING: looks VALID at first.\nVERDICT: INVALID\nISSUES: wall_clipping, visual_freezing\n"
+                    "INSTRUCTION: Walk to the fridge.")
+    assert not r.valid and r.issues == ("wall_clipping", "visual_freezing")
+
+
+def test_multiline_fields_and_markdown_bold():
+    r = parse_reply("**REASONING**: line one\nline two\n**VERDICT**: VALID\n**INSTRUCTION**: Go ahead,\nthen stop.")
+    assert r.valid and r.reasoning == "line one\nline two" and r.instruction == "Go ahead, then stop."
+
+
+@pytest.mark.parametrize("reply, why", [
+    ("", "empty"),
+    ("REASONING: fine\nINSTRUCTION: go", "no VERDICT"),
+    ("VERDICT: MAYBE\nINSTRUCTION: go", "VALID or INVALID"),
+    ("VERDICT: VALID\nVERDICT: INVALID\nINSTRUCTION: go", "more than once"),
+    ("VERDICT: VALID\nREASONING: after\nINSTRUCTION: go", "before VERDICT"),
+    ("REASONING: ok\nVERDICT: VALID", "without an INSTRUCTION"),
+])
+def test_malformed_replies(reply, why):
+    with pytest.raises(MalformedReply, match=why):
+        parse_reply(reply)
+
+
+def test_hallucination_check_uses_allow_list_and_longest_names():
+    assert hallucinated_objects("Pass the sofa and stop at the fridge.", {"sofa", "fridge"}, VOCAB) == set()
+    assert hallucinated_objects("Walk past the bed to the fridge.", {"sofa", "fridge"}, VOCAB) == {"bed"}
+    assert hallucinated_objects("Stop by the table lamp.", {"table_lamp"}, VOCAB) == set()  # not "lamp"
+    assert hallucinated_objects("Go past the chairs.", {"fridge"}, VOCAB) == {"chair"}  # plural
+    assert hallucinated_objects("Enter the bedroom.", {"fridge"}, VOCAB) == set()  # whole words only
+
+
+# ---------------------------------------------------------------------------------------- template
+
+
+def test_template_is_deterministic_and_lexically_varied():
+    texts = {compose(_req(seed=s, style=st, structure=sc, tone=t))
+             for s in range(6) for st in ("r2r", "reverie", "demand")
+             for sc in ("sequential", "landmark_first", "compact") for t in ("neutral", "polite", "terse")}
+    assert len(texts) > 60
+    assert compose(_req(seed=4)) == compose(_req(seed=4))
+    vocab = {w for t in texts for w in t.lower().split()}
+    assert len(vocab) > 80
+
+
+def test_template_names_only_allowed_objects():
+    for s in range(40):
+        for style in ("r2r", "reverie", "demand"):
+            req = _req(seed=s, style=style)
+            assert hallucinated_objects(compose(req), req.allowed_objects, VOCAB) == set(), compose(req)
+
+
+def test_template_styles_differ_in_form():
+    r2r = compose(_req(style="r2r", structure="sequential", seed=1))
+    rev = [compose(_req(style="reverie", seed=s)) for s in range(10)]
+    assert "fridge" in r2r.lower()
+    assert any(" be " in t or "has been" in t or "is to be" in t for t in rev)  # passive voice
+
+
+def test_style_router_mix():
+    rng = np.random.default_rng(0)
+    draws = [route_style(rng)[0] for _ in range(3000)]
+    frac = {s: draws.count(s) / len(draws) for s in ("r2r", "reverie", "demand")}
+    assert abs(frac["r2r"] - 0.4) < 0.04 and abs(frac["reverie"] - 0.3) < 0.04
+
+
+def test_prompt_interleaves_images_and_movements():
+    img = np.zeros((4, 8, 3), np.uint8)
+    msgs = build_messages(_req(images=[img] * 4))
+    parts = msgs[1]["content"]
+    kinds = [p["type"] if p["type"] == "image" else p["text"].split("]")[0] + "]" for p in parts[:-1]]
+    assert kinds == ["[image 1]", "image", "[movement 1]", "[image 2]", "image", "[movement 2]",
+                     "[image 3]", "image", "[movement 3]", "[image 4]", "image", "[STOP]"]
+    assert "VERDICT" in msgs[0]["content"] and "REASONING" in msgs[0]["content"]
+
+
+def test_unknown_annotator_and_options_are_rejected():
+    with pytest.raises(ValueError, match="unknown annotator"):
+        build_annotator("gpt")
+    with pytest.raises(ValueError, match="unknown option"):
+        build_annotator("openai", base_urll="http://x")
+    assert isinstance(build_annotator("template"), TemplateAnnotator)
+
+
+# ------------------------------------------------------------------------------ openai on loopback
+
+
+class _Server:
+    """A minimal chat-completions server; ``script`` maps the n-th request to (status, reply or delay)."""
+
+    def __init__(self, script):
+        self.script = script
+        self.requests: list[dict] = []
+        self.lock = threading.Lock()
+        self.in_flight = 0
+        self.max_in_flight = 0
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args):  # keep pytest output clean
+                pass
+
+            def do_POST(self):
+                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+                with outer.lock:
+                    n = len(outer.requests)
+                    outer.requests.append(body)
+                    outer.in_flight += 1
+                    outer.max_in_flight = max(outer.max_in_flight, outer.in_flight)
+                try:
+                    status, payload = outer.script(n, body)
+                    if status == "sleep":
+                        time.sleep(payload)
+                        status, payload = 200, "VERDICT: VALID\nINSTRUCTION: late."
+                    if status != 200:
+                        self.send_response(status)
+                        self.end_headers()
+                        return
+                    data = json.dumps({"choices": [{"message": {"role": "assistant", "content": payload}}]}).encode()
+                    self.send_response(200)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(data)))
+                    self.end_headers()
+                    self.wfile.write(data)
+                except (BrokenPipeError, ConnectionResetError):
+                    pass
+                finally:
+                    with outer.lock:
+                        outer.in_flight -= 1
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+@pytest.fixture
+def server_factory():
+    servers = []
+
+    def make(script):
+        s = _Server(script)
+        servers.append(s)
+        return s
+
+    yield make
+    for s in servers:
+        s.close()
+
+
+GOOD = "REASONING: the frames move, no INVALID geometry.\nVERDICT: VALID\nISSUES: none\nINSTRUCTION: Walk past the sofa and stop at the fridge."
+
+
+def _ann(url, **kw):
+    opts = dict(base_url=url, timeout=2.0, retries=2, backoff=0.01, max_concurrency=2, batch_size=4, max_attempts=2)
+    opts.update(kw)
+    return OpenAIAnnotator(OpenAIConfig(**opts), VOCAB)
+
+
+def test_openai_sends_images_and_accepts_valid_reply(server_factory):
+    srv = server_factory(lambda n, body: (200, GOOD))
+    img = np.full((6, 10, 3), 200, np.uint8)
+    out = _ann(srv.url).annotate([_req(images=[img] * 4)])
+    assert out[0].accepted and out[0].text == "Walk past the sofa and stop at the fridge."
+    parts = srv.requests[0]["messages"][1]["content"]
+    urls = [p["image_url"]["url"] for p in parts if p["type"] == "image_url"]
+    assert len(urls) == 4 and all(u.startswith("data:image/png;base64,") for u in urls)
+    import base64
+
+    import cv2
+
+    dec = cv2.imdecode(np.frombuffer(base64.b64decode(urls[0].split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+    assert dec.shape == (6, 10, 3) and int(dec[0, 0, 0]) == 200
+
+
+def test_openai_retries_5xx_then_succeeds(server_factory):
+    srv = server_factory(lambda n, body: (503, "") if n < 2 else (200, GOOD))
+    out = _ann(srv.url).annotate([_req()])
+    assert out[0].accepted and len(srv.requests) == 3
+
+
+def test_openai_does_not_retry_4xx(server_factory):
+    srv = server_factory(lambda n, body: (400, ""))
+    out = _ann(srv.url, max_attempts=1).annotate([_req()])
+    assert not out[0].accepted and "400" in out[0].reason and len(srv.requests) == 1
+
+
+def test_openai_timeout_is_retried(server_factory):
+    srv = server_factory(lambda n, body: ("sleep", 1.5) if n == 0 else (200, GOOD))
+    t0 = time.perf_counter()
+    out = _ann(srv.url, timeout=0.3).annotate([_req()])
+    assert out[0].accepted and len(srv.requests) == 2
+    assert time.perf_counter() - t0 < 1.5  # the client did not wait for the slow answer
+
+
+def test_openai_gives_up_after_retries(server_factory):
+    srv = server_factory(lambda n, body: (500, ""))
+    ann = _ann(srv.url, retries=1, max_attempts=2)
+    with pytest.raises(TransportError, match="giving up after 2"):
+        ann.complete(build_messages(_req()))
+    out = ann.annotate([_req()])
+    assert not out[0].accepted and out[0].reason.startswith("transport")
+
+
+def test_malformed_reply_is_retried_then_dropped_with_reason(server_factory):
+    srv = server_factory(lambda n, body: (200, "I think this is fine."))
+    out = _ann(srv.url, max_attempts=3).annotate([_req()])
+    assert not out[0].accepted and out[0].reason == "malformed: no VERDICT field" and out[0].attempts == 3
+    assert len(srv.requests) == 3
+    srv2 = server_factory(lambda n, body: (200, "no verdict") if n == 0 else (200, GOOD))
+    out = _ann(srv2.url).annotate([_req()])
+    assert out[0].accepted and out[0].attempts == 2
+
+
+def test_invalid_verdict_rejects_without_retry(server_factory):
+    srv = server_factory(lambda n, body: (200, "REASONING: frozen frames.\nVERDICT: INVALID\nISSUES: visual_freezing\nINSTRUCTION: x"))
+    out = _ann(srv.url).annotate([_req()])
+    assert not out[0].accepted and "visual_freezing" in out[0].reason and len(srv.requests) == 1
+
+
+def test_hallucinating_reply_is_retried_then_dropped(server_factory):
+    bad = "VERDICT: VALID\nINSTRUCTION: Walk past the bed to the fridge."
+    srv = server_factory(lambda n, body: (200, bad))
+    out = _ann(srv.url, max_attempts=2).annotate([_req()])
+    assert not out[0].accepted and "bed" in out[0].reason
+
+
+def test_concurrency_cap_and_order(server_factory):
+    srv = server_factory(lambda n, body: ("sleep", 0.1))
+    reqs = [_req(eid=f"e{i}") for i in range(7)]
+    out = _ann(srv.url, max_concurrency=3, batch_size=5, timeout=5).annotate(reqs)
+    assert [a.episode_id for a in out] == [f"e{i}" for i in range(7)]
+    assert all(a.accepted for a in out)
+    assert 1 < srv.max_in_flight <= 3
