@@ -62,10 +62,11 @@ def test_ray_march_matches_slow_reference():
     w, m, g, _ = setup("L")
     heights, masks = m.blocked_stack()
     rng = np.random.default_rng(0)
-    a = g.nodes[rng.integers(0, g.num_nodes, 300)]
-    b = a + np.column_stack((rng.uniform(-0.6, 0.6, (300, 2)), np.zeros(300)))
+    a = g.nodes[rng.integers(0, g.num_nodes, 120)]
+    b = a + np.column_stack((rng.uniform(-0.6, 0.6, (120, 2)), np.zeros(120)))
     fast = ray_march_free(a, b, masks, heights, m.origin, m.voxel_size, 0.025)
-    for k in range(300):
+    assert 0 < fast.sum() < len(fast)  # both outcomes are exercised
+    for k in range(120):
         n = int(max(2, np.ceil(np.linalg.norm(b[:, :2] - a[:, :2], axis=1).max() / 0.025) + 1))
         free = True
         for t in np.linspace(0, 1, n):
@@ -138,7 +139,7 @@ def test_planner_uses_directed_weights_parity_with_reference():
 @pytest.mark.parametrize("name", ["gap", "L", "rooms"])
 def test_planned_paths_stay_in_free_known_space(name):
     w, m, g, pl = setup(name)
-    for a, b in random_pairs(g, 20, seed=3):
+    for a, b in random_pairs(g, 8, seed=3):
         res = pl.shortest_path(g.nodes[a], g.nodes[b])
         assert res.reachable
         pts = res.waypoints
@@ -150,7 +151,12 @@ def test_planned_paths_stay_in_free_known_space(name):
 @pytest.mark.parametrize("name", ["box", "gap", "L", "stairs"])
 def test_geodesic_is_at_least_euclidean(name):
     _, _, g, pl = setup(name)
-    for a, b in random_pairs(g, 30, seed=4):
+    # One Dijkstra per source covers many targets: the distance field of a node is its geodesics.
+    for a, _ in random_pairs(g, 3, seed=4):
+        field = pl.distance_field(g.nodes[a])
+        d = field.node_distance
+        assert np.all(d + 1e-9 >= np.linalg.norm(g.nodes - g.nodes[a], axis=1))
+    for a, b in random_pairs(g, 5, seed=4):
         geo, why = pl.geodesic_distance(g.nodes[a], g.nodes[b])
         assert not why
         assert geo >= np.linalg.norm(g.nodes[a] - g.nodes[b]) - 1e-9
@@ -159,12 +165,12 @@ def test_geodesic_is_at_least_euclidean(name):
 def test_geodesic_close_to_euclidean_in_an_empty_room():
     _, _, g, pl = setup("box")
     ratios = []
-    for a, b in random_pairs(g, 40, seed=5):
-        e = np.linalg.norm(g.nodes[a] - g.nodes[b])
-        if e > 1.0:
-            geo, _ = pl.geodesic_distance(g.nodes[a], g.nodes[b])
-            ratios.append(geo / e)
-    assert len(ratios) > 20 and max(ratios) <= 1.03
+    for a, _ in random_pairs(g, 4, seed=5):
+        d = pl.distance_field(g.nodes[a]).node_distance
+        e = np.linalg.norm(g.nodes - g.nodes[a], axis=1)
+        far = e > 1.0
+        ratios.append((d[far] / e[far]).max())
+    assert max(ratios) <= 1.03, ratios
 
 
 def test_distance_field_matches_point_queries():
@@ -248,7 +254,13 @@ def run_follower(name: str, n_pairs: int, seed: int):
     return ok / n_pairs, collided
 
 
+@pytest.mark.slow  # 200 episodes: ~25 s on the shared machine
 def test_oracle_follower_reaches_goals_without_collisions():
     rate, collisions = run_follower("rooms", 200, seed=9)
     assert rate >= 0.99
     assert collisions == 0
+
+
+def test_oracle_follower_smoke():
+    rate, collisions = run_follower("gap", 15, seed=10)
+    assert rate == 1.0 and collisions == 0

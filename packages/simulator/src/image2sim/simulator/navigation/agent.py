@@ -27,6 +27,9 @@ from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
 __all__ = ["AgentState", "StepInfo", "CollisionWorld", "Kinematics", "StuckDetector", "Agent", "wrap_angle"]
 
 _EPS = 1e-9
+_HEAD_ON = math.sin(math.radians(5.0))
+"""Below 5 degrees of incidence a wall counts as head-on: no slide (the normal from a voxelised
+surface's centroid is only accurate to a few degrees)."""
 
 
 def wrap_angle(a: float) -> float:
@@ -174,7 +177,7 @@ class Kinematics:
         # Tangent perpendicular to the normal on the side the heading points to.
         tangent = -math.copysign(1.0, cross) * np.array([-normal[1], normal[0]])
         along = float(h @ tangent)
-        if along <= 1e-3:  # head-on: nothing to slide along
+        if along <= _HEAD_ON:  # head-on: nothing to slide along
             return None
         target = pos[:2] + delta * along * tangent
         ok, z, _ = self.world.check(target, pos[2])
