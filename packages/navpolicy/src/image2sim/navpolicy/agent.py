@@ -83,6 +83,7 @@ class Image2NavAgent:
         self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._cache = None
         self._cache_keys: list[tuple] = []
+        self._rope_cache: torch.Tensor | None = None
         self.history = []
 
     def _image(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,16 +107,14 @@ class Image2NavAgent:
         return idx, turns
 
     # ------------------------------------------------------------------------------------ model I/O
-    def _positions(self, ids: list[int], mm: list[int], grids: torch.Tensor | None) -> torch.Tensor:
-        """(4, 1, L) position ids: the plain token index (for the causal mask) + 3-D M-RoPE."""
-        t_ids = torch.tensor([ids])
-        text = torch.arange(len(ids)).view(1, 1, -1)
+    def _rope(self, ids: list[int], mm: list[int], grids: torch.Tensor | None) -> torch.Tensor:
+        """(3, L) M-RoPE positions of a token sequence that starts at position 0."""
         if grids is None:
-            return text.expand(4, 1, -1)
+            return torch.arange(len(ids)).view(1, -1).expand(3, -1)
         rope, _ = self.qwen.model.get_rope_index(
-            t_ids, mm_token_type_ids=torch.tensor([mm]), image_grid_thw=grids
+            torch.tensor([ids]), mm_token_type_ids=torch.tensor([mm]), image_grid_thw=grids
         )
-        return torch.cat([text, rope], dim=0)
+        return rope[:, 0]
 
     def _run(self, ids, mm, keys, frame_idx: list[int], start: int):
         """Feed tokens ``[start:]`` given a cache holding ``[:start]``; returns last-position logits."""
@@ -131,8 +130,6 @@ class Image2NavAgent:
             excess = self._cache.get_seq_length() - start
             if excess > 0:
                 self._cache.crop(-excess)
-        grids = torch.cat([self._image(k)[1] for k in frame_idx]) if frame_idx else None
-        pos = self._positions(ids, mm, grids)[:, :, start:]
         # Images whose tokens are new (blocks are contiguous and in frame order).
         new_frames, seen = [], set()
         for j in range(start, len(keys)):
@@ -140,10 +137,24 @@ class Image2NavAgent:
             if mm[j] == IMAGE_TOKEN and fk not in seen:
                 seen.add(fk)
                 new_frames.append(fk)
+        new_grids = torch.cat([self._image(k)[1] for k in new_frames]) if new_frames else None
+        if start > 0 and self.cfg.reuse_cache and self._rope_cache is not None:
+            # Qwen3-VL positions continue at max(previous) + 1 after any text or image group, so the
+            # suffix's positions are its own, shifted; the cached prefix's positions are unchanged.
+            prefix = self._rope_cache[:, :start]
+            rope = torch.cat(
+                [prefix, self._rope(ids[start:], mm[start:], new_grids) + int(prefix.max()) + 1], 1
+            )
+        else:
+            grids = torch.cat([self._image(k)[1] for k in frame_idx]) if frame_idx else None
+            rope = self._rope(ids, mm, grids)
+        self._rope_cache = rope
+        text = torch.arange(start, len(ids)).view(1, 1, -1)  # plain index: drives the causal mask
+        pos = torch.cat([text, rope[:, None, start:]], dim=0)
         kwargs = {}
         if new_frames:
             kwargs["pixel_values"] = torch.cat([self._image(k)[0] for k in new_frames])
-            kwargs["image_grid_thw"] = torch.cat([self._image(k)[1] for k in new_frames])
+            kwargs["image_grid_thw"] = new_grids
         out = self.qwen(
             input_ids=torch.tensor([ids[start:]]),
             mm_token_type_ids=torch.tensor([mm[start:]]),
