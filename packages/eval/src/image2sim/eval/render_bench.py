@@ -1,0 +1,326 @@
+"""Rendering benchmark, the protocol of the paper's Table 1: splat-only vs pixel flow with 1/2/4/8 steps.
+
+Held-out target panoramas (every ``holdout_every``-th frame of each capture, the split of
+``image2sim sim train`` / ``sim renderer-eval``) are turned into splat-like conditions at three noise
+tiers (none / middle / high) and rendered by each method:
+
+* ``splat_only``: the projected RGB-D prior, no network (the renderer's ``no_pixel_flow`` switch);
+* ``flow_{n}step``: the pixel-flow renderer sampled in ``n`` network evaluations;
+* ablations: further checkpoints trained with a Table-4 switch (``no_semantic``, ``no_alpha_gate``,
+  ``no_distill``), scored at one step as ``ablation_<switch>``.
+
+Every view is scored with :func:`image2sim.eval.render_scores.score_views` (PSNR, SSIM of Wang et al.,
+LPIPS when weights are configured else n/a, depth AbsRel / RMSE / δ<1.25); frame rate comes from
+:func:`image2sim.eval.metrics.timing.measure_fps` (median over timed runs **after** warm-up).
+
+The data path (targets, split, degradations, checkpoint format) is the renderer's own
+(:mod:`image2sim.simulator.renderer`), reused rather than re-implemented, so ``sim renderer-eval``
+and this benchmark evaluate the same views. Until cached splats of Gaussian scenes are wired in, the
+conditions are the renderer's :class:`~image2sim.simulator.renderer.data.DegradedPanoramaDataset`
+degradations, with the tier's noise levels below; the output records this as ``condition_source``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from image2sim.eval.metrics.lpips import LPIPS
+from image2sim.eval.metrics.timing import hardware_string, measure_fps
+from image2sim.eval.render_scores import RenderCell, score_views, summarize_views
+from image2sim.eval.results import write_json_atomic
+
+__all__ = [
+    "HEADLINE_METHODS",
+    "NOISE_TIERS",
+    "RenderBenchConfig",
+    "RenderBenchError",
+    "MethodFn",
+    "benchmark_methods",
+    "load_renderer",
+    "method_record",
+    "run_render_bench",
+]
+
+HEADLINE_METHODS = ("splat_only", "flow_1step", "flow_2step", "flow_4step", "flow_8step")
+"""Method names ``metrics/render.json`` always carries (outside checks read them)."""
+
+NOISE_TIERS: Mapping[str, Mapping[str, Any]] = {
+    # Clean projections: holes only (what splatting a perfect reconstruction leaves).
+    "none": {"rgb_noise": 0.0, "depth_noise": 0.0, "hole_fraction": (0.2, 0.5)},
+    # The renderer's default degradation (its docstring: the procedural 'middle' tier).
+    "middle": {"rgb_noise": 0.05, "depth_noise": 0.02, "hole_fraction": (0.2, 0.5)},
+    # Twice the noise and larger holes.
+    "high": {"rgb_noise": 0.10, "depth_noise": 0.05, "hole_fraction": (0.35, 0.65)},
+}
+"""DegradeConfig overrides per noise tier."""
+
+ABLATIONS = ("no_semantic", "no_alpha_gate", "no_distill")
+"""Table-4 switches that need their own trained checkpoint."""
+
+MethodFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""``fn(condition (B, 24, H, W), poses (B, 4, 4)) -> (rgb (B, 3, H, W), depth (B, 1, H, W))``."""
+
+
+class RenderBenchError(ValueError):
+    """Bad benchmark configuration (message names the field)."""
+
+
+@dataclass
+class RenderBenchConfig:
+    """One rendering benchmark run."""
+
+    renderer_config: str = "tiny"
+    """Renderer preset name or YAML file (the one the checkpoint was trained with)."""
+    checkpoint: str | None = None
+    """Lightning checkpoint of the renderer; None = an untrained model (recorded as ``trained: false``)."""
+    data: list[str] = field(default_factory=list)
+    """Capture folders with target panoramas; empty = the renderer's procedural box-room panoramas."""
+    holdout_every: int = 8
+    """Every n-th frame is a held-out target (the training split of ``sim train``)."""
+    max_frames: int | None = None
+    """At most this many frames per capture (None = all)."""
+    max_views: int | None = None
+    """Score at most this many held-out views per tier (None = all)."""
+    steps: list[int] = field(default_factory=lambda: [1, 2, 4, 8])
+    """Pixel-flow step counts (each gives ``flow_{n}step``)."""
+    tiers: list[str] = field(default_factory=lambda: list(NOISE_TIERS))
+    """Noise tiers to evaluate (keys of :data:`NOISE_TIERS`)."""
+    ablations: dict[str, str] = field(default_factory=dict)
+    """Ablation switch -> checkpoint trained with it (scored at one step as ``ablation_<switch>``)."""
+    lpips_weights: str | None = None
+    """LPIPS weight file (safetensors); None = LPIPS reported as n/a."""
+    warmup: int = 2
+    """Untimed calls before the FPS measurement."""
+    runs: int = 5
+    """Timed calls (FPS = 1 / median)."""
+    threads: int = 1
+    """torch threads during the benchmark."""
+    seed: int = 12345
+    """Degradation seed (differs from every training sample's, as in ``sim renderer-eval``)."""
+
+    def __post_init__(self) -> None:
+        if self.holdout_every < 1:
+            raise RenderBenchError(f"holdout_every must be >= 1, got {self.holdout_every}")
+        if not self.steps or any(int(s) < 1 for s in self.steps):
+            raise RenderBenchError(f"steps must be positive integers, got {self.steps}")
+        unknown = [t for t in self.tiers if t not in NOISE_TIERS]
+        if unknown or not self.tiers:
+            raise RenderBenchError(f"tiers: unknown {unknown} (known: {list(NOISE_TIERS)})")
+        bad = [a for a in self.ablations if a not in ABLATIONS]
+        if bad:
+            raise RenderBenchError(f"ablations: unknown switch(es) {bad} (known: {list(ABLATIONS)})")
+        if self.warmup < 0 or self.runs < 1 or self.threads < 1:
+            raise RenderBenchError("need warmup >= 0, runs >= 1, threads >= 1")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str = "render bench config") -> RenderBenchConfig:
+        """Build from a mapping; unknown keys are an error naming them."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise RenderBenchError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(names)}")
+        return cls(**dict(data))
+
+
+def load_renderer(cfg: Any, checkpoint: str | Path | None):
+    """A :class:`PixelFlowRenderer` in eval mode; weights from a Lightning checkpoint of ``sim train``."""
+    from image2sim.simulator.renderer.model import PixelFlowRenderer
+
+    model = PixelFlowRenderer(cfg)
+    if checkpoint is not None:
+        path = Path(checkpoint)
+        if not path.is_file():
+            raise RenderBenchError(f"checkpoint {path}: file not found")
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if "state_dict" not in state:
+            raise RenderBenchError(f"checkpoint {path}: no 'state_dict' (not a `sim train` checkpoint)")
+        sd = {k[len("renderer.") :]: v for k, v in state["state_dict"].items() if k.startswith("renderer.")}
+        if not sd:
+            raise RenderBenchError(f"checkpoint {path}: no 'renderer.*' weights")
+        model.load_state_dict(sd)
+    return model.eval()
+
+
+def _methods(cfg: Any, bench: RenderBenchConfig) -> dict[str, MethodFn]:
+    """The benchmark's methods as render functions (splat-only, n-step flow, ablations)."""
+    from image2sim.simulator.renderer.config import load_renderer_config
+
+    def as_fn(model, steps: int) -> MethodFn:
+        def fn(cond: torch.Tensor, poses: torch.Tensor):
+            out = model.render(cond, steps=steps, poses=list(poses))
+            return out.rgb, out.depth
+
+        return fn
+
+    splat = load_renderer(replace(cfg, ablation=replace(cfg.ablation, no_pixel_flow=True)), None)
+    methods: dict[str, MethodFn] = {"splat_only": as_fn(splat, 1)}
+    flow = load_renderer(cfg, bench.checkpoint)
+    for n in sorted({int(s) for s in bench.steps}):
+        methods[f"flow_{n}step"] = as_fn(flow, n)
+    for switch, ckpt in bench.ablations.items():
+        acfg = load_renderer_config(bench.renderer_config)
+        acfg = replace(acfg, ablation=replace(acfg.ablation, **{switch: True}))
+        methods[f"ablation_{switch}"] = as_fn(load_renderer(acfg, ckpt), 1)
+    return methods
+
+
+def _tier_samples(held: list, tier: str, seed: int, max_views: int | None) -> list[dict]:
+    """Conditions of the held-out targets under one noise tier (the renderer's degradations)."""
+    from image2sim.simulator.renderer.data import DegradeConfig, DegradedPanoramaDataset
+
+    n = len(held) if max_views is None else min(len(held), int(max_views))
+    dcfg = DegradeConfig(seed=seed, **dict(NOISE_TIERS[tier]))
+    ds = DegradedPanoramaDataset(held[:n], n, dcfg)
+    return [ds[i] for i in range(n)]
+
+
+def benchmark_methods(
+    methods: Mapping[str, MethodFn],
+    samples_by_tier: Mapping[str, Sequence[dict]],
+    *,
+    warmup: int = 2,
+    runs: int = 5,
+    lpips_model: LPIPS | None = None,
+    progress: Callable[[], None] | None = None,
+) -> dict[str, dict[str, RenderCell]]:
+    """Score every method on every tier's samples; FPS on the first sample, timed after ``warmup`` calls.
+
+    ``samples`` are dicts with ``condition`` (24, H, W), ``target_rgb`` (3, H, W), ``target_depth``
+    (1, H, W) and ``index``; the pose of sample ``i`` is a translation by ``i`` metres along x (the
+    renderer seeds its noise by pose, so repeated runs give identical images).
+    """
+    out: dict[str, dict[str, RenderCell]] = {}
+    for tier, samples in samples_by_tier.items():
+        if not samples:
+            raise RenderBenchError(f"tier {tier!r}: no held-out views")
+        for name, fn in methods.items():
+            # Time first: the warm-up calls are the method's very first calls (JIT, allocator, caches).
+            cond0 = samples[0]["condition"][None]
+            pose0 = torch.eye(4, dtype=torch.float64)[None]
+            with torch.no_grad():
+                timing = measure_fps(lambda: fn(cond0, pose0), warmup=warmup, runs=runs)
+            records = []
+            for s in samples:
+                pose = torch.eye(4, dtype=torch.float64)
+                pose[0, 3] = float(s["index"])
+                with torch.no_grad():
+                    rgb, depth = fn(s["condition"][None], pose[None])
+                records += score_views(
+                    [f"{tier}/{s['index']}"],
+                    rgb.float(),
+                    s["target_rgb"][None].float(),
+                    pred_depth=depth.float(),
+                    target_depth=s["target_depth"][None].float(),
+                    lpips_model=lpips_model,
+                )
+                if progress is not None:
+                    progress()
+            out.setdefault(name, {})[tier] = summarize_views(records, timing.fps, timing.hardware)
+    return out
+
+
+def _mean(cells: Sequence[RenderCell], key: str) -> tuple[float | None, int]:
+    """View-weighted mean of one metric over tiers (n/a if any tier has it n/a)."""
+    total, n = 0.0, 0
+    for c in cells:
+        s = c.metrics.get(key)
+        if s is None or s.mean is None:
+            return None, 0
+        total += s.mean * s.count
+        n += s.count
+    return (total / n if n else None), n
+
+
+def method_record(cells: Mapping[str, RenderCell]) -> dict[str, Any]:
+    """Headline record of one method: view-weighted means over the tiers, median FPS, per-tier detail."""
+    cs = list(cells.values())
+    rec: dict[str, Any] = {}
+    for key, out_key in (("psnr", "psnr"), ("ssim", "ssim"), ("lpips", "lpips"), ("abs_rel", "depth_absrel"),
+                         ("rmse", "depth_rmse"), ("delta1", "depth_delta1")):
+        value, _ = _mean(cs, key)
+        rec[out_key] = None if value is None or not math.isfinite(value) else float(value)
+    fps = sorted(c.fps for c in cs if c.fps is not None)
+    rec["fps"] = fps[len(fps) // 2] if fps else None
+    rec["n_views"] = int(sum(c.num_views for c in cs))
+    rec["tiers"] = {
+        tier: {
+            "psnr": c.metrics["psnr"].mean,
+            "ssim": c.metrics["ssim"].mean,
+            "lpips": c.metrics["lpips"].mean,
+            "depth_absrel": c.metrics["abs_rel"].mean if "abs_rel" in c.metrics else None,
+            "fps": c.fps,
+            "n_views": c.num_views,
+        }
+        for tier, c in cells.items()
+    }
+    return rec
+
+
+def run_render_bench(bench: RenderBenchConfig, out_json: str | Path, show_progress: bool = True) -> dict[str, Any]:
+    """Run the benchmark and write ``metrics/render.json`` (atomic); returns the document."""
+    from image2sim.simulator.renderer.cli import _split, _targets  # the renderer's own split and sources
+    from image2sim.simulator.renderer.config import config_to_dict, load_renderer_config
+
+    torch.set_num_threads(bench.threads)
+    cfg = load_renderer_config(bench.renderer_config)
+    targets = _targets([Path(d) for d in bench.data], cfg.height, cfg.width, bench.max_frames)
+    _, held = _split(targets, bench.holdout_every)
+    if not held:
+        raise RenderBenchError(
+            f"no held-out views: {len(targets)} targets with holdout_every={bench.holdout_every}"
+        )
+    lpips_model = None
+    if bench.lpips_weights:
+        from image2sim.eval.metrics.lpips import load_lpips
+
+        lpips_model = load_lpips(bench.lpips_weights)
+    methods = _methods(cfg, bench)
+    samples = {t: _tier_samples(held, t, bench.seed, bench.max_views) for t in bench.tiers}
+    bar = None
+    advance = None
+    if show_progress:
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        bar.start()
+        task = bar.add_task("render bench", total=len(methods) * sum(len(s) for s in samples.values()))
+
+        def advance() -> None:
+            bar.advance(task)
+
+    try:
+        cells = benchmark_methods(methods, samples, warmup=bench.warmup, runs=bench.runs,
+                                  lpips_model=lpips_model, progress=advance)
+    finally:
+        if bar is not None:
+            bar.stop()
+    doc = {
+        "protocol": {
+            "name": "image2sim-table1",
+            "renderer_config": cfg.name,
+            "resolution": [cfg.height, cfg.width],
+            "checkpoint": bench.checkpoint,
+            "trained": bench.checkpoint is not None,
+            "data": list(bench.data) or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
+            "holdout_every": bench.holdout_every,
+            "held_out_views": len(held),
+            "tiers": {t: dict(NOISE_TIERS[t]) for t in bench.tiers},
+            "condition_source": "renderer.data.DegradedPanoramaDataset (splat-like degradation of the target)",
+            "fps": {"warmup": bench.warmup, "runs": bench.runs, "statistic": "median after warm-up",
+                    "threads": bench.threads, "batch": 1, "hardware": hardware_string()},
+            "lpips": "configured" if lpips_model is not None else "n/a (no weights configured)",
+            "config": asdict(bench),
+            "renderer": config_to_dict(cfg),
+        },
+        "methods": {name: method_record(c) for name, c in cells.items()},
+    }
+    missing = [m for m in HEADLINE_METHODS if m not in doc["methods"]]
+    if missing:
+        doc["protocol"]["not_evaluated"] = missing
+    write_json_atomic(out_json, doc)
+    return doc

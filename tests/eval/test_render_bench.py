@@ -1,0 +1,169 @@
+"""Rendering benchmark: scores against a slow reference, FPS after warm-up, render.json layout, plot."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+import torch
+from image2sim.eval.plots import plot_speed_vs_error, speed_points
+from image2sim.eval.render_bench import (
+    HEADLINE_METHODS,
+    NOISE_TIERS,
+    RenderBenchConfig,
+    RenderBenchError,
+    _tier_samples,
+    benchmark_methods,
+    load_renderer,
+    method_record,
+    run_render_bench,
+)
+
+
+@pytest.fixture(scope="module")
+def held():
+    from image2sim.simulator.renderer.data import smooth_test_panorama
+
+    return [smooth_test_panorama(32, 64, seed=i) for i in range(3)]
+
+
+def _splat_only():
+    from dataclasses import replace
+
+    from image2sim.simulator.renderer.config import load_renderer_config
+
+    cfg = load_renderer_config("tiny")
+    model = load_renderer(replace(cfg, ablation=replace(cfg.ablation, no_pixel_flow=True)), None)
+
+    def fn(cond, poses):
+        out = model.render(cond, steps=1, poses=list(poses))
+        return out.rgb, out.depth
+
+    return fn
+
+
+def _reference_psnr_absrel(pred_rgb, pred_depth, rgb, depth):
+    """Slow textbook reference: per-view PSNR and depth AbsRel over valid target pixels, in float64."""
+    p, t = pred_rgb.double().numpy(), rgb.double().numpy()
+    mse = ((p - t) ** 2).mean()
+    psnr = 10 * math.log10(1.0 / mse)
+    pd, td = pred_depth.double().numpy().ravel(), depth.double().numpy().ravel()
+    valid = td > 0
+    return psnr, float(np.mean(np.abs(pd[valid] - td[valid]) / td[valid]))
+
+
+def test_scores_match_a_slow_reference_and_tiers_order_the_error(held):
+    samples = {t: _tier_samples(held, t, seed=3, max_views=None) for t in ("none", "high")}
+    fn = _splat_only()
+    cells = benchmark_methods({"splat_only": fn}, samples, warmup=0, runs=1)
+    for tier, ss in samples.items():
+        refs = []
+        for s in ss:
+            rgb, depth = fn(s["condition"][None], torch.eye(4, dtype=torch.float64)[None])
+            refs.append(_reference_psnr_absrel(rgb[0], depth[0], s["target_rgb"], s["target_depth"]))
+        cell = cells["splat_only"][tier]
+        assert cell.num_views == len(held)
+        assert cell.metrics["psnr"].mean == pytest.approx(np.mean([r[0] for r in refs]), rel=1e-4)
+        assert cell.metrics["abs_rel"].mean == pytest.approx(np.mean([r[1] for r in refs]), rel=1e-4)
+        assert cell.metrics["lpips"].mean is None  # no weights configured: n/a, never 0
+    # More noise and larger holes in the high tier -> a worse splat prior.
+    assert cells["splat_only"]["high"].metrics["psnr"].mean < cells["splat_only"]["none"].metrics["psnr"].mean
+
+
+def test_a_perfect_method_scores_infinite_psnr_and_zero_depth_error(held):
+    samples = {"none": _tier_samples(held, "none", seed=0, max_views=2)}
+
+    def oracle(cond, poses):
+        # Finds the sample by condition identity (the benchmark passes views unchanged).
+        s = next(v for v in samples["none"] if torch.equal(v["condition"], cond[0]))
+        return s["target_rgb"][None], s["target_depth"][None]
+
+    cells = benchmark_methods({"perfect": oracle}, samples, warmup=0, runs=1)
+    rec = method_record(cells["perfect"])
+    assert rec["psnr"] is None  # +inf is not a finite headline number: reported as null
+    assert cells["perfect"]["none"].metrics["psnr"].mean == math.inf
+    assert rec["ssim"] == pytest.approx(1.0) and rec["depth_absrel"] == 0.0 and rec["depth_delta1"] == 1.0
+
+
+def test_fps_excludes_warm_up_calls(held):
+    samples = {"none": _tier_samples(held, "none", seed=0, max_views=1)}
+    calls = {"n": 0}
+
+    def slow_start(cond, poses):
+        calls["n"] += 1
+        time.sleep(0.25 if calls["n"] <= 2 else 0.002)  # the first two calls pay a one-off cost
+        return cond[:, 16:19], cond[:, 19:20]
+
+    warm = benchmark_methods({"m": slow_start}, samples, warmup=2, runs=5)["m"]["none"]
+    assert warm.fps > 40  # ~ 1 / 0.002 s minus overhead; with the warm-up timed it would be < 4
+    calls["n"] = 0
+    cold = benchmark_methods({"m": slow_start}, samples, warmup=0, runs=3)["m"]["none"]
+    assert cold.fps < warm.fps  # the median of (0.25, 0.25, 0.002) s: the one-off cost shows
+    assert cold.fps < 10
+
+
+def test_method_record_weights_tiers_by_views(held):
+    s_none = _tier_samples(held, "none", seed=0, max_views=3)
+    s_high = _tier_samples(held, "high", seed=0, max_views=1)
+    cells = benchmark_methods({"splat_only": _splat_only()}, {"none": s_none, "high": s_high}, warmup=0, runs=1)
+    c = cells["splat_only"]
+    rec = method_record(c)
+    expect = (3 * c["none"].metrics["psnr"].mean + 1 * c["high"].metrics["psnr"].mean) / 4
+    assert rec["psnr"] == pytest.approx(expect)
+    assert rec["n_views"] == 4 and set(rec["tiers"]) == {"none", "high"}
+    for key in ("psnr", "ssim", "depth_absrel", "fps", "n_views"):
+        assert key in rec
+
+
+def test_config_validation():
+    with pytest.raises(RenderBenchError, match="unknown key"):
+        RenderBenchConfig.from_dict({"stepz": [1]})
+    with pytest.raises(RenderBenchError, match="tiers"):
+        RenderBenchConfig(tiers=["extreme"])
+    with pytest.raises(RenderBenchError, match="ablations"):
+        RenderBenchConfig(ablations={"no_magic": "x.ckpt"})
+    with pytest.raises(RenderBenchError, match="steps"):
+        RenderBenchConfig(steps=[0])
+    assert set(NOISE_TIERS) == {"none", "middle", "high"}
+    with pytest.raises(RenderBenchError, match="not found"):
+        from image2sim.simulator.renderer.config import load_renderer_config
+
+        load_renderer(load_renderer_config("tiny"), "/nonexistent.ckpt")
+
+
+def test_speed_points_and_plot(tmp_path):
+    doc = {
+        "protocol": {"resolution": [128, 256]},
+        "methods": {
+            "flow_2step": {"fps": 2.0, "psnr": 25.0},
+            "splat_only": {"fps": 500.0, "psnr": 18.0},
+            "flow_1step": {"fps": 4.0, "psnr": 24.0},
+            "ablation_no_semantic": {"fps": 4.0, "psnr": None},
+        },
+    }
+    pts = speed_points(doc)
+    assert [p.method for p in pts] == ["flow_1step", "flow_2step", "splat_only"]
+    assert pts[0].steps == 1 and pts[-1].steps is None
+    out = plot_speed_vs_error(doc, tmp_path / "plots" / "speed.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="methods"):
+        speed_points({})
+
+
+@pytest.mark.slow
+def test_run_render_bench_writes_headline_methods(tmp_path):
+    bench = RenderBenchConfig(holdout_every=8, max_views=1, tiers=["middle"], warmup=1, runs=2)
+    doc = run_render_bench(bench, tmp_path / "metrics" / "render.json", show_progress=False)
+    on_disk = json.loads((tmp_path / "metrics" / "render.json").read_text())
+    assert on_disk == json.loads(json.dumps(doc))
+    for m in HEADLINE_METHODS:
+        rec = on_disk["methods"][m]
+        for key in ("psnr", "ssim", "depth_absrel", "fps", "n_views"):
+            assert key in rec
+        assert rec["n_views"] == 1 and rec["fps"] > 0
+    assert on_disk["protocol"]["trained"] is False
+    # Splat-only involves no network: it is much faster than any flow step count.
+    assert on_disk["methods"]["splat_only"]["fps"] > on_disk["methods"]["flow_1step"]["fps"]
