@@ -283,3 +283,25 @@ def test_hm3d_cameras_stand_above_navigable_floor(hm3d_scene_dir, capsys):
         for lvl, h in enumerate(m.level_heights):
             print(f"\nHM3D storey {lvl} at z={h:.2f} m: navigable {m.navigable_area(lvl):.1f} m^2")
         print(f"cameras without navigable floor within 0.3 m: {int((nav_d >= 0.3).sum())} of {len(cams)}")
+
+
+def test_gaussian_scene_input_matches_point_input():
+    from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
+
+    w = syn.box_room(3.0, 2.0, spacing=SPACING)
+    rng = np.random.default_rng(3)
+    # Flat Gaussians lying in each surface: the thin axis is the normal. Build quaternions that map
+    # +z to the normal (random spin about it), and scales thin along z.
+    n = w.normals
+    q = np.zeros((len(n), 4))
+    for k, nk in enumerate(n):
+        r = rotation_aligning(np.array([0.0, 0.0, 1.0]), nk)
+        spin = rng.uniform(0, 2 * np.pi)
+        rz = np.array([[np.cos(spin), -np.sin(spin), 0], [np.sin(spin), np.cos(spin), 0], [0, 0, 1]])
+        rm = r @ rz
+        qw = np.sqrt(max(1e-12, 1 + rm[0, 0] + rm[1, 1] + rm[2, 2])) / 2
+        q[k] = (qw, (rm[2, 1] - rm[1, 2]) / (4 * qw), (rm[0, 2] - rm[2, 0]) / (4 * qw), (rm[1, 0] - rm[0, 1]) / (4 * qw))
+    scales = np.tile([0.03, 0.03, 0.002], (len(n), 1))
+    m = extract_navmap_from_gaussians(w.points, q, scales, np.full(len(n), 0.9), w.camera_positions)
+    ref = extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
+    assert m.navigable_area() == pytest.approx(ref.navigable_area(), rel=0.02)

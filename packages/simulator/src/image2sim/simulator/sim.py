@@ -146,6 +146,39 @@ class NeuralSimulator:
         self.spec = observations or ObservationSpec()
         self.agents: list[Agent] = []
 
+    @classmethod
+    def from_scene(
+        cls,
+        folder,
+        observations: ObservationSpec | None = None,
+        renderer: Callable | None = None,
+        backend: str = "auto",
+    ) -> "NeuralSimulator":
+        """Open a scene folder: ``gaussians.safetensors`` (+ ``navmap.npz`` / ``navgraph.npz`` when
+        present; otherwise the map is extracted from the Gaussians). ``renderer`` is an optional
+        pixel-flow renderer applied after splatting."""
+        from pathlib import Path
+
+        from image2sim.simulator.gaussians.scene import GaussianScene
+        from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
+
+        folder = Path(folder)
+        scene = GaussianScene.load(folder)
+        g = scene.gaussians
+        if g is None:
+            raise ValueError(f"{folder}: the Gaussian scene is empty")
+        if (folder / "navmap.npz").is_file():
+            navmap = NavMap.load(folder / "navmap.npz")
+        else:
+            cams = [np.asarray(f["cam_to_world"])[:3, 3] for f in scene.frames if f.get("cam_to_world") is not None]
+            navmap = extract_navmap_from_gaussians(
+                g.means.numpy(), g.quats.numpy(), g.scales.numpy(), g.opacities.numpy(),
+                np.array(cams) if cams else None,
+            )
+        graph = NavGraph.load(folder / "navgraph.npz") if (folder / "navgraph.npz").is_file() else None
+        tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
+        return cls(navmap, graph, GaussianRenderFn(tensors, renderer, backend), observations)
+
     @property
     def graph(self) -> NavGraph:
         """Navigation graph, built lazily on first use."""

@@ -12,7 +12,14 @@ import importlib
 
 _EXPORTS = {
     "embodiment": ("ConfigError", "Embodiment", "FollowerConfig", "GraphConfig", "NavMapConfig"),
-    "navmap": ("NavMap", "NavMapError", "extract_navmap", "extract_navmap_from_points", "render_topdown"),
+    "navmap": (
+        "NavMap",
+        "NavMapError",
+        "extract_navmap",
+        "extract_navmap_from_gaussians",
+        "extract_navmap_from_points",
+        "render_topdown",
+    ),
     "graph": ("NavGraph",),
     "planner": ("DistanceField", "PathResult", "Planner"),
     "agent": ("Agent", "AgentState", "CollisionWorld", "Kinematics", "StepInfo", "StuckDetector", "wrap_angle"),

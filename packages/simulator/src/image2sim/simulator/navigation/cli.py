@@ -19,7 +19,7 @@ def _parse_point(text: str, name: str) -> list[float]:
 
 
 def _load_source(path: Path, config: dict, stride: int | None):
-    """A capture folder (any registered format) or a point-cloud .npz (points[, normals, cameras])."""
+    """A capture folder (any registered format), a Gaussian scene folder, or a point-cloud .npz."""
     import numpy as np
 
     from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
@@ -42,6 +42,17 @@ def _load_source(path: Path, config: dict, stride: int | None):
                 emb,
                 cfg,
             )
+    if path.is_dir() and (path / "gaussians.safetensors").is_file():
+        from image2sim.simulator.gaussians.scene import GaussianScene
+        from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
+
+        scene = GaussianScene.load(path)
+        g = scene.gaussians
+        cams = [f["cam_to_world"] for f in scene.frames if f.get("cam_to_world") is not None]
+        cam_pos = np.array([np.asarray(c)[:3, 3] for c in cams]) if cams else None
+        return extract_navmap_from_gaussians(
+            g.means.numpy(), g.quats.numpy(), g.scales.numpy(), g.opacities.numpy(), cam_pos, emb, cfg
+        )
     from image2sim.simulator.io import open_capture
 
     capture = open_capture(path, strict=False)
@@ -49,7 +60,7 @@ def _load_source(path: Path, config: dict, stride: int | None):
 
 
 def navmap_command(
-    source: Path = typer.Argument(..., help="Capture folder, or a point-cloud .npz (points, normals?, cameras?)."),
+    source: Path = typer.Argument(..., help="Capture folder, scene folder (gaussians.safetensors), or a point-cloud .npz (points, normals?, cameras?)."),
     out: Path = typer.Option(Path("navmap.npz"), "--out", help="Output navmap .npz (a PNG is written beside it)."),
     config: Path | None = typer.Option(None, "--config", help="YAML/JSON with 'embodiment' and 'navmap' sections."),
     stride: int | None = typer.Option(None, "--stride", help="Pixel stride for back-projection (overrides config)."),

@@ -45,6 +45,7 @@ __all__ = [
     "NavMapError",
     "extract_navmap",
     "extract_navmap_from_points",
+    "extract_navmap_from_gaussians",
     "fit_plane_ransac",
     "rotation_aligning",
     "estimate_normals_pca",
@@ -527,6 +528,47 @@ def extract_navmap_from_points(
         floor &= np.isin(lab, cfg.floor_labels)
     w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
     return _build_navmap(pts[keep], floor[keep], w[keep], cams, emb, cfg)
+
+
+def extract_navmap_from_gaussians(
+    means: np.ndarray,
+    quats: np.ndarray,
+    scales: np.ndarray,
+    opacities: np.ndarray | None = None,
+    camera_positions: np.ndarray | None = None,
+    embodiment: Embodiment | None = None,
+    config: NavMapConfig | None = None,
+    min_opacity: float = 0.1,
+) -> NavMap:
+    """Navigable map of a Gaussian scene: each Gaussian is a point whose normal is its thinnest axis.
+
+    ``quats`` are (w, x, y, z); normals face the nearest camera (upwards without cameras). Gaussians
+    with opacity below ``min_opacity`` are ignored (floaters).
+    """
+    mu = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    q = np.asarray(quats, dtype=np.float64).reshape(-1, 4)
+    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)
+    w, x, y, z = q.T
+    # Rotation matrices of the quaternions; column k is the Gaussian's k-th axis.
+    rot = np.stack(
+        (
+            np.stack((1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)), axis=1),
+            np.stack((2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)), axis=1),
+            np.stack((2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)), axis=1),
+        ),
+        axis=2,
+    )
+    thin = np.argmin(np.asarray(scales, dtype=np.float64).reshape(-1, 3), axis=1)
+    nrm = rot[np.arange(len(mu)), :, thin]
+    keep = np.ones(len(mu), dtype=bool) if opacities is None else np.asarray(opacities).reshape(-1) >= min_opacity
+    cams = None if camera_positions is None else np.asarray(camera_positions, dtype=np.float64).reshape(-1, 3)
+    if cams is not None and len(cams):
+        _, nearest = cKDTree(cams).query(mu)
+        flip = np.einsum("ij,ij->i", nrm, cams[nearest] - mu) < 0
+    else:
+        flip = nrm[:, 2] < 0
+    nrm[flip] *= -1.0
+    return extract_navmap_from_points(mu[keep], nrm[keep], None, cams, embodiment, config)
 
 
 def extract_navmap(
