@@ -55,8 +55,10 @@ def movement_text(distance: float, net_turn_deg: float, config: ChunkConfig) -> 
     side = "left" if net_turn_deg > 0 else "right"
     big = abs(net_turn_deg) >= config.straight_deg
     if distance < config.still_distance:
-        if not big:
+        if abs(net_turn_deg) < 1e-6:
             return "stay in place"
+        if not big:
+            return f"turn slightly {side}"
         return f"turn around to the {side}" if abs(net_turn_deg) >= 135 else f"turn {side}"
     if not big:
         return "walk forward"

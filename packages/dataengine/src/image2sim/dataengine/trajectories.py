@@ -72,7 +72,7 @@ class SamplingConfig:
     """Goal radius (metres, Euclidean) of small, manipulable items."""
     large_radius: float = 3.0
     """Goal radius (metres, Euclidean) of large objects."""
-    geodesic_slack: float = 1.5
+    geodesic_slack: float = 1.0
     """A standing point is valid when its geodesic distance to the object's nearest navigable point is
     at most this times the goal radius (rejects points behind walls)."""
     start_candidates: int = 32
@@ -169,7 +169,7 @@ def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConf
     ``objects`` are :class:`~image2sim.dataengine.mining.SceneObject` (world frame positions);
     ``to_map`` converts world points to the map frame (identity when None).
     """
-    from scipy.sparse.csgraph import dijkstra
+    from scipy.sparse.csgraph import dijkstra  # directed=True on the symmetric length matrix: no per-call conversion
 
     stats = Counter()
     nodes = graph.nodes
@@ -192,7 +192,8 @@ def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConf
             stats["object_unreachable"] += 1
             continue
         anchor = int(in_main[np.argmin(d_xy)])
-        d_geo = dijkstra(graph.length_matrix, directed=False, indices=anchor)
+        # limit: nodes beyond the slack radius are never valid, so the search can stop there.
+        d_geo = dijkstra(graph.length_matrix, directed=True, indices=anchor, limit=config.geodesic_slack * r)
         ok = near[d_geo[near] <= config.geodesic_slack * r]
         stats["stand_rejected_geodesic"] += int(len(near) - len(ok))
         if len(ok) == 0:
@@ -206,6 +207,7 @@ def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConf
     w = w / w.sum()
     starts: list[np.ndarray] = []
     goals: list[np.ndarray] = []
+    max_len = max(b.max_length for b in config.buckets)
     plans: list[EpisodePlan] = []
     for bucket in draw_buckets(n, config.buckets, rng):
         plan = None
@@ -215,7 +217,7 @@ def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConf
             k = int(rng.choice(len(obj_info), p=w))
             obj, radius, stand = obj_info[k]
             s_node = int(graph.snap(start[None])[0][0])
-            dist = dijkstra(graph.length_matrix, directed=False, indices=s_node)[stand]
+            dist = dijkstra(graph.length_matrix, directed=True, indices=s_node, limit=max_len)[stand]
             plan = _pick_goal(start, nodes[stand], dist, bucket, config, goals, rng, stats)
             if plan is None:
                 continue

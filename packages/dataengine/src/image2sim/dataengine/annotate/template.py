@@ -26,6 +26,8 @@ _VERB_SYNONYMS = {
     "turn around to the left": ["turn around", "turn all the way around to your left"],
     "turn around to the right": ["turn around", "turn all the way around to your right"],
     "stay in place": ["pause for a moment"],
+    "turn slightly left": ["turn slightly left", "bear a little to the left"],
+    "turn slightly right": ["turn slightly right", "bear a little to the right"],
 }
 _STOP = ["stop next to the {g}", "wait beside the {g}", "stop when you reach the {g}", "halt near the {g}",
          "your destination is the {g}"]

@@ -1,0 +1,203 @@
+"""Trajectory sampling: bucket roulette, IDF weights, FPS coverage, goal validity, capacity; rollouts, macro-steps."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from image2sim.dataengine.chunking import ChunkConfig, macro_steps, movement_text
+from image2sim.dataengine.mining import SceneObject
+from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
+from image2sim.dataengine.trajectories import (
+    DEFAULT_BUCKETS,
+    SamplingConfig,
+    coverage_radius,
+    draw_buckets,
+    episode_capacity,
+    farthest_point,
+    idf_weights,
+    sample_plans,
+)
+from image2sim.simulator.conventions import Action
+
+
+def test_bucket_proportions_over_1000_draws():
+    for seed in range(3):
+        draws = Counter(b.name for b in draw_buckets(1000, DEFAULT_BUCKETS, np.random.default_rng(seed)))
+        assert abs(draws["short"] / 1000 - 0.2) <= 0.05
+        assert abs(draws["medium"] / 1000 - 0.3) <= 0.05
+        assert abs(draws["long"] / 1000 - 0.5) <= 0.05
+
+
+def test_idf_weights_favour_rare_categories():
+    w = idf_weights(["chair"] * 8 + ["sofa"] * 3 + ["kettle"])
+    assert w["kettle"] > w["sofa"] > w["chair"] > 0
+    assert math.isclose(w["kettle"], math.log(1 + 12 / 1))
+    # Per-object sampling probability: a lone kettle is drawn more often than any single chair.
+    p = np.array([w["chair"]] * 8 + [w["sofa"]] * 3 + [w["kettle"]])
+    p /= p.sum()
+    assert p[-1] > p[0] and p[-1] * 1 < p[:8].sum()
+
+
+def test_capacity_is_clamped():
+    cfg = SamplingConfig()
+    assert episode_capacity(0.0, cfg) == 50
+    assert episode_capacity(100.0, cfg) == 200
+    assert episode_capacity(1e6, cfg) == 1000
+    with pytest.raises(ValueError):
+        episode_capacity(float("nan"), cfg)
+
+
+def test_fps_improves_coverage_over_uniform():
+    rng = np.random.default_rng(0)
+    domain = np.column_stack((rng.uniform(0, 10, 4000), rng.uniform(0, 6, 4000), np.zeros(4000)))
+    wins = 0
+    for trial in range(10):
+        r = np.random.default_rng(trial)
+        chosen = []
+        for _ in range(25):  # the sampler's rule: best of 32 random candidates against earlier picks
+            cand = domain[r.choice(len(domain), 32, replace=False)]
+            chosen.append(cand[farthest_point(cand, np.array(chosen).reshape(-1, 3))])
+        uniform = domain[r.choice(len(domain), 25, replace=False)]
+        wins += coverage_radius(np.array(chosen), domain) < coverage_radius(uniform, domain)
+    assert wins >= 9
+
+
+def test_farthest_point_rules():
+    cand = np.array([[0.0, 0, 0], [5.0, 0, 0], [1.0, 0, 0]])
+    assert farthest_point(cand, np.zeros((0, 3))) == 0
+    assert farthest_point(cand, np.array([[0.0, 0, 0]])) == 1
+    with pytest.raises(ValueError):
+        farthest_point(np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+@pytest.fixture(scope="module")
+def world():
+    from image2sim.simulator.navigation import extract_navmap_from_points
+    from image2sim.simulator.navigation import synthetic as syn
+    from image2sim.simulator.navigation.graph import NavGraph
+    from image2sim.simulator.navigation.planner import Planner
+
+    w = syn.rooms_grid(2, 2, seed=3, furniture=0)
+    m = extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
+    g = NavGraph.build(m)
+    return m, g, Planner(g)
+
+
+# Rooms are 4 m squares; the wall x = 4 has its door at y in [1.5, 2.5].
+OBJECTS = [
+    SceneObject(1, "cup", [3.75, 0.5, 0.8], small=True),  # against the wall: the far side is "behind a wall"
+    SceneObject(2, "sofa", [1.0, 6.5, 0.4]),
+    SceneObject(3, "bed", [6.5, 6.5, 0.5]),
+    SceneObject(4, "bed", [6.5, 1.0, 0.5]),
+]
+
+
+def test_plans_respect_buckets_radii_and_walls(world):
+    m, g, planner = world
+    plans, stats = sample_plans(g, planner, OBJECTS, 40, SamplingConfig(), np.random.default_rng(0))
+    assert len(plans) >= 30, stats
+    buckets = {b.name: b for b in DEFAULT_BUCKETS}
+    for k, p in enumerate(plans):
+        if k < 8:  # the planner's own query (slow on this dense graph): spot-check
+            geo, why = planner.geodesic_distance(p.start, p.goal)
+            assert not why and geo == pytest.approx(p.geodesic_distance, abs=1e-9)
+        if p.bucket != "fallback":
+            assert buckets[p.bucket].min_length <= p.geodesic_distance < buckets[p.bucket].max_length
+        obj = np.asarray(p.goal_object["position"])
+        assert np.linalg.norm(p.goal[:2] - obj[:2]) <= p.goal_radius
+        assert p.goal_radius == (1.5 if p.goal_object["small"] else 3.0)
+        if p.goal_object["category"] == "cup":
+            # Beside the cup, or through the door: never straight behind the wall (x > 4, y < 1.2).
+            assert not (p.goal[0] > 4.0 and p.goal[1] < 1.2), p.goal
+            if k < 8:
+                near_cup = np.array([3.75, 0.5, p.goal[2]])
+                assert planner.geodesic_distance(p.goal, near_cup)[0] <= 1.5 + 0.1
+    assert stats["stand_rejected_geodesic"] > 0  # the far-side cells were seen and rejected
+    assert {p.bucket for p in plans} >= {"short", "medium"}
+    # Seeded: the same generator state gives the same plans.
+    again, _ = sample_plans(g, planner, OBJECTS, 40, SamplingConfig(), np.random.default_rng(0))
+    assert all(np.array_equal(a.start, b.start) and np.array_equal(a.goal, b.goal) for a, b in zip(plans, again))
+
+
+def test_rollouts_replay_exactly_and_end_in_the_goal_radius(world):
+    from image2sim.simulator.navigation.follower import OracleFollower
+    from image2sim.simulator.sim import NeuralSimulator
+
+    m, g, planner = world
+    plans, _ = sample_plans(g, planner, OBJECTS, 12, SamplingConfig(), np.random.default_rng(1))
+    sim = NeuralSimulator(m, g)
+    fol = OracleFollower(sim.planner)
+    ok = 0
+    for p in plans:
+        r = rollout_plan(sim, fol, p, RolloutConfig())
+        if not r.ok:
+            assert r.reason in ("collision", "too_short", "outside_goal_radius", "max_steps")
+            continue
+        ok += 1
+        assert r.actions[-1] == int(Action.STOP) and len(r.positions) == len(r.actions) + 1
+        pos, head, col = replay(sim, p.start, p.heading, r.actions)
+        assert np.abs(pos - r.positions).max() <= 1e-6 and not any(col)
+        assert np.linalg.norm(pos[-1, :2] - p.goal[:2]) <= p.goal_radius
+    assert ok >= len(plans) // 2
+
+
+def test_stuck_rollout_is_truncated(world):
+    """A follower that keeps pushing into a wall triggers the 4-step stuck window."""
+    from image2sim.dataengine.trajectories import EpisodePlan
+    from image2sim.simulator.sim import NeuralSimulator
+
+    m, g, _ = world
+    sim = NeuralSimulator(m, g)
+
+    class Pusher:
+        def reset(self, start, goal):
+            from image2sim.simulator.navigation.planner import PathResult
+
+            return PathResult(np.zeros((2, 3)), np.zeros(0, np.int64), 1.0, 1.0)
+
+        def act(self, state, collided=False):
+            return int(Action.MOVE_FORWARD)
+
+    start = np.array([3.0, 0.6, 0.0])
+    plan = EpisodePlan(start, 0.0, np.array([3.5, 0.6, 0.0]), {}, 3.0, "short", 1.0)  # heading +X into the wall
+    r = rollout_plan(sim, Pusher(), plan, RolloutConfig(allow_collisions=True, min_steps=1))
+    assert r.truncated_stuck and r.actions[-1] == int(Action.STOP)
+    assert all(a == int(Action.MOVE_FORWARD) for a in r.actions[:-1])
+    assert len(r.actions) < 20
+
+
+def test_macro_steps_boundaries_and_texts():
+    # 6 forwards of 0.25 m (1.5 m), then 4 left turns of 15 degrees (60), then STOP.
+    acts = [1] * 6 + [2] * 4 + [0]
+    pos = [np.zeros(3)]
+    head = [0.0]
+    for a in acts:
+        p, h = pos[-1].copy(), head[-1]
+        if a == 1:
+            p[0] += 0.25
+        elif a == 2:
+            h += math.radians(15)
+        pos.append(p)
+        head.append(h)
+    steps = macro_steps(acts, np.array(pos), np.array(head))
+    assert [(s.start, s.end) for s in steps] == [(0, 4), (4, 9), (9, 10), (10, 11)]
+    assert steps[0].distance == pytest.approx(1.0) and steps[0].text == "walk forward"
+    assert steps[1].net_turn_deg == pytest.approx(45.0) and steps[1].text == "walk forward while turning left"
+    assert steps[2].text == "turn slightly left" and steps[-1].stop and steps[-1].text == "stop"
+    with pytest.raises(ValueError, match="states"):
+        macro_steps(acts, np.array(pos)[:-1], np.array(head))
+
+
+def test_movement_text_cases():
+    cfg = ChunkConfig()
+    assert movement_text(0.0, -30.0, cfg) == "turn right"
+    assert movement_text(0.0, 180.0, cfg) == "turn around to the left"
+    assert movement_text(1.0, 5.0, cfg) == "walk forward"
+    assert movement_text(1.0, -40.0, cfg) == "walk forward while turning right"
+    assert movement_text(0.5, 90.0, cfg) == "turn left and walk forward"
+    assert movement_text(0.0, 0.0, cfg) == "stay in place"
+    assert movement_text(0.0, 15.0, cfg) == "turn slightly left"
