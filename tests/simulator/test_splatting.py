@@ -505,3 +505,46 @@ def test_compiled_binning_matches_torch_binning(wrap):
         assert (off_t[1:] - off_t[:-1]).sum() == ids_t.numel()
         tiles_of_0 = [t for t in range(n_tx * 3) if 0 in ids_t[off_t[t]:off_t[t + 1]].tolist()]
         assert len({t % n_tx for t in tiles_of_0}) == n_tx  # every column of tiles, no duplicates
+
+
+@pytest.mark.parametrize("camera", [EquirectCamera(64, 128), PinholeCamera(50.0, 50.0, 32.0, 32.0, 64, 64)],
+                         ids=["equirect", "pinhole"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fused_inference_projection_matches_torch_projection(camera, dtype):
+    if "cpu" not in BACKENDS:
+        pytest.skip("compiled kernel unavailable on this machine")
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    g = torch.Generator().manual_seed(0)
+    n = 500
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 2
+    means[0] = torch.tensor([0.1, -2.0, -0.3])  # zenith of the camera at (0.1, 0.2, -0.3)
+    means[1] = torch.tensor([0.1, 0.2, -2.3])  # on the seam
+    means[2] = torch.tensor([0.1, 0.2, -0.3])  # at the camera centre
+    scales = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.3
+    scales[3], scales[4] = 1e3, 1e-8
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    opac = torch.rand(n, generator=g, dtype=torch.float64)
+    args = [t.to(dtype) for t in (means, scales, quats, opac)]
+    pose = EYE.clone()
+    pose[:3, 3] = torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64)
+    mask = torch.ones(n, dtype=torch.bool)
+    mask[7] = False
+    want = project_gaussians(*args, camera, pose, far=5.0, finite_mask=mask)
+    got = cpu_kernel.project(*args, camera, pose, far=5.0, finite_mask=mask)
+    assert torch.equal(got.valid, want.valid) and 100 < int(want.valid.sum()) < n
+    tol = 1e-9 if dtype == torch.float64 else 1e-5
+    for field in ("means2d", "conics", "depths", "radii", "cov2d"):
+        w, h = getattr(want, field), getattr(got, field)
+        assert ((h - w).abs() / w.abs().clamp_min(1.0)).max() <= tol, field
+
+
+def test_inference_and_training_paths_agree():
+    if "cpu" not in BACKENDS:
+        pytest.skip("compiled kernel unavailable on this machine")
+    scene = make_scene(40, 4, EQ, 3, dtype=torch.float32)
+    with torch.no_grad():
+        fused = splat(*scene, EQ, _yaw_pose(10.0), backend="cpu")
+    trained = splat(*[t.clone().requires_grad_() for t in scene], EQ, _yaw_pose(10.0), backend="cpu")
+    for name, t in planes(fused).items():
+        torch.testing.assert_close(t, planes(trained)[name].detach(), atol=1e-5, rtol=0)

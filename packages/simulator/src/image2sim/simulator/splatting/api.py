@@ -217,10 +217,15 @@ def splat(
     name = resolve_backend(backend, device)
     raster = BACKENDS[name]
     poses = cam_to_world.unsqueeze(0) if cam_to_world.dim() == 2 else cam_to_world
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, scales, quats, opacities, colors, features, bg, cam_to_world))
     images, alphas = [], []
     for pose in poses:
-        proj = project_gaussians(means, scales, quats, opacities, camera, pose, near=near, far=far,
-                                 finite_mask=~bad if bad.any() else None)
+        project = project_gaussians
+        if name == "cpu" and not needs_grad:  # fused C++ projection for inference
+            from image2sim.simulator.splatting.backends.cpu_kernel import project
+        proj = project(means, scales, quats, opacities, camera, pose, near=near, far=far,
+                       finite_mask=~bad if bad.any() else None)
         idx = torch.nonzero(proj.valid).squeeze(1)
         idx = idx[torch.argsort(proj.depths.detach()[idx], stable=True)]
         values = torch.cat((colors, proj.depths.unsqueeze(1), features), dim=1)[idx]

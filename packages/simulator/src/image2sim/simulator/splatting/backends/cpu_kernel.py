@@ -134,3 +134,21 @@ def rasterize(
     radii = radii.detach().to(values.dtype)
     return _Rasterize.apply(means2d, conics, opacities, values, background, radii, offsets, ids,
                             int(height), int(width), float(wrap_width), int(tile))
+
+
+def project(means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None,
+            finite_mask=None):
+    """Inference-only fused projection (no autograd); same result as :func:`project_gaussians`."""
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.splatting.project import ProjectedGaussians
+
+    equirect = isinstance(camera, EquirectCamera)
+    fx, fy, cx, cy = (0.0, 0.0, 0.0, 0.0) if equirect else (camera.fx, camera.fy, camera.cx, camera.cy)
+    mask = torch.empty(0, dtype=torch.bool) if finite_mask is None else finite_mask.contiguous()
+    uv, conic, cov, depth, radii, valid = load().project_forward(
+        means.detach().contiguous(), scales.detach().contiguous(), quats.detach().contiguous(),
+        opacities.detach().contiguous(), mask, cam_to_world.detach().cpu(), equirect, float(fx), float(fy),
+        float(cx), float(cy), int(camera.height), int(camera.width), float(near), -1.0 if far is None else float(far),
+    )
+    return ProjectedGaussians(means2d=uv, conics=conic, cov2d=cov, depths=depth, radii=radii, valid=valid,
+                              wrap_width=float(camera.width) if equirect else 0.0)

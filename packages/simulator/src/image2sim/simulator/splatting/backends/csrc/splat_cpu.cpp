@@ -290,6 +290,101 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
   }
 }
 
+
+// Fused inference-only projection (no autograd): the same math as project.py, in double, one
+// Gaussian per iteration, OpenMP over Gaussians. Used when no input needs a gradient; project.py
+// stays the differentiable ground truth and the tests compare the two.
+struct CamParams {
+  bool equirect;
+  double fx, fy, cx, cy;
+  int64_t H, W;
+  double near, far;  // far < 0: no far plane
+};
+
+template <typename scalar_t>
+void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t* quats, const scalar_t* opac,
+                  const bool* finite_mask, const double* c2w, const CamParams cam, int64_t N, scalar_t* out_uv,
+                  scalar_t* out_conic, scalar_t* out_cov, scalar_t* out_depth, scalar_t* out_radii, bool* out_valid) {
+  const double kPi = 3.14159265358979323846;
+  const double R[3][3] = {{c2w[0], c2w[1], c2w[2]}, {c2w[4], c2w[5], c2w[6]}, {c2w[8], c2w[9], c2w[10]}};
+  const double t[3] = {c2w[3], c2w[7], c2w[11]};
+  at::parallel_for(0, N, 2048, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      const double m[3] = {(double)means[3 * i] - t[0], (double)means[3 * i + 1] - t[1], (double)means[3 * i + 2] - t[2]};
+      double p[3];
+      for (int k = 0; k < 3; ++k) p[k] = m[0] * R[0][k] + m[1] * R[1][k] + m[2] * R[2][k];
+      const double depth = cam.equirect ? std::sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) : p[2];
+      bool valid = std::isfinite(depth) && depth > 0 && depth >= cam.near && (cam.far < 0 || depth <= cam.far) &&
+                   (finite_mask == nullptr || finite_mask[i]) && (double)opac[i] >= kAlphaMin;
+      double u = 0, v = 0, a = 1, b = 0, c = 1;
+      if (valid) {
+        double J[2][3];
+        const double x = p[0], y = p[1], z = p[2];
+        if (cam.equirect) {
+          const double rho2 = x * x + z * z;
+          const bool pole = rho2 < 1e-60;
+          const double lon = pole ? 0.0 : std::atan2(x, z);
+          const double rho = pole ? 0.0 : std::sqrt(rho2);
+          const double lat = std::atan2(-y, rho);
+          const double r = std::sqrt(rho2 + y * y);
+          const double su = cam.W / (2.0 * kPi), sv = -cam.H / kPi;
+          const double cl = std::cos(lat), sl = std::sin(lat), co = std::cos(lon), so = std::sin(lon);
+          const double fu = su / (r * std::max(cl, 1e-9)), fv = sv / r;
+          J[0][0] = co * fu; J[0][1] = 0.0; J[0][2] = -so * fu;
+          J[1][0] = -sl * so * fv; J[1][1] = -cl * fv; J[1][2] = -sl * co * fv;
+          const double uu = (lon + kPi) * su;
+          u = uu - cam.W * std::floor(uu / cam.W);
+          v = (0.5 * kPi - lat) * (cam.H / kPi);
+        } else {
+          J[0][0] = cam.fx / z; J[0][1] = 0.0; J[0][2] = -cam.fx * x / (z * z);
+          J[1][0] = 0.0; J[1][1] = cam.fy / z; J[1][2] = -cam.fy * y / (z * z);
+          u = cam.fx * x / z + cam.cx;
+          v = cam.fy * y / z + cam.cy;
+        }
+        // rotation of the Gaussian from its (normalised) quaternion, times diag(s)
+        double qw = quats[4 * i], qx = quats[4 * i + 1], qy = quats[4 * i + 2], qz = quats[4 * i + 3];
+        const double qn = std::max(std::sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
+        qw /= qn; qx /= qn; qy /= qn; qz /= qn;
+        const double G[3][3] = {
+            {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)},
+            {2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)},
+            {2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)}};
+        const double s[3] = {scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]};
+        double K[2][3], L[2][3];
+        for (int r = 0; r < 2; ++r)
+          for (int k = 0; k < 3; ++k) K[r][k] = J[r][0] * R[k][0] + J[r][1] * R[k][1] + J[r][2] * R[k][2];
+        for (int r = 0; r < 2; ++r)
+          for (int k = 0; k < 3; ++k) L[r][k] = (K[r][0] * G[0][k] + K[r][1] * G[1][k] + K[r][2] * G[2][k]) * s[k];
+        a = L[0][0] * L[0][0] + L[0][1] * L[0][1] + L[0][2] * L[0][2] + 0.3;
+        b = L[0][0] * L[1][0] + L[0][1] * L[1][1] + L[0][2] * L[1][2];
+        c = L[1][0] * L[1][0] + L[1][1] * L[1][1] + L[1][2] * L[1][2] + 0.3;
+        if (cam.equirect) {
+          const double max_sigma_u = 0.5 * cam.W / 3.5;
+          const double shrink = std::min(1.0, max_sigma_u / std::sqrt(std::max(a, 1e-300)));
+          a *= shrink * shrink;
+          b *= shrink;
+        }
+        const double det = a * c - b * b;
+        valid = std::isfinite(a) && std::isfinite(b) && std::isfinite(c) && det > 0;
+        if (!valid) { a = 1; b = 0; c = 1; }
+      }
+      const double det = a * c - b * b;
+      const double ru = 3.5 * std::sqrt(a), rv = 3.5 * std::sqrt(c);
+      if (valid) {
+        bool on = (v + rv > 0) && (v - rv < cam.H) && std::isfinite(u) && std::isfinite(v);
+        if (!cam.equirect) on = on && (u + ru > 0) && (u - ru < cam.W);
+        valid = on;
+      }
+      out_uv[2 * i] = valid ? u : 0; out_uv[2 * i + 1] = valid ? v : 0;
+      out_conic[3 * i] = c / det; out_conic[3 * i + 1] = -b / det; out_conic[3 * i + 2] = a / det;
+      out_cov[3 * i] = a; out_cov[3 * i + 1] = b; out_cov[3 * i + 2] = c;
+      out_depth[i] = valid ? depth : 0;
+      out_radii[2 * i] = ru; out_radii[2 * i + 1] = rv;
+      out_valid[i] = valid;
+    }
+  });
+}
+
 Grid make_grid(int64_t H, int64_t W, int64_t tile, double wrap) {
   TORCH_CHECK(H > 0 && W > 0 && tile > 0, "splat_cpu: bad image/tile size");
   return Grid{H, W, tile, (W + tile - 1) / tile, (H + tile - 1) / tile, wrap};
@@ -385,7 +480,29 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
   return {d_mean, d_conic, d_opac, d_vals, d_bg};
 }
 
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                           torch::Tensor opac, torch::Tensor finite_mask, torch::Tensor c2w,
+                                           bool equirect, double fx, double fy, double cx, double cy, int64_t H,
+                                           int64_t W, double near, double far) {
+  const int64_t N = means.size(0);
+  auto opts = means.options();
+  auto uv = torch::empty({N, 2}, opts), conic = torch::empty({N, 3}, opts), cov = torch::empty({N, 3}, opts);
+  auto depth = torch::empty({N}, opts), radii = torch::empty({N, 2}, opts);
+  auto valid = torch::empty({N}, opts.dtype(torch::kBool));
+  auto pose = c2w.to(torch::kFloat64).contiguous();
+  const CamParams cam{equirect, fx, fy, cx, cy, H, W, near, far};
+  const bool* mask = finite_mask.numel() ? finite_mask.data_ptr<bool>() : nullptr;
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splat_cpu_project", [&] {
+    project_impl<scalar_t>(means.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                           opac.data_ptr<scalar_t>(), mask, pose.data_ptr<double>(), cam, N,
+                           uv.data_ptr<scalar_t>(), conic.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
+                           depth.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), valid.data_ptr<bool>());
+  });
+  return {uv, conic, cov, depth, radii, valid};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("project_forward", &project_forward, "fused inference-only projection");
   m.def("bin_gaussians", &bin_gaussians, "per-tile depth-ordered Gaussian lists");
   m.def("rasterize_forward", &rasterize_forward, "tile-parallel forward rasterisation");
   m.def("rasterize_backward", &rasterize_backward, "tile-parallel backward rasterisation");
