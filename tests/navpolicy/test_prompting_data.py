@@ -191,3 +191,19 @@ def test_shard_errors_name_the_file(tmp_path):
     (root / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(ShardError, match="v99"):
         ShardReader(root)
+
+
+def test_dataengine_shard_writer_output_is_readable(tmp_path, tiny_policy, builder):
+    """Contract: shards written by the data engine's own writer load and collate here."""
+    shards = pytest.importorskip("image2sim.dataengine.shards")
+    trajs = synthetic_trajectories(3, min_len=4, max_len=9, height=16, width=16, seed=11)
+    w = shards.SceneShardWriter(tmp_path / "scene-a", observation={"camera": "pinhole"})
+    for t in trajs:
+        w.add(t.episode_id, t.scene_id, t.instruction, t.actions, t.frames, t.frame_steps, extra={"k": 1})
+    root = w.close()
+    reader = ShardReader(root)
+    assert len(reader) == 3 and reader[2].extra == {"k": 1}
+    assert reader[1].actions == trajs[1].actions and np.array_equal(reader[1].frames, trajs[1].frames)
+    ds = NavShardDataset([root], max_observations=4, max_action_labels=8)
+    batch = NavCollator(builder, tiny_policy.image_processor)([ds[0], ds[1]])
+    assert int((batch["labels"] != IGNORE_INDEX).sum()) == 2 * (len(ds[0].steps) + len(ds[1].steps))

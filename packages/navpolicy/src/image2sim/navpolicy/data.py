@@ -421,6 +421,26 @@ class NavCollator:
         }
 
 
+# --------------------------------------------------------------------------------- observations
+
+
+def observation_from_panorama(pano: np.ndarray, yaw_deg: float, obs) -> np.ndarray:
+    """The policy's observation (H, W, 3 uint8) cut from an equirectangular panorama.
+
+    ``obs`` is an :class:`~image2sim.navpolicy.config.ObservationConfig`: the paper's pinhole
+    (90 x 90 deg) gives a pinhole view; FOVs of 180 deg or more (the 180 x 118 deg ultra-wide
+    setting) give an equirectangular crop. ``yaw_deg`` turns the view right of the panorama centre.
+    """
+    from image2sim.simulator.geometry import perspective_from_equirect
+
+    p = np.asarray(pano)
+    if p.ndim != 3 or p.shape[-1] != 3 or p.dtype != np.uint8:
+        raise ValueError(f"panorama must be (H, W, 3) uint8, got {p.shape} {p.dtype}")
+    t = torch.from_numpy(np.ascontiguousarray(p)).permute(2, 0, 1)[None].float() / 255.0
+    view = perspective_from_equirect(t, yaw_deg, 0.0, obs.hfov_deg, obs.vfov_deg, obs.height, obs.width)
+    return (view[0].permute(1, 2, 0).clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
+
+
 # ------------------------------------------------------------------------------------ synthetic data
 
 _ACTION_COLOURS = np.array([[230, 230, 230], [40, 200, 60], [50, 80, 220], [220, 60, 50]], dtype=np.float32)
