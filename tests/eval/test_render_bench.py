@@ -167,3 +167,22 @@ def test_run_render_bench_writes_headline_methods(tmp_path):
     assert on_disk["protocol"]["trained"] is False
     # Splat-only involves no network: it is much faster than any flow step count.
     assert on_disk["methods"]["splat_only"]["fps"] > on_disk["methods"]["flow_1step"]["fps"]
+
+
+def test_cli_render_then_report(tmp_path):
+    from image2sim.eval.cli import app
+    from typer.testing import CliRunner
+
+    out = tmp_path / "metrics" / "render.json"
+    res = CliRunner().invoke(app, ["render", "--steps", "1", "--tier", "none", "--max-views", "1", "--warmup", "0",
+                                   "--runs", "1", "--out", str(out), "--plot", str(tmp_path / "speed.png")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert doc["protocol"]["not_evaluated"] == ["flow_2step", "flow_4step", "flow_8step"]
+    assert (tmp_path / "speed.png").stat().st_size > 0
+    res = CliRunner().invoke(app, ["report", "--render", str(out), "--out-dir", str(tmp_path / "rep")])
+    assert res.exit_code == 0, res.output
+    md = (tmp_path / "rep" / "render.md").read_text()
+    assert "| splat_only |" in md and "PSNR↑ (none)" in md and "untrained" in md
+    assert (tmp_path / "rep" / "render_speed.png").read_bytes()[:4] == b"\x89PNG"

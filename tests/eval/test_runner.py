@@ -252,3 +252,26 @@ def test_parallel_scenes_match_serial(scene, tmp_path):
     with pytest.raises(RunnerError, match="not found"):
         bad = [dataclasses.replace(episodes[0], scene_id="nowhere")]
         run_nav(bad, tmp_path / "scenes", PROTO, RunConfig(), tmp_path / "x", show_progress=False)
+
+
+def test_cli_nav_then_report(scene, tmp_path):
+    from image2sim.eval.cli import app
+    from typer.testing import CliRunner
+
+    root, _, _ = scene
+    proto_file = tmp_path / "proto.json"
+    proto_file.write_text(json.dumps(PROTO.to_dict()))
+    metrics = tmp_path / "metrics" / "nav.json"
+    args = ["nav", "--scenes", str(root), "--point-goal", "4", "--agent", "oracle", "--agent", "forward",
+            "--forward-steps", "3", "--protocol", str(proto_file), "--out", str(tmp_path / "run"),
+            "--metrics", str(metrics)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    doc = json.loads(metrics.read_text())
+    assert set(doc["agents"]) == {"oracle", "forward"}
+    assert doc["agents"]["oracle"]["sr"] == 1.0 and doc["agents"]["oracle"]["n_episodes"] == 4
+    assert doc["agents"]["forward"]["steps"] == 4.0
+    res = CliRunner().invoke(app, ["report", "--nav", str(metrics), "--out-dir", str(tmp_path / "rep")])
+    assert res.exit_code == 0, res.output
+    table = (tmp_path / "rep" / "nav.md").read_text()
+    assert "| oracle | " in table and "100.0 [" in table and "tiny-test" in table

@@ -53,19 +53,178 @@ def aggregate_cmd(
 @app.command("report")
 def report_cmd(
     aggregates: Annotated[
-        list[Path], typer.Argument(exists=True, dir_okay=False, help="aggregate.json files.")
-    ],
+        list[Path] | None, typer.Argument(exists=True, dir_okay=False, help="aggregate.json files (optional).")
+    ] = None,
     out: Annotated[
-        Path | None, typer.Option(help="Write the Markdown table here (atomically).")
+        Path | None, typer.Option(help="Write the Markdown table of the aggregates here (atomically).")
+    ] = None,
+    nav: Annotated[Path | None, typer.Option(help="metrics/nav.json to report (Table 2 layout).")] = None,
+    render: Annotated[Path | None, typer.Option(help="metrics/render.json to report (Table 1 layout).")] = None,
+    out_dir: Annotated[
+        Path | None, typer.Option(help="Write nav.md, render.md and render_speed.png here.")
     ] = None,
 ) -> None:
-    """Collect aggregate result files into one table laid out like the paper's Table 2."""
+    """Tables laid out like the paper's Table 2 (navigation) and Table 1 (rendering), and the speed plot."""
     from image2sim.eval.report import nav_table_markdown, read_aggregate
 
-    table = nav_table_markdown([read_aggregate(p) for p in aggregates])
-    typer.echo(table)
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(table, encoding="utf-8")
-        tmp.replace(out)
+    if not aggregates and nav is None and render is None:
+        raise typer.BadParameter("give aggregate.json files, --nav and/or --render")
+    if aggregates:
+        table = nav_table_markdown([read_aggregate(p) for p in aggregates])
+        typer.echo(table)
+        if out is not None:
+            _write_text(out, table)
+    if nav is not None:
+        from image2sim.eval.runner import nav_markdown
+
+        text = nav_markdown(json.loads(nav.read_text(encoding="utf-8")))
+        typer.echo("## Navigation\n\n" + text)
+        if out_dir is not None:
+            written = _write_text(out_dir / "nav.md", "# Navigation (Table 2 layout)\n\n" + text)
+            typer.echo(f"wrote {written}")
+    if render is not None:
+        from image2sim.eval.plots import plot_speed_vs_error
+        from image2sim.eval.render_bench import render_markdown
+
+        doc = json.loads(render.read_text(encoding="utf-8"))
+        text = render_markdown(doc)
+        typer.echo("## Rendering\n\n" + text)
+        if out_dir is not None:
+            written = _write_text(out_dir / "render.md", "# Rendering (Table 1 layout)\n\n" + text)
+            typer.echo(f"wrote {written}")
+            typer.echo(f"wrote {plot_speed_vs_error(doc, out_dir / 'render_speed.png')}")
+
+
+def _write_text(path: Path, text: str) -> Path:
+    """Atomic text write (temp file + rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+def _protocol(name_or_file: str):
+    """A built-in protocol name or a JSON file holding a protocol record."""
+    from image2sim.eval.protocols import PROTOCOLS, Protocol, get_protocol
+
+    if name_or_file in PROTOCOLS:
+        return get_protocol(name_or_file)
+    path = Path(name_or_file)
+    if not path.is_file():
+        raise typer.BadParameter(f"{name_or_file!r} is neither a protocol name {sorted(PROTOCOLS)} nor a file")
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    return Protocol.from_dict(doc.get("protocol", doc), str(path))
+
+
+@app.command("nav")
+def nav_cmd(
+    scenes: Annotated[Path, typer.Option(help="Folder of scene folders (navmap.npz + navgraph.npz each).")],
+    episodes: Annotated[
+        Path | None, typer.Option(help="VLN-CE schema episode file (.json.gz); scenes by scene_id stem.")
+    ] = None,
+    gt: Annotated[Path | None, typer.Option(help="Matching *_gt.json.gz (dense nDTW references).")] = None,
+    point_goal: Annotated[
+        int, typer.Option(help="Without --episodes: sample this many point-goal episodes per scene.")
+    ] = 0,
+    min_distance: Annotated[float, typer.Option(help="Point-goal start-goal geodesic minimum (m).")] = 1.5,
+    agent: Annotated[
+        list[str], typer.Option(help="Agent(s): random, forward, oracle, image2nav (repeatable).")
+    ] = ["oracle"],  # noqa: B006
+    protocol: Annotated[str, typer.Option(help="Protocol name or JSON file with a protocol record.")] = "image2sim",
+    forward_steps: Annotated[int, typer.Option(help="Forward steps of the 'forward' baseline.")] = 37,
+    model: Annotated[str, typer.Option(help="image2nav: exported policy folder or 'tiny'.")] = "tiny",
+    policy_config: Annotated[str, typer.Option(help="image2nav: navpolicy config preset or YAML.")] = "tiny",
+    seed: Annotated[int, typer.Option(help="Run seed (episode seeds derive from it).")] = 0,
+    workers: Annotated[int, typer.Option(help="Scene-level processes.")] = 1,
+    max_episodes: Annotated[int, typer.Option(help="At most this many episodes per scene (0: all).")] = 0,
+    out: Annotated[Path, typer.Option(help="Run folder (per-scene JSONL logs; resumable).")] = Path("runs/eval_nav"),
+    metrics: Annotated[Path, typer.Option(help="Headline metrics file to update.")] = Path("metrics/nav.json"),
+) -> None:
+    """Run agents on navigation episodes (resumes an interrupted run) and update metrics/nav.json."""
+    from image2sim.eval.metrics.nav import aggregate
+    from image2sim.eval.report import nav_table_markdown, write_nav_report
+    from image2sim.eval.runner import (
+        RunConfig,
+        load_scene_backend,
+        nav_summary,
+        run_nav_results,
+        sample_point_goal_episodes,
+        update_nav_metrics,
+    )
+
+    proto = _protocol(protocol)
+    if episodes is not None:
+        from image2sim.eval.datasets import load_image2sim_episodes
+
+        eps = list(load_image2sim_episodes(episodes, gt).episodes)
+    elif point_goal > 0:
+        eps = []
+        for d in sorted(p for p in scenes.iterdir() if (p / "navmap.npz").is_file()):
+            sim = load_scene_backend(d, proto).sim
+            eps += sample_point_goal_episodes(sim, point_goal, seed=seed, min_distance=min_distance, scene_id=d.name)
+        if not eps:
+            raise typer.BadParameter(f"{scenes}: no scene folder with navmap.npz")
+    else:
+        raise typer.BadParameter("give --episodes or --point-goal N")
+    rows = []
+    for name in agent:
+        options: dict = {}
+        if name == "forward":
+            options = {"forward_steps": forward_steps}
+        elif name == "image2nav":
+            options = {"model": model, "config": policy_config}
+        cfg = RunConfig(agent=name, agent_options=options, seed=seed, workers=workers,
+                        max_episodes_per_scene=max_episodes or None)
+        results = run_nav_results(eps, scenes, proto, cfg, out)
+        report = aggregate(results)
+        update_nav_metrics(metrics, proto, name, nav_summary(results, ci_seed=seed))
+        write_nav_report(out / name / "report", name, report, {"source": str(out / name)})
+        rows.append((name, report))
+    typer.echo(nav_table_markdown(rows))
+    typer.echo(f"updated {metrics}")
+
+
+@app.command("render")
+def render_cmd(
+    checkpoint: Annotated[
+        Path | None, typer.Option(help="Renderer checkpoint of `sim train` (omit: untrained model).")
+    ] = None,
+    config: Annotated[str, typer.Option(help="Renderer preset or YAML the checkpoint was trained with.")] = "tiny",
+    data: Annotated[list[Path], typer.Option(help="Capture folders (held-out frames are scored).")] = [],  # noqa: B006
+    holdout_every: Annotated[int, typer.Option(help="Every n-th frame is held out (as in sim train).")] = 8,
+    max_frames: Annotated[int, typer.Option(help="At most this many frames per capture (0: all).")] = 0,
+    max_views: Annotated[int, typer.Option(help="At most this many held-out views per tier (0: all).")] = 0,
+    steps: Annotated[list[int], typer.Option(help="Pixel-flow step counts.")] = [1, 2, 4, 8],  # noqa: B006
+    tier: Annotated[list[str], typer.Option(help="Noise tiers: none, middle, high.")] = ["none", "middle", "high"],  # noqa: B006
+    ablation: Annotated[
+        list[str], typer.Option(help="SWITCH=CHECKPOINT of an ablation model (no_semantic, no_alpha_gate, no_distill).")
+    ] = [],  # noqa: B006
+    lpips_weights: Annotated[Path | None, typer.Option(help="LPIPS weights (safetensors).")] = None,
+    warmup: Annotated[int, typer.Option(help="Untimed warm-up calls before FPS timing.")] = 2,
+    runs: Annotated[int, typer.Option(help="Timed calls (FPS = 1 / median).")] = 5,
+    threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
+    out: Annotated[Path, typer.Option(help="Headline metrics file.")] = Path("metrics/render.json"),
+    plot: Annotated[Path | None, typer.Option(help="Speed-vs-PSNR PNG.")] = Path("plots/render_speed.png"),
+) -> None:
+    """The paper's Table-1 protocol: splat-only vs 1/2/4/8-step pixel flow on held-out panoramas."""
+    from image2sim.eval.plots import plot_speed_vs_error
+    from image2sim.eval.render_bench import RenderBenchConfig, render_markdown, run_render_bench
+
+    abl = {}
+    for item in ablation:
+        if "=" not in item:
+            raise typer.BadParameter(f"--ablation {item!r}: expected SWITCH=CHECKPOINT")
+        k, v = item.split("=", 1)
+        abl[k] = v
+    bench = RenderBenchConfig(
+        renderer_config=config, checkpoint=str(checkpoint) if checkpoint else None, data=[str(d) for d in data],
+        holdout_every=holdout_every, max_frames=max_frames or None, max_views=max_views or None, steps=list(steps),
+        tiers=list(tier), ablations=abl, lpips_weights=str(lpips_weights) if lpips_weights else None,
+        warmup=warmup, runs=runs, threads=threads,
+    )
+    doc = run_render_bench(bench, out)
+    typer.echo(render_markdown(doc))
+    typer.echo(f"wrote {out}")
+    if plot is not None:
+        typer.echo(f"wrote {plot_speed_vs_error(doc, plot)}")

@@ -43,6 +43,7 @@ __all__ = [
     "benchmark_methods",
     "load_renderer",
     "method_record",
+    "render_markdown",
     "run_render_bench",
 ]
 
@@ -324,3 +325,44 @@ def run_render_bench(bench: RenderBenchConfig, out_json: str | Path, show_progre
         doc["protocol"]["not_evaluated"] = missing
     write_json_atomic(out_json, doc)
     return doc
+
+
+def _fmt(v: Any, digits: int) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def render_markdown(doc: Mapping[str, Any]) -> str:
+    """Table-1 layout of a render.json document: one row per method, a group per noise tier."""
+    methods = doc.get("methods") or {}
+    if not methods:
+        raise RenderBenchError("render metrics document has no 'methods'")
+    proto = doc.get("protocol") or {}
+    tiers = list(proto.get("tiers") or next(iter(methods.values())).get("tiers", {}))
+    header = ["Method"]
+    for t in tiers:
+        header += [f"LPIPS↓ ({t})", f"PSNR↑ ({t})", f"SSIM↑ ({t})", f"AbsRel↓ ({t})"]
+    header += ["FPS↑", "Views"]
+    lines = ["| " + " | ".join(header) + " |", "|---" + "|---:" * (len(header) - 1) + "|"]
+    for name, rec in methods.items():
+        row = [name]
+        for t in tiers:
+            c = (rec.get("tiers") or {}).get(t)
+            if c is None:
+                row += ["–"] * 4
+                continue
+            psnr = c.get("psnr")
+            row += [_fmt(c.get("lpips"), 3), "inf" if psnr == math.inf else _fmt(psnr, 2), _fmt(c.get("ssim"), 3),
+                    _fmt(c.get("depth_absrel"), 3)]
+        row += [_fmt(rec.get("fps"), 1), str(rec.get("n_views"))]
+        lines.append("| " + " | ".join(row) + " |")
+    notes = []
+    if proto:
+        res = proto.get("resolution")
+        notes.append(f"Renderer `{proto.get('renderer_config')}` at {res[0]}×{res[1]}" if res else "")
+        notes.append("trained checkpoint" if proto.get("trained") else "**untrained model** (plumbing run)")
+        fps = proto.get("fps") or {}
+        if fps:
+            notes.append(f"FPS: {fps.get('statistic')} ({fps.get('runs')} runs, {fps.get('warmup')} warm-up, "
+                         f"batch {fps.get('batch')}, {fps.get('threads')} thread(s)) on {fps.get('hardware')}")
+        notes.append(f"conditions: {proto.get('condition_source')}")
+    return "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes if n) + "\n"

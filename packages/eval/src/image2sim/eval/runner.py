@@ -67,9 +67,11 @@ __all__ = [
     "episode_seed",
     "load_scene_backend",
     "make_agent",
+    "nav_markdown",
     "nav_summary",
     "run_episode",
     "run_nav",
+    "run_nav_results",
     "run_scene",
     "sample_point_goal_episodes",
     "update_nav_metrics",
@@ -552,12 +554,25 @@ def run_nav(
     out_dir: str | Path,
     show_progress: bool = True,
 ) -> AggregateReport:
+    """:func:`run_nav_results`, aggregated (means with episode counts)."""
+    return aggregate(run_nav_results(episodes, scenes_root, protocol, config, out_dir, show_progress))
+
+
+def run_nav_results(
+    episodes: Sequence[NavEpisode],
+    scenes_root: str | Path,
+    protocol: Protocol,
+    config: RunConfig,
+    out_dir: str | Path,
+    show_progress: bool = True,
+) -> list[EpisodeResult]:
     """Evaluate ``config.agent`` on ``episodes``; scenes are looked up as ``scenes_root/<scene_name>``.
 
     Logs go to ``out_dir/<agent>/<scene>.jsonl`` (one per scene, so parallel workers never share a
     file) and ``out_dir/<agent>/run.json`` records the configuration and seed rule. Rerunning the
     same call resumes: finished episodes are skipped. Returns the aggregate over every episode of the
     given list (from the logs, so a resumed run aggregates exactly like an uninterrupted one).
+    Returns the per-episode results of ``episodes`` read back from the logs, in scene order.
     """
     scenes_root, out = Path(scenes_root), Path(out_dir) / config.agent
     out.mkdir(parents=True, exist_ok=True)
@@ -617,7 +632,7 @@ def run_nav(
         results += [r for r in rs if r.episode_id in wanted]
     if len(results) != total:
         raise RunnerError(f"expected {total} episode results in the logs under {out}, found {len(results)}")
-    return aggregate(results)
+    return results
 
 
 # ------------------------------------------------------------------------------------------ episodes from a planner
@@ -744,3 +759,31 @@ def update_nav_metrics(path: str | Path, protocol: Protocol, agent: str, summary
         agents = dict(payload.get("agents", {}))
     agents[agent] = dict(summary)
     return write_result_file(path, protocol, {"agents": agents})
+
+
+def nav_markdown(doc: Mapping[str, Any]) -> str:
+    """Table-2 layout of a nav.json document: one row per agent, rates in percent with 95 % CIs."""
+    agents = doc.get("agents") or {}
+    if not agents:
+        raise RunnerError("navigation metrics document has no 'agents'")
+
+    def pct(v: Any) -> str:
+        return "n/a" if v is None else f"{100 * v:.1f}"
+
+    def ci(v: Any) -> str:
+        return "" if not v else f" [{100 * v[0]:.1f}, {100 * v[1]:.1f}]"
+
+    lines = ["| Agent | NE↓ | OSR↑ | SR↑ (95% CI) | SPL↑ (95% CI) | nDTW↑ | Episodes |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, a in agents.items():
+        ne = "n/a" if a.get("ne") is None else f"{a['ne']:.2f}"
+        lines.append(f"| {name} | {ne} | {pct(a.get('osr'))} | {pct(a.get('sr'))}{ci(a.get('sr_ci'))} | "
+                     f"{pct(a.get('spl'))}{ci(a.get('spl_ci'))} | {pct(a.get('ndtw'))} | {a.get('n_episodes')} |")
+    proto = doc.get("protocol") or {}
+    text = "\n".join(lines) + "\n"
+    if proto:
+        from image2sim.eval.report import describe_protocol
+
+        p = Protocol.from_dict(proto)
+        text += f"\nProtocol `{p.name}`: {describe_protocol(p)}\n"
+    return text
