@@ -320,7 +320,8 @@ def ground_detection(view: View, det: Detection, config: MiningConfig) -> np.nda
 
 
 def merge_objects(points: Sequence[tuple[str, np.ndarray, float, dict]], radius: float) -> list[SceneObject]:
-    """Greedy same-category merging: a detection joins the first object within ``radius`` (running mean).
+    """Same-category merging: a detection joins the nearest object within ``radius`` (running mean), then
+    objects that drifted within ``radius`` of each other are merged.
 
     ``points`` holds (category, position, confidence, extra fields) in detection order.
     """
@@ -344,6 +345,26 @@ def merge_objects(points: Sequence[tuple[str, np.ndarray, float, dict]], radius:
             o.sightings += 1
             o.position = (sums[best] / o.sightings).tolist()
             o.confidence = max(o.confidence, float(conf))
+    # Running means drift: merge objects whose means came within the radius until none do, so the
+    # result never holds two same-category objects closer than ``radius``.
+    merged = True
+    while merged:
+        merged = False
+        for a in range(len(objs)):
+            for b in range(a + 1, len(objs)):
+                if objs[a].category == objs[b].category and \
+                        np.linalg.norm(np.subtract(objs[a].position, objs[b].position)) <= radius:
+                    sums[a] += sums[b]
+                    objs[a].sightings += objs[b].sightings
+                    objs[a].position = (sums[a] / objs[a].sightings).tolist()
+                    objs[a].confidence = max(objs[a].confidence, objs[b].confidence)
+                    del objs[b], sums[b]
+                    merged = True
+                    break
+            if merged:
+                break
+    for k, o in enumerate(objs):
+        o.object_id = k + 1
     return objs
 
 
