@@ -163,6 +163,8 @@ def test_configs_are_strict(tmp_path):
     wide = load_config("paper-wide").observation
     got = (wide.camera, wide.width, wide.height, wide.hfov_deg, wide.vfov_deg)
     assert got == ("equirect", 512, 336, 180, 118)
+    with pytest.raises(ConfigError, match="fallback_action"):
+        load_config("tiny", {"agent": {"fallback_action": 7}})
     with pytest.raises(ConfigError, match="observation.camera"):
         load_config("tiny", {"observation": {"camera": "fisheye"}})
 

@@ -223,6 +223,8 @@ class NavPolicyConfig:
             )
         if self.agent.sparse_frames < 0 or self.agent.dense_frames < 1:
             raise ConfigError("agent.dense_frames must be >= 1 and agent.sparse_frames >= 0")
+        if self.agent.fallback_action not in (0, 1, 2, 3):
+            raise ConfigError(f"agent.fallback_action {self.agent.fallback_action} is not an action id 0..3")
         if self.train.strategy not in ("auto", "ddp", "deepspeed_zero2"):
             raise ConfigError(f"train.strategy {self.train.strategy!r} is not auto, ddp or deepspeed_zero2")
         if self.model.dtype not in ("float32", "bfloat16", "float16"):

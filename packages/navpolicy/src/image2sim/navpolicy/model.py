@@ -255,13 +255,16 @@ def export_policy(policy: NavPolicy, out_dir: str | Path) -> Path:
 
     The folder reloads with ``build_policy`` (``model.source = out_dir``) or directly with
     ``Qwen3VLForConditionalGeneration.from_pretrained``. Written to a temp folder and renamed, so a
-    crash never leaves a half-written export behind.
+    crash never leaves a half-written export behind. LoRA adapters are merged in place (peft's
+    ``merge_and_unload``) and ``policy.model`` becomes the merged plain model: export at the end of
+    training.
     """
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         model = merged_model(policy.model)
+        policy.model = model
         model.save_pretrained(str(tmp), safe_serialization=True)
         policy.tokenizer.save_pretrained(str(tmp))
         # The processor object cannot save itself without a video processor; write its config alone.
