@@ -275,3 +275,67 @@ def test_cli_nav_then_report(scene, tmp_path):
     assert res.exit_code == 0, res.output
     table = (tmp_path / "rep" / "nav.md").read_text()
     assert "| oracle | " in table and "100.0 [" in table and "tiny-test" in table
+
+
+class _ScriptedStreamingAgent:
+    """Stands in for navpolicy's Image2NavAgent: replies with fixed action pairs, records its inputs."""
+
+    def __init__(self, replies):
+        self.replies = [list(r) for r in replies]
+        self.calls = []
+
+    def reset(self, instruction, seed=0):
+        self.instruction, self.calls, self._k = instruction, [], 0
+
+    def act(self, rgb, executed=None):
+        self.calls.append((rgb.shape, rgb.dtype, None if executed is None else list(executed)))
+        reply = self.replies[self._k]
+        self._k += 1
+        return reply
+
+
+def test_image2nav_adapter_executes_action_pairs_and_observes_only_when_needed(scene):
+    from image2sim.eval.runner import Image2NavAdapter
+    from image2sim.simulator.sim import NeuralSimulator
+
+    _, sim, episodes = scene
+    rendered = []
+
+    def render_fn(camera, pose):
+        rendered.append(pose[:3, 3].copy())
+        return {"rgb": np.full((camera.height, camera.width, 3), 0.25, np.float32),
+                "depth": np.ones((camera.height, camera.width), np.float32)}
+
+    obs_sim = NeuralSimulator(sim.navmap, sim.graph, render_fn)
+    F, L, S = int(Action.MOVE_FORWARD), int(Action.TURN_LEFT), int(Action.STOP)
+    fake = _ScriptedStreamingAgent([[F, L], [F, S]])
+    adapter = Image2NavAdapter.from_agent(fake)
+    res, actions = run_episode(NeuralSimBackend(obs_sim, PROTO), adapter, episodes[0], PROTO, 1)
+    assert actions == [F, L, F, S]
+    assert fake.instruction == episodes[0].instruction.text
+    # Two model calls, each on a fresh 336x336 uint8 image (the protocol camera); the second is told
+    # which actions were executed since the first.
+    assert fake.calls == [((336, 336, 3), np.uint8, None), ((336, 336, 3), np.uint8, [F, L])]
+    assert len(rendered) == 2  # no rendering while the queued second action is executed
+    assert res.metrics["steps"] == 4.0
+    with pytest.raises(RunnerError, match="render function"):
+        run_episode(NeuralSimBackend(sim, PROTO), Image2NavAdapter.from_agent(fake), episodes[0], PROTO, 1)
+
+
+@pytest.mark.slow
+def test_image2nav_adapter_runs_the_tiny_navpolicy_model(scene):
+    pytest.importorskip("image2sim.navpolicy")
+    from image2sim.eval.runner import Image2NavAdapter
+    from image2sim.simulator.sim import NeuralSimulator
+
+    _, sim, episodes = scene
+    small = dataclasses.replace(PROTO, max_steps=4,
+                                camera=dataclasses.replace(PROTO.camera, width=64, height=64))
+
+    def render_fn(camera, pose):
+        return {"rgb": np.full((camera.height, camera.width, 3), 0.5, np.float32),
+                "depth": np.ones((camera.height, camera.width), np.float32)}
+
+    backend = NeuralSimBackend(NeuralSimulator(sim.navmap, sim.graph, render_fn), small)
+    res, actions = run_episode(backend, Image2NavAdapter(), episodes[0], small, 0)
+    assert 1 <= len(actions) <= 4 and res.metrics["steps"] == len(actions)

@@ -366,9 +366,19 @@ class Image2NavAdapter:
         except ImportError as exc:
             raise RunnerError(f"the image2nav agent needs image2sim-navpolicy installed ({exc})") from exc
         cfg = load_config(config, {"model": {"source": model}} if model != "tiny" else None)
-        self._agent = Image2NavAgent(build_policy(cfg, seed=0), cfg.agent, cfg.system_prompt)
+        self._init(Image2NavAgent(build_policy(cfg, seed=0), cfg.agent, cfg.system_prompt))
+
+    def _init(self, agent: Any) -> None:
+        self._agent = agent
         self._queue: list[int] = []
         self._executed: list[int] | None = None
+
+    @classmethod
+    def from_agent(cls, agent: Any) -> Image2NavAdapter:
+        """Wrap an already built streaming agent (``reset(instruction, seed)``, ``act(rgb, executed)``)."""
+        self = cls.__new__(cls)
+        self._init(agent)
+        return self
 
     def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None:
         import torch
