@@ -108,7 +108,9 @@ def test_fps_excludes_warm_up_calls(held):
 def test_method_record_weights_tiers_by_views(held):
     s_none = _tier_samples(held, "none", seed=0, max_views=3)
     s_high = _tier_samples(held, "high", seed=0, max_views=1)
-    cells = benchmark_methods({"splat_only": _splat_only()}, {"none": s_none, "high": s_high}, warmup=0, runs=1)
+    cells = benchmark_methods(
+        {"splat_only": _splat_only()}, {"none": s_none, "high": s_high}, warmup=0, runs=1
+    )
     c = cells["splat_only"]
     rec = method_record(c)
     expect = (3 * c["none"].metrics["psnr"].mean + 1 * c["high"].metrics["psnr"].mean) / 4
@@ -174,8 +176,26 @@ def test_cli_render_then_report(tmp_path):
     from typer.testing import CliRunner
 
     out = tmp_path / "metrics" / "render.json"
-    res = CliRunner().invoke(app, ["render", "--steps", "1", "--tier", "none", "--max-views", "1", "--warmup", "0",
-                                   "--runs", "1", "--out", str(out), "--plot", str(tmp_path / "speed.png")])
+    res = CliRunner().invoke(
+        app,
+        [
+            "render",
+            "--steps",
+            "1",
+            "--tier",
+            "none",
+            "--max-views",
+            "1",
+            "--warmup",
+            "0",
+            "--runs",
+            "1",
+            "--out",
+            str(out),
+            "--plot",
+            str(tmp_path / "speed.png"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     doc = json.loads(out.read_text())
     assert set(doc["methods"]) == {"splat_only", "flow_1step"}

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,8 +39,9 @@ from image2sim.simulator.conventions import Action
 
 # The tiny procedural rooms are ~2 x 2 m, so the 3 m success radius of the paper would make every
 # episode a success at the start: the tests use a copy of the paper's protocol with a 0.5 m radius.
-PROTO = dataclasses.replace(IMAGE2SIM, name="tiny-test", success_distance_m=0.5, ndtw_threshold_m=0.5,
-                            max_steps=200)
+PROTO = dataclasses.replace(
+    IMAGE2SIM, name="tiny-test", success_distance_m=0.5, ndtw_threshold_m=0.5, max_steps=200
+)
 N_EPISODES = 10
 
 
@@ -79,7 +79,7 @@ def test_oracle_reaches_every_goal_efficiently(scene):
     assert s["ne"] < PROTO.success_distance_m
     # The oracle's nDTW against its own planner path is high (but below 1: smoothing, discrete turns).
     assert 0.6 < s["ndtw"] <= 1.0
-    for r, ep in zip(results, scene[2]):
+    for r, ep in zip(results, scene[2], strict=True):
         # Triangle inequality: a successful path is at least the straight start-goal distance minus the
         # success radius (the grid geodesic itself may exceed what the continuous agent walks).
         straight = float(np.linalg.norm(ep.goal_position - ep.start_position))
@@ -112,7 +112,9 @@ def test_step_limit_ends_an_episode_without_success(scene):
     _, sim, episodes = scene
     short = dataclasses.replace(PROTO, max_steps=3)
     backend = NeuralSimBackend(sim, short)
-    res, actions = run_episode(backend, make_agent(AgentSpec("forward", {"forward_steps": 50})), episodes[0], short, 0)
+    res, actions = run_episode(
+        backend, make_agent(AgentSpec("forward", {"forward_steps": 50})), episodes[0], short, 0
+    )
     assert actions == [int(Action.MOVE_FORWARD)] * 3
     assert res.metrics["steps"] == 3 and res.metrics["success"] == 0.0
 
@@ -188,17 +190,17 @@ _CHILD = textwrap.dedent(
     import json
     root, out, proto = sys.argv[1], sys.argv[2], Protocol.from_dict(json.loads(sys.argv[3]))
     backend = load_scene_backend(root + "/scene_000", proto)
-    eps = sample_point_goal_episodes(backend.sim, %d, seed=0, min_distance=1.5, scene_id="scene_000")
+    eps = sample_point_goal_episodes(backend.sim, N, seed=0, min_distance=1.5, scene_id="scene_000")
 
     class Slow(RandomAgent):
         def reset(self, episode, backend, seed):
             time.sleep(0.4)  # long enough to be killed between episodes
             super().reset(episode, backend, seed)
 
-    run_scene(backend, eps, proto, RunConfig(agent="random", seed=5), out + "/random/scene_000.jsonl", agent=Slow())
+    log = out + "/random/scene_000.jsonl"
+    run_scene(backend, eps, proto, RunConfig(agent="random", seed=5), log, agent=Slow())
     """
-    % N_EPISODES
-)
+).replace("N,", f"{N_EPISODES},")
 
 
 def test_sigkill_and_resume_gives_the_uninterrupted_aggregate(scene, tmp_path):
@@ -206,8 +208,11 @@ def test_sigkill_and_resume_gives_the_uninterrupted_aggregate(scene, tmp_path):
     killed = tmp_path / "killed"
     log = killed / "random" / "scene_000.jsonl"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(root), str(killed), json.dumps(PROTO.to_dict())],
-                            env=env, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(root), str(killed), json.dumps(PROTO.to_dict())],
+        env=env,
+        stderr=subprocess.PIPE,
+    )
     deadline = time.time() + 120
     while time.time() < deadline:
         n = len(log.read_text().splitlines()) - 1 if log.exists() else 0
@@ -242,11 +247,20 @@ def test_parallel_scenes_match_serial(scene, tmp_path):
 
     shutil.copytree(root / "scene_000", tmp_path / "scenes" / "scene_000")
     shutil.copytree(root / "scene_000", tmp_path / "scenes" / "scene_001")
-    eps = episodes[:3] + [dataclasses.replace(e, episode_id="b" + e.episode_id, scene_id="scene_001")
-                          for e in episodes[:3]]
-    serial = run_nav(eps, tmp_path / "scenes", PROTO, RunConfig(agent="oracle"), tmp_path / "s", show_progress=False)
-    par = run_nav(eps, tmp_path / "scenes", PROTO, RunConfig(agent="oracle", workers=2), tmp_path / "p",
-                  show_progress=False)
+    eps = episodes[:3] + [
+        dataclasses.replace(e, episode_id="b" + e.episode_id, scene_id="scene_001") for e in episodes[:3]
+    ]
+    serial = run_nav(
+        eps, tmp_path / "scenes", PROTO, RunConfig(agent="oracle"), tmp_path / "s", show_progress=False
+    )
+    par = run_nav(
+        eps,
+        tmp_path / "scenes",
+        PROTO,
+        RunConfig(agent="oracle", workers=2),
+        tmp_path / "p",
+        show_progress=False,
+    )
     assert serial.to_dict() == par.to_dict()
     assert aggregate(read_episode_log(tmp_path / "p" / "oracle" / "scene_001.jsonl")[1]).num_episodes == 3
     with pytest.raises(RunnerError, match="not found"):
@@ -262,9 +276,25 @@ def test_cli_nav_then_report(scene, tmp_path):
     proto_file = tmp_path / "proto.json"
     proto_file.write_text(json.dumps(PROTO.to_dict()))
     metrics = tmp_path / "metrics" / "nav.json"
-    args = ["nav", "--scenes", str(root), "--point-goal", "4", "--agent", "oracle", "--agent", "forward",
-            "--forward-steps", "3", "--protocol", str(proto_file), "--out", str(tmp_path / "run"),
-            "--metrics", str(metrics)]
+    args = [
+        "nav",
+        "--scenes",
+        str(root),
+        "--point-goal",
+        "4",
+        "--agent",
+        "oracle",
+        "--agent",
+        "forward",
+        "--forward-steps",
+        "3",
+        "--protocol",
+        str(proto_file),
+        "--out",
+        str(tmp_path / "run"),
+        "--metrics",
+        str(metrics),
+    ]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     doc = json.loads(metrics.read_text())
@@ -303,8 +333,10 @@ def test_image2nav_adapter_executes_action_pairs_and_observes_only_when_needed(s
 
     def render_fn(camera, pose):
         rendered.append(pose[:3, 3].copy())
-        return {"rgb": np.full((camera.height, camera.width, 3), 0.25, np.float32),
-                "depth": np.ones((camera.height, camera.width), np.float32)}
+        return {
+            "rgb": np.full((camera.height, camera.width, 3), 0.25, np.float32),
+            "depth": np.ones((camera.height, camera.width), np.float32),
+        }
 
     obs_sim = NeuralSimulator(sim.navmap, sim.graph, render_fn)
     F, L, S = int(Action.MOVE_FORWARD), int(Action.TURN_LEFT), int(Action.STOP)
@@ -329,12 +361,15 @@ def test_image2nav_adapter_runs_the_tiny_navpolicy_model(scene):
     from image2sim.simulator.sim import NeuralSimulator
 
     _, sim, episodes = scene
-    small = dataclasses.replace(PROTO, max_steps=4,
-                                camera=dataclasses.replace(PROTO.camera, width=64, height=64))
+    small = dataclasses.replace(
+        PROTO, max_steps=4, camera=dataclasses.replace(PROTO.camera, width=64, height=64)
+    )
 
     def render_fn(camera, pose):
-        return {"rgb": np.full((camera.height, camera.width, 3), 0.5, np.float32),
-                "depth": np.ones((camera.height, camera.width), np.float32)}
+        return {
+            "rgb": np.full((camera.height, camera.width, 3), 0.5, np.float32),
+            "depth": np.ones((camera.height, camera.width), np.float32),
+        }
 
     backend = NeuralSimBackend(NeuralSimulator(sim.navmap, sim.graph, render_fn), small)
     res, actions = run_episode(backend, Image2NavAdapter(), episodes[0], small, 0)

@@ -53,13 +53,16 @@ def aggregate_cmd(
 @app.command("report")
 def report_cmd(
     aggregates: Annotated[
-        list[Path] | None, typer.Argument(exists=True, dir_okay=False, help="aggregate.json files (optional).")
+        list[Path] | None,
+        typer.Argument(exists=True, dir_okay=False, help="aggregate.json files (optional)."),
     ] = None,
     out: Annotated[
         Path | None, typer.Option(help="Write the Markdown table of the aggregates here (atomically).")
     ] = None,
     nav: Annotated[Path | None, typer.Option(help="metrics/nav.json to report (Table 2 layout).")] = None,
-    render: Annotated[Path | None, typer.Option(help="metrics/render.json to report (Table 1 layout).")] = None,
+    render: Annotated[
+        Path | None, typer.Option(help="metrics/render.json to report (Table 1 layout).")
+    ] = None,
     out_dir: Annotated[
         Path | None, typer.Option(help="Write nav.md, render.md and render_speed.png here.")
     ] = None,
@@ -112,7 +115,9 @@ def _protocol(name_or_file: str):
         return get_protocol(name_or_file)
     path = Path(name_or_file)
     if not path.is_file():
-        raise typer.BadParameter(f"{name_or_file!r} is neither a protocol name {sorted(PROTOCOLS)} nor a file")
+        raise typer.BadParameter(
+            f"{name_or_file!r} is neither a protocol name {sorted(PROTOCOLS)} nor a file"
+        )
     doc = json.loads(path.read_text(encoding="utf-8"))
     return Protocol.from_dict(doc.get("protocol", doc), str(path))
 
@@ -131,15 +136,21 @@ def nav_cmd(
     agent: Annotated[
         list[str], typer.Option(help="Agent(s): random, forward, oracle, image2nav (repeatable).")
     ] = ["oracle"],  # noqa: B006
-    protocol: Annotated[str, typer.Option(help="Protocol name or JSON file with a protocol record.")] = "image2sim",
+    protocol: Annotated[
+        str, typer.Option(help="Protocol name or JSON file with a protocol record.")
+    ] = "image2sim",
     forward_steps: Annotated[int, typer.Option(help="Forward steps of the 'forward' baseline.")] = 37,
     model: Annotated[str, typer.Option(help="image2nav: exported policy folder or 'tiny'.")] = "tiny",
     policy_config: Annotated[str, typer.Option(help="image2nav: navpolicy config preset or YAML.")] = "tiny",
     seed: Annotated[int, typer.Option(help="Run seed (episode seeds derive from it).")] = 0,
     workers: Annotated[int, typer.Option(help="Scene-level processes.")] = 1,
     max_episodes: Annotated[int, typer.Option(help="At most this many episodes per scene (0: all).")] = 0,
-    out: Annotated[Path, typer.Option(help="Run folder (per-scene JSONL logs; resumable).")] = Path("runs/eval_nav"),
-    metrics: Annotated[Path, typer.Option(help="Headline metrics file to update.")] = Path("metrics/nav.json"),
+    out: Annotated[Path, typer.Option(help="Run folder (per-scene JSONL logs; resumable).")] = Path(
+        "runs/eval_nav"
+    ),
+    metrics: Annotated[Path, typer.Option(help="Headline metrics file to update.")] = Path(
+        "metrics/nav.json"
+    ),
 ) -> None:
     """Run agents on navigation episodes (resumes an interrupted run) and update metrics/nav.json."""
     from image2sim.eval.metrics.nav import aggregate
@@ -162,7 +173,9 @@ def nav_cmd(
         eps = []
         for d in sorted(p for p in scenes.iterdir() if (p / "navmap.npz").is_file()):
             sim = load_scene_backend(d, proto).sim
-            eps += sample_point_goal_episodes(sim, point_goal, seed=seed, min_distance=min_distance, scene_id=d.name)
+            eps += sample_point_goal_episodes(
+                sim, point_goal, seed=seed, min_distance=min_distance, scene_id=d.name
+            )
         if not eps:
             raise typer.BadParameter(f"{scenes}: no scene folder with navmap.npz")
     else:
@@ -174,8 +187,13 @@ def nav_cmd(
             options = {"forward_steps": forward_steps}
         elif name == "image2nav":
             options = {"model": model, "config": policy_config}
-        cfg = RunConfig(agent=name, agent_options=options, seed=seed, workers=workers,
-                        max_episodes_per_scene=max_episodes or None)
+        cfg = RunConfig(
+            agent=name,
+            agent_options=options,
+            seed=seed,
+            workers=workers,
+            max_episodes_per_scene=max_episodes or None,
+        )
         results = run_nav_results(eps, scenes, proto, cfg, out)
         report = aggregate(results)
         update_nav_metrics(metrics, proto, name, nav_summary(results, ci_seed=seed))
@@ -190,15 +208,22 @@ def render_cmd(
     checkpoint: Annotated[
         Path | None, typer.Option(help="Renderer checkpoint of `sim train` (omit: untrained model).")
     ] = None,
-    config: Annotated[str, typer.Option(help="Renderer preset or YAML the checkpoint was trained with.")] = "tiny",
+    config: Annotated[
+        str, typer.Option(help="Renderer preset or YAML the checkpoint was trained with.")
+    ] = "tiny",
     data: Annotated[list[Path], typer.Option(help="Capture folders (held-out frames are scored).")] = [],  # noqa: B006
     holdout_every: Annotated[int, typer.Option(help="Every n-th frame is held out (as in sim train).")] = 8,
     max_frames: Annotated[int, typer.Option(help="At most this many frames per capture (0: all).")] = 0,
     max_views: Annotated[int, typer.Option(help="At most this many held-out views per tier (0: all).")] = 0,
     steps: Annotated[list[int], typer.Option(help="Pixel-flow step counts.")] = [1, 2, 4, 8],  # noqa: B006
-    tier: Annotated[list[str], typer.Option(help="Noise tiers: none, middle, high.")] = ["none", "middle", "high"],  # noqa: B006
+    tier: Annotated[list[str], typer.Option(help="Noise tiers: none, middle, high.")] = [  # noqa: B006
+        "none",
+        "middle",
+        "high",
+    ],  # noqa: B006
     ablation: Annotated[
-        list[str], typer.Option(help="SWITCH=CHECKPOINT of an ablation model (no_semantic, no_alpha_gate, no_distill).")
+        list[str],
+        typer.Option(help="SWITCH=CHECKPOINT of an ablation model (no_semantic, no_alpha_gate, no_distill)."),
     ] = [],  # noqa: B006
     lpips_weights: Annotated[Path | None, typer.Option(help="LPIPS weights (safetensors).")] = None,
     warmup: Annotated[int, typer.Option(help="Untimed warm-up calls before FPS timing.")] = 2,
@@ -218,10 +243,19 @@ def render_cmd(
         k, v = item.split("=", 1)
         abl[k] = v
     bench = RenderBenchConfig(
-        renderer_config=config, checkpoint=str(checkpoint) if checkpoint else None, data=[str(d) for d in data],
-        holdout_every=holdout_every, max_frames=max_frames or None, max_views=max_views or None, steps=list(steps),
-        tiers=list(tier), ablations=abl, lpips_weights=str(lpips_weights) if lpips_weights else None,
-        warmup=warmup, runs=runs, threads=threads,
+        renderer_config=config,
+        checkpoint=str(checkpoint) if checkpoint else None,
+        data=[str(d) for d in data],
+        holdout_every=holdout_every,
+        max_frames=max_frames or None,
+        max_views=max_views or None,
+        steps=list(steps),
+        tiers=list(tier),
+        ablations=abl,
+        lpips_weights=str(lpips_weights) if lpips_weights else None,
+        warmup=warmup,
+        runs=runs,
+        threads=threads,
     )
     doc = run_render_bench(bench, out)
     typer.echo(render_markdown(doc))

@@ -54,8 +54,9 @@ def speed_points(doc: Mapping[str, Any], metric: str = "psnr") -> list[SpeedPoin
     return sorted(pts, key=lambda p: (p.steps is None, p.steps or 0, p.method))
 
 
-def plot_speed_vs_error(doc: Mapping[str, Any], out_png: str | Path, metric: str = "psnr",
-                        title: str | None = None) -> Path:
+def plot_speed_vs_error(
+    doc: Mapping[str, Any], out_png: str | Path, metric: str = "psnr", title: str | None = None
+) -> Path:
     """Write the FPS-vs-``metric`` scatter of a render.json document to ``out_png`` (atomic)."""
     import matplotlib
 
@@ -70,8 +71,13 @@ def plot_speed_vs_error(doc: Mapping[str, Any], out_png: str | Path, metric: str
     if flow:
         ax.plot([p.fps for p in flow], [p.psnr for p in flow], "-o", color="tab:blue", label="pixel flow")
         for p in flow:
-            ax.annotate(f"{p.steps} step{'s' if p.steps > 1 else ''}", (p.fps, p.psnr),
-                        textcoords="offset points", xytext=(4, 4), fontsize=8)
+            ax.annotate(
+                f"{p.steps} step{'s' if p.steps > 1 else ''}",
+                (p.fps, p.psnr),
+                textcoords="offset points",
+                xytext=(4, 4),
+                fontsize=8,
+            )
     others = [p for p in pts if p.steps is None]
     markers = iter("s^vD<>pP*X")
     for p in others:

@@ -204,7 +204,7 @@ def benchmark_methods(
             cond0 = samples[0]["condition"][None]
             pose0 = torch.eye(4, dtype=torch.float64)[None]
             with torch.no_grad():
-                timing = measure_fps(lambda: fn(cond0, pose0), warmup=warmup, runs=runs)
+                timing = measure_fps(lambda f=fn, c=cond0, p=pose0: f(c, p), warmup=warmup, runs=runs)
             records = []
             for s in samples:
                 pose = torch.eye(4, dtype=torch.float64)
@@ -241,8 +241,14 @@ def method_record(cells: Mapping[str, RenderCell]) -> dict[str, Any]:
     """Headline record of one method: view-weighted means over the tiers, median FPS, per-tier detail."""
     cs = list(cells.values())
     rec: dict[str, Any] = {}
-    for key, out_key in (("psnr", "psnr"), ("ssim", "ssim"), ("lpips", "lpips"), ("abs_rel", "depth_absrel"),
-                         ("rmse", "depth_rmse"), ("delta1", "depth_delta1")):
+    for key, out_key in (
+        ("psnr", "psnr"),
+        ("ssim", "ssim"),
+        ("lpips", "lpips"),
+        ("abs_rel", "depth_absrel"),
+        ("rmse", "depth_rmse"),
+        ("delta1", "depth_delta1"),
+    ):
         value, _ = _mean(cs, key)
         rec[out_key] = None if value is None or not math.isfinite(value) else float(value)
     fps = sorted(c.fps for c in cs if c.fps is not None)
@@ -262,7 +268,9 @@ def method_record(cells: Mapping[str, RenderCell]) -> dict[str, Any]:
     return rec
 
 
-def run_render_bench(bench: RenderBenchConfig, out_json: str | Path, show_progress: bool = True) -> dict[str, Any]:
+def run_render_bench(
+    bench: RenderBenchConfig, out_json: str | Path, show_progress: bool = True
+) -> dict[str, Any]:
     """Run the benchmark and write ``metrics/render.json`` (atomic); returns the document."""
     from image2sim.simulator.renderer.cli import _split, _targets  # the renderer's own split and sources
     from image2sim.simulator.renderer.config import config_to_dict, load_renderer_config
@@ -295,8 +303,9 @@ def run_render_bench(bench: RenderBenchConfig, out_json: str | Path, show_progre
             bar.advance(task)
 
     try:
-        cells = benchmark_methods(methods, samples, warmup=bench.warmup, runs=bench.runs,
-                                  lpips_model=lpips_model, progress=advance)
+        cells = benchmark_methods(
+            methods, samples, warmup=bench.warmup, runs=bench.runs, lpips_model=lpips_model, progress=advance
+        )
     finally:
         if bar is not None:
             bar.stop()
@@ -307,13 +316,20 @@ def run_render_bench(bench: RenderBenchConfig, out_json: str | Path, show_progre
             "resolution": [cfg.height, cfg.width],
             "checkpoint": bench.checkpoint,
             "trained": bench.checkpoint is not None,
-            "data": list(bench.data) or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
+            "data": list(bench.data)
+            or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
             "holdout_every": bench.holdout_every,
             "held_out_views": len(held),
             "tiers": {t: dict(NOISE_TIERS[t]) for t in bench.tiers},
-            "condition_source": "renderer.data.DegradedPanoramaDataset (splat-like degradation of the target)",
-            "fps": {"warmup": bench.warmup, "runs": bench.runs, "statistic": "median after warm-up",
-                    "threads": bench.threads, "batch": 1, "hardware": hardware_string()},
+            "condition_source": "renderer.data.DegradedPanoramaDataset (splat-like degradation of targets)",
+            "fps": {
+                "warmup": bench.warmup,
+                "runs": bench.runs,
+                "statistic": "median after warm-up",
+                "threads": bench.threads,
+                "batch": 1,
+                "hardware": hardware_string(),
+            },
             "lpips": "configured" if lpips_model is not None else "n/a (no weights configured)",
             "config": asdict(bench),
             "renderer": config_to_dict(cfg),
@@ -351,8 +367,12 @@ def render_markdown(doc: Mapping[str, Any]) -> str:
                 row += ["–"] * 4
                 continue
             psnr = c.get("psnr")
-            row += [_fmt(c.get("lpips"), 3), "inf" if psnr == math.inf else _fmt(psnr, 2), _fmt(c.get("ssim"), 3),
-                    _fmt(c.get("depth_absrel"), 3)]
+            row += [
+                _fmt(c.get("lpips"), 3),
+                "inf" if psnr == math.inf else _fmt(psnr, 2),
+                _fmt(c.get("ssim"), 3),
+                _fmt(c.get("depth_absrel"), 3),
+            ]
         row += [_fmt(rec.get("fps"), 1), str(rec.get("n_views"))]
         lines.append("| " + " | ".join(row) + " |")
     notes = []
@@ -362,7 +382,9 @@ def render_markdown(doc: Mapping[str, Any]) -> str:
         notes.append("trained checkpoint" if proto.get("trained") else "**untrained model** (plumbing run)")
         fps = proto.get("fps") or {}
         if fps:
-            notes.append(f"FPS: {fps.get('statistic')} ({fps.get('runs')} runs, {fps.get('warmup')} warm-up, "
-                         f"batch {fps.get('batch')}, {fps.get('threads')} thread(s)) on {fps.get('hardware')}")
+            notes.append(
+                f"FPS: {fps.get('statistic')} ({fps.get('runs')} runs, {fps.get('warmup')} warm-up, "
+                f"batch {fps.get('batch')}, {fps.get('threads')} thread(s)) on {fps.get('hardware')}"
+            )
         notes.append(f"conditions: {proto.get('condition_source')}")
     return "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes if n) + "\n"

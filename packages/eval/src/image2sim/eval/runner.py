@@ -31,7 +31,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Protocol as TypingProtocol
+from typing import Any
+from typing import Protocol as TypingProtocol
 
 import numpy as np
 from image2sim.eval.datasets import NavEpisode
@@ -148,7 +149,11 @@ def check_embodiment(embodiment: Any, protocol: Protocol, where: str = "scene") 
         "eye_height": (embodiment.eye_height, protocol.agent_height_m),
         "wall_sliding": (embodiment.wall_sliding, protocol.allow_sliding),
     }
-    bad = {k: v for k, v in pairs.items() if (v[0] != v[1] if isinstance(v[0], bool) else abs(v[0] - v[1]) > 1e-9)}
+    bad = {
+        k: v
+        for k, v in pairs.items()
+        if (v[0] != v[1] if isinstance(v[0], bool) else abs(v[0] - v[1]) > 1e-9)
+    }
     if bad:
         detail = ", ".join(f"{k}: simulator {a!r} vs protocol {b!r}" for k, (a, b) in bad.items())
         raise RunnerError(
@@ -210,7 +215,9 @@ class NeuralSimBackend:
         goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
         self.goal_map = goal
         self.field = self.sim.planner.distance_field(goal)
-        _, info = self.sim.reset(start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False)
+        _, info = self.sim.reset(
+            start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False
+        )
         return self._obs(info, False, observe)
 
     def step(self, action: int, observe: bool = False) -> StepObservation:
@@ -255,19 +262,25 @@ def load_scene_backend(scene_dir: str | Path, protocol: Protocol, render: bool =
     scene_dir = Path(scene_dir)
     for name in ("navmap.npz", "navgraph.npz"):
         if not (scene_dir / name).is_file():
-            raise RunnerError(f"{scene_dir}: missing {name} (run `image2sim sim navmap` or the data engine first)")
+            raise RunnerError(
+                f"{scene_dir}: missing {name} (run `image2sim sim navmap` or the data engine first)"
+            )
     navmap = NavMap.load(scene_dir / "navmap.npz")
     graph = NavGraph.load(scene_dir / "navgraph.npz")
     render_fn = None
     if render:
-        folder = next((f for f in (scene_dir, scene_dir / "gaussians") if (f / "gaussians.safetensors").is_file()), None)
+        folder = next(
+            (f for f in (scene_dir, scene_dir / "gaussians") if (f / "gaussians.safetensors").is_file()), None
+        )
         if folder is None:
             raise RunnerError(f"{scene_dir}: the agent needs images but there is no gaussians.safetensors")
         from image2sim.simulator.gaussians import GaussianScene
         from image2sim.simulator.sim import GaussianRenderFn
 
         g = GaussianScene.load(folder).gaussians
-        render_fn = GaussianRenderFn({k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")})
+        render_fn = GaussianRenderFn(
+            {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")}
+        )
     return NeuralSimBackend(NeuralSimulator(navmap, graph, render_fn), protocol, scene_dir.name)
 
 
@@ -295,7 +308,10 @@ class RandomAgent:
     def __post_init__(self) -> None:
         p = np.asarray(self.probabilities, dtype=np.float64)
         if p.shape != (4,) or (p < 0).any() or not math.isclose(float(p.sum()), 1.0, abs_tol=1e-9):
-            raise ValueError(f"RandomAgent.probabilities must be 4 non-negative numbers summing to 1, got {self.probabilities}")
+            raise ValueError(
+                f"RandomAgent.probabilities must be 4 non-negative numbers summing to 1, "
+                f"got {self.probabilities}"
+            )
         self._p = p
         self._rng = np.random.default_rng(0)
 
@@ -591,7 +607,9 @@ def run_nav_results(
         raise RunnerError("no episodes to evaluate")
     for name in groups:
         if not (scenes_root / name).is_dir():
-            raise RunnerError(f"scene {name!r}: folder {scenes_root / name} not found (episodes reference it)")
+            raise RunnerError(
+                f"scene {name!r}: folder {scenes_root / name} not found (episodes reference it)"
+            )
     manifest = {
         "config": asdict(config),
         "seed_rule": "episode_seed = crc32(f'{seed}:{episode_id}') & 0x7fffffff",
@@ -628,7 +646,9 @@ def run_nav_results(
             import multiprocessing as mp
 
             # spawn: torch and OpenMP do not survive fork reliably.
-            with ProcessPoolExecutor(min(config.workers, len(tasks)), mp_context=mp.get_context("spawn")) as pool:
+            with ProcessPoolExecutor(
+                min(config.workers, len(tasks)), mp_context=mp.get_context("spawn")
+            ) as pool:
                 for _ in pool.map(_scene_task, tasks):
                     if bar is not None:
                         bar.advance(task_id)
@@ -645,7 +665,7 @@ def run_nav_results(
     return results
 
 
-# ------------------------------------------------------------------------------------------ episodes from a planner
+# ----------------------------------------------------------------------------- episodes from a planner
 
 
 def sample_point_goal_episodes(
@@ -687,7 +707,9 @@ def sample_point_goal_episodes(
             )
         )
     if len(out) < n:
-        raise RunnerError(f"{scene_id}: found only {len(out)} of {n} start/goal pairs >= {min_distance} m apart")
+        raise RunnerError(
+            f"{scene_id}: found only {len(out)} of {n} start/goal pairs >= {min_distance} m apart"
+        )
     return out
 
 
@@ -708,7 +730,9 @@ def wilson_interval(successes: float, n: int, z: float = 1.959963984540054) -> t
     return (lo, hi)
 
 
-def bootstrap_ci(values: Sequence[float], n_boot: int = 2000, seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+def bootstrap_ci(
+    values: Sequence[float], n_boot: int = 2000, seed: int = 0, level: float = 0.95
+) -> tuple[float, float]:
     """Percentile bootstrap interval of the mean (seeded, so it is reproducible)."""
     x = np.asarray(values, dtype=np.float64)
     if len(x) == 0:
@@ -783,12 +807,16 @@ def nav_markdown(doc: Mapping[str, Any]) -> str:
     def ci(v: Any) -> str:
         return "" if not v else f" [{100 * v[0]:.1f}, {100 * v[1]:.1f}]"
 
-    lines = ["| Agent | NE↓ | OSR↑ | SR↑ (95% CI) | SPL↑ (95% CI) | nDTW↑ | Episodes |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| Agent | NE↓ | OSR↑ | SR↑ (95% CI) | SPL↑ (95% CI) | nDTW↑ | Episodes |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for name, a in agents.items():
         ne = "n/a" if a.get("ne") is None else f"{a['ne']:.2f}"
-        lines.append(f"| {name} | {ne} | {pct(a.get('osr'))} | {pct(a.get('sr'))}{ci(a.get('sr_ci'))} | "
-                     f"{pct(a.get('spl'))}{ci(a.get('spl_ci'))} | {pct(a.get('ndtw'))} | {a.get('n_episodes')} |")
+        lines.append(
+            f"| {name} | {ne} | {pct(a.get('osr'))} | {pct(a.get('sr'))}{ci(a.get('sr_ci'))} | "
+            f"{pct(a.get('spl'))}{ci(a.get('spl_ci'))} | {pct(a.get('ndtw'))} | {a.get('n_episodes')} |"
+        )
     proto = doc.get("protocol") or {}
     text = "\n".join(lines) + "\n"
     if proto:
