@@ -58,7 +58,7 @@ def timeit(fn: Callable[[], object], repeats: int) -> float:
     return statistics.median(times)
 
 
-def ray_march_reference(a, b, masks, heights, origin, vox, step) -> np.ndarray:
+def ray_march_reference(a, b, masks, keys, origin, vox, step) -> np.ndarray:
     """Per-edge, per-sample Python loop with the same semantics as :func:`ray_march_free`."""
     out = np.zeros(len(a), dtype=bool)
     n = int(max(2, np.ceil(np.linalg.norm(b[:, :2] - a[:, :2], axis=1).max() / step) + 1))
@@ -67,7 +67,8 @@ def ray_march_reference(a, b, masks, heights, origin, vox, step) -> np.ndarray:
         for t in np.linspace(0.0, 1.0, n):
             p = a[k] + t * (b[k] - a[k])
             i, j = int(math.floor((p[0] - origin[0]) / vox)), int(math.floor((p[1] - origin[1]) / vox))
-            bi = int(np.argmin(np.abs(heights - p[2])))
+            k = math.floor((p[2] - origin[2]) / vox)
+            bi = int(np.argmin(np.abs(keys - k)))
             if not (0 <= i < masks.shape[1] and 0 <= j < masks.shape[2]) or masks[bi, i, j]:
                 free = False
                 break
@@ -107,11 +108,11 @@ def bench_scene(nx: int, ny: int, repeats: int, seed: int = 0) -> dict:
     t_ref = timeit(lambda: dijkstra(graph.length_matrix, directed=False, indices=g_node), max(1, repeats // 2))
 
     # Ray march: vectorised vs Python loop on the same 300 candidate edges.
-    heights, masks = navmap.blocked_stack()
+    keys, masks = navmap.blocked_stack()
     sel = rng.integers(0, graph.num_nodes, 300)
     a = graph.nodes[sel]
     b = a + np.column_stack((rng.uniform(-0.3, 0.3, (300, 2)), np.zeros(300)))
-    args = (a, b, masks, heights, navmap.origin, navmap.voxel_size, graph.config.march_step)
+    args = (a, b, masks, keys, navmap.origin, navmap.voxel_size, graph.config.march_step)
     t_march = timeit(lambda: ray_march_free(*args), repeats) / 300
     t_march_ref = timeit(lambda: ray_march_reference(*args), 1) / 300
     assert np.array_equal(ray_march_free(*args), ray_march_reference(*args))

@@ -60,11 +60,11 @@ def test_edges_connect_nearby_nodes_only_and_never_cross_walls():
 
 def test_ray_march_matches_slow_reference():
     w, m, g, _ = setup("L")
-    heights, masks = m.blocked_stack()
+    keys, masks = m.blocked_stack()
     rng = np.random.default_rng(0)
     a = g.nodes[rng.integers(0, g.num_nodes, 120)]
     b = a + np.column_stack((rng.uniform(-0.6, 0.6, (120, 2)), np.zeros(120)))
-    fast = ray_march_free(a, b, masks, heights, m.origin, m.voxel_size, 0.025)
+    fast = ray_march_free(a, b, masks, keys, m.origin, m.voxel_size, 0.025)
     assert 0 < fast.sum() < len(fast)  # both outcomes are exercised
     for k in range(120):
         n = int(max(2, np.ceil(np.linalg.norm(b[:, :2] - a[:, :2], axis=1).max() / 0.025) + 1))
@@ -72,11 +72,28 @@ def test_ray_march_matches_slow_reference():
         for t in np.linspace(0, 1, n):
             p = a[k] + t * (b[k] - a[k])
             i, j = np.floor((p[:2] - m.origin[:2]) / m.voxel_size).astype(int)
-            bin_ = int(np.argmin(np.abs(heights - p[2])))
+            k = math.floor((p[2] - m.origin[2]) / m.voxel_size)
+            bin_ = int(np.argmin(np.abs(keys - k)))
             if not (0 <= i < masks.shape[1] and 0 <= j < masks.shape[2]) or masks[bin_, i, j]:
                 free = False
                 break
         assert fast[k] == free
+
+
+def test_clearance_shortcut_keeps_exactly_the_fully_marched_edges():
+    from scipy.spatial import cKDTree
+
+    _, m, g, _ = setup("stairs")  # risers, storeys and a drop: every branch of the march
+    pairs = cKDTree(g.nodes).query_pairs(r=g.config.neighbor_radius, output_type="ndarray")
+    pairs = pairs[np.abs(g.nodes[pairs[:, 0], 2] - g.nodes[pairs[:, 1], 2]) <= g.embodiment.max_step_height + 0.01]
+    keys, masks = m.blocked_stack()
+    full = ray_march_free(g.nodes[pairs[:, 0]], g.nodes[pairs[:, 1]], masks, keys, m.origin, m.voxel_size,
+                          g.config.march_step)
+    def keys(e):
+        e = np.sort(e, axis=1).astype(np.int64)
+        return np.sort(e[:, 0] * g.num_nodes + e[:, 1])
+
+    assert np.array_equal(keys(g.edges), keys(pairs[full]))
 
 
 def test_directed_costs_are_asymmetric_next_to_walls_and_follow_the_formula():

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from image2sim.simulator.navigation.embodiment import Embodiment, GraphConfig
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
 
-__all__ = ["NavGraph", "edge_costs", "ray_march_free"]
+__all__ = ["NavGraph", "edge_costs", "nearest_bin", "ray_march_free"]
 
 GRAPH_FORMAT_VERSION = 1
 
@@ -43,20 +43,29 @@ def edge_costs(
     return lengths + config.w_safe * safe + config.w_collision * penetration
 
 
+def nearest_bin(k: np.ndarray, bin_keys: np.ndarray) -> np.ndarray:
+    """Index of the bin whose key is nearest to each integer height index ``k`` (ties: lower)."""
+    pos = np.searchsorted(bin_keys, k)
+    lo = np.clip(pos - 1, 0, len(bin_keys) - 1)
+    hi = np.clip(pos, 0, len(bin_keys) - 1)
+    return np.where(np.abs(bin_keys[hi] - k) < np.abs(bin_keys[lo] - k), hi, lo)
+
+
 def ray_march_free(
     a: np.ndarray,
     b: np.ndarray,
     masks: np.ndarray,
-    bin_heights: np.ndarray,
+    bin_keys: np.ndarray,
     origin: np.ndarray,
     voxel_size: float,
     step: float,
 ) -> np.ndarray:
     """True for segments a[i] -> b[i] (map frame, floor height) whose samples avoid blocked columns.
 
-    ``masks`` (B, nx, ny) are the blocked columns of each floor-height bin ``bin_heights`` (B,)
-    (sorted); a sample at interpolated floor height z reads the mask of the nearest bin. Samples
-    are spaced at most ``step`` apart and include both end points.
+    ``masks`` (B, nx, ny) are the blocked columns of each floor-height bin; ``bin_keys`` (B,) the
+    sorted height indices k = floor((z - origin_z) / voxel) of the bins. A sample at interpolated
+    floor height z reads the mask of the bin nearest to its k. Samples are spaced at most ``step``
+    apart and include both end points.
     """
     n = len(a)
     if n == 0:
@@ -70,14 +79,11 @@ def ray_march_free(
     z = a[:, 2:3] + (b[:, 2:3] - a[:, 2:3]) * t
     i = np.floor((x - origin[0]) / voxel_size).astype(np.int64)
     j = np.floor((y - origin[1]) / voxel_size).astype(np.int64)
-    nb, nx, ny = masks.shape
+    _, nx, ny = masks.shape
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-    pos = np.searchsorted(bin_heights, z)
-    lo = np.clip(pos - 1, 0, nb - 1)
-    hi = np.clip(pos, 0, nb - 1)
-    k = np.where(np.abs(bin_heights[hi] - z) < np.abs(bin_heights[lo] - z), hi, lo)
+    kb = nearest_bin(np.floor((z - origin[2]) / voxel_size).astype(np.int64), bin_keys)
     blocked = np.ones_like(inside)
-    blocked[inside] = masks[k[inside], i[inside], j[inside]]
+    blocked[inside] = masks[kb[inside], i[inside], j[inside]]
     return ~blocked.any(axis=1)
 
 
@@ -132,9 +138,17 @@ class NavGraph:
         pairs = cKDTree(nodes).query_pairs(r=cfg.neighbor_radius, output_type="ndarray").astype(np.int64)
         dz = np.abs(nodes[pairs[:, 0], 2] - nodes[pairs[:, 1], 2]) if len(pairs) else np.zeros(0)
         pairs = pairs[dz <= emb.max_step_height + HEIGHT_TOLERANCE]
-        bin_heights, masks = navmap.blocked_stack()
-        keep = np.zeros(len(pairs), dtype=bool)
-        chunks = range(0, len(pairs), int(cfg.chunk_edges))
+        bin_keys, masks = navmap.blocked_stack()
+        # Exact shortcut: if an endpoint's clearance exceeds the edge length plus one cell, no blocked
+        # column can touch the segment (clearance bounds the distance to every blocked cell's points
+        # and to unsupported cells' edges); only pairs in the same height bin qualify, so the march
+        # would read that bin's mask at every sample.
+        kz = np.floor((nodes[:, 2] - navmap.origin[2]) / navmap.voxel_size).astype(np.int64)
+        d = np.linalg.norm(nodes[pairs[:, 0], :2] - nodes[pairs[:, 1], :2], axis=1)
+        c = np.maximum(clearance[pairs[:, 0]], clearance[pairs[:, 1]])
+        keep = (kz[pairs[:, 0]] == kz[pairs[:, 1]]) & (c >= d + navmap.voxel_size)
+        todo = np.flatnonzero(~keep)
+        chunks = range(0, len(todo), int(cfg.chunk_edges))
         bar = None
         if progress:
             from rich.progress import Progress
@@ -144,9 +158,10 @@ class NavGraph:
             task = bar.add_task("ray-marching edges", total=len(chunks))
         try:
             for s in chunks:
-                p = pairs[s : s + int(cfg.chunk_edges)]
-                keep[s : s + len(p)] = ray_march_free(
-                    nodes[p[:, 0]], nodes[p[:, 1]], masks, bin_heights, navmap.origin, navmap.voxel_size, cfg.march_step
+                sel = todo[s : s + int(cfg.chunk_edges)]
+                p = pairs[sel]
+                keep[sel] = ray_march_free(
+                    nodes[p[:, 0]], nodes[p[:, 1]], masks, bin_keys, navmap.origin, navmap.voxel_size, cfg.march_step
                 )
                 if bar is not None:
                     bar.advance(task)

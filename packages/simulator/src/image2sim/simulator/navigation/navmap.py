@@ -370,13 +370,17 @@ class NavMap:
         blocked[self.obstacle_ij[sel, 0], self.obstacle_ij[sel, 1]] = True
         return blocked
 
+    def bin_keys(self) -> np.ndarray:
+        """(B,) sorted integer height index k = floor((z - origin_z) / voxel) of each height bin."""
+        return np.unique(np.floor((self.floor_z - self.origin[2]) / self.voxel_size).astype(np.int64))
+
     def blocked_stack(self) -> tuple[np.ndarray, np.ndarray]:
-        """Blocked masks of every height bin: (bin heights (B,), masks (B, nx, ny))."""
+        """Blocked masks of every height bin: (bin keys (B,) as in :meth:`bin_keys`, masks (B, nx, ny))."""
         heights, _ = self.height_bins()
         masks = np.stack([self.blocked_mask(float(h)) for h in heights]) if len(heights) else np.zeros(
             (0,) + self.shape2d, dtype=bool
         )
-        return heights, masks
+        return self.bin_keys(), masks
 
     # --- persistence ----------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:
