@@ -126,3 +126,36 @@ def test_executed_actions_reach_the_prompt(tiny_policy, tiny_cfg, executed):
     assert agent.executed[1] == want
     _, turns = agent._context()
     assert turns[1].executed == want
+
+
+def test_batched_agents_equal_independent_agents(tiny_policy, tiny_cfg):
+    from image2sim.navpolicy.agent import BatchedImage2NavAgent
+
+    trajs = synthetic_trajectories(3, 8, 16, seed=5)
+    instructions = ["go left", "find the white wall and stop there, please", "x"]
+    batched = BatchedImage2NavAgent(tiny_policy, tiny_cfg.agent, tiny_cfg.system_prompt, 3)
+    singles = [Image2NavAgent(tiny_policy, tiny_cfg.agent, tiny_cfg.system_prompt) for _ in range(3)]
+    for i in range(3):
+        batched.reset(i, instructions[i])
+        singles[i].reset(instructions[i])
+    all_actions = set()
+    for t in range(16):
+        # Episodes of different lengths; agent 1 sits out some steps: rows are padded differently.
+        obs = [
+            tr.frames[t] if t < len(tr.frames) and not (i == 1 and t % 5 == 3) else None
+            for i, tr in enumerate(trajs)
+        ]
+        got = batched.act(obs)
+        for i in range(3):
+            if obs[i] is None:
+                assert got[i] is None
+                continue
+            assert got[i] == singles[i].act(obs[i])
+            all_actions.add(tuple(got[i]))
+            for a, b in zip(
+                batched.agents[i].history[-1].step_logits, singles[i].history[-1].step_logits, strict=True
+            ):
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    assert len(all_actions) > 1  # the comparison is not between constant outputs
+    with pytest.raises(ValueError, match="expected 3 observations"):
+        batched.act([None])

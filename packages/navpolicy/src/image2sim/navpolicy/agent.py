@@ -168,13 +168,8 @@ class Image2NavAgent:
         return out.logits[0, -1].float(), start
 
     # ------------------------------------------------------------------------------------------ act
-    @torch.no_grad()
-    def act(self, rgb: np.ndarray, executed: list[int] | None = None) -> list[Action]:
-        """Observe ``rgb`` (H, W, 3 uint8) and return the next two actions.
-
-        ``executed`` lists the actions actually carried out since the previous call (default: the
-        previous reply, cut after a STOP).
-        """
+    def _observe(self, rgb: np.ndarray, executed: list[int] | None):
+        """Record the new observation (and what was executed since the last one); encode the context."""
         self.qwen.eval()
         if self.frames:
             if executed is None:
@@ -185,7 +180,16 @@ class Image2NavAgent:
             self.executed.append(())
         self.frames.append(np.asarray(rgb))
         frame_idx, turns = self._context()
-        enc = self.prompts.encode(self.instruction, turns, add_generation_prompt=True)
+        return frame_idx, self.prompts.encode(self.instruction, turns, add_generation_prompt=True)
+
+    @torch.no_grad()
+    def act(self, rgb: np.ndarray, executed: list[int] | None = None) -> list[Action]:
+        """Observe ``rgb`` (H, W, 3 uint8) and return the next two actions.
+
+        ``executed`` lists the actions actually carried out since the previous call (default: the
+        previous reply, cut after a STOP).
+        """
+        frame_idx, enc = self._observe(rgb, executed)
         ids, mm, keys = list(enc.input_ids), list(enc.mm_token_type_ids), list(enc.keys)
         reuse = common_prefix_length(self._cache_keys, keys) if self.cfg.reuse_cache else 0
         reuse = min(reuse, len(ids) - 1)  # always run at least one token to get logits
@@ -236,3 +240,127 @@ class Image2NavAgent:
             )
         )
         return list(actions)
+
+
+class BatchedImage2NavAgent:
+    """Several episodes stepped together: one left-padded model call per decoding step.
+
+    Every step runs each active agent's full context (contexts of different episodes change
+    differently, so there is no cross-step cache reuse here; use :class:`Image2NavAgent` for a
+    single stream). Decoding is constrained greedy; the actions equal those of independent
+    :class:`Image2NavAgent` instances (tested). ``None`` observations skip an agent for that step.
+    """
+
+    def __init__(self, policy: NavPolicy, cfg: AgentConfig, system_prompt: str, num_agents: int) -> None:
+        if num_agents < 1:
+            raise ValueError("num_agents must be >= 1")
+        self.agents = [Image2NavAgent(policy, cfg, system_prompt) for _ in range(num_agents)]
+        self.policy = policy
+        self.qwen = self.agents[0].qwen
+        self.pad_id = int(policy.tokenizer.pad_token_id)
+
+    def reset(self, index: int, instruction: str, seed: int = 0) -> None:
+        """Start a new episode for agent ``index``."""
+        self.agents[index].reset(instruction, seed)
+
+    @torch.no_grad()
+    def act(self, observations, executed=None) -> list[list[Action] | None]:
+        """Two actions for every agent whose observation is not None (None for the others)."""
+        from transformers import DynamicCache
+
+        n = len(self.agents)
+        if len(observations) != n:
+            raise ValueError(f"expected {n} observations, got {len(observations)}")
+        active = [i for i, o in enumerate(observations) if o is not None]
+        out: list[list[Action] | None] = [None] * n
+        if not active:
+            return out
+        encs, frames = [], []
+        for i in active:
+            fi, enc = self.agents[i]._observe(observations[i], None if executed is None else executed[i])
+            encs.append(enc)
+            frames.append(fi)
+        B, L = len(active), max(len(e) for e in encs)
+        ids = torch.full((B, L), self.pad_id, dtype=torch.long)
+        attn = torch.zeros((B, L), dtype=torch.long)
+        mm = torch.zeros((B, L), dtype=torch.long)
+        pos = torch.zeros((4, B, L), dtype=torch.long)
+        pixels, grids, next_rope = [], [], []
+        for b, (i, enc, fi) in enumerate(zip(active, encs, frames, strict=True)):
+            agent, m, off = self.agents[i], len(enc), L - len(enc)
+            ids[b, off:] = torch.tensor(enc.input_ids)
+            attn[b, off:] = 1
+            mm[b, off:] = torch.tensor(enc.mm_token_type_ids)
+            g = torch.cat([agent._image(k)[1] for k in fi])
+            rope = agent._rope(enc.input_ids, enc.mm_token_type_ids, g)
+            pos[0, b, off:] = torch.arange(m)
+            pos[1:, b, off:] = rope
+            next_rope.append(int(rope.max()) + 1)
+            pixels += [agent._image(k)[0] for k in fi]
+            grids.append(g)
+        cache = DynamicCache(config=self.qwen.config.text_config)
+        res = self.qwen(
+            input_ids=ids,
+            attention_mask=attn,
+            mm_token_type_ids=mm,
+            position_ids=pos,
+            pixel_values=torch.cat(pixels),
+            image_grid_thw=torch.cat(grids),
+            past_key_values=cache,
+            use_cache=True,
+            logits_to_keep=1,
+        )
+        logits = res.logits[:, -1].float()
+        codec = self.policy.codec
+        position, prefix = [0] * B, [[] for _ in range(B)]
+        actions: list[list[Action]] = [[] for _ in range(B)]
+        generated: list[list[int]] = [[] for _ in range(B)]
+        seen_logits: list[list[torch.Tensor]] = [[] for _ in range(B)]
+        text_next = torch.tensor([len(e) for e in encs])
+        rope_next = torch.tensor(next_rope)
+        while True:
+            toks = []
+            for b in range(B):
+                if position[b] >= ACTIONS_PER_STEP:
+                    toks.append(self.pad_id)  # finished: a dummy token whose output is never read
+                    continue
+                allowed = codec.allowed_next(position[b], prefix[b])
+                seen_logits[b].append(logits[b])
+                tok = allowed[int(torch.argmax(logits[b, allowed]))]
+                prefix[b].append(tok)
+                generated[b].append(tok)
+                done = codec.match(position[b], prefix[b])
+                if done is not None:
+                    actions[b].append(done)
+                    position[b] += 1
+                    prefix[b] = []
+                toks.append(tok)
+            if all(p >= ACTIONS_PER_STEP for p in position):
+                break
+            attn = torch.cat([attn, torch.ones((B, 1), dtype=torch.long)], 1)
+            step_pos = torch.cat([text_next.view(1, B, 1), rope_next.view(1, B, 1).expand(3, B, 1)], 0)
+            res = self.qwen(
+                input_ids=torch.tensor(toks).view(B, 1),
+                attention_mask=attn,
+                position_ids=step_pos,
+                past_key_values=cache,
+                use_cache=True,
+                logits_to_keep=1,
+            )
+            logits = res.logits[:, -1].float()
+            text_next, rope_next = text_next + 1, rope_next + 1
+        for b, i in enumerate(active):
+            agent = self.agents[i]
+            agent.replies.append(tuple(int(a) for a in actions[b]))
+            agent.history.append(
+                StepInfo(
+                    actions=list(actions[b]),
+                    generated_ids=generated[b],
+                    context_tokens=len(encs[b]),
+                    reused_tokens=0,
+                    fallback=False,
+                    step_logits=seen_logits[b],
+                )
+            )
+            out[i] = list(actions[b])
+        return out
