@@ -129,13 +129,14 @@ def main() -> None:
     }
     REPORTS.mkdir(parents=True, exist_ok=True)
     write_json_atomic(REPORTS / "bench_eval_runner.json", result)
+    load = ", ".join(f"{x:.1f}" for x in result["load_average"])
+    nodes = result["scene"]["graph_nodes"]
     lines = [
         "# Navigation runner: episode-loop throughput",
         "",
-        f"Hardware: {result['hardware']}; load average {', '.join(f'{x:.1f}' for x in result['load_average'])}; "
-        f"commit {commit}.",
-        f"Tiny procedural scene (seed 0, {result['scene']['graph_nodes']} graph nodes), {len(eps)} point-goal "
-        f"episodes; median of {runs} runs after 1 warm-up run.",
+        f"Hardware: {result['hardware']}; load average {load}; commit {commit}.",
+        f"Tiny procedural scene (seed 0, {nodes} graph nodes), {len(eps)} point-goal episodes; "
+        f"median of {runs} runs after 1 warm-up run.",
         "",
         "| mode | steps | steps/s | ratio vs reference |",
         "|---|---:|---:|---:|",
