@@ -62,17 +62,17 @@ def ray_march_reference(a, b, masks, keys, origin, vox, step) -> np.ndarray:
     """Per-edge, per-sample Python loop with the same semantics as :func:`ray_march_free`."""
     out = np.zeros(len(a), dtype=bool)
     n = int(max(2, np.ceil(np.linalg.norm(b[:, :2] - a[:, :2], axis=1).max() / step) + 1))
-    for k in range(len(a)):
+    for e in range(len(a)):
         free = True
         for t in np.linspace(0.0, 1.0, n):
-            p = a[k] + t * (b[k] - a[k])
+            p = a[e] + t * (b[e] - a[e])
             i, j = int(math.floor((p[0] - origin[0]) / vox)), int(math.floor((p[1] - origin[1]) / vox))
-            k = math.floor((p[2] - origin[2]) / vox)
-            bi = int(np.argmin(np.abs(keys - k)))
+            kz = math.floor((p[2] - origin[2]) / vox)
+            bi = int(np.argmin(np.abs(keys - kz)))
             if not (0 <= i < masks.shape[1] and 0 <= j < masks.shape[2]) or masks[bi, i, j]:
                 free = False
                 break
-        out[k] = free
+        out[e] = free
     return out
 
 

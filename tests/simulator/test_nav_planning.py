@@ -72,8 +72,8 @@ def test_ray_march_matches_slow_reference():
         for t in np.linspace(0, 1, n):
             p = a[k] + t * (b[k] - a[k])
             i, j = np.floor((p[:2] - m.origin[:2]) / m.voxel_size).astype(int)
-            k = math.floor((p[2] - m.origin[2]) / m.voxel_size)
-            bin_ = int(np.argmin(np.abs(keys - k)))
+            kz = math.floor((p[2] - m.origin[2]) / m.voxel_size)
+            bin_ = int(np.argmin(np.abs(keys - kz)))
             if not (0 <= i < masks.shape[1] and 0 <= j < masks.shape[2]) or masks[bin_, i, j]:
                 free = False
                 break
