@@ -26,11 +26,12 @@ def test_cli_episodes_then_stats(scenes_root, tmp_path):
     runner = CliRunner()
     app = build_app()
     out = tmp_path / "out"
-    res = runner.invoke(app, ["data", "episodes", "--scenes", str(scenes_root), "--out", str(out), "--per-scene", "4",
-                              "--executor", "local", "--obs-height", "24", "--view", "ultrawide"])
+    # A single capture folder is accepted as --scenes too.
+    res = runner.invoke(app, ["data", "episodes", "--scenes", str(scenes_root / "scene_001"), "--out", str(out),
+                              "--per-scene", "3", "--executor", "local", "--obs-height", "24", "--view", "ultrawide"])
     assert res.exit_code == 0, res.output
     summary = json.loads(res.output[res.output.index("{"):])
-    assert summary["scenes_done"] == 2 and summary["failed"] == [] and summary["episodes"] > 0
+    assert summary["scenes_done"] == 1 and summary["failed"] == [] and summary["episodes"] > 0
     res = runner.invoke(app, ["data", "stats", str(out)])
     assert res.exit_code == 0, res.output
     stats = json.loads((out / "train" / "stats" / "stats.json").read_text())

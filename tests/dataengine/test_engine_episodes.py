@@ -201,6 +201,40 @@ def test_restart_with_other_arguments_is_refused(scenes_root, full_run):
 
 
 @pytest.mark.slow
+def test_sigkill_and_restart_loses_and_duplicates_nothing(scenes_root, full_run, tmp_path):
+    """A real kill: SIGKILL the CLI process once the first scene is done, then rerun the same command."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    ref_out, _ = full_run
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-c", "from image2sim.simulator.cli import main; main()", "data", "episodes",
+           "--scenes", str(scenes_root), "--out", str(out), "--per-scene", str(CFG["per_scene"]),
+           "--obs-height", str(CFG["obs_height"]), "--seed", str(CFG["seed"]), "--executor", "local"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (out / "scenes" / "scene_000" / "done.json").is_file():
+            assert proc.poll() is None, "the run ended before it could be interrupted"
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert not (out / "train" / "train.json.gz").is_file()  # killed before the merge
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    got = _read(out / "train" / "train.json.gz")["episodes"]
+    ref = _read(ref_out / "train" / "train.json.gz")["episodes"]
+    assert [e["episode_id"] for e in got] == [e["episode_id"] for e in ref]
+    assert got == ref
+    assert not list((out / "scenes").glob("*/.shard.*.tmp"))
+
+
+@pytest.mark.slow
 def test_ray_executor_matches_local(scenes_root, full_run, tmp_path):
     out_ref, _ = full_run
     summary = run_engine(scenes_root, tmp_path / "ray", EngineConfig(**CFG), executor="ray", workers=2,

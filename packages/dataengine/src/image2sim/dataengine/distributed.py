@@ -90,7 +90,10 @@ def _run_ray(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, 
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             for ref in done:
-                summary, err = ray.get(ref)
+                try:
+                    summary, err = ray.get(ref)
+                except Exception as exc:  # noqa: BLE001 - e.g. the worker process died: report, go on
+                    summary, err = None, f"{type(exc).__name__}: {exc}"
                 on_done(refs[ref], summary, err)
     finally:
         if started:

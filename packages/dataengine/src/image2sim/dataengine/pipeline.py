@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 import zlib
 from dataclasses import asdict, dataclass, field, fields
@@ -277,6 +278,8 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     inputs = resolve_scene(scene_dir)
     out = Path(out_dir) / "scenes" / inputs.name
     out.mkdir(parents=True, exist_ok=True)
+    for stale in out.glob(".shard.*.tmp"):  # left by a killed earlier attempt of this scene
+        shutil.rmtree(stale, ignore_errors=True)
     navmap, graph = _navigation(inputs, out)
     objects = _objects(inputs, out, cfg)
     scfg = SamplingConfig(**cfg.sampling) if cfg.sampling else SamplingConfig()
