@@ -68,6 +68,8 @@ def episodes_command(
                                                help="Backend option key=value (repeatable), e.g. base_url=..."),
     render: str = typer.Option("auto", "--render", help="auto, procedural, gaussians or none."),
     view: str = typer.Option("pinhole", "--view", help="Stored observation: pinhole or ultrawide."),
+    renderer: Path | None = typer.Option(None, "--renderer", help="Local pixel-flow renderer weights (with "
+                                         "--view ultrawide; renders Gaussians + pixel flow)."),
     obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),
     seed: int = typer.Option(0, "--seed", help="Base seed."),
@@ -88,6 +90,7 @@ def episodes_command(
     try:
         cfg = EngineConfig(per_scene=n, annotator=annotator, annotator_options=_parse_options(annotator_option),
                            render=render, view=view, obs_height=obs_height, split=split, seed=seed,
+                           renderer=None if renderer is None else str(renderer),
                            rollout={} if min_steps is None else {"min_steps": min_steps})
         summary = run_engine(scenes, out, cfg, executor=executor, workers=workers, address=address)
     except (RunError, ValueError) as err:

@@ -59,6 +59,9 @@ class EngineConfig:
     """Pinhole size / ultra-wide height in pixels (ultra-wide width = height x 512 / 336)."""
     annotation_view_height: int = 168
     """Height of the 180 degree views given to VLM annotators (width = 2 x height x 180 / 118)."""
+    renderer: str | None = None
+    """Local pixel-flow renderer weights (``save_renderer`` safetensors or a Lightning checkpoint) applied
+    after splatting; gaussians rendering with view=ultrawide only (it is a panoramic renderer)."""
     detector: str = "gt"
     """Object detector: gt or yolo-world."""
     detector_weights: str | None = None
@@ -85,6 +88,8 @@ class EngineConfig:
             raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
         if self.obs_height < 8:
             raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
+        if self.renderer is not None and (self.view != "ultrawide" or self.render not in ("auto", "gaussians")):
+            raise ValueError("EngineConfig.renderer needs view=ultrawide and render=gaussians (panoramic renderer)")
 
     @classmethod
     def from_dict(cls, data: dict) -> EngineConfig:
@@ -190,8 +195,32 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
     return objs
 
 
-def _render_fn(inputs: SceneInputs, cache: Path, mode: str):
+class PixelFlowAdapter:
+    """``renderer(splat_output) -> rgb (B, 3, H, W)`` for :class:`GaussianRenderFn`: builds the 24-channel
+    condition from a panoramic splat and renders it in one step with fixed noise (deterministic)."""
+
+    def __init__(self, model, seed: int = 0) -> None:
+        self.model = model.eval()
+        self.seed = int(seed)
+
+    def __call__(self, out):
+        import torch
+
+        from image2sim.simulator.geometry.cameras import EquirectCamera
+        from image2sim.simulator.renderer.condition import build_condition
+
+        _, _, h, w = out.rgb.shape
+        if w != 2 * h:
+            raise ValueError(f"pixel-flow renderer needs a panoramic splat (W = 2H), got {h}x{w}")
+        cond = build_condition(out.features, out.rgb, out.depth, out.alpha, EquirectCamera(h, w).ray_map(out.rgb.dtype))
+        with torch.no_grad():
+            return self.model.render(cond, generator=torch.Generator().manual_seed(self.seed)).rgb
+
+
+def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None = None):
     """(render function or None, mode actually used)."""
+    if renderer is not None and mode == "auto":
+        mode = "gaussians"
     if mode == "auto":
         mode = "procedural" if inputs.procedural else "gaussians"
     if mode == "none":
@@ -217,7 +246,14 @@ def _render_fn(inputs: SceneInputs, cache: Path, mode: str):
     if not (folder / "gaussians.safetensors").is_file():
         build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True)
     g = GaussianScene.load(folder).gaussians
-    return GaussianRenderFn({k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")}), mode
+    adapter = None
+    if renderer is not None:
+        from image2sim.simulator.renderer.model import load_renderer
+
+        adapter = PixelFlowAdapter(load_renderer(renderer))
+        mode = "gaussians+pixel-flow"
+    keys = ("means", "scales", "quats", "opacities", "colors", "features")
+    return GaussianRenderFn({k: getattr(g, k) for k in keys}, adapter), mode
 
 
 # ---------------------------------------------------------------------------------------- helpers
@@ -304,7 +340,8 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         kept.append((plan, r))
     # Annotation requests.
     vlm = cfg.annotator != "template"
-    render_fn, render_mode = (None, "none") if cfg.render == "none" else _render_fn(inputs, out, cfg.render)
+    render_fn, render_mode = (None, "none") if cfg.render == "none" else _render_fn(inputs, out, cfg.render,
+                                                                                  cfg.renderer)
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
     requests, chunks = [], []
