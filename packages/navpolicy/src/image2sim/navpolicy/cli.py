@@ -138,9 +138,14 @@ def train_cmd(
         import torch
 
         torch.set_num_threads(threads)
+    from image2sim.navpolicy.data import ShardError
     from image2sim.navpolicy.train import train_bc
 
-    res = train_bc(cfg, out, resume=resume or None)
+    try:
+        res = train_bc(cfg, out, resume=resume or None)
+    except (FileNotFoundError, ShardError) as exc:  # missing checkpoint/model folder, bad shard
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     typer.echo(
         json.dumps(
             {
