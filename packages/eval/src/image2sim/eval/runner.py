@@ -176,6 +176,8 @@ class NeuralSimBackend:
         self.protocol = protocol
         self.name = name
         self.field = None
+        self._last_pos: np.ndarray | None = None
+        self._last_dist = float("inf")
         cam = protocol.camera
         self._camera = None
         if sim.render_fn is not None:
@@ -202,10 +204,13 @@ class NeuralSimBackend:
                 raise RunnerError(f"{self.name}: the agent needs images but the scene has no render function")
             out = self.sim.render_fn(self._camera, self.sim.camera_pose(0))
             rgb = np.clip(np.asarray(out["rgb"], np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        # Turns do not move the agent: reuse the last distance instead of another graph snap.
+        if self._last_pos is None or not np.array_equal(pos_map, self._last_pos):
+            self._last_pos, self._last_dist = np.array(pos_map, dtype=np.float64), self.field(pos_map)
         return StepObservation(
             position=np.asarray(self.sim.navmap.to_world(pos_map), dtype=np.float64).reshape(3),
             heading=float(info["heading"][0]),
-            distance_to_goal=self.field(pos_map),
+            distance_to_goal=self._last_dist,
             collided=collided,
             rgb=rgb,
         )
@@ -215,6 +220,7 @@ class NeuralSimBackend:
         goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
         self.goal_map = goal
         self.field = self.sim.planner.distance_field(goal)
+        self._last_pos, self._last_dist = None, float("inf")
         _, info = self.sim.reset(
             start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False
         )
