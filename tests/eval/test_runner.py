@@ -374,3 +374,57 @@ def test_image2nav_adapter_runs_the_tiny_navpolicy_model(scene):
     backend = NeuralSimBackend(NeuralSimulator(sim.navmap, sim.graph, render_fn), small)
     res, actions = run_episode(backend, Image2NavAdapter(), episodes[0], small, 0)
     assert 1 <= len(actions) <= 4 and res.metrics["steps"] == len(actions)
+
+
+def test_cli_nav_reads_a_vlnce_schema_episode_file(scene, tmp_path):
+    """The data engine's layout: world-frame VLN-CE json.gz, scenes found by the scene_id stem."""
+    import gzip
+
+    from image2sim.eval.cli import app
+    from typer.testing import CliRunner
+
+    root, _, episodes = scene
+    doc = {
+        "frame": "image2sim-z-up",
+        "quaternion_order": "wxyz",
+        "episodes": [
+            {
+                "episode_id": e.episode_id,
+                "scene_id": "procedural/scene_000.glb",
+                "start_position": e.start_position.tolist(),
+                "start_rotation": e.start_rotation.tolist(),
+                "goals": [{"position": e.goal_position.tolist(), "radius": 3.0}],
+                "reference_path": e.reference_path.tolist(),
+                "instruction": {"instruction_text": "walk to the goal"},
+                "info": {"geodesic_distance": e.geodesic_distance},
+            }
+            for e in episodes[:3]
+        ],
+    }
+    path = tmp_path / "val_seen.json.gz"
+    with gzip.open(path, "wt", encoding="utf-8") as f:
+        json.dump(doc, f)
+    proto_file = tmp_path / "proto.json"
+    proto_file.write_text(json.dumps({"protocol": PROTO.to_dict()}))  # a result-file style record works too
+    metrics = tmp_path / "nav.json"
+    res = CliRunner().invoke(
+        app,
+        [
+            "nav",
+            "--scenes",
+            str(root),
+            "--episodes",
+            str(path),
+            "--agent",
+            "oracle",
+            "--protocol",
+            str(proto_file),
+            "--out",
+            str(tmp_path / "run"),
+            "--metrics",
+            str(metrics),
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    oracle = json.loads(metrics.read_text())["agents"]["oracle"]
+    assert oracle["n_episodes"] == 3 and oracle["sr"] == 1.0 and oracle["spl"] >= 0.95
