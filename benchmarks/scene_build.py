@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from image2sim.simulator.gaussians import GaussianEncoder, GaussianScene, tiny
 from image2sim.simulator.gaussians.encoder import identity_gaussians
 from image2sim.simulator.gaussians.frames import prepare_frame
@@ -33,7 +32,11 @@ from image2sim.simulator.io.registry import open_capture
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTS = ROOT / "reports"
-HM3D = Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data")) / "hm3d_360" / "00000-kfPV7w3FaU5"
+HM3D = (
+    Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data"))
+    / "hm3d_360"
+    / "00000-kfPV7w3FaU5"
+)
 
 
 def hardware() -> str:
@@ -46,8 +49,11 @@ def hardware() -> str:
     except OSError:
         pass
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({torch.get_num_threads()} threads); "
-            f"load average {load:.1f} at start")
+    return (
+        f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} "
+        f"({torch.get_num_threads()} threads); "
+        f"load average {load:.1f} at start"
+    )
 
 
 def median_time(fn, repeats: int) -> float:
@@ -63,7 +69,7 @@ def median_time(fn, repeats: int) -> float:
 def reference_fuse_fixed(means: np.ndarray, colors: np.ndarray, size: float) -> int:
     """Plain-Python voxel averaging (dict of cells) of the fixed policy: the speed reference."""
     cells: dict[tuple, list] = {}
-    for p, c in zip(means, colors):
+    for p, c in zip(means, colors, strict=True):
         key = (int(np.floor(p[0] / size)), int(np.floor(p[1] / size)), int(np.floor(p[2] / size)))
         acc = cells.setdefault(key, [np.zeros(3), np.zeros(3), 0])
         acc[0] += p
@@ -132,7 +138,12 @@ def main() -> None:
     m, c = g0.means.double().numpy(), g0.colors.double().numpy()
     t_ref = median_time(lambda: reference_fuse_fixed(m, c, 0.05), 1)
     assert reference_fuse_fixed(m, c, 0.05) == len(fuse(g0, fixed))
-    fusion_speed = {"points": len(g0), "fuse_s": t_fast, "python_reference_s": t_ref, "speedup": t_ref / t_fast}
+    fusion_speed = {
+        "points": len(g0),
+        "fuse_s": t_fast,
+        "python_reference_s": t_ref,
+        "speedup": t_ref / t_fast,
+    }
 
     # --- Gaussians vs frames, held-out PSNR, per policy ---------------------------------------------
     policies = {
@@ -160,12 +171,19 @@ def main() -> None:
                     t_render.append(time.perf_counter() - t0)
                     ps.append(psnr(out.rgb[0], ft.rgb[0]))
                     cov.append(float((out.alpha > 0.5).float().mean()))
-                rows.append({
-                    "policy": name, "frames": n_done, "gaussians": len(scene),
-                    "fuse_s_cumulative": t_fuse, "render_s": statistics.median(t_render),
-                    "psnr_db": float(np.mean(ps)), "coverage": float(np.mean(cov)),
-                    "psnr_db_per_target": ps, "coverage_per_target": cov,
-                })
+                rows.append(
+                    {
+                        "policy": name,
+                        "frames": n_done,
+                        "gaussians": len(scene),
+                        "fuse_s_cumulative": t_fuse,
+                        "render_s": statistics.median(t_render),
+                        "psnr_db": float(np.mean(ps)),
+                        "coverage": float(np.mean(cov)),
+                        "psnr_db_per_target": ps,
+                        "coverage_per_target": cov,
+                    }
+                )
                 print(rows[-1], flush=True)
 
     result = {
@@ -186,30 +204,44 @@ def main() -> None:
     tmp.write_text(json.dumps(result, indent=2))
     tmp.replace(REPORTS / "scene_build.json")
     md = [
-        "# Scene construction benchmark (`benchmarks/scene_build.py`)", "",
+        "# Scene construction benchmark (`benchmarks/scene_build.py`)",
+        "",
         f"- Hardware: {result['hardware']}",
         f"- Data: {source}; encoder input {w}x{h}; held-out targets {targets}; frames fused in order of "
         f"distance to the nearest target: {order}",
-        f"- Timings: median of {args.repeats} runs after a warm-up", "",
-        "## Encoding (per frame)", "",
-        "| stage | seconds | frames/s |", "|---|---|---|",
+        f"- Timings: median of {args.repeats} runs after a warm-up",
+        "",
+        "## Encoding (per frame)",
+        "",
+        "| stage | seconds | frames/s |",
+        "|---|---|---|",
         f"| read + resize (`prepare_frame`) | {t_prepare:.4f} | |",
         f"| identity Gaussians | {t_identity:.4f} | {encoding['identity_frames_per_s']:.2f} (incl. resize) |",
-        f"| learned tiny encoder ({encoding['learned_params'] / 1e6:.2f} M params, no semantic) | {t_learned:.4f} | "
-        f"{encoding['learned_tiny_frames_per_s']:.2f} (incl. resize) |", "",
-        "## Fusion speed", "",
-        "| points | `fuse` (fixed 5 cm) s | plain-Python reference s | speed-up |", "|---|---|---|---|",
-        f"| {fusion_speed['points']} | {t_fast:.4f} | {t_ref:.3f} | {fusion_speed['speedup']:.1f}x |", "",
-        "## Gaussians vs frames and held-out identity PSNR", "",
+        f"| learned tiny encoder ({encoding['learned_params'] / 1e6:.2f} M params, no semantic) | "
+        f"{t_learned:.4f} | "
+        f"{encoding['learned_tiny_frames_per_s']:.2f} (incl. resize) |",
+        "",
+        "## Fusion speed",
+        "",
+        "| points | `fuse` (fixed 5 cm) s | plain-Python reference s | speed-up |",
+        "|---|---|---|---|",
+        f"| {fusion_speed['points']} | {t_fast:.4f} | {t_ref:.3f} | {fusion_speed['speedup']:.1f}x |",
+        "",
+        "## Gaussians vs frames and held-out identity PSNR",
+        "",
         "| policy | frames | Gaussians | cumulative fuse s | render s | PSNR dB (mean; per target) | "
         "alpha>0.5 coverage (mean; per target) |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        md.append(f"| {r['policy']} | {r['frames']} | {r['gaussians']} | {r['fuse_s_cumulative']:.2f} | "
-                  f"{r['render_s']:.3f} | {r['psnr_db']:.2f}; "
-                  + ", ".join(f"{p:.2f}" for p in r["psnr_db_per_target"])
-                  + f" | {r['coverage']:.3f}; " + ", ".join(f"{c:.3f}" for c in r["coverage_per_target"]) + " |")
+        md.append(
+            f"| {r['policy']} | {r['frames']} | {r['gaussians']} | {r['fuse_s_cumulative']:.2f} | "
+            f"{r['render_s']:.3f} | {r['psnr_db']:.2f}; "
+            + ", ".join(f"{p:.2f}" for p in r["psnr_db_per_target"])
+            + f" | {r['coverage']:.3f}; "
+            + ", ".join(f"{c:.3f}" for c in r["coverage_per_target"])
+            + " |"
+        )
     tmp = REPORTS / ".scene_build.md.tmp"
     tmp.write_text("\n".join(md) + "\n")
     tmp.replace(REPORTS / "scene_build.md")

@@ -8,7 +8,6 @@ import math
 
 import pytest
 import torch
-
 from image2sim.simulator.gaussians import GaussianEncoder, identity_gaussians, paper, tiny
 from image2sim.simulator.gaussians.build import load_encoder, save_encoder
 from image2sim.simulator.gaussians.config import ConfigError, config_to_dict, gaussian_config_from_dict
@@ -77,10 +76,14 @@ def test_paper_config_shapes_at_reduced_size():
     cfg = paper()
     assert cfg.semantic.backbone == "dinov3" and cfg.semantic.dim == 1024
     assert (cfg.encoder.height, cfg.encoder.width) == (512, 1024)
-    cfg = dataclasses.replace(_small(cfg, 32, 64), semantic=dataclasses.replace(cfg.semantic, backbone="none"))
+    cfg = dataclasses.replace(
+        _small(cfg, 32, 64), semantic=dataclasses.replace(cfg.semantic, backbone="none")
+    )
     enc = GaussianEncoder(cfg)
     with torch.no_grad():
-        maps = enc.forward_maps(torch.rand(1, 3, 32, 64), torch.full((1, 1, 32, 64), 2.0), EquirectCamera(32, 64))
+        maps = enc.forward_maps(
+            torch.rand(1, 3, 32, 64), torch.full((1, 1, 32, 64), 2.0), EquirectCamera(32, 64)
+        )
     assert maps["features"].shape == (1, 16, 32, 64) and maps["scale"].shape == (1, 3, 32, 64)
     assert maps["rotation"].shape == (1, 4, 32, 64) and maps["opacity"].shape == (1, 1, 32, 64)
 
@@ -116,8 +119,15 @@ def test_rolled_panorama_gives_rolled_output():
 def _tiny_dino(hidden=32):
     from transformers import DINOv3ViTConfig, DINOv3ViTModel
 
-    c = DINOv3ViTConfig(hidden_size=hidden, num_hidden_layers=1, num_attention_heads=2, intermediate_size=64,
-                        patch_size=16, image_size=64, num_register_tokens=4)
+    c = DINOv3ViTConfig(
+        hidden_size=hidden,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        intermediate_size=64,
+        patch_size=16,
+        image_size=64,
+        num_register_tokens=4,
+    )
     return DINOv3ViTModel(c)
 
 
@@ -157,13 +167,16 @@ def test_preprocess_resizes_to_patch_multiple_and_normalises():
     x = torch.full((1, 3, 44, 70), 0.5)
     y = preprocess(x, 16, (0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
     assert y.shape == (1, 3, 48, 64)
-    torch.testing.assert_close(y[0, :, 0, 0], torch.tensor([(0.5 - 0.485) / 0.229, (0.5 - 0.456) / 0.224,
-                                                           (0.5 - 0.406) / 0.225]))
+    torch.testing.assert_close(
+        y[0, :, 0, 0], torch.tensor([(0.5 - 0.485) / 0.229, (0.5 - 0.456) / 0.224, (0.5 - 0.406) / 0.225])
+    )
 
 
 def test_normal_frame_is_a_rotation_with_the_normal_as_z():
     n = torch.randn(500, 3, dtype=torch.float64)
-    n = torch.cat((n, torch.tensor([[0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0], [0, -1.0, 0]], dtype=torch.float64)))
+    n = torch.cat(
+        (n, torch.tensor([[0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0], [0, -1.0, 0]], dtype=torch.float64))
+    )
     n = n / n.norm(dim=1, keepdim=True)
     R = normal_frame(n)
     eye = torch.eye(3, dtype=torch.float64).expand_as(R)
@@ -199,8 +212,11 @@ def test_bounded_scales_bounds_and_finite_difference_gradient():
     foot = torch.full_like(raw, 0.01)
     s = bounded_scales(raw, foot, e)
     assert torch.all(s > e.scale_min) and torch.all(s < e.scale_max) and torch.all(torch.diff(s) >= 0)
-    assert math.isclose(float(bounded_scales(torch.zeros(1, dtype=torch.float64), foot[:1], e)),
-                        0.01 * e.scale_init, rel_tol=1e-12)
+    assert math.isclose(
+        float(bounded_scales(torch.zeros(1, dtype=torch.float64), foot[:1], e)),
+        0.01 * e.scale_init,
+        rel_tol=1e-12,
+    )
     torch.autograd.gradcheck(lambda r: bounded_scales(r, foot[:5], e), (raw[48:53].clone().requires_grad_(),))
 
 
@@ -234,6 +250,8 @@ def test_encoder_checkpoint_round_trip(tmp_path):
         a, b = enc([f])[0], again([f])[0]
     for key, value in a.tensors().items():
         assert torch.equal(getattr(b, key), value), key
-    (tmp_path / "enc.json").write_text((tmp_path / "enc.json").read_text().replace('"feature_dim": 16', '"feature_dim": 8'))
+    (tmp_path / "enc.json").write_text(
+        (tmp_path / "enc.json").read_text().replace('"feature_dim": 16', '"feature_dim": 8')
+    )
     with pytest.raises(Exception, match="do not match|size mismatch"):
         load_encoder(path)

@@ -9,7 +9,6 @@ import json
 
 import pytest
 import torch
-
 from image2sim.simulator.gaussians import GaussianEncoder, tiny
 from image2sim.simulator.gaussians.frames import prepare_frame
 from image2sim.simulator.gaussians.train_geometry import GeometryDataset, stage1_losses, train_stage1
@@ -53,7 +52,7 @@ def test_a_few_steps_reduce_the_reconstruction_loss(procedural):
     enc = GaussianEncoder(cfg)
     batch = GeometryDataset([frames], 2, 1, seed=0)[0]
     camera = camera_from_dict(json.loads(batch["camera"]))
-    opt = torch.optim.AdamW(enc.parameters(), lr=3e-3)
+    opt = torch.optim.AdamW(enc.parameters(), lr=5e-3)
 
     def recon():
         losses, _ = stage1_losses(enc, batch, camera)
@@ -61,7 +60,7 @@ def test_a_few_steps_reduce_the_reconstruction_loss(procedural):
 
     with torch.no_grad():
         first = float(recon()[1])
-    for _ in range(12):
+    for _ in range(7):
         losses, _ = recon()
         opt.zero_grad()
         losses["total"].backward()
@@ -101,18 +100,27 @@ def test_lightning_run_logs_checkpoints_and_resumes(procedural, tmp_path):
 
 
 def test_semantic_alignment_term_with_tiny_dinov3(procedural):
-    from transformers import DINOv3ViTConfig, DINOv3ViTModel
-
     from image2sim.simulator.gaussians.train_geometry import GeometryModule
+    from transformers import DINOv3ViTConfig, DINOv3ViTModel
 
     _, frames = procedural
     cfg = _cfg()
     cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(cfg.semantic, backbone="dinov3", dim=32))
-    dino = DINOv3ViTModel(DINOv3ViTConfig(hidden_size=32, num_hidden_layers=1, num_attention_heads=2,
-                                          intermediate_size=64, patch_size=16, num_register_tokens=2))
+    dino = DINOv3ViTModel(
+        DINOv3ViTConfig(
+            hidden_size=32,
+            num_hidden_layers=1,
+            num_attention_heads=2,
+            intermediate_size=64,
+            patch_size=16,
+            num_register_tokens=2,
+        )
+    )
     module = GeometryModule(cfg, dino)
     batch = GeometryDataset([frames], 2, 1)[0]
-    losses, _ = stage1_losses(module.encoder, batch, camera_from_dict(json.loads(batch["camera"])), module.align_head)
+    losses, _ = stage1_losses(
+        module.encoder, batch, camera_from_dict(json.loads(batch["camera"])), module.align_head
+    )
     assert "align" in losses and 0 <= float(losses["align"]) <= 2
     losses["total"].backward()
     assert module.align_head.weight.grad is not None

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from image2sim.simulator.gaussians import GaussianScene, GaussianSet, tiny
 from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.encoder import identity_gaussians
@@ -20,8 +19,11 @@ from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 
 def _cfg(h=64, w=128, **fusion):
     cfg = tiny()
-    return dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, height=h, width=w),
-                               fusion=dataclasses.replace(cfg.fusion, **fusion))
+    return dataclasses.replace(
+        cfg,
+        encoder=dataclasses.replace(cfg.encoder, height=h, width=w),
+        fusion=dataclasses.replace(cfg.fusion, **fusion),
+    )
 
 
 def _random_set(n: int, seed: int, levels_max: int = 0, extent: float = 0.2) -> GaussianSet:
@@ -65,12 +67,17 @@ def _reference_fuse(g: GaussianSet, cfg: FusionConfig) -> dict[str, np.ndarray]:
     for i, lv in enumerate(levels):
         key = (lv, *np.floor(means[i] / sizes[lv]).astype(np.int64).tolist())
         groups.setdefault(key, []).append(i)
-    out: dict[str, list] = {k: [] for k in ("means", "scales", "quats", "colors", "features", "weights", "levels")}
+    out: dict[str, list] = {
+        k: [] for k in ("means", "scales", "quats", "colors", "features", "weights", "levels")
+    }
     t = {k: v.double().numpy() for k, v in g.tensors().items()}
     for key in sorted(groups):
         idx = groups[key]
         w = t["weights"][idx]
-        avg = lambda a: (a[idx] * w.reshape(-1, *([1] * (a.ndim - 1)))).sum(0) / w.sum()  # noqa: E731
+
+        def avg(a, idx=idx, w=w):
+            return (a[idx] * w.reshape(-1, *([1] * (a.ndim - 1)))).sum(0) / w.sum()
+
         ref = t["quats"][idx[0]]
         q = np.array([t["quats"][i] * (-1 if t["quats"][i] @ ref < 0 else 1) for i in idx])
         qm = (q * w[:, None]).sum(0) / w.sum()
@@ -137,7 +144,9 @@ def test_quaternion_sign_alignment_keeps_opposite_signs_from_cancelling():
 def test_cover_floor_only_for_merged_cells():
     cfg = FusionConfig(policy="fixed", voxel_size=0.1, cover_factor=0.5)
     g = _random_set(3, seed=2)
-    g.means[:] = torch.tensor([[0.01, 0.01, 0.01], [0.02, 0.02, 0.02], [0.55, 0.55, 0.55]], dtype=torch.float64)
+    g.means[:] = torch.tensor(
+        [[0.01, 0.01, 0.01], [0.02, 0.02, 0.02], [0.55, 0.55, 0.55]], dtype=torch.float64
+    )
     out = fuse(g, cfg)
     assert len(out) == 2
     assert torch.all(out.scales[0] >= 0.05)  # merged: at least half the voxel edge
@@ -180,7 +189,9 @@ def test_pixel_footprint_ground_truth():
 
 def test_resize_keeps_nearest_depth_at_edges_and_ignores_invalid():
     rgb = torch.rand(1, 3, 4, 4)
-    depth = torch.tensor([[1.0, 1.0, 5.0, 0.0], [1.0, 1.0, 5.0, 5.0], [2.0, 2.1, 0.0, 0.0], [2.0, 2.1, 0.0, 3.0]])
+    depth = torch.tensor(
+        [[1.0, 1.0, 5.0, 0.0], [1.0, 1.0, 5.0, 5.0], [2.0, 2.1, 0.0, 0.0], [2.0, 2.1, 0.0, 3.0]]
+    )
     _, d = resize_rgbd(rgb, depth[None, None], 2, 2, edge_tolerance=0.1)
     torch.testing.assert_close(d[0, 0], torch.tensor([[1.0, 5.0], [2.05, 0.0]]))
 
@@ -199,8 +210,11 @@ def _room_frame(h=32, w=64, centre=(0.0, 0.0, 1.5), half=(2.0, 1.5, 1.25)) -> Fr
     for i in range(3):
         r = rays_w[i]
         bound = torch.where(r > 0, hi[i], lo[i])
-        t.append(torch.where(r.abs() > 1e-9, bound / r.where(r.abs() > 1e-9, torch.ones_like(r)),
-                             torch.full_like(r, 1e9)))
+        t.append(
+            torch.where(
+                r.abs() > 1e-9, bound / r.where(r.abs() > 1e-9, torch.ones_like(r)), torch.full_like(r, 1e9)
+            )
+        )
     depth = torch.stack(t).amin(0)
     rgb = torch.stack((0.5 + 0.4 * rays_w[0], 0.5 + 0.4 * rays_w[1], 0.5 + 0.4 * rays_w[2])).clamp(0, 1)
     return FrameInputs(rgb[None], depth[None, None], cam, pose, "room")
@@ -212,7 +226,9 @@ def test_identity_gaussians_lie_on_the_depth_rays():
     g = identity_gaussians(frame, cfg)
     assert len(g) == 32 * 64 and g.feature_dim == 0
     rays = frame.camera.ray_map().permute(1, 2, 0).reshape(-1, 3).double()
-    expect = (rays * frame.depth.reshape(-1, 1).double()) @ frame.cam_to_world[:3, :3].T + frame.cam_to_world[:3, 3]
+    expect = (rays * frame.depth.reshape(-1, 1).double()) @ frame.cam_to_world[:3, :3].T + frame.cam_to_world[
+        :3, 3
+    ]
     torch.testing.assert_close(g.means.double(), expect, atol=1e-5, rtol=0)
     torch.testing.assert_close(g.scales[:, 0], g.scales[:, 2])
     torch.testing.assert_close(g.scales[:, 0], (g.footprints * cfg.encoder.scale_init).clamp(0.002, 0.5))

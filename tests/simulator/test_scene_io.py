@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 import torch
-
 from image2sim.simulator.gaussians import GaussianScene, GaussianSet, tiny
 from image2sim.simulator.gaussians.build import build_scene, nearest_frames
 from image2sim.simulator.gaussians.frames import prepare_frame
@@ -70,8 +69,25 @@ def test_ply_round_trip_and_standard_layout(tmp_path):
     path = scene.export_ply(tmp_path / "g.ply")
     header = path.read_bytes().split(b"end_header")[0].decode()
     props = [line.split()[-1] for line in header.splitlines() if line.startswith("property")]
-    assert props[:17] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-                          "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert props[:17] == [
+        "x",
+        "y",
+        "z",
+        "nx",
+        "ny",
+        "nz",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     assert props[17:] == ["feat_0", "feat_1", "feat_2"]
     back = read_gaussian_ply(path)
     g = scene.gaussians
@@ -119,25 +135,40 @@ def procedural_capture(tmp_path_factory):
 
 
 def test_cli_build_scene_and_render(procedural_capture, tmp_path):
-    from typer.testing import CliRunner
-
     from image2sim.simulator.cli import sim_app
     from image2sim.simulator.io.images import read_rgb
+    from typer.testing import CliRunner
 
     runner = CliRunner()
     scene_dir = tmp_path / "scene"
-    res = runner.invoke(sim_app, ["build-scene", str(procedural_capture), "--out", str(scene_dir),
-                                  "--frames", "0-2"])
+    res = runner.invoke(
+        sim_app, ["build-scene", str(procedural_capture), "--out", str(scene_dir), "--frames", "0-2"]
+    )
     assert res.exit_code == 0, res.output
     manifest = json.loads((scene_dir / "manifest.json").read_text())
     assert [f["index"] for f in manifest["frames"]] == [0, 1, 2]
     assert manifest["encoder"]["kind"] == "identity" and (scene_dir / "gaussians.ply").is_file()
-    res = runner.invoke(sim_app, ["render", str(scene_dir), "--frame", "4", "--out", str(tmp_path / "p.png"),
-                                  "--height", "32", "--width", "64"])
+    res = runner.invoke(
+        sim_app,
+        [
+            "render",
+            str(scene_dir),
+            "--frame",
+            "4",
+            "--out",
+            str(tmp_path / "p.png"),
+            "--height",
+            "32",
+            "--width",
+            "64",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert read_rgb(tmp_path / "p.png").shape == (32, 64, 3)
     assert (tmp_path / "p_depth.png").is_file() and (tmp_path / "p_alpha.png").is_file()
-    res = runner.invoke(sim_app, ["render", str(scene_dir), "--pose", "0 0 1.4 1 0 0", "--out", str(tmp_path / "q.png")])
+    res = runner.invoke(
+        sim_app, ["render", str(scene_dir), "--pose", "0 0 1.4 1 0 0", "--out", str(tmp_path / "q.png")]
+    )
     assert res.exit_code == 2 and "7 numbers" in res.output
     res = runner.invoke(sim_app, ["build-scene", str(procedural_capture), "--out", str(scene_dir)])
     assert res.exit_code == 2 and "already exists" in res.output
@@ -156,6 +187,7 @@ def test_identity_render_reproduces_a_source_view(procedural_capture):
     assert float(mask.float().mean()) > 0.95 and float(err) < 0.06
 
 
+@pytest.mark.realdata
 def test_real_hm3d_identity_held_out_view(hm3d_scene_dir):
     from image2sim.simulator.io.registry import open_capture
 
@@ -169,6 +201,8 @@ def test_real_hm3d_identity_held_out_view(hm3d_scene_dir):
     mse = float(((out.rgb - f.rgb) ** 2).mean())
     psnr = -10 * np.log10(mse)
     coverage = float((out.alpha > 0.5).float().mean())
-    print(f"HM3D identity: target {target} from {sources}: {len(scene)} Gaussians, PSNR {psnr:.2f} dB, "
-          f"alpha>0.5 coverage {coverage:.3f}")
+    print(
+        f"HM3D identity: target {target} from {sources}: {len(scene)} Gaussians, PSNR {psnr:.2f} dB, "
+        f"alpha>0.5 coverage {coverage:.3f}"
+    )
     assert psnr > 18.0 and coverage > 0.9

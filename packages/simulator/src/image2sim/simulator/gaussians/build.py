@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict, gaussian_config_from_dict
 from image2sim.simulator.gaussians.encoder import GaussianEncoder, identity_gaussians
 from image2sim.simulator.gaussians.frames import prepare_frame
@@ -28,7 +27,9 @@ def save_encoder(encoder: GaussianEncoder, path: str | Path) -> Path:
 
     path = Path(path).with_suffix(".safetensors")
     path.parent.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().contiguous() for k, v in encoder.state_dict().items() if not k.startswith("semantic.")}
+    state = {
+        k: v.detach().contiguous() for k, v in encoder.state_dict().items() if not k.startswith("semantic.")
+    }
     tmp = path.with_name(f".{path.name}.tmp")
     save_file(state, str(tmp))
     tmp.replace(path)
@@ -39,32 +40,37 @@ def save_encoder(encoder: GaussianEncoder, path: str | Path) -> Path:
 
 def load_encoder(path: str | Path, semantic_model: torch.nn.Module | None = None) -> GaussianEncoder:
     """Inverse of :func:`save_encoder`; the semantic backbone is rebuilt from its config (local weights)."""
-    from safetensors.torch import load_file
-
     from image2sim.simulator.gaussians.semantic import build_semantic
+    from safetensors.torch import load_file
 
     path = Path(path)
     if path.is_dir():
         found = sorted(path.glob("*.safetensors"))
         if len(found) != 1:
-            raise SceneError(f"{path}: expected exactly one encoder .safetensors in the folder, found {len(found)}")
+            raise SceneError(
+                f"{path}: expected exactly one encoder .safetensors in the folder, found {len(found)}"
+            )
         path = found[0]
     meta_path = path.with_suffix(".json")
     if not path.is_file() or not meta_path.is_file():
         raise SceneError(f"{path}: encoder checkpoint needs {path.name} and {meta_path.name}")
     meta = json.loads(meta_path.read_text())
     cfg = gaussian_config_from_dict(meta["config"])
-    encoder = GaussianEncoder(cfg, build_semantic(cfg.semantic, semantic_model), panoramic=bool(meta["panoramic"]))
+    encoder = GaussianEncoder(
+        cfg, build_semantic(cfg.semantic, semantic_model), panoramic=bool(meta["panoramic"])
+    )
     state = load_file(str(path))
     missing, unexpected = encoder.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("semantic.")]
     if missing or unexpected:
-        raise SceneError(f"{path}: weights do not match the config (missing {missing[:5]}, unexpected {unexpected[:5]})")
+        raise SceneError(
+            f"{path}: weights do not match the config (missing {missing[:5]}, unexpected {unexpected[:5]})"
+        )
     return encoder.eval()
 
 
 def nearest_frames(poses: np.ndarray, target: int, k: int) -> list[int]:
-    """Indices of the k frames (excluding ``target``) whose camera centres are nearest to frame ``target``'s."""
+    """Indices of the k frames (not ``target``) whose camera centres are nearest to frame ``target``'s."""
     centres = np.asarray(poses)[:, :3, 3]
     d = np.linalg.norm(centres - centres[target], axis=1)
     d[target] = np.inf
@@ -94,7 +100,9 @@ def build_scene(
     indices = list(range(len(capture))) if frames is None else [int(i) for i in frames]
     for i in indices:
         if not 0 <= i < len(capture):
-            raise SceneError(f"{capture_path}: frame index {i} out of range (capture has {len(capture)} frames)")
+            raise SceneError(
+                f"{capture_path}: frame index {i} out of range (capture has {len(capture)} frames)"
+            )
     if not indices:
         raise SceneError(f"{capture_path}: no frames selected")
     enc_info: dict = {"kind": "identity", "checkpoint": None, "sha256": None}
@@ -119,13 +127,19 @@ def build_scene(
     for i in it:
         inputs = prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance)
         if net is not None and isinstance(inputs.camera, EquirectCamera) != net.panoramic:
-            raise SceneError(f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})")
+            raise SceneError(
+                f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})"
+            )
         camera = camera or inputs.camera
         gs = encode_frames([inputs], cfg, net)[0]
         scene.integrate(gs, frame_id=inputs.frame_id, index=i, cam_to_world=inputs.cam_to_world)
     scene.info = {
-        "source": {"capture": str(Path(capture_path).resolve()), "format": capture.format, "scene_id": capture.scene_id,
-                   "num_frames": len(capture)},
+        "source": {
+            "capture": str(Path(capture_path).resolve()),
+            "format": capture.format,
+            "scene_id": capture.scene_id,
+            "num_frames": len(capture),
+        },
         "encoder": enc_info,
         "camera": camera.to_dict() if camera is not None else None,
         "config": config_to_dict(cfg),

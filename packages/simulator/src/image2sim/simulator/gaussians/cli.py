@@ -27,10 +27,17 @@ def _parse_frames(text: str | None) -> list[int] | None:
 
 def build_scene_command(
     capture: Path = typer.Argument(..., help="Capture folder (any format `image2sim data inspect` reads)."),
-    out: Path = typer.Option(..., "--out", help="Scene folder to write (gaussians.safetensors + manifest.json)."),
-    encoder: str = typer.Option("identity", help="'identity' (no weights) or a trained encoder .safetensors."),
-    config: str = typer.Option("tiny", help="Preset (tiny, paper) or YAML/JSON overrides (identity only; a "
-                                           "checkpoint brings its own config)."),
+    out: Path = typer.Option(
+        ..., "--out", help="Scene folder to write (gaussians.safetensors + manifest.json)."
+    ),
+    encoder: str = typer.Option(
+        "identity", help="'identity' (no weights) or a trained encoder .safetensors."
+    ),
+    config: str = typer.Option(
+        "tiny",
+        help="Preset (tiny, paper) or YAML/JSON overrides (identity only; a "
+        "checkpoint brings its own config).",
+    ),
     frames: str = typer.Option("", help="Frame indices, e.g. '0,3,5-8' (default: all)."),
     voxel_policy: str = typer.Option("", help="Override fusion.policy: footprint or fixed."),
     voxel_size: float = typer.Option(0.0, help="Override fusion.voxel_size (fixed policy), metres."),
@@ -43,7 +50,6 @@ def build_scene_command(
     import time
 
     import torch
-
     from image2sim.simulator.gaussians.build import build_scene
     from image2sim.simulator.gaussians.config import ConfigError, load_gaussian_config
     from image2sim.simulator.gaussians.scene import SceneError
@@ -75,15 +81,16 @@ def build_scene_command(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     counts = scene.manifest()["counts"]
-    typer.echo(f"{out}: {counts['gaussians']} Gaussians from {counts['frames']} frames in {elapsed:.2f} s "
-               f"({counts['frames'] / max(elapsed, 1e-9):.2f} frames/s); per voxel size {counts['per_voxel_size']}")
+    typer.echo(
+        f"{out}: {counts['gaussians']} Gaussians from {counts['frames']} frames in {elapsed:.2f} s "
+        f"({counts['frames'] / max(elapsed, 1e-9):.2f} frames/s); per voxel size {counts['per_voxel_size']}"
+    )
 
 
 def _parse_pose(text: str):
     """'tx ty tz qw qx qy qz' (7 numbers, quaternion w-first) or 16 numbers (row-major 4x4)."""
     import numpy as np
     import torch
-
     from image2sim.simulator.geometry.se3 import quat_to_matrix
 
     vals = [float(v) for v in text.replace(",", " ").split()]
@@ -99,8 +106,12 @@ def _parse_pose(text: str):
 
 def render_command(
     scene: Path = typer.Argument(..., help="Scene folder written by build-scene."),
-    out: Path = typer.Option(..., "--out", help="RGB image to write (PNG); <stem>_depth.png (uint16 mm) and "
-                                             "<stem>_alpha.png are written next to it."),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        help="RGB image to write (PNG); <stem>_depth.png (uint16 mm) and "
+        "<stem>_alpha.png are written next to it.",
+    ),
     frame: int = typer.Option(-1, help="Render at the pose of this frame index of the source capture."),
     pose: str = typer.Option("", help="Camera-to-world pose: 'tx ty tz qw qx qy qz' or 16 numbers."),
     height: int = typer.Option(0, help="Output height (default: the scene's input camera)."),
@@ -110,7 +121,6 @@ def render_command(
     """Render a saved scene at a frame's pose or a given pose: RGB, depth and alpha images."""
     import numpy as np
     import torch
-
     from image2sim.simulator.gaussians.frames import resize_camera
     from image2sim.simulator.gaussians.scene import GaussianScene, SceneError
     from image2sim.simulator.geometry.cameras import EquirectCamera
@@ -136,11 +146,15 @@ def render_command(
     alpha = (res.alpha[0, 0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_rgb_png(out, rgb)
-    write_uint16_png(out.with_name(out.stem + "_depth.png"), np.clip(np.rint(depth * 1000), 0, 65535).astype(np.uint16))
+    write_uint16_png(
+        out.with_name(out.stem + "_depth.png"), np.clip(np.rint(depth * 1000), 0, 65535).astype(np.uint16)
+    )
     write_rgb_png(out.with_name(out.stem + "_alpha.png"), np.repeat(alpha[..., None], 3, axis=2))
     cover = float((res.alpha > 0.5).float().mean())
-    typer.echo(f"{out}: {camera.width}x{camera.height}, {len(sc)} Gaussians, alpha>0.5 on {cover:.1%} of pixels "
-               f"({res.backend} backend)")
+    typer.echo(
+        f"{out}: {camera.width}x{camera.height}, {len(sc)} Gaussians, alpha>0.5 on {cover:.1%} of pixels "
+        f"({res.backend} backend)"
+    )
 
 
 def _frame_pose(sc, frame: int):
@@ -152,7 +166,9 @@ def _frame_pose(sc, frame: int):
             return np.asarray(rec["cam_to_world"], dtype=np.float64)
     source = (sc.info.get("source") or {}).get("capture")
     if not source or not Path(source).exists():
-        raise ValueError(f"frame {frame} is not in the scene and its source capture {source!r} is unavailable")
+        raise ValueError(
+            f"frame {frame} is not in the scene and its source capture {source!r} is unavailable"
+        )
     from image2sim.simulator.io.registry import open_capture
 
     cap = open_capture(source)

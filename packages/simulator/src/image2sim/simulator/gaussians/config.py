@@ -179,19 +179,25 @@ class GaussianConfig:
         """Check value ranges; raises :class:`ConfigError` naming the field."""
         e, f, s = self.encoder, self.fusion, self.semantic
         if e.height <= 0 or e.width <= 0 or e.height % 16 or e.width % 16:
-            raise ConfigError(f"encoder.height/width must be positive multiples of 16, got {e.height}x{e.width}")
+            raise ConfigError(
+                f"encoder.height/width must be positive multiples of 16, got {e.height}x{e.width}"
+            )
         for name in ("detail_widths", "upsampler_widths"):
             widths = getattr(e, name)
             if len(widths) != 4 or any(int(w) <= 0 for w in widths):
                 raise ConfigError(f"encoder.{name} needs 4 positive widths, got {widths}")
         if e.bottleneck_width <= 0 or e.feature_dim < 0 or e.blocks_per_stage < 0 or e.expansion < 1:
-            raise ConfigError("encoder.bottleneck_width > 0, feature_dim >= 0, blocks_per_stage >= 0, expansion >= 1")
+            raise ConfigError(
+                "encoder.bottleneck_width > 0, feature_dim >= 0, blocks_per_stage >= 0, expansion >= 1"
+            )
         if e.kernel_size < 1 or e.kernel_size % 2 == 0:
             raise ConfigError(f"encoder.kernel_size must be odd and positive, got {e.kernel_size}")
         if not 0 < e.scale_min < e.scale_max:
             raise ConfigError(f"encoder needs 0 < scale_min < scale_max, got {e.scale_min}, {e.scale_max}")
         if not 0 < e.opacity_init < 1 or e.scale_init <= 0 or e.depth_scale <= 0:
-            raise ConfigError("encoder.opacity_init must lie in (0, 1); scale_init and depth_scale must be > 0")
+            raise ConfigError(
+                "encoder.opacity_init must lie in (0, 1); scale_init and depth_scale must be > 0"
+            )
         if s.backbone not in ("none", "dinov3"):
             raise ConfigError(f"semantic.backbone must be 'none' or 'dinov3', got {s.backbone!r}")
         if s.patch_size <= 0 or s.dim <= 0 or len(s.mean) != 3 or len(s.std) != 3 or min(s.std) <= 0:
@@ -203,7 +209,9 @@ class GaussianConfig:
         if not 1 <= f.levels <= 24:
             raise ConfigError(f"fusion.levels must lie in [1, 24], got {f.levels}")
         if f.cover_factor < 0 or not 0 <= f.min_range < f.max_range or not 0 <= f.min_opacity < 1:
-            raise ConfigError("fusion needs cover_factor >= 0, 0 <= min_range < max_range, 0 <= min_opacity < 1")
+            raise ConfigError(
+                "fusion needs cover_factor >= 0, 0 <= min_range < max_range, 0 <= min_opacity < 1"
+            )
         if f.threads < 0:
             raise ConfigError(f"fusion.threads must be >= 0, got {f.threads}")
         if f.edge_tolerance <= 0:
@@ -267,7 +275,7 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
             return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
     if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: expected true/false, got {value!r}")

@@ -22,15 +22,14 @@ import math
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
-from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
-from image2sim.simulator.geometry.normals import point_normals, sobel_normals
-from image2sim.simulator.geometry.se3 import matrix_to_quat, normalize_quat, quat_multiply
 from image2sim.simulator.gaussians.config import EncoderConfig, FusionConfig, GaussianConfig
 from image2sim.simulator.gaussians.frames import pixel_footprint, world_points
 from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
-from image2sim.simulator.layers import GRN, PanoBlock, PanoConv2d, PixelShuffleUpsample
+from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
+from image2sim.simulator.geometry.normals import point_normals, sobel_normals
+from image2sim.simulator.geometry.se3 import matrix_to_quat, normalize_quat, quat_multiply
+from image2sim.simulator.layers import PanoBlock, PanoConv2d, PixelShuffleUpsample
+from torch import nn
 
 __all__ = [
     "encoder_inputs",
@@ -47,7 +46,9 @@ __all__ = [
 INPUT_CHANNELS = 10
 
 
-def encoder_inputs(rgb: torch.Tensor, depth: torch.Tensor, camera: Camera, depth_scale: float) -> torch.Tensor:
+def encoder_inputs(
+    rgb: torch.Tensor, depth: torch.Tensor, camera: Camera, depth_scale: float
+) -> torch.Tensor:
     """The 10-channel input (B, 10, H, W): RGB, depth / depth_scale, Sobel normals, unit ray map."""
     circular = isinstance(camera, EquirectCamera)
     normals = sobel_normals(depth, circular=circular)
@@ -134,7 +135,7 @@ class DetailEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         feats = [self.levels[0](self.stem(x))]
-        for down, blocks in zip(self.downs, self.levels[1:]):
+        for down, blocks in zip(self.downs, self.levels[1:], strict=True):
             feats.append(blocks(down(feats[-1])))
         return feats
 
@@ -164,7 +165,7 @@ class FeatureUpsampler(nn.Module):
                 tokens = F.interpolate(tokens, size=x.shape[-2:], mode="bilinear", align_corners=False)
             x = x + self.semantic_proj(tokens)
         x = self.bottleneck(x)
-        for up, fuse, blocks, skip in zip(self.ups, self.fuse, self.blocks, pyramid[::-1]):
+        for up, fuse, blocks, skip in zip(self.ups, self.fuse, self.blocks, pyramid[::-1], strict=True):
             x = blocks(fuse(torch.cat((up(x), skip), dim=1)))
         return x
 
@@ -187,7 +188,12 @@ class GaussianHeads(nn.Module):
         g = self.geometry(x)
         b, _, h, w = x.shape
         feats = self.features(x) if self.features is not None else x.new_zeros(b, 0, h, w)
-        return {"features": feats, "scale": g[:, 0:3], "rotation": g[:, 3:7], "opacity": g[:, 7:8] + self.opacity_bias}
+        return {
+            "features": feats,
+            "scale": g[:, 0:3],
+            "rotation": g[:, 3:7],
+            "opacity": g[:, 7:8] + self.opacity_bias,
+        }
 
 
 class GaussianEncoder(nn.Module):
@@ -197,7 +203,9 @@ class GaussianEncoder(nn.Module):
     tokens, or None for the detail-only setting.
     """
 
-    def __init__(self, cfg: GaussianConfig, semantic: nn.Module | None = None, panoramic: bool = True) -> None:
+    def __init__(
+        self, cfg: GaussianConfig, semantic: nn.Module | None = None, panoramic: bool = True
+    ) -> None:
         super().__init__()
         self.cfg = cfg
         self.panoramic = bool(panoramic)
@@ -215,7 +223,9 @@ class GaussianEncoder(nn.Module):
         """Per-pixel raw head outputs for (B, 3, H, W) / (B, 1, H, W) inputs."""
         e = self.cfg.encoder
         if (rgb.shape[-2], rgb.shape[-1]) != (e.height, e.width):
-            raise ValueError(f"GaussianEncoder expects {e.height}x{e.width} inputs, got {tuple(rgb.shape[-2:])}")
+            raise ValueError(
+                f"GaussianEncoder expects {e.height}x{e.width} inputs, got {tuple(rgb.shape[-2:])}"
+            )
         x = encoder_inputs(rgb, depth, camera, e.depth_scale)
         tokens = self.semantic(rgb) if self.semantic is not None else None
         return self.heads(self.upsampler(self.detail(x), tokens))
@@ -233,8 +243,12 @@ class GaussianEncoder(nn.Module):
 
 
 def pixel_maps_to_gaussians(
-    maps: dict[str, torch.Tensor], rgb: torch.Tensor, depth: torch.Tensor, camera: Camera,
-    poses: torch.Tensor, cfg: GaussianConfig,
+    maps: dict[str, torch.Tensor],
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    camera: Camera,
+    poses: torch.Tensor,
+    cfg: GaussianConfig,
 ) -> list[GaussianSet]:
     """Head outputs -> one :class:`GaussianSet` per batch element (valid pixels only)."""
     e = cfg.encoder
@@ -248,7 +262,7 @@ def pixel_maps_to_gaussians(
     # Base rotation: local z along the metric surface normal (camera frame), -ray where unknown.
     normals = point_normals(depth, camera)
     rays = camera.ray_map(dtype, depth.device).expand(B, -1, -1, -1)
-    unknown = (normals.abs().sum(dim=1, keepdim=True) == 0)
+    unknown = normals.abs().sum(dim=1, keepdim=True) == 0
     normals = torch.where(unknown, -rays, normals)
     R_base = normal_frame(normals.permute(0, 2, 3, 1).reshape(B, -1, 3))
     R_world = poses[:, None, :3, :3].to(dtype) @ R_base
@@ -263,9 +277,17 @@ def pixel_maps_to_gaussians(
     for b in range(B):
         m = valid[b]
         n = int(m.sum())
-        out.append(GaussianSet(
-            means=means[b][m], scales=scales[b][m], quats=quats[b][m], opacities=opac[b][m],
-            colors=colors[b][m], features=feats[b][m], footprints=foot[b][m],
-            weights=torch.ones(n, dtype=dtype), levels=torch.zeros(n, dtype=torch.int64),
-        ))
+        out.append(
+            GaussianSet(
+                means=means[b][m],
+                scales=scales[b][m],
+                quats=quats[b][m],
+                opacities=opac[b][m],
+                colors=colors[b][m],
+                features=feats[b][m],
+                footprints=foot[b][m],
+                weights=torch.ones(n, dtype=dtype),
+                levels=torch.zeros(n, dtype=torch.int64),
+            )
+        )
     return out

@@ -7,9 +7,8 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
-
-from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, PinholeCamera
 from image2sim.simulator.gaussians.primitives import FrameInputs
+from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, PinholeCamera
 from image2sim.simulator.io.records import Frame
 
 __all__ = ["resize_camera", "resize_rgbd", "prepare_frame", "pixel_footprint", "world_points"]
@@ -57,8 +56,9 @@ def prepare_frame(frame: Frame, height: int, width: int, edge_tolerance: float =
     depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32))[None, None]
     rgb, depth = resize_rgbd(rgb, depth, height, width, edge_tolerance)
     pose = torch.as_tensor(np.asarray(frame.cam_to_world, dtype=np.float64))
-    return FrameInputs(rgb.contiguous(), depth.contiguous(), resize_camera(frame.camera, height, width), pose,
-                       frame.frame_id)
+    return FrameInputs(
+        rgb.contiguous(), depth.contiguous(), resize_camera(frame.camera, height, width), pose, frame.frame_id
+    )
 
 
 def pixel_footprint(depth: torch.Tensor, camera: Camera) -> torch.Tensor:

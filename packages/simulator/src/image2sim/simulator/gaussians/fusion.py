@@ -16,7 +16,6 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 import torch
-
 from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.primitives import GaussianSet
 from image2sim.simulator.geometry.voxel import voxel_keys
@@ -197,5 +196,3 @@ def level_histogram(levels: torch.Tensor, cfg: FusionConfig) -> dict[str, int]:
     sizes = cell_sizes(cfg)
     counts = torch.bincount(levels, minlength=len(sizes)).tolist() if levels.numel() else [0] * len(sizes)
     return {f"{sizes[i] * 1000:.4g}mm": int(c) for i, c in enumerate(counts) if c}
-
-

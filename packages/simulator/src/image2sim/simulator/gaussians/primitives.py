@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import torch
-
 from image2sim.simulator.geometry.cameras import Camera
 
 __all__ = ["GaussianSet", "FrameInputs", "GAUSSIAN_FIELDS"]
@@ -44,8 +43,16 @@ class GaussianSet:
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
-        shapes = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,), "colors": (n, 3),
-                  "footprints": (n,), "weights": (n,), "levels": (n,)}
+        shapes = {
+            "means": (n, 3),
+            "scales": (n, 3),
+            "quats": (n, 4),
+            "opacities": (n,),
+            "colors": (n, 3),
+            "footprints": (n,),
+            "weights": (n,),
+            "levels": (n,),
+        }
         for name, shape in shapes.items():
             t = getattr(self, name)
             if tuple(t.shape) != shape:
@@ -84,16 +91,34 @@ class GaussianSet:
     @staticmethod
     def empty(feature_dim: int = 0, dtype: torch.dtype = torch.float32) -> GaussianSet:
         z = lambda *s: torch.zeros(*s, dtype=dtype)  # noqa: E731
-        return GaussianSet(z(0, 3), z(0, 3), z(0, 4), z(0), z(0, 3), z(0, feature_dim), z(0), z(0),
-                           torch.zeros(0, dtype=torch.int64))
+        return GaussianSet(
+            z(0, 3),
+            z(0, 3),
+            z(0, 4),
+            z(0),
+            z(0, 3),
+            z(0, feature_dim),
+            z(0),
+            z(0),
+            torch.zeros(0, dtype=torch.int64),
+        )
 
     def render(self, camera: Camera, cam_to_world, **kwargs):
         """Splat these Gaussians into ``camera`` at ``cam_to_world`` (4, 4) or (B, 4, 4); see ``splat``."""
         from image2sim.simulator.splatting import splat
 
         pose = torch.as_tensor(cam_to_world, dtype=self.means.dtype)
-        return splat(self.means, self.scales, self.quats, self.opacities, self.colors, self.features,
-                     camera, pose, **kwargs)
+        return splat(
+            self.means,
+            self.scales,
+            self.quats,
+            self.opacities,
+            self.colors,
+            self.features,
+            camera,
+            pose,
+            **kwargs,
+        )
 
 
 @dataclass

@@ -14,7 +14,6 @@ common Gaussian viewers open; :meth:`from_ply` reads it back.
 from __future__ import annotations
 
 import json
-
 import os
 import shutil
 import uuid
@@ -24,7 +23,6 @@ from typing import Any
 
 import numpy as np
 import torch
-
 from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.fusion import fuse, level_histogram, prune
 from image2sim.simulator.gaussians.primitives import GaussianSet
@@ -84,12 +82,15 @@ class GaussianScene:
     def feature_dim(self) -> int:
         return 0 if self.gaussians is None else self.gaussians.feature_dim
 
-    def integrate(self, new: GaussianSet, frame_id: str = "", index: int | None = None,
-                  cam_to_world: torch.Tensor | np.ndarray | None = None) -> int:
+    def integrate(
+        self,
+        new: GaussianSet,
+        frame_id: str = "",
+        index: int | None = None,
+        cam_to_world: torch.Tensor | np.ndarray | None = None,
+    ) -> int:
         """Fuse one frame's Gaussians into memory (levels from their footprints); returns the new count."""
-        from image2sim.simulator.gaussians.fusion import assign_levels
-
-        from image2sim.simulator.gaussians.fusion import torch_threads
+        from image2sim.simulator.gaussians.fusion import assign_levels, torch_threads
 
         with torch_threads(self.fusion.threads):
             new = prune(new.detach(), self.fusion)
@@ -182,7 +183,9 @@ class GaussianScene:
         except json.JSONDecodeError as exc:
             raise SceneError(f"{man_path}: invalid JSON ({exc})") from None
         if manifest.get("format") != SCENE_FORMAT:
-            raise SceneError(f"{man_path}: field 'format' is {manifest.get('format')!r}, expected {SCENE_FORMAT!r}")
+            raise SceneError(
+                f"{man_path}: field 'format' is {manifest.get('format')!r}, expected {SCENE_FORMAT!r}"
+            )
         if manifest.get("version") != SCENE_VERSION:
             raise SceneError(f"{man_path}: unsupported version {manifest.get('version')!r}")
         tensors = load_file(str(st_path))
@@ -193,8 +196,9 @@ class GaussianScene:
             gaussians = GaussianSet(**{k: tensors[k] for k in _TENSORS})
         except ValueError as exc:
             raise SceneError(f"{st_path}: {exc}") from None
-        fusion = FusionConfig(**{k: (tuple(v) if isinstance(v, list) else v)
-                                 for k, v in manifest.get("fusion", {}).items()})
+        fusion = FusionConfig(
+            **{k: (tuple(v) if isinstance(v, list) else v) for k, v in manifest.get("fusion", {}).items()}
+        )
         info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "config")}
         return cls(fusion=fusion, gaussians=gaussians, frames=list(manifest.get("frames", [])), info=info)
 
@@ -213,8 +217,11 @@ class GaussianScene:
     @classmethod
     def from_ply(cls, path: str | Path, fusion: FusionConfig | None = None) -> GaussianScene:
         """Read a 3DGS PLY (ours or another tool's, SH degree 0 used) into a scene."""
-        return cls(fusion=fusion or FusionConfig(), gaussians=read_gaussian_ply(path),
-                   info={"source": {"ply": str(path)}})
+        return cls(
+            fusion=fusion or FusionConfig(),
+            gaussians=read_gaussian_ply(path),
+            info={"source": {"ply": str(path)}},
+        )
 
 
 def config_to_dict_fusion(cfg: FusionConfig) -> dict:
@@ -232,8 +239,25 @@ def write_gaussian_ply(path: str | Path, g: GaussianSet) -> Path:
     """3DGS vertex layout: x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3 feat_0..C-1 (float32)."""
     path = Path(path)
     n, c = len(g), g.feature_dim
-    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"] + [f"feat_{i}" for i in range(c)]
+    names = [
+        "x",
+        "y",
+        "z",
+        "nx",
+        "ny",
+        "nz",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ] + [f"feat_{i}" for i in range(c)]
     data = np.zeros(n, dtype=np.dtype([(k, "<f4") for k in names]))
     t = {k: v.detach().cpu().double().numpy() for k, v in g.tensors().items()}
     if not np.isfinite(t["means"]).all():
@@ -248,8 +272,16 @@ def write_gaussian_ply(path: str | Path, g: GaussianSet) -> Path:
         data[f"rot_{i}"] = t["quats"][:, i]
     for i in range(c):
         data[f"feat_{i}"] = t["features"][:, i]
-    header = ["ply", "format binary_little_endian 1.0", "comment image2sim gaussian scene (3DGS layout)",
-              f"element vertex {n}"] + [f"property float {k}" for k in names] + ["end_header"]
+    header = (
+        [
+            "ply",
+            "format binary_little_endian 1.0",
+            "comment image2sim gaussian scene (3DGS layout)",
+            f"element vertex {n}",
+        ]
+        + [f"property float {k}" for k in names]
+        + ["end_header"]
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
     try:
@@ -272,7 +304,19 @@ def read_gaussian_ply(path: str | Path) -> GaussianSet:
         cols = read_ply(path)
     except PlyError as exc:
         raise SceneError(str(exc)) from None
-    need = ["f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    need = [
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     missing = [k for k in need if k not in cols]
     if missing:
         raise SceneError(f"{path}: not a 3D Gaussian Splatting PLY, missing properties {missing}")
@@ -286,8 +330,13 @@ def read_gaussian_ply(path: str | Path) -> GaussianSet:
     feat_names = sorted((k for k in cols if k.startswith("feat_")), key=lambda k: int(k.split("_")[1]))
     feats = np.stack([cols[k] for k in feat_names], 1) if feat_names else np.zeros((n, 0))
     return GaussianSet(
-        means=f32(cols["points"]), scales=f32(scales), quats=f32(quats), opacities=f32(opac), colors=f32(colors),
-        features=f32(feats), footprints=f32(scales.mean(1)), weights=torch.ones(n), levels=torch.zeros(n, dtype=torch.int64),
+        means=f32(cols["points"]),
+        scales=f32(scales),
+        quats=f32(quats),
+        opacities=f32(opac),
+        colors=f32(colors),
+        features=f32(feats),
+        footprints=f32(scales.mean(1)),
+        weights=torch.ones(n),
+        levels=torch.zeros(n, dtype=torch.int64),
     )
-
-

@@ -9,19 +9,23 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from image2sim.simulator.gaussians.config import ConfigError, SemanticConfig
+from torch import nn
 
 __all__ = ["DinoV3Backbone", "build_semantic", "preprocess"]
 
 
-def preprocess(rgb: torch.Tensor, patch_size: int, mean, std, size: tuple[int, int] | None = None) -> torch.Tensor:
+def preprocess(
+    rgb: torch.Tensor, patch_size: int, mean, std, size: tuple[int, int] | None = None
+) -> torch.Tensor:
     """RGB (B, 3, H, W) in [0, 1] -> normalised pixels at ``size`` (default: H, W rounded to the nearest
     multiple of ``patch_size``, at least one patch)."""
     h, w = rgb.shape[-2:]
     if size is None:
-        size = (max(patch_size, round(h / patch_size) * patch_size), max(patch_size, round(w / patch_size) * patch_size))
+        size = (
+            max(patch_size, round(h / patch_size) * patch_size),
+            max(patch_size, round(w / patch_size) * patch_size),
+        )
     x = rgb
     if tuple(size) != (h, w):
         x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
@@ -70,12 +74,16 @@ def build_semantic(cfg: SemanticConfig, model: nn.Module | None = None) -> DinoV
         return None
     if model is None:
         if not cfg.weights:
-            raise ConfigError("semantic.backbone is 'dinov3' but semantic.weights (a local model folder) is not set")
+            raise ConfigError(
+                "semantic.backbone is 'dinov3' but semantic.weights (a local model folder) is not set"
+            )
         from pathlib import Path
 
         path = Path(cfg.weights)
         if not (path / "config.json").is_file():
-            raise ConfigError(f"semantic.weights: {path} is not a local transformers model folder (no config.json)")
+            raise ConfigError(
+                f"semantic.weights: {path} is not a local transformers model folder (no config.json)"
+            )
         from transformers import DINOv3ViTModel
 
         model = DINOv3ViTModel.from_pretrained(str(path), local_files_only=True)

@@ -19,18 +19,25 @@ import lightning as L
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import DataLoader, Dataset
-
 from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict
 from image2sim.simulator.gaussians.encoder import GaussianEncoder, pixel_maps_to_gaussians
 from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, camera_from_dict
+from torch.utils.data import DataLoader, Dataset
 
-__all__ = ["GeometryDataset", "GeometryDataModule", "GeometryModule", "stage1_losses", "train_stage1",
-           "load_scene_frames"]
+__all__ = [
+    "GeometryDataset",
+    "GeometryDataModule",
+    "GeometryModule",
+    "stage1_losses",
+    "train_stage1",
+    "load_scene_frames",
+]
 
 
-def load_scene_frames(path: str | Path, cfg: GaussianConfig, max_frames: int | None = None) -> list[FrameInputs]:
+def load_scene_frames(
+    path: str | Path, cfg: GaussianConfig, max_frames: int | None = None
+) -> list[FrameInputs]:
     """All frames of a capture at the encoder resolution."""
     from image2sim.simulator.gaussians.frames import prepare_frame
     from image2sim.simulator.io.registry import open_capture
@@ -48,7 +55,9 @@ class GeometryDataset(Dataset):
     the 2K frames nearest to the target (by camera centre), never the target itself.
     """
 
-    def __init__(self, scenes: Sequence[Sequence[FrameInputs]], num_sources: int, length: int, seed: int = 0) -> None:
+    def __init__(
+        self, scenes: Sequence[Sequence[FrameInputs]], num_sources: int, length: int, seed: int = 0
+    ) -> None:
         self.scenes = [list(s) for s in scenes if len(s) >= 2]
         if not self.scenes:
             raise ValueError("GeometryDataset needs at least one scene with >= 2 frames")
@@ -114,7 +123,10 @@ class GeometryDataModule(L.LightningDataModule):
 
 
 def stage1_losses(
-    encoder: GaussianEncoder, batch: dict, camera: Camera, align_head: torch.nn.Module | None = None,
+    encoder: GaussianEncoder,
+    batch: dict,
+    camera: Camera,
+    align_head: torch.nn.Module | None = None,
 ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """Loss terms and the splatted target images of one sample (see the module docstring)."""
     cfg = encoder.cfg
@@ -155,8 +167,13 @@ def stage1_losses(
 class GeometryModule(L.LightningModule):
     """Trains :class:`GaussianEncoder` (and the feature->token head of the alignment loss)."""
 
-    def __init__(self, cfg: GaussianConfig, semantic_model: torch.nn.Module | None = None, panoramic: bool = True,
-                 image_dir: str | None = None) -> None:
+    def __init__(
+        self,
+        cfg: GaussianConfig,
+        semantic_model: torch.nn.Module | None = None,
+        panoramic: bool = True,
+        image_dir: str | None = None,
+    ) -> None:
         super().__init__()
         from image2sim.simulator.gaussians.semantic import build_semantic
 
@@ -164,8 +181,11 @@ class GeometryModule(L.LightningModule):
         self.cfg = cfg
         semantic = build_semantic(cfg.semantic, semantic_model)
         self.encoder = GaussianEncoder(cfg, semantic, panoramic=panoramic)
-        self.align_head = (torch.nn.Linear(cfg.encoder.feature_dim, semantic.dim)
-                           if semantic is not None and cfg.encoder.feature_dim else None)
+        self.align_head = (
+            torch.nn.Linear(cfg.encoder.feature_dim, semantic.dim)
+            if semantic is not None and cfg.encoder.feature_dim
+            else None
+        )
         self.image_dir = image_dir
         self.history: list[float] = []
 
@@ -173,8 +193,9 @@ class GeometryModule(L.LightningModule):
         camera = camera_from_dict(json.loads(batch["camera"]))
         losses, images = stage1_losses(self.encoder, batch, camera, self.align_head)
         t = self.cfg.train
-        self.log_dict({f"train/{k}": v.detach() for k, v in losses.items()}, on_step=True, prog_bar=False,
-                      batch_size=1)
+        self.log_dict(
+            {f"train/{k}": v.detach() for k, v in losses.items()}, on_step=True, prog_bar=False, batch_size=1
+        )
         self.history.append(float(losses["total"].detach()))
         step = int(self.global_step)
         if self.image_dir and t.image_every and step % t.image_every == 0:
@@ -209,10 +230,9 @@ def train_stage1(
 ) -> dict:
     """Train (or resume) stage 1; writes checkpoints, CSV (+ W&B offline) logs, image grids and the
     final encoder (``encoder.safetensors`` + ``encoder.json``) under ``out_dir``. Returns a summary."""
+    from image2sim.simulator.gaussians.build import save_encoder
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
-
-    from image2sim.simulator.gaussians.build import save_encoder
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -223,7 +243,9 @@ def train_stage1(
     cams = {json.dumps(f.camera.to_dict()) for s in scenes for f in s}
     panoramic = all(isinstance(f.camera, EquirectCamera) for s in scenes for f in s)
     if len(cams) != 1:
-        raise ValueError(f"train_stage1: all frames must share one camera at the encoder size, got {len(cams)}")
+        raise ValueError(
+            f"train_stage1: all frames must share one camera at the encoder size, got {len(cams)}"
+        )
     tmp = out / ".config.json.tmp"
     tmp.write_text(json.dumps(config_to_dict(cfg), indent=2))
     os.replace(tmp, out / "config.json")
@@ -236,12 +258,24 @@ def train_stage1(
 
         os.environ.setdefault("WANDB_MODE", "offline")
         loggers.append(WandbLogger(save_dir=str(out), project="image2sim-geometry", offline=True))
-    ckpt = ModelCheckpoint(dirpath=str(out / "checkpoints"), every_n_train_steps=max(1, cfg.train.checkpoint_every),
-                           save_last=True, save_top_k=-1)
+    ckpt = ModelCheckpoint(
+        dirpath=str(out / "checkpoints"),
+        every_n_train_steps=max(1, cfg.train.checkpoint_every),
+        save_last=True,
+        save_top_k=-1,
+    )
     trainer = L.Trainer(
-        accelerator="cpu", devices=1, max_steps=cfg.train.steps, logger=loggers, callbacks=[ckpt],
-        enable_progress_bar=progress, enable_model_summary=False, log_every_n_steps=max(1, cfg.train.log_every),
-        num_sanity_val_steps=0, limit_val_batches=0, gradient_clip_val=1.0,
+        accelerator="cpu",
+        devices=1,
+        max_steps=cfg.train.steps,
+        logger=loggers,
+        callbacks=[ckpt],
+        enable_progress_bar=progress,
+        enable_model_summary=False,
+        log_every_n_steps=max(1, cfg.train.log_every),
+        num_sanity_val_steps=0,
+        limit_val_batches=0,
+        gradient_clip_val=1.0,
     )
     last = out / "checkpoints" / "last.ckpt"
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume and last.is_file() else None)
@@ -252,5 +286,3 @@ def train_stage1(
         "encoder": str(path),
         "checkpoint": str(last) if last.is_file() else None,
     }
-
-
