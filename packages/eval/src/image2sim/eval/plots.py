@@ -80,8 +80,15 @@ def plot_speed_vs_error(
             )
     others = [p for p in pts if p.steps is None]
     markers = iter("s^vD<>pP*X")
+    colors = iter(["tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray"])
     for p in others:
-        ax.plot([p.fps], [p.psnr], next(markers, "o"), label=p.method.replace("_", " "))
+        ax.plot(
+            [p.fps],
+            [p.psnr],
+            next(markers, "o"),
+            color=next(colors, "black"),
+            label=p.method.replace("_", " "),
+        )
     ax.set_xscale("log")
     ax.set_xlabel("frames per second (log scale)")
     ax.set_ylabel(f"{metric.upper()} (dB)" if metric == "psnr" else metric)

@@ -328,6 +328,7 @@ def run_render_bench(
                 "statistic": "median after warm-up",
                 "threads": bench.threads,
                 "batch": 1,
+                "scope": "renderer only: conditions are precomputed, splatting time is not included",
                 "hardware": hardware_string(),
             },
             "lpips": "configured" if lpips_model is not None else "n/a (no weights configured)",
@@ -385,6 +386,7 @@ def render_markdown(doc: Mapping[str, Any]) -> str:
             notes.append(
                 f"FPS: {fps.get('statistic')} ({fps.get('runs')} runs, {fps.get('warmup')} warm-up, "
                 f"batch {fps.get('batch')}, {fps.get('threads')} thread(s)) on {fps.get('hardware')}"
+                + (f"; {fps['scope']}" if fps.get("scope") else "")
             )
         notes.append(f"conditions: {proto.get('condition_source')}")
     return "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes if n) + "\n"
