@@ -22,14 +22,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
-
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
 from image2sim.simulator.navigation.graph import NavGraph, ray_march_free
 from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.navigation.planner import Planner
+from scipy.sparse.csgraph import dijkstra
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
@@ -89,7 +88,9 @@ def bench_scene(nx: int, ny: int, repeats: int, seed: int = 0) -> dict:
     t_build = time.perf_counter() - t0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    graph_bytes = graph.cost.data.nbytes * 2 + graph.cost.indices.nbytes * 2 + graph.edges.nbytes + graph.nodes.nbytes
+    graph_bytes = (
+        graph.cost.data.nbytes * 2 + graph.cost.indices.nbytes * 2 + graph.edges.nbytes + graph.nodes.nbytes
+    )
 
     planner = Planner(graph)
     rng = np.random.default_rng(seed)
@@ -105,7 +106,9 @@ def bench_scene(nx: int, ny: int, repeats: int, seed: int = 0) -> dict:
     t_lookup = timeit(lookups, repeats) / len(queries)
     # Reference: no field, one Dijkstra per query (what a naive evaluator would do).
     g_node = int(graph.snap(goal[None])[0][0])
-    t_ref = timeit(lambda: dijkstra(graph.length_matrix, directed=False, indices=g_node), max(1, repeats // 2))
+    t_ref = timeit(
+        lambda: dijkstra(graph.length_matrix, directed=False, indices=g_node), max(1, repeats // 2)
+    )
 
     # Ray march: vectorised vs Python loop on the same 300 candidate edges.
     keys, masks = navmap.blocked_stack()

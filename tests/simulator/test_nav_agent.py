@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld, wrap_angle
@@ -20,7 +19,7 @@ SPACING = 0.04
 F, L, R, S = int(Action.MOVE_FORWARD), int(Action.TURN_LEFT), int(Action.TURN_RIGHT), int(Action.STOP)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def world(name: str):
     w = {
         "box": lambda: syn.box_room(spacing=SPACING),
@@ -58,7 +57,9 @@ def test_free_forward_step_is_exact():
     a = agent_at("box", 2.0, 2.0, 0.0, 30.0)
     info = a.step(F)
     assert not info.collided and info.displacement == pytest.approx(0.25)
-    assert np.allclose(a.state.position[:2], [2.0 + 0.25 * math.cos(math.pi / 6), 2.0 + 0.25 * math.sin(math.pi / 6)])
+    assert np.allclose(
+        a.state.position[:2], [2.0 + 0.25 * math.cos(math.pi / 6), 2.0 + 0.25 * math.sin(math.pi / 6)]
+    )
 
 
 def test_glancing_wall_slides_along_it():
@@ -168,4 +169,6 @@ def test_random_actions_never_penetrate_and_flags_are_consistent(start, heading,
 def test_wrap_angle_range(a):
     w = wrap_angle(a)
     assert -math.pi < w <= math.pi
-    assert math.isclose(math.cos(w), math.cos(a), abs_tol=1e-6) and math.isclose(math.sin(w), math.sin(a), abs_tol=1e-6)
+    assert math.isclose(math.cos(w), math.cos(a), abs_tol=1e-6) and math.isclose(
+        math.sin(w), math.sin(a), abs_tol=1e-6
+    )

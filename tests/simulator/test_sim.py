@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.navigation import synthetic as syn
@@ -16,7 +15,7 @@ from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.sim import GaussianRenderFn, NavEnv, NeuralSimulator, ObservationSpec
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def navmap():
     w = syn.box_room(spacing=0.04)
     return extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
@@ -55,8 +54,15 @@ def test_batch_step_info_and_collisions():
 
 def test_observations_are_selectable_and_posed_at_eye_height():
     r = RecordingRenderer()
-    spec = ObservationSpec(panorama=True, pano_height=32, pinhole=True, pinhole_size=24, ultrawide=True,
-                           ultrawide_width=40, ultrawide_height=26)
+    spec = ObservationSpec(
+        panorama=True,
+        pano_height=32,
+        pinhole=True,
+        pinhole_size=24,
+        ultrawide=True,
+        ultrawide_width=40,
+        ultrawide_height=26,
+    )
     sim = NeuralSimulator(navmap(), render_fn=r, observations=spec)
     obs, _ = sim.reset(np.array([[3.0, 2.0, 0.0]]), np.array([math.pi / 2]))
     o = obs[0]
@@ -85,8 +91,9 @@ def test_gaussian_render_fn_goes_through_splat():
         "opacities": torch.tensor([0.9]),
         "colors": torch.tensor([[1.0, 0.0, 0.0]]),
     }
-    sim = NeuralSimulator(navmap(), render_fn=GaussianRenderFn(g, backend="torch"),
-                          observations=ObservationSpec(pano_height=16))
+    sim = NeuralSimulator(
+        navmap(), render_fn=GaussianRenderFn(g, backend="torch"), observations=ObservationSpec(pano_height=16)
+    )
     obs, _ = sim.reset(np.array([[3.0, 2.0, 0.0]]), np.array([0.0]))
     pano = obs[0]["panorama"]
     assert pano["rgb"].shape == (16, 32, 3)

@@ -15,7 +15,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
 from image2sim.simulator.conventions import Action, camera_rotation_for_heading
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, PinholeCamera
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
@@ -59,7 +58,9 @@ class ObservationSpec(_DictMixin):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"ObservationSpec.{name} must be >= 1, got {getattr(self, name)!r}")
         if not 0 < self.pinhole_hfov_deg < 180:
-            raise ConfigError(f"ObservationSpec.pinhole_hfov_deg must lie in (0, 180), got {self.pinhole_hfov_deg}")
+            raise ConfigError(
+                f"ObservationSpec.pinhole_hfov_deg must lie in (0, 180), got {self.pinhole_hfov_deg}"
+            )
         if not (0 < self.ultrawide_hfov_deg <= 360 and 0 < self.ultrawide_vfov_deg <= 180):
             raise ConfigError("ObservationSpec ultra-wide FOV must lie in (0, 360] x (0, 180] degrees")
 
@@ -86,14 +87,22 @@ class GaussianRenderFn:
 
     def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
         import torch
-
         from image2sim.simulator.splatting import splat
 
         g = self.gaussians
         pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype)
         with torch.no_grad():
-            out = splat(g["means"], g["scales"], g["quats"], g["opacities"], g["colors"], g.get("features"),
-                        camera, pose, backend=self.backend)
+            out = splat(
+                g["means"],
+                g["scales"],
+                g["quats"],
+                g["opacities"],
+                g["colors"],
+                g.get("features"),
+                camera,
+                pose,
+                backend=self.backend,
+            )
             rgb = self.renderer(out) if self.renderer is not None else out.rgb
             depth = out.normalized_depth()
         return {
@@ -153,7 +162,7 @@ class NeuralSimulator:
         observations: ObservationSpec | None = None,
         renderer: Callable | None = None,
         backend: str = "auto",
-    ) -> "NeuralSimulator":
+    ) -> NeuralSimulator:
         """Open a scene folder: ``gaussians.safetensors`` (+ ``navmap.npz`` / ``navgraph.npz`` when
         present; otherwise the map is extracted from the Gaussians). ``renderer`` is an optional
         pixel-flow renderer applied after splatting."""
@@ -170,9 +179,16 @@ class NeuralSimulator:
         if (folder / "navmap.npz").is_file():
             navmap = NavMap.load(folder / "navmap.npz")
         else:
-            cams = [np.asarray(f["cam_to_world"])[:3, 3] for f in scene.frames if f.get("cam_to_world") is not None]
+            cams = [
+                np.asarray(f["cam_to_world"])[:3, 3]
+                for f in scene.frames
+                if f.get("cam_to_world") is not None
+            ]
             navmap = extract_navmap_from_gaussians(
-                g.means.numpy(), g.quats.numpy(), g.scales.numpy(), g.opacities.numpy(),
+                g.means.numpy(),
+                g.quats.numpy(),
+                g.scales.numpy(),
+                g.opacities.numpy(),
                 np.array(cams) if cams else None,
             )
         graph = NavGraph.load(folder / "navgraph.npz") if (folder / "navgraph.npz").is_file() else None
@@ -200,7 +216,7 @@ class NeuralSimulator:
         if len(heads) != len(pos):
             raise ValueError(f"reset: {len(pos)} positions but {len(heads)} headings")
         self.agents = [Agent(self.world, self.embodiment) for _ in range(len(pos))]
-        for agent, p, h in zip(self.agents, pos, heads):
+        for agent, p, h in zip(self.agents, pos, heads, strict=False):
             agent.reset(p, float(h))
         info = self._info(np.zeros(len(pos), bool), np.zeros(len(pos), bool))
         return (self.observe_all() if observe else None), info
@@ -209,12 +225,16 @@ class NeuralSimulator:
         """Apply one action per agent; returns ``(observations, info)``."""
         acts = np.asarray(actions, dtype=np.int64).reshape(-1)
         if len(acts) != len(self.agents):
-            raise ValueError(f"step: got {len(acts)} actions for {len(self.agents)} agents (call reset first)")
+            raise ValueError(
+                f"step: got {len(acts)} actions for {len(self.agents)} agents (call reset first)"
+            )
         collided = np.zeros(len(acts), bool)
         stuck = np.zeros(len(acts), bool)
-        for i, (agent, a) in enumerate(zip(self.agents, acts)):
+        for i, (agent, a) in enumerate(zip(self.agents, acts, strict=False)):
             if int(a) not in {int(x) for x in Action}:
-                raise ValueError(f"step: action {int(a)} of agent {i} is not one of {[int(x) for x in Action]}")
+                raise ValueError(
+                    f"step: action {int(a)} of agent {i} is not one of {[int(x) for x in Action]}"
+                )
             res = agent.step(int(a))
             collided[i], stuck[i] = res.collided, res.stuck
         return (self.observe_all() if observe else None), self._info(collided, stuck)
@@ -271,8 +291,14 @@ class NavEnv:
     ``distance_to_goal`` (geodesic, via a distance field computed once per episode) and ``success``.
     """
 
-    def __init__(self, sim: NeuralSimulator, max_steps: int = 500, success_distance: float = 0.25,
-                 success_reward: float = 2.5, slack_reward: float = -0.01) -> None:
+    def __init__(
+        self,
+        sim: NeuralSimulator,
+        max_steps: int = 500,
+        success_distance: float = 0.25,
+        success_reward: float = 2.5,
+        slack_reward: float = -0.01,
+    ) -> None:
         self.sim = sim
         self.max_steps = int(max_steps)
         self.success_distance = float(success_distance)
@@ -297,7 +323,9 @@ class NavEnv:
         d = self.field(info["position"][0])
         terminated = int(action) == int(Action.STOP)
         success = terminated and d <= self.success_distance
-        reward = (self._last - d if math.isfinite(d) and math.isfinite(self._last) else 0.0) + self.slack_reward
+        reward = (
+            self._last - d if math.isfinite(d) and math.isfinite(self._last) else 0.0
+        ) + self.slack_reward
         if success:
             reward += self.success_reward
         self._last = d

@@ -22,7 +22,15 @@ _EXPORTS = {
     ),
     "graph": ("NavGraph",),
     "planner": ("DistanceField", "PathResult", "Planner"),
-    "agent": ("Agent", "AgentState", "CollisionWorld", "Kinematics", "StepInfo", "StuckDetector", "wrap_angle"),
+    "agent": (
+        "Agent",
+        "AgentState",
+        "CollisionWorld",
+        "Kinematics",
+        "StepInfo",
+        "StuckDetector",
+        "wrap_angle",
+    ),
     "follower": ("OracleFollower", "smooth_path"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}

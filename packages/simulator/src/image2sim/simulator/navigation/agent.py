@@ -18,11 +18,10 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
-
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation.embodiment import Embodiment
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
+from scipy.spatial import cKDTree
 
 __all__ = ["AgentState", "StepInfo", "CollisionWorld", "Kinematics", "StuckDetector", "Agent", "wrap_angle"]
 
@@ -45,7 +44,7 @@ class AgentState:
     position: np.ndarray
     heading: float
 
-    def copy(self) -> "AgentState":
+    def copy(self) -> AgentState:
         return AgentState(np.array(self.position, dtype=np.float64), float(self.heading))
 
     @property
@@ -95,7 +94,9 @@ class CollisionWorld:
         z = self._floor_z[lo:hi]
         dz = np.abs(z - z_ref)
         best = int(np.argmin(dz))
-        return float(z[best]) if dz[best] <= self.embodiment.max_step_height + HEIGHT_TOLERANCE else float("nan")
+        return (
+            float(z[best]) if dz[best] <= self.embodiment.max_step_height + HEIGHT_TOLERANCE else float("nan")
+        )
 
     def footprint_obstacles(self, xy: np.ndarray, floor_z: float, radius: float | None = None) -> np.ndarray:
         """Indices of obstacle points strictly inside the footprint disc and in the body band."""
@@ -108,7 +109,9 @@ class CollisionWorld:
         p = self.obstacles[idx]
         d = np.linalg.norm(p[:, :2] - np.asarray(xy, float)[:2], axis=1)
         emb = self.embodiment
-        band = (p[:, 2] > floor_z + emb.max_step_height + HEIGHT_TOLERANCE) & (p[:, 2] <= floor_z + emb.height)
+        band = (p[:, 2] > floor_z + emb.max_step_height + HEIGHT_TOLERANCE) & (
+            p[:, 2] <= floor_z + emb.height
+        )
         return idx[band & (d < r - _EPS)]
 
     def check(self, xy: np.ndarray, z_ref: float) -> tuple[bool, float, np.ndarray]:
@@ -206,7 +209,8 @@ class StuckDetector:
             return False
         p0, _ = self._states[0]
         disp = float(np.linalg.norm(self._states[-1][0] - p0))
-        yaw = sum(abs(wrap_angle(b[1] - a[1])) for a, b in zip(list(self._states)[:-1], list(self._states)[1:]))
+        states = list(self._states)
+        yaw = sum(abs(wrap_angle(b[1] - a[1])) for a, b in zip(states[:-1], states[1:], strict=True))
         return disp < self.min_disp and yaw < self.min_yaw - 1e-9
 
 
@@ -225,7 +229,11 @@ class Agent:
         p = np.asarray(position, dtype=np.float64).reshape(3)
         ok, z, hits = self.world.check(p[:2], p[2])
         if not ok:
-            why = "no floor within the step height" if not math.isfinite(z) else f"{len(hits)} obstacle points in the footprint"
+            why = (
+                "no floor within the step height"
+                if not math.isfinite(z)
+                else f"{len(hits)} obstacle points in the footprint"
+            )
             raise ValueError(f"cannot place the agent at {np.round(p, 3).tolist()}: {why}")
         self.state = AgentState(np.array([p[0], p[1], z]), wrap_angle(float(heading)))
         self.stuck_detector.reset(self.state)

@@ -21,7 +21,6 @@ def _parse_point(text: str, name: str) -> list[float]:
 def _load_source(path: Path, config: dict, stride: int | None):
     """A capture folder (any registered format), a Gaussian scene folder, or a point-cloud .npz."""
     import numpy as np
-
     from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
     from image2sim.simulator.navigation.navmap import extract_navmap, extract_navmap_from_points
 
@@ -60,11 +59,22 @@ def _load_source(path: Path, config: dict, stride: int | None):
 
 
 def navmap_command(
-    source: Path = typer.Argument(..., help="Capture folder, scene folder (gaussians.safetensors), or a point-cloud .npz (points, normals?, cameras?)."),
-    out: Path = typer.Option(Path("navmap.npz"), "--out", help="Output navmap .npz (a PNG is written beside it)."),
-    config: Path | None = typer.Option(None, "--config", help="YAML/JSON with 'embodiment' and 'navmap' sections."),
-    stride: int | None = typer.Option(None, "--stride", help="Pixel stride for back-projection (overrides config)."),
-    graph: bool = typer.Option(True, "--graph/--no-graph", help="Also build and save navgraph.npz beside the map."),
+    source: Path = typer.Argument(  # noqa: B008 (typer's declaration style)
+        ...,
+        help="Capture folder, scene folder (gaussians.safetensors) or point cloud .npz (points, normals?).",
+    ),
+    out: Path = typer.Option(  # noqa: B008 (typer's declaration style)
+        Path("navmap.npz"), "--out", help="Output navmap .npz (a PNG is written beside it)."
+    ),
+    config: Path | None = typer.Option(  # noqa: B008 (typer's declaration style)
+        None, "--config", help="YAML/JSON with 'embodiment' and 'navmap' sections."
+    ),
+    stride: int | None = typer.Option(  # noqa: B008 (typer's declaration style)
+        None, "--stride", help="Pixel stride for back-projection (overrides config)."
+    ),
+    graph: bool = typer.Option(  # noqa: B008 (typer's declaration style)
+        True, "--graph/--no-graph", help="Also build and save navgraph.npz beside the map."
+    ),
 ) -> None:
     """Extract the navigable map (+ top-down PNG of navigable cells, clearance and levels)."""
     from image2sim.simulator.navigation.navmap import render_topdown, write_png
@@ -78,21 +88,26 @@ def navmap_command(
         from image2sim.simulator.navigation.embodiment import GraphConfig
         from image2sim.simulator.navigation.graph import NavGraph
 
-        g = NavGraph.build(navmap, GraphConfig.from_dict(cfg.get("graph"), where="--config graph"), progress=True)
+        g = NavGraph.build(
+            navmap, GraphConfig.from_dict(cfg.get("graph"), where="--config graph"), progress=True
+        )
         g.save(out.with_name("navgraph.npz"))
         summary["graph"] = {"nodes": g.num_nodes, "edges": g.num_edges}
     typer.echo(json.dumps({"navmap": str(out), "png": str(png), **summary}, indent=2))
 
 
 def plan_command(
-    scene: Path = typer.Argument(..., help="A navmap .npz or a folder holding navmap.npz (and navgraph.npz)."),
-    start: str = typer.Option(..., "--start", help="Start feet position x,y,z (map frame)."),
-    goal: str = typer.Option(..., "--goal", help="Goal feet position x,y,z (map frame)."),
-    out: Path = typer.Option(Path("path.png"), "--out", help="PNG of the path over the map (JSON beside it)."),
+    scene: Path = typer.Argument(  # noqa: B008 (typer's declaration style)
+        ..., help="A navmap .npz or a folder holding navmap.npz (and navgraph.npz)."
+    ),
+    start: str = typer.Option(..., "--start", help="Start feet position x,y,z (map frame)."),  # noqa: B008 (typer's declaration style)
+    goal: str = typer.Option(..., "--goal", help="Goal feet position x,y,z (map frame)."),  # noqa: B008 (typer's declaration style)
+    out: Path = typer.Option(  # noqa: B008 (typer's declaration style)
+        Path("path.png"), "--out", help="PNG of the path over the map (JSON beside it)."
+    ),
 ) -> None:
     """Plan a collision-aware path between two points and draw it."""
     import numpy as np
-
     from image2sim.simulator.navigation.graph import NavGraph
     from image2sim.simulator.navigation.navmap import NavMap, render_topdown, write_png
     from image2sim.simulator.navigation.planner import Planner

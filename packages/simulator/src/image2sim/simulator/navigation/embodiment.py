@@ -58,7 +58,9 @@ def _check_nonnegative(obj: Any, *names: str) -> None:
     for name in names:
         value = getattr(obj, name)
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-            raise ConfigError(f"{type(obj).__name__}.{name} must be a non-negative finite number, got {value!r}")
+            raise ConfigError(
+                f"{type(obj).__name__}.{name} must be a non-negative finite number, got {value!r}"
+            )
 
 
 class _DictMixin:
@@ -100,7 +102,9 @@ class Embodiment(_DictMixin):
     """Slide along obstacle boundaries when a forward micro-step is blocked."""
 
     def __post_init__(self) -> None:
-        _check_positive(self, "radius", "height", "eye_height", "forward_step", "turn_angle_deg", "micro_step")
+        _check_positive(
+            self, "radius", "height", "eye_height", "forward_step", "turn_angle_deg", "micro_step"
+        )
         _check_nonnegative(self, "max_step_height", "stuck_min_displacement", "stuck_min_yaw_deg")
         if not isinstance(self.stuck_window, int) or self.stuck_window < 1:
             raise ConfigError(f"Embodiment.stuck_window must be an integer >= 1, got {self.stuck_window!r}")
@@ -160,7 +164,9 @@ class NavMapConfig(_DictMixin):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "floor_labels", tuple(int(v) for v in self.floor_labels))
-        _check_positive(self, "voxel_size", "max_range", "outlier_radius", "min_level_area", "level_tolerance")
+        _check_positive(
+            self, "voxel_size", "max_range", "outlier_radius", "min_level_area", "level_tolerance"
+        )
         _check_positive(self, "camera_support_radius", "max_tilt_deg", "ransac_threshold")
         _check_nonnegative(self, "min_component_area", "min_camera_height", "outlier_min_neighbors")
         if not -1.0 <= self.normal_z_min <= 1.0:
@@ -171,7 +177,9 @@ class NavMapConfig(_DictMixin):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"NavMapConfig.{name} must be >= 1, got {getattr(self, name)!r}")
         if int(self.closing_radius_cells) < 0:
-            raise ConfigError(f"NavMapConfig.closing_radius_cells must be >= 0, got {self.closing_radius_cells!r}")
+            raise ConfigError(
+                f"NavMapConfig.closing_radius_cells must be >= 0, got {self.closing_radius_cells!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -221,5 +229,3 @@ class FollowerConfig(_DictMixin):
         _check_positive(self, "lookahead", "stop_radius", "replan_distance")
         if self.turn_tolerance_deg is not None:
             _check_positive(self, "turn_tolerance_deg")
-
-

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation.agent import AgentState, Kinematics, wrap_angle
 from image2sim.simulator.navigation.embodiment import Embodiment, FollowerConfig
@@ -32,9 +31,7 @@ def smooth_path(waypoints: np.ndarray, window: int = 5) -> np.ndarray:
     return out
 
 
-def pure_pursuit_action(
-    state: AgentState, target_xy: np.ndarray, turn_tolerance: float
-) -> int:
+def pure_pursuit_action(state: AgentState, target_xy: np.ndarray, turn_tolerance: float) -> int:
     """Turn towards ``target_xy`` while the heading error exceeds ``turn_tolerance``, else go forward."""
     d = np.asarray(target_xy, float)[:2] - state.position[:2]
     err = wrap_angle(math.atan2(d[1], d[0]) - state.heading)
@@ -63,7 +60,9 @@ class OracleFollower:
         self.embodiment = embodiment or planner.graph.embodiment
         self.config = config or FollowerConfig()
         tol = self.config.turn_tolerance_deg
-        self.turn_tolerance = math.radians(tol) if tol is not None else 0.5 * self.embodiment.turn_angle + 1e-6
+        self.turn_tolerance = (
+            math.radians(tol) if tol is not None else 0.5 * self.embodiment.turn_angle + 1e-6
+        )
         self.goal: np.ndarray | None = None
         self.path: np.ndarray = np.zeros((0, 3))
         self.result: PathResult | None = None
@@ -77,7 +76,11 @@ class OracleFollower:
     def _plan(self, start: np.ndarray) -> PathResult:
         assert self.goal is not None
         self.result = self.planner.shortest_path(start, self.goal)
-        self.path = smooth_path(self.result.waypoints, self.config.smoothing_window) if self.result.reachable else np.zeros((0, 3))
+        self.path = (
+            smooth_path(self.result.waypoints, self.config.smoothing_window)
+            if self.result.reachable
+            else np.zeros((0, 3))
+        )
         self._progress = 0
         return self.result
 

@@ -7,7 +7,8 @@ never enters a blocked column: an obstacle voxel in the body band above the (int
 height, or a column without floor within the step height (holes, drops, unknown space). The cost of
 entering node j is
 
-    cost(i -> j) = d_ij + w_safe * (max(0, (r_safe - c_j) / r_safe))^2 + w_collision * max(0, (radius - c_j) / radius)
+    cost(i -> j) = d_ij + w_safe * (max(0, (r_safe - c_j) / r_safe))^2
+                        + w_collision * max(0, (radius - c_j) / radius)
 
 with c_j the EDT clearance of j and r_safe = r_safe_factor x radius; it depends on the target only, so
 cost(i -> j) != cost(j -> i) whenever c_i != c_j (e.g. next to a wall).
@@ -22,11 +23,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import sparse
-from scipy.spatial import cKDTree
-
 from image2sim.simulator.navigation.embodiment import Embodiment, GraphConfig
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
+from scipy import sparse
+from scipy.spatial import cKDTree
 
 __all__ = ["NavGraph", "edge_costs", "nearest_bin", "ray_march_free"]
 
@@ -36,7 +36,7 @@ GRAPH_FORMAT_VERSION = 1
 def edge_costs(
     lengths: np.ndarray, target_clearance: np.ndarray, radius: float, config: GraphConfig
 ) -> np.ndarray:
-    """Directed cost of edges of physical length ``lengths`` entering nodes of clearance ``target_clearance``."""
+    """Directed cost of edges of length ``lengths`` (m) entering nodes of clearance ``target_clearance``."""
     r_safe = config.r_safe_factor * radius
     safe = np.maximum(0.0, (r_safe - target_clearance) / r_safe) ** 2
     penetration = np.maximum(0.0, (radius - target_clearance) / radius)
@@ -121,9 +121,7 @@ class NavGraph:
 
     # --- construction ---------------------------------------------------------------------
     @classmethod
-    def build(
-        cls, navmap: NavMap, config: GraphConfig | None = None, progress: bool = False
-    ) -> "NavGraph":
+    def build(cls, navmap: NavMap, config: GraphConfig | None = None, progress: bool = False) -> NavGraph:
         """Build the graph of a navigable map (see the module docstring for the rules)."""
         cfg = config or GraphConfig()
         emb = navmap.embodiment
@@ -133,8 +131,18 @@ class NavGraph:
         n = len(nodes)
         if n == 0:
             empty = sparse.csr_matrix((0, 0))
-            return cls(nodes, clearance, level, np.zeros((0, 2), np.int64), np.zeros(0), empty, empty, emb, cfg,
-                       navmap.voxel_size)
+            return cls(
+                nodes,
+                clearance,
+                level,
+                np.zeros((0, 2), np.int64),
+                np.zeros(0),
+                empty,
+                empty,
+                emb,
+                cfg,
+                navmap.voxel_size,
+            )
         pairs = cKDTree(nodes).query_pairs(r=cfg.neighbor_radius, output_type="ndarray").astype(np.int64)
         dz = np.abs(nodes[pairs[:, 0], 2] - nodes[pairs[:, 1], 2]) if len(pairs) else np.zeros(0)
         pairs = pairs[dz <= emb.max_step_height + HEIGHT_TOLERANCE]
@@ -161,7 +169,13 @@ class NavGraph:
                 sel = todo[s : s + int(cfg.chunk_edges)]
                 p = pairs[sel]
                 keep[sel] = ray_march_free(
-                    nodes[p[:, 0]], nodes[p[:, 1]], masks, bin_keys, navmap.origin, navmap.voxel_size, cfg.march_step
+                    nodes[p[:, 0]],
+                    nodes[p[:, 1]],
+                    masks,
+                    bin_keys,
+                    navmap.origin,
+                    navmap.voxel_size,
+                    cfg.march_step,
                 )
                 if bar is not None:
                     bar.advance(task)
@@ -222,7 +236,11 @@ class NavGraph:
         idx = np.asarray(idx, dtype=np.int64)
         off = np.linalg.norm(self.nodes[idx, :2] - p[:, :2], axis=1)
         dz = np.abs(self.nodes[idx, 2] - p[:, 2])
-        bad = (off > self.config.max_snap_distance) | (dz > self.embodiment.height) | ~np.isfinite(p).all(axis=1)
+        bad = (
+            (off > self.config.max_snap_distance)
+            | (dz > self.embodiment.height)
+            | ~np.isfinite(p).all(axis=1)
+        )
         idx[bad] = -1
         off[bad] = np.inf
         return idx, off
@@ -263,7 +281,7 @@ class NavGraph:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "NavGraph":
+    def load(cls, path: str | os.PathLike) -> NavGraph:
         """Read a graph written by :meth:`save` (costs are recomputed from the stored config)."""
         path = Path(path)
         if not path.is_file():
@@ -272,7 +290,9 @@ class NavGraph:
             try:
                 meta = json.loads(str(data["meta_json"]))
                 if meta.get("format_version") != GRAPH_FORMAT_VERSION:
-                    raise ValueError(f"{path}: unsupported navgraph format_version {meta.get('format_version')!r}")
+                    raise ValueError(
+                        f"{path}: unsupported navgraph format_version {meta.get('format_version')!r}"
+                    )
                 emb = Embodiment.from_dict(meta["embodiment"], where=str(path))
                 cfg = GraphConfig.from_dict(meta["config"], where=str(path))
                 nodes = np.asarray(data["nodes"], np.float64)
@@ -283,4 +303,6 @@ class NavGraph:
             except KeyError as err:
                 raise ValueError(f"{path}: navgraph file is missing field {err.args[0]!r}") from None
         cost, length_matrix = cls._matrices(len(nodes), edges, lengths, clearance, emb.radius, cfg)
-        return cls(nodes, clearance, level, edges, lengths, cost, length_matrix, emb, cfg, float(meta["voxel_size"]))
+        return cls(
+            nodes, clearance, level, edges, lengths, cost, length_matrix, emb, cfg, float(meta["voxel_size"])
+        )

@@ -33,12 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-
-from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
 
 __all__ = [
     "NavMap",
@@ -126,9 +125,7 @@ def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
 
 
-def estimate_normals_pca(
-    points: np.ndarray, k: int = 12, viewpoints: np.ndarray | None = None
-) -> np.ndarray:
+def estimate_normals_pca(points: np.ndarray, k: int = 12, viewpoints: np.ndarray | None = None) -> np.ndarray:
     """Unit normals of an (N, 3) cloud from the smallest PCA axis of each point's k nearest neighbours.
 
     Orientation: towards the nearest of ``viewpoints`` (M, 3) when given, otherwise upwards
@@ -194,10 +191,16 @@ def _voxel_reduce(
     uniq, inverse = np.unique(_pack_keys(ijk), return_inverse=True)
     inverse = inverse.reshape(-1)
     wsum = np.bincount(inverse, weights=weights, minlength=len(uniq))
-    means = np.stack(
-        [np.bincount(inverse, weights=values[:, c] * weights, minlength=len(uniq)) for c in range(values.shape[1])],
-        axis=1,
-    ) / wsum[:, None]
+    means = (
+        np.stack(
+            [
+                np.bincount(inverse, weights=values[:, c] * weights, minlength=len(uniq))
+                for c in range(values.shape[1])
+            ],
+            axis=1,
+        )
+        / wsum[:, None]
+    )
     return _unpack_keys(uniq), means, wsum
 
 
@@ -281,7 +284,9 @@ class NavMap:
 
     def xy_to_ij(self, xy: np.ndarray) -> np.ndarray:
         """Integer columns containing map-frame (x, y) positions (N, 2); may lie outside the grid."""
-        return np.floor((np.asarray(xy, dtype=np.float64) - self.origin[:2]) / self.voxel_size).astype(np.int64)
+        return np.floor((np.asarray(xy, dtype=np.float64) - self.origin[:2]) / self.voxel_size).astype(
+            np.int64
+        )
 
     @property
     def floor_points(self) -> np.ndarray:
@@ -377,8 +382,10 @@ class NavMap:
     def blocked_stack(self) -> tuple[np.ndarray, np.ndarray]:
         """Blocked masks of every height bin: (bin keys (B,) as in :meth:`bin_keys`, masks (B, nx, ny))."""
         heights, _ = self.height_bins()
-        masks = np.stack([self.blocked_mask(float(h)) for h in heights]) if len(heights) else np.zeros(
-            (0,) + self.shape2d, dtype=bool
+        masks = (
+            np.stack([self.blocked_mask(float(h)) for h in heights])
+            if len(heights)
+            else np.zeros((0,) + self.shape2d, dtype=bool)
         )
         return self.bin_keys(), masks
 
@@ -416,7 +423,7 @@ class NavMap:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "NavMap":
+    def load(cls, path: str | os.PathLike) -> NavMap:
         """Read a map written by :meth:`save`; errors name the file and the missing field."""
         path = Path(path)
         if not path.is_file():
@@ -425,7 +432,9 @@ class NavMap:
             try:
                 meta = json.loads(str(data["meta_json"]))
                 if meta.get("format_version") != NAVMAP_FORMAT_VERSION:
-                    raise NavMapError(f"{path}: unsupported navmap format_version {meta.get('format_version')!r}")
+                    raise NavMapError(
+                        f"{path}: unsupported navmap format_version {meta.get('format_version')!r}"
+                    )
                 return cls(
                     voxel_size=float(meta["voxel_size"]),
                     origin=np.asarray(data["origin"], dtype=np.float64),
@@ -564,7 +573,11 @@ def extract_navmap_from_gaussians(
     )
     thin = np.argmin(np.asarray(scales, dtype=np.float64).reshape(-1, 3), axis=1)
     nrm = rot[np.arange(len(mu)), :, thin]
-    keep = np.ones(len(mu), dtype=bool) if opacities is None else np.asarray(opacities).reshape(-1) >= min_opacity
+    keep = (
+        np.ones(len(mu), dtype=bool)
+        if opacities is None
+        else np.asarray(opacities).reshape(-1) >= min_opacity
+    )
     cams = None if camera_positions is None else np.asarray(camera_positions, dtype=np.float64).reshape(-1, 3)
     if cams is not None and len(cams):
         _, nearest = cKDTree(cams).query(mu)
@@ -588,7 +601,6 @@ def extract_navmap(
     Points are pre-merged into 0.05 m voxels per frame so memory stays bounded.
     """
     import torch
-
     from image2sim.simulator.geometry.normals import point_normals
 
     emb = embodiment or Embodiment()
@@ -603,13 +615,17 @@ def extract_navmap(
 
         bar = Progress(transient=True)
         bar.start()
-        task = bar.add_task("back-projecting frames", total=len(capture) if hasattr(capture, "__len__") else None)
+        task = bar.add_task(
+            "back-projecting frames", total=len(capture) if hasattr(capture, "__len__") else None
+        )
     try:
         for frame in frames:
             depth = np.asarray(frame.depth, dtype=np.float32)
             unit_points, small_camera, off = _strided_rays(frame.camera, cfg.pixel_stride, ray_cache)
             s = cfg.pixel_stride
-            depth_s = np.ascontiguousarray(depth[off::s, off::s][: unit_points.shape[0], : unit_points.shape[1]])
+            depth_s = np.ascontiguousarray(
+                depth[off::s, off::s][: unit_points.shape[0], : unit_points.shape[1]]
+            )
             d_t = torch.from_numpy(np.where(np.isfinite(depth_s), depth_s, 0.0).astype(np.float32))
             # Normals on the strided grid (the paper's 5x5 Sobel estimator); points from exact rays.
             nrm_s = point_normals(d_t[None, None], small_camera)[0].permute(1, 2, 0).numpy()
@@ -648,7 +664,6 @@ def _strided_rays(camera, stride: int, cache: dict):
     """Depth-1 points (h, w, 3) at every ``stride``-th pixel centre (offset ``stride // 2``), the
     camera model of that strided grid (for normals) and the offset; cached per camera."""
     import torch
-
     from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 
     key = (camera, stride)
@@ -662,8 +677,14 @@ def _strided_rays(camera, stride: int, cache: dict):
         rays = camera.pixel_to_ray(uu, vv)
         if isinstance(camera, PinholeCamera):
             rays = rays / rays[..., 2:3]  # pinhole depth is z: scale rays to z = 1
-            small = PinholeCamera(camera.fx / stride, camera.fy / stride, (camera.cx - off - 0.5) / stride + 0.5,
-                                  (camera.cy - off - 0.5) / stride + 0.5, h, w)
+            small = PinholeCamera(
+                camera.fx / stride,
+                camera.fy / stride,
+                (camera.cx - off - 0.5) / stride + 0.5,
+                (camera.cy - off - 0.5) / stride + 0.5,
+                h,
+                w,
+            )
         elif isinstance(camera, EquirectCamera):
             small = EquirectCamera(h, w)  # half-pixel shift for even strides: negligible for normals
         else:
@@ -706,7 +727,9 @@ def _build_navmap(
             pts = pts @ rotation.T
             if cams is not None:
                 cams = cams @ rotation.T
-            notes.append(f"gravity corrected by {tilt:.2f} deg (RANSAC ground normal {np.round(n, 4).tolist()})")
+            notes.append(
+                f"gravity corrected by {tilt:.2f} deg (RANSAC ground normal {np.round(n, 4).tolist()})"
+            )
         elif tilt > cfg.max_tilt_deg:
             notes.append(f"RANSAC ground normal tilted {tilt:.1f} deg > max_tilt_deg: not corrected")
 
@@ -723,7 +746,9 @@ def _build_navmap(
     if len(o_ijk):
         inlier = radius_outlier_mask(o_ijk * vox, cfg.outlier_radius, int(cfg.outlier_min_neighbors))
         if (~inlier).any():
-            notes.append(f"radius outlier removal dropped {int((~inlier).sum())} of {len(inlier)} obstacle voxels")
+            notes.append(
+                f"radius outlier removal dropped {int((~inlier).sum())} of {len(inlier)} obstacle voxels"
+            )
         o_ijk, o_mean, o_w = o_ijk[inlier], o_mean[inlier], o_w[inlier]
     # Floor candidates with an obstacle voxel right above them (within 2 voxels) belong to a vertical
     # surface whose normals the Sobel window blended with a floor's (sides of beds, risers): they
@@ -810,7 +835,9 @@ def _build_navmap(
     for b, h in enumerate(heights):
         sel = np.flatnonzero(cell_bin == b)
         void = navmap.unsupported_mask(float(h))
-        c = np.maximum(ndimage.distance_transform_edt(~void)[floor_ij[sel, 0], floor_ij[sel, 1]] * vox - 0.5 * vox, 0.0)
+        c = np.maximum(
+            ndimage.distance_transform_edt(~void)[floor_ij[sel, 0], floor_ij[sel, 1]] * vox - 0.5 * vox, 0.0
+        )
         band = navmap.band_obstacles(float(h))
         if band.any():
             # Exact distance to the obstacle points near the cell; beyond ``bound`` (no effect on
@@ -910,6 +937,8 @@ def _floor_components(
     order = np.argsort(-dz[near], kind="stable")  # the smallest |dz| is written last and wins
     labels[dst[order]] = labels[src[order]]
     return labels
+
+
 def _select_components(
     comp: np.ndarray,
     c_ij: np.ndarray,
@@ -933,7 +962,9 @@ def _select_components(
                 seeds.append(comp[best])
         missing = len(cams) - len(seeds)
         if missing:
-            notes.append(f"{missing} of {len(cams)} cameras have no floor below within {cfg.camera_support_radius} m")
+            notes.append(
+                f"{missing} of {len(cams)} cameras have no floor below within {cfg.camera_support_radius} m"
+            )
         if seeds:
             return np.unique(seeds)
         notes.append("no camera lies above a floor: kept components by area instead")
@@ -1026,7 +1057,8 @@ def _fill_holes(
 # ----------------------------------------------------------------------------------------------
 
 _LEVEL_COLOURS = np.array(
-    [[66, 135, 245], [245, 135, 66], [80, 190, 90], [200, 80, 200], [220, 200, 60], [60, 200, 200]], dtype=np.uint8
+    [[66, 135, 245], [245, 135, 66], [80, 190, 90], [200, 80, 200], [220, 200, 60], [60, 200, 200]],
+    dtype=np.uint8,
 )
 
 
@@ -1047,7 +1079,9 @@ def render_topdown(navmap: NavMap, path: np.ndarray | None = None, scale: int = 
     order = np.argsort(navmap.floor_z)
     nav = navmap.navigable[order]
     base[fi[order][~nav], fj[order][~nav]] = (60, 60, 60)
-    base[fi[order][nav], fj[order][nav]] = _LEVEL_COLOURS[navmap.floor_level[order][nav] % len(_LEVEL_COLOURS)]
+    base[fi[order][nav], fj[order][nav]] = _LEVEL_COLOURS[
+        navmap.floor_level[order][nav] % len(_LEVEL_COLOURS)
+    ]
     clear = np.zeros((nx, ny, 3), dtype=np.uint8)
     r_safe = 5.0 * navmap.embodiment.radius
     val = np.clip(navmap.clearance[order] / r_safe, 0, 1)
@@ -1055,12 +1089,23 @@ def render_topdown(navmap: NavMap, path: np.ndarray | None = None, scale: int = 
     height = np.zeros((nx, ny, 3), dtype=np.uint8)
     z = navmap.floor_z[order]
     span = max(1e-6, float(z.max() - z.min())) if len(z) else 1.0
-    t = ((z - (z.min() if len(z) else 0)) / span)
-    height[fi[order], fj[order]] = np.column_stack((40 + 215 * t, 80 + 100 * (1 - t), 255 * (1 - t))).astype(np.uint8)
+    t = (z - (z.min() if len(z) else 0)) / span
+    height[fi[order], fj[order]] = np.column_stack((40 + 215 * t, 80 + 100 * (1 - t), 255 * (1 - t))).astype(
+        np.uint8
+    )
     if path is not None and len(path):
-        ij = navmap.xy_to_ij(np.asarray(path)[:, :2])
+        p = np.asarray(path, dtype=np.float64)[:, :2]
+        # Draw segments, not just waypoints: sample every quarter cell along the polyline.
+        seg = [p[:1]] + [
+            a
+            + np.linspace(0, 1, max(2, int(np.linalg.norm(b - a) / (0.25 * navmap.voxel_size)) + 1))[1:, None]
+            * (b - a)
+            for a, b in zip(p[:-1], p[1:], strict=False)
+        ]
+        ij = navmap.xy_to_ij(np.concatenate(seg))
         ok = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
         base[ij[ok, 0], ij[ok, 1]] = (220, 30, 30)
+
     def _to_image(panel: np.ndarray) -> np.ndarray:
         # Array axis 0 is x, axis 1 is y: rows = y, flipped so +y points up in the image.
         return np.transpose(panel, (1, 0, 2))[::-1]

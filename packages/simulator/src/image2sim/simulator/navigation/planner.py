@@ -10,9 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
-
 from image2sim.simulator.navigation.graph import NavGraph
+from scipy.sparse.csgraph import dijkstra
 
 __all__ = ["PathResult", "DistanceField", "Planner"]
 
@@ -87,9 +86,14 @@ class Planner:
             return -1, np.inf, "the navigation graph is empty"
         idx, off = self.graph.snap(p[None])
         if idx[0] < 0:
-            return -1, np.inf, (
-                f"{what} {np.round(p, 3).tolist()} is off the navigable map "
-                f"(no node within {self.graph.config.max_snap_distance} m horizontally and a body height vertically)"
+            return (
+                -1,
+                np.inf,
+                (
+                    f"{what} {np.round(p, 3).tolist()} is off the navigable map "
+                    f"(no node within {self.graph.config.max_snap_distance} m horizontally "
+                    "and a body height vertically)"
+                ),
             )
         return int(idx[0]), float(off[0]), ""
 
@@ -106,7 +110,9 @@ class Planner:
         if why:
             return self._unreachable(why)
         if self.graph.components[s] != self.graph.components[g]:
-            return self._unreachable(f"start node {s} and goal node {g} lie in different connected components")
+            return self._unreachable(
+                f"start node {s} and goal node {g} lie in different connected components"
+            )
         dist, pred = dijkstra(self.graph.cost, directed=True, indices=s, return_predecessors=True)
         if not np.isfinite(dist[g]):
             return self._unreachable(f"goal node {g} is not reachable from start node {s}")
@@ -114,7 +120,13 @@ class Planner:
         while chain[-1] != s:
             chain.append(int(pred[chain[-1]]))
         nodes = np.asarray(chain[::-1], dtype=np.int64)
-        pts = np.vstack((np.asarray(start, float).reshape(1, 3), self.graph.nodes[nodes], np.asarray(goal, float).reshape(1, 3)))
+        pts = np.vstack(
+            (
+                np.asarray(start, float).reshape(1, 3),
+                self.graph.nodes[nodes],
+                np.asarray(goal, float).reshape(1, 3),
+            )
+        )
         length = float(np.linalg.norm(np.diff(pts[1:-1], axis=0), axis=1).sum()) + s_off + g_off
         return PathResult(pts, nodes, length, float(dist[g]))
 
@@ -139,14 +151,18 @@ class Planner:
         """
         g, g_off, why = self._snap_one(goal, "goal")
         if why:
-            return DistanceField(self.graph, np.asarray(goal, float), -1, np.full(self.graph.num_nodes, np.inf), np.inf, why)
+            return DistanceField(
+                self.graph, np.asarray(goal, float), -1, np.full(self.graph.num_nodes, np.inf), np.inf, why
+            )
         if weighted:
             d = dijkstra(self._cost_t, directed=True, indices=g)
         else:
             d = dijkstra(self.graph.length_matrix, directed=False, indices=g)
         return DistanceField(self.graph, np.asarray(goal, float), g, d, g_off)
 
-    def path_from_field(self, field_: DistanceField, start: np.ndarray, max_nodes: int = 1_000_000) -> PathResult:
+    def path_from_field(
+        self, field_: DistanceField, start: np.ndarray, max_nodes: int = 1_000_000
+    ) -> PathResult:
         """Greedy descent of a *weighted* distance field from ``start`` (same path as Dijkstra ties aside)."""
         s, s_off, why = self._snap_one(start, "start")
         if why or field_.goal_node < 0:
@@ -161,6 +177,8 @@ class Planner:
             w = cost.data[cost.indptr[i] : cost.indptr[i + 1]]
             chain.append(int(nb[np.argmin(w + field_.node_distance[nb])]))
         nodes = np.asarray(chain, dtype=np.int64)
-        pts = np.vstack((np.asarray(start, float).reshape(1, 3), self.graph.nodes[nodes], field_.goal.reshape(1, 3)))
+        pts = np.vstack(
+            (np.asarray(start, float).reshape(1, 3), self.graph.nodes[nodes], field_.goal.reshape(1, 3))
+        )
         length = float(np.linalg.norm(np.diff(pts[1:-1], axis=0), axis=1).sum()) + s_off + field_.goal_offset
         return PathResult(pts, nodes, length, float(field_.node_distance[s]))

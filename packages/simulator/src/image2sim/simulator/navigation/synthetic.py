@@ -137,7 +137,10 @@ def box_room(
 
 
 def wall_with_gap(
-    size_x: float = 6.0, size_y: float = 4.0, gap_width: float = 0.9, wall_thickness: float = 0.1,
+    size_x: float = 6.0,
+    size_y: float = 4.0,
+    gap_width: float = 0.9,
+    wall_thickness: float = 0.1,
     spacing: float = 0.025,
 ) -> SyntheticWorld:
     """A room split at x = size_x / 2 by a wall with a centred door gap of ``gap_width``."""
@@ -150,7 +153,9 @@ def wall_with_gap(
     return world
 
 
-def l_room(size: float = 6.0, arm: float = 2.5, height: float = 2.5, spacing: float = 0.025) -> SyntheticWorld:
+def l_room(
+    size: float = 6.0, arm: float = 2.5, height: float = 2.5, spacing: float = 0.025
+) -> SyntheticWorld:
     """An L-shaped room: the square [0, size]^2 minus the corner [arm, size] x [arm, size]."""
     lo, hi = np.zeros(2), np.array([size, size])
     cut_lo, cut_hi = np.array([arm, arm, 0.0]), np.array([size, size, height])
@@ -227,13 +232,21 @@ def two_levels_with_stairs(
         return _interior_distance(xy, (0, 0), (size_x, size_y))
 
     cams = np.array([[x_s / 2, size_y / 2, 1.5], [(x_e + size_x) / 2, size_y / 2, level_height + 1.5]])
-    world = SyntheticWorld(pts, nrm, cams, floor_height, obstacle_distance, [], (np.zeros(2), np.array([size_x, size_y])))
+    world = SyntheticWorld(
+        pts, nrm, cams, floor_height, obstacle_distance, [], (np.zeros(2), np.array([size_x, size_y]))
+    )
     return world
 
 
 def rooms_grid(
-    nx: int, ny: int, room: float = 4.0, door: float = 1.0, height: float = 2.5, spacing: float = 0.05,
-    seed: int = 0, furniture: int = 1,
+    nx: int,
+    ny: int,
+    room: float = 4.0,
+    door: float = 1.0,
+    height: float = 2.5,
+    spacing: float = 0.05,
+    seed: int = 0,
+    furniture: int = 1,
 ) -> SyntheticWorld:
     """An ``nx`` x ``ny`` grid of square rooms joined by doors, with random furniture boxes.
 
@@ -247,14 +260,18 @@ def rooms_grid(
         for j in range(ny):
             y0, y1 = j * room, (j + 1) * room
             c = (y0 + y1) / 2
-            boxes += [((i * room - t, y0, 0.0), (i * room + t, c - door / 2, height)),
-                      ((i * room - t, c + door / 2, 0.0), (i * room + t, y1, height))]
+            boxes += [
+                ((i * room - t, y0, 0.0), (i * room + t, c - door / 2, height)),
+                ((i * room - t, c + door / 2, 0.0), (i * room + t, y1, height)),
+            ]
     for j in range(1, ny):
         for i in range(nx):
             x0, x1 = i * room, (i + 1) * room
             c = (x0 + x1) / 2
-            boxes += [((x0, j * room - t, 0.0), (c - door / 2, j * room + t, height)),
-                      ((c + door / 2, j * room - t, 0.0), (x1, j * room + t, height))]
+            boxes += [
+                ((x0, j * room - t, 0.0), (c - door / 2, j * room + t, height)),
+                ((c + door / 2, j * room - t, 0.0), (x1, j * room + t, height)),
+            ]
     for i in range(nx):
         for j in range(ny):
             for _ in range(furniture):
@@ -265,5 +282,7 @@ def rooms_grid(
                     continue  # keep each room's centre (and its camera) free
                 boxes.append(((x, y, 0.0), (x + w, y + d, rng.uniform(0.4, 1.2))))
     world = box_room(sx, sy, height, spacing, boxes=boxes)
-    world.camera_positions = np.array([[(i + 0.5) * room, (j + 0.5) * room, 1.5] for i in range(nx) for j in range(ny)])
+    world.camera_positions = np.array(
+        [[(i + 0.5) * room, (j + 0.5) * room, 1.5] for i in range(nx) for j in range(ny)]
+    )
     return world
