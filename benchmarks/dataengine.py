@@ -82,15 +82,22 @@ def main() -> None:
                 s = run_engine(scenes, out, cfg, executor="local", progress=False)
                 assert not s["failed"], s["failed"]
                 counts[render] = s["episodes"]
+
             return fn
 
         rows = []
         for render in ("none", "procedural"):
             times = _runs(local(render), args.repeats)
             med = statistics.median(times)
-            rows.append({"setting": f"local, 1 core, render={render}", "episodes": counts[render],
-                         "median_s": med, "episodes_per_s_per_core": counts[render] / med,
-                         "runs_s": [round(t, 3) for t in times]})
+            rows.append(
+                {
+                    "setting": f"local, 1 core, render={render}",
+                    "episodes": counts[render],
+                    "median_s": med,
+                    "episodes_per_s_per_core": counts[render] / med,
+                    "runs_s": [round(t, 3) for t in times],
+                }
+            )
 
         import ray
 
@@ -98,6 +105,7 @@ def main() -> None:
         for workers in (1, 2):
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
             try:
+
                 def fn(workers=workers):
                     out = work / f"out_ray{workers}"
                     shutil.rmtree(out, ignore_errors=True)
@@ -105,31 +113,57 @@ def main() -> None:
                     s = run_engine(scenes, out, cfg, executor="ray", workers=workers, progress=False)
                     assert not s["failed"], s["failed"]
                     counts[f"ray{workers}"] = s["episodes"]
+
                 times = _runs(fn, args.repeats)
             finally:
                 ray.shutdown()
             med = statistics.median(times)
             ray_rows[workers] = med
-            rows.append({"setting": f"ray, {workers} worker(s), render=none", "episodes": counts[f"ray{workers}"],
-                         "median_s": med, "episodes_per_s_per_core": counts[f"ray{workers}"] / med / workers,
-                         "runs_s": [round(t, 3) for t in times]})
+            rows.append(
+                {
+                    "setting": f"ray, {workers} worker(s), render=none",
+                    "episodes": counts[f"ray{workers}"],
+                    "median_s": med,
+                    "episodes_per_s_per_core": counts[f"ray{workers}"] / med / workers,
+                    "runs_s": [round(t, 3) for t in times],
+                }
+            )
         speedup = ray_rows[1] / ray_rows[2]
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    report = {"hardware": hw, "scenes": args.scenes, "per_scene_planned": args.per_scene, "repeats": args.repeats,
-              "rows": rows, "ray_speedup_2_over_1": speedup, "target_speedup": 1.8}
+    report = {
+        "hardware": hw,
+        "scenes": args.scenes,
+        "per_scene_planned": args.per_scene,
+        "repeats": args.repeats,
+        "rows": rows,
+        "ray_speedup_2_over_1": speedup,
+        "target_speedup": 1.8,
+    }
     REPORTS.mkdir(exist_ok=True)
     (REPORTS / "dataengine.json").write_text(json.dumps(report, indent=2))
-    lines = ["# Data engine benchmark", "",
-             f"Hardware: {hw}. {args.scenes} tiny procedural scenes (`preset('tiny')`), {args.per_scene} episodes "
-             f"planned per scene, template annotator; median of {args.repeats} runs after one warm-up, each from an "
-             "empty output folder (navigation map, graph and object mining included).", "",
-             "| setting | episodes | median s | episodes / s / core | runs (s) |", "|---|---|---|---|---|"]
+    lines = [
+        "# Data engine benchmark",
+        "",
+        f"Hardware: {hw}. {args.scenes} tiny procedural scenes (`preset('tiny')`), {args.per_scene} episodes "
+        f"planned per scene, template annotator; median of {args.repeats} runs after one warm-up, each "
+        f"from an "
+        "empty output folder (navigation map, graph and object mining included).",
+        "",
+        "| setting | episodes | median s | episodes / s / core | runs (s) |",
+        "|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['setting']} | {r['episodes']} | {r['median_s']:.2f} | {r['episodes_per_s_per_core']:.2f} | "
-                     f"{', '.join(str(t) for t in r['runs_s'])} |")
-    lines += ["", f"Ray speed-up, 2 workers over 1 (same run, Ray start-up excluded): **{speedup:.2f}x** "
-              "(target >= 1.8x; the machine is shared, see the load average above)."]
+        lines.append(
+            f"| {r['setting']} | {r['episodes']} | {r['median_s']:.2f} | "
+            f"{r['episodes_per_s_per_core']:.2f} | "
+            f"{', '.join(str(t) for t in r['runs_s'])} |"
+        )
+    lines += [
+        "",
+        f"Ray speed-up, 2 workers over 1 (same run, Ray start-up excluded): **{speedup:.2f}x** "
+        "(target >= 1.8x; the machine is shared, see the load average above).",
+    ]
     (REPORTS / "dataengine.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

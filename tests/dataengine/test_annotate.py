@@ -1,4 +1,4 @@
-"""Instruction annotation: quality-gate parsing, anti-hallucination, template variety, OpenAI backend on loopback."""
+"""Instruction annotation: quality gate, anti-hallucination, template variety, OpenAI backend on loopback."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 import pytest
-
 from image2sim.dataengine.annotate import (
     AnnotationRequest,
     MalformedReply,
@@ -34,7 +33,10 @@ def _req(eid="e0", style="r2r", structure="sequential", tone="neutral", seed=0, 
         goal={"category": "fridge", "room_type": "kitchen"},
         visible=[["sofa", "chair"], ["chair"], ["fridge"], ["fridge"]],
         rooms=["living_room", "living_room", "kitchen", "kitchen"],
-        style=style, structure=structure, tone=tone, seed=seed,
+        style=style,
+        structure=structure,
+        tone=tone,
+        seed=seed,
     )
 
 
@@ -42,30 +44,39 @@ def _req(eid="e0", style="r2r", structure="sequential", tone="neutral", seed=0, 
 
 
 def test_invalid_inside_reasoning_does_not_reject():
-    r = parse_reply("REASONING: frames look fine, nothing INVALID here, no clipping.\n"
-                    "VERDICT: VALID\nISSUES: none\nINSTRUCTION: Walk to the fridge.")
+    r = parse_reply(
+        "REASONING: frames look fine, nothing INVALID here, no clipping.\n"
+        "VERDICT: VALID\nISSUES: none\nINSTRUCTION: Walk to the fridge."
+    )
     assert r.valid and r.instruction == "Walk to the fridge." and r.issues == ()
 
 
 def test_invalid_verdict_rejects_even_if_reasoning_says_valid():
-    r = parse_reply("REASONING: looks VALID at first.\nVERDICT: INVALID\nISSUES: wall_clipping, visual_freezing\n"
-                    "INSTRUCTION: Walk to the fridge.")
+    r = parse_reply(
+        "REASONING: looks VALID at first.\nVERDICT: INVALID\nISSUES: wall_clipping, visual_freezing\n"
+        "INSTRUCTION: Walk to the fridge."
+    )
     assert not r.valid and r.issues == ("wall_clipping", "visual_freezing")
 
 
 def test_multiline_fields_and_markdown_bold():
-    r = parse_reply("**REASONING**: line one\nline two\n**VERDICT**: VALID\n**INSTRUCTION**: Go ahead,\nthen stop.")
+    r = parse_reply(
+        "**REASONING**: line one\nline two\n**VERDICT**: VALID\n**INSTRUCTION**: Go ahead,\nthen stop."
+    )
     assert r.valid and r.reasoning == "line one\nline two" and r.instruction == "Go ahead, then stop."
 
 
-@pytest.mark.parametrize("reply, why", [
-    ("", "empty"),
-    ("REASONING: fine\nINSTRUCTION: go", "no VERDICT"),
-    ("VERDICT: MAYBE\nINSTRUCTION: go", "VALID or INVALID"),
-    ("VERDICT: VALID\nVERDICT: INVALID\nINSTRUCTION: go", "more than once"),
-    ("VERDICT: VALID\nREASONING: after\nINSTRUCTION: go", "before VERDICT"),
-    ("REASONING: ok\nVERDICT: VALID", "without an INSTRUCTION"),
-])
+@pytest.mark.parametrize(
+    "reply, why",
+    [
+        ("", "empty"),
+        ("REASONING: fine\nINSTRUCTION: go", "no VERDICT"),
+        ("VERDICT: MAYBE\nINSTRUCTION: go", "VALID or INVALID"),
+        ("VERDICT: VALID\nVERDICT: INVALID\nINSTRUCTION: go", "more than once"),
+        ("VERDICT: VALID\nREASONING: after\nINSTRUCTION: go", "before VERDICT"),
+        ("REASONING: ok\nVERDICT: VALID", "without an INSTRUCTION"),
+    ],
+)
 def test_malformed_replies(reply, why):
     with pytest.raises(MalformedReply, match=why):
         parse_reply(reply)
@@ -83,9 +94,13 @@ def test_hallucination_check_uses_allow_list_and_longest_names():
 
 
 def test_template_is_deterministic_and_lexically_varied():
-    texts = {compose(_req(seed=s, style=st, structure=sc, tone=t))
-             for s in range(6) for st in ("r2r", "reverie", "demand")
-             for sc in ("sequential", "landmark_first", "compact") for t in ("neutral", "polite", "terse")}
+    texts = {
+        compose(_req(seed=s, style=st, structure=sc, tone=t))
+        for s in range(6)
+        for st in ("r2r", "reverie", "demand")
+        for sc in ("sequential", "landmark_first", "compact")
+        for t in ("neutral", "polite", "terse")
+    }
     assert len(texts) > 60
     assert compose(_req(seed=4)) == compose(_req(seed=4))
     vocab = {w for t in texts for w in t.lower().split()}
@@ -118,8 +133,20 @@ def test_prompt_interleaves_images_and_movements():
     msgs = build_messages(_req(images=[img] * 4))
     parts = msgs[1]["content"]
     kinds = [p["type"] if p["type"] == "image" else p["text"].split("]")[0] + "]" for p in parts[:-1]]
-    assert kinds == ["[image 1]", "image", "[movement 1]", "[image 2]", "image", "[movement 2]",
-                     "[image 3]", "image", "[movement 3]", "[image 4]", "image", "[STOP]"]
+    assert kinds == [
+        "[image 1]",
+        "image",
+        "[movement 1]",
+        "[image 2]",
+        "image",
+        "[movement 2]",
+        "[image 3]",
+        "image",
+        "[movement 3]",
+        "[image 4]",
+        "image",
+        "[STOP]",
+    ]
     assert "VERDICT" in msgs[0]["content"] and "REASONING" in msgs[0]["content"]
 
 
@@ -165,7 +192,9 @@ class _Server:
                         self.send_response(status)
                         self.end_headers()
                         return
-                    data = json.dumps({"choices": [{"message": {"role": "assistant", "content": payload}}]}).encode()
+                    data = json.dumps(
+                        {"choices": [{"message": {"role": "assistant", "content": payload}}]}
+                    ).encode()
                     self.send_response(200)
                     self.send_header("Content-Type", "application/json")
                     self.send_header("Content-Length", str(len(data)))
@@ -201,11 +230,16 @@ def server_factory():
         s.close()
 
 
-GOOD = "REASONING: the frames move, no INVALID geometry.\nVERDICT: VALID\nISSUES: none\nINSTRUCTION: Walk past the sofa and stop at the fridge."
+GOOD = (
+    "REASONING: the frames move, no INVALID geometry.\nVERDICT: VALID\nISSUES: none\n"
+    "INSTRUCTION: Walk past the sofa and stop at the fridge."
+)
 
 
 def _ann(url, **kw):
-    opts = dict(base_url=url, timeout=2.0, retries=2, backoff=0.01, max_concurrency=2, batch_size=4, max_attempts=2)
+    opts = dict(
+        base_url=url, timeout=2.0, retries=2, backoff=0.01, max_concurrency=2, batch_size=4, max_attempts=2
+    )
     opts.update(kw)
     return OpenAIAnnotator(OpenAIConfig(**opts), VOCAB)
 
@@ -266,7 +300,12 @@ def test_malformed_reply_is_retried_then_dropped_with_reason(server_factory):
 
 
 def test_invalid_verdict_rejects_without_retry(server_factory):
-    srv = server_factory(lambda n, body: (200, "REASONING: frozen frames.\nVERDICT: INVALID\nISSUES: visual_freezing\nINSTRUCTION: x"))
+    srv = server_factory(
+        lambda n, body: (
+            200,
+            "REASONING: frozen frames.\nVERDICT: INVALID\nISSUES: visual_freezing\nINSTRUCTION: x",
+        )
+    )
     out = _ann(srv.url).annotate([_req()])
     assert not out[0].accepted and "visual_freezing" in out[0].reason and len(srv.requests) == 1
 

@@ -8,9 +8,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from image2sim.simulator.cli import build_app
+from typer.testing import CliRunner
 
 
 @pytest.fixture(scope="module")
@@ -27,10 +26,27 @@ def test_cli_episodes_then_stats(scenes_root, tmp_path):
     app = build_app()
     out = tmp_path / "out"
     # A single capture folder is accepted as --scenes too.
-    res = runner.invoke(app, ["data", "episodes", "--scenes", str(scenes_root / "scene_001"), "--out", str(out),
-                              "--per-scene", "3", "--executor", "local", "--obs-height", "24", "--view", "ultrawide"])
+    res = runner.invoke(
+        app,
+        [
+            "data",
+            "episodes",
+            "--scenes",
+            str(scenes_root / "scene_001"),
+            "--out",
+            str(out),
+            "--per-scene",
+            "3",
+            "--executor",
+            "local",
+            "--obs-height",
+            "24",
+            "--view",
+            "ultrawide",
+        ],
+    )
     assert res.exit_code == 0, res.output
-    summary = json.loads(res.output[res.output.index("{"):])
+    summary = json.loads(res.output[res.output.index("{") :])
     assert summary["scenes_done"] == 1 and summary["failed"] == [] and summary["episodes"] > 0
     res = runner.invoke(app, ["data", "stats", str(out)])
     assert res.exit_code == 0, res.output
@@ -49,11 +65,35 @@ def test_cli_episodes_then_stats(scenes_root, tmp_path):
 def test_cli_rejects_bad_arguments(scenes_root, tmp_path):
     runner = CliRunner()
     app = build_app()
-    res = runner.invoke(app, ["data", "episodes", "--scenes", str(scenes_root), "--out", str(tmp_path / "o"),
-                              "--per-scene", "lots", "--executor", "local"])
+    res = runner.invoke(
+        app,
+        [
+            "data",
+            "episodes",
+            "--scenes",
+            str(scenes_root),
+            "--out",
+            str(tmp_path / "o"),
+            "--per-scene",
+            "lots",
+            "--executor",
+            "local",
+        ],
+    )
     assert res.exit_code == 2 and "--per-scene" in res.output
-    res = runner.invoke(app, ["data", "episodes", "--scenes", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o"),
-                              "--executor", "local"])
+    res = runner.invoke(
+        app,
+        [
+            "data",
+            "episodes",
+            "--scenes",
+            str(tmp_path / "nowhere"),
+            "--out",
+            str(tmp_path / "o"),
+            "--executor",
+            "local",
+        ],
+    )
     assert res.exit_code == 2 and "not found" in res.output
 
 
@@ -78,8 +118,11 @@ class _Handler(BaseHTTPRequestHandler):
         body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
         n = len(self.seen)
         self.seen.append(body)
-        text = ("REASONING: consistent frames.\nVERDICT: VALID\nINSTRUCTION: Walk ahead and stop there." if n % 2 == 0
-                else "REASONING: the view froze.\nVERDICT: INVALID\nISSUES: visual_freezing\nINSTRUCTION: none")
+        text = (
+            "REASONING: consistent frames.\nVERDICT: VALID\nINSTRUCTION: Walk ahead and stop there."
+            if n % 2 == 0
+            else "REASONING: the view froze.\nVERDICT: INVALID\nISSUES: visual_freezing\nINSTRUCTION: none"
+        )
         data = json.dumps({"choices": [{"message": {"content": text}}]}).encode()
         self.send_response(200)
         self.send_header("Content-Length", str(len(data)))
@@ -94,9 +137,17 @@ def test_scene_task_with_openai_annotator_applies_the_gate(scenes_root, tmp_path
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
     threading.Thread(target=httpd.serve_forever, daemon=True).start()
     try:
-        cfg = EngineConfig(per_scene=4, annotator="openai", obs_height=24, annotation_view_height=24,
-                           annotator_options={"base_url": f"http://127.0.0.1:{httpd.server_address[1]}/v1",
-                                              "max_concurrency": 1, "timeout": 5.0})
+        cfg = EngineConfig(
+            per_scene=4,
+            annotator="openai",
+            obs_height=24,
+            annotation_view_height=24,
+            annotator_options={
+                "base_url": f"http://127.0.0.1:{httpd.server_address[1]}/v1",
+                "max_concurrency": 1,
+                "timeout": 5.0,
+            },
+        )
         summary = process_scene(scenes_root / "scene_000", tmp_path, cfg)
     finally:
         httpd.shutdown()
@@ -107,8 +158,9 @@ def test_scene_task_with_openai_annotator_applies_the_gate(scenes_root, tmp_path
     assert summary["drops"].get("annotation: invalid verdict (visual_freezing)") == n_req // 2
     # Each request carried one 180-degree view per macro-step, interleaved with the movements.
     parts = _Handler.seen[0]["messages"][1]["content"]
-    assert sum(p["type"] == "image_url" for p in parts) == sum(p["type"] == "text" and p["text"].startswith(
-        ("[movement", "[STOP]")) for p in parts)
+    assert sum(p["type"] == "image_url" for p in parts) == sum(
+        p["type"] == "text" and p["text"].startswith(("[movement", "[STOP]")) for p in parts
+    )
     doc = json.loads((tmp_path / "scenes" / "scene_000" / "episodes.json").read_text())
     assert all(e["instruction"]["instruction_text"] == "Walk ahead and stop there." for e in doc["episodes"])
     manifest = json.loads((tmp_path / "scenes" / "scene_000" / "shard" / "manifest.json").read_text())

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from image2sim.dataengine.distributed import merge_outputs, run_engine
 from image2sim.dataengine.episodes import EpisodeSchemaError, validate_episode_doc
 from image2sim.dataengine.pipeline import EngineConfig
@@ -47,7 +46,9 @@ def test_run_produces_episodes_for_every_scene(full_run):
     assert summary["episodes"] >= 4, summary
     doc = _read(out / "train" / "train.json.gz")
     assert {e["scene_id"] for e in doc["episodes"]} == {
-        json.loads((out / "scenes" / n / "done.json").read_text())["scene_id"] for n in ("scene_000", "scene_001")}
+        json.loads((out / "scenes" / n / "done.json").read_text())["scene_id"]
+        for n in ("scene_000", "scene_001")
+    }
 
 
 def test_every_episode_replays_to_its_recorded_end_without_collision(full_run):
@@ -89,7 +90,7 @@ def test_episode_file_schema_and_loader_round_trip(full_run):
     ds = load_image2sim_episodes(out / "train" / "train.json.gz", out / "train" / "train_gt.json.gz")
     assert len(ds) == len(doc["episodes"])
     vocab = doc["instruction_vocab"]["word_list"]
-    for raw, ep in zip(doc["episodes"], ds.episodes):
+    for raw, ep in zip(doc["episodes"], ds.episodes, strict=True):
         assert ep.episode_id == raw["episode_id"]
         np.testing.assert_allclose(ep.start_position, raw["start_position"])
         np.testing.assert_allclose(ep.goal_position, raw["goals"][0]["position"])
@@ -99,7 +100,9 @@ def test_episode_file_schema_and_loader_round_trip(full_run):
         words = [vocab[t] for t in ep.instruction.tokens]
         assert "".join(words) == "".join(raw["instruction"]["instruction_text"].lower().split())
         assert raw["style"] in ("r2r", "reverie", "demand")
-        assert gt[raw["episode_id"]]["forward_steps"] == sum(1 for a in gt[raw["episode_id"]]["actions"] if a == 1)
+        assert gt[raw["episode_id"]]["forward_steps"] == sum(
+            1 for a in gt[raw["episode_id"]]["actions"] if a == 1
+        )
 
 
 def test_schema_validator_rejects_broken_documents(full_run):
@@ -172,7 +175,9 @@ def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_ru
     ids = [e["episode_id"] for e in got]
     assert len(ids) == len(set(ids))  # no duplicates
     assert ids == [e["episode_id"] for e in ref]  # nothing lost
-    assert [e["instruction"]["instruction_text"] for e in got] == [e["instruction"]["instruction_text"] for e in ref]
+    assert [e["instruction"]["instruction_text"] for e in got] == [
+        e["instruction"]["instruction_text"] for e in ref
+    ]
     # A third run is a no-op and merging again changes nothing.
     before = (out / "train" / "train.json.gz").read_bytes()
     calls.clear()
@@ -196,7 +201,9 @@ def test_restart_with_other_arguments_is_refused(scenes_root, full_run):
 
     out, _ = full_run
     with pytest.raises(RunError, match="per_scene"):
-        run_engine(scenes_root, out, EngineConfig(**{**CFG, "per_scene": 7}), executor="local", progress=False)
+        run_engine(
+            scenes_root, out, EngineConfig(**{**CFG, "per_scene": 7}), executor="local", progress=False
+        )
     merge_outputs(out, ["scene_000", "scene_001"], "train")  # still consistent after the refusal
 
 
@@ -211,9 +218,25 @@ def test_sigkill_and_restart_loses_and_duplicates_nothing(scenes_root, full_run,
 
     ref_out, _ = full_run
     out = tmp_path / "out"
-    cmd = [sys.executable, "-c", "from image2sim.simulator.cli import main; main()", "data", "episodes",
-           "--scenes", str(scenes_root), "--out", str(out), "--per-scene", str(CFG["per_scene"]),
-           "--obs-height", str(CFG["obs_height"]), "--seed", str(CFG["seed"]), "--executor", "local"]
+    cmd = [
+        sys.executable,
+        "-c",
+        "from image2sim.simulator.cli import main; main()",
+        "data",
+        "episodes",
+        "--scenes",
+        str(scenes_root),
+        "--out",
+        str(out),
+        "--per-scene",
+        str(CFG["per_scene"]),
+        "--obs-height",
+        str(CFG["obs_height"]),
+        "--seed",
+        str(CFG["seed"]),
+        "--executor",
+        "local",
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 300
@@ -237,8 +260,9 @@ def test_sigkill_and_restart_loses_and_duplicates_nothing(scenes_root, full_run,
 @pytest.mark.slow
 def test_ray_executor_matches_local(scenes_root, full_run, tmp_path):
     out_ref, _ = full_run
-    summary = run_engine(scenes_root, tmp_path / "ray", EngineConfig(**CFG), executor="ray", workers=2,
-                         progress=False)
+    summary = run_engine(
+        scenes_root, tmp_path / "ray", EngineConfig(**CFG), executor="ray", workers=2, progress=False
+    )
     assert summary["failed"] == {}
     a = _read(out_ref / "train" / "train.json.gz")["episodes"]
     b = _read(tmp_path / "ray" / "train" / "train.json.gz")["episodes"]

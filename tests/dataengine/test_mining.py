@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from image2sim.dataengine.mining import (
     Detection,
     GTDetector,
@@ -33,7 +32,12 @@ def _flat_view(range_value: float, size: int = 64) -> View:
     yy, xx = np.meshgrid(u, u, indexing="ij")
     rays = np.stack([np.ones_like(xx), -xx, -yy], axis=-1)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    return View(np.zeros((size, size, 3), np.uint8), np.full((size, size), range_value), rays, np.array([1.0, 2.0, 1.5]))
+    return View(
+        np.zeros((size, size, 3), np.uint8),
+        np.full((size, size), range_value),
+        rays,
+        np.array([1.0, 2.0, 1.5]),
+    )
 
 
 def test_grounding_is_exact_on_a_known_view():
@@ -49,7 +53,9 @@ def test_grounding_uses_the_median_of_the_central_patch():
     view.range_map[38:43, 28:33] = 2.0  # the central patch sees a nearer surface
     view.range_map[0:20, :] = 50.0  # outside the patch: ignored
     view.range_map[40, 30] = 0.0  # invalid pixels are skipped
-    p = ground_detection(view, Detection((20.0, 30.0, 40.0, 50.0), "chair", 0.9), MiningConfig(patch_fraction=0.3))
+    p = ground_detection(
+        view, Detection((20.0, 30.0, 40.0, 50.0), "chair", 0.9), MiningConfig(patch_fraction=0.3)
+    )
     assert np.linalg.norm(p - view.origin) == pytest.approx(2.0)
 
 
@@ -63,23 +69,34 @@ def test_grounding_rejects_far_and_invalid():
 
 
 def test_2d_filters_use_paper_thresholds():
-    dets = [Detection((0, 0, 20, 15), "a", 0.08), Detection((0, 0, 20, 14.9), "b", 0.5),
-            Detection((0, 0, 100, 100), "c", 0.0799), Detection((5, 5, 0, 0), "d", 1.0)]
+    dets = [
+        Detection((0, 0, 20, 15), "a", 0.08),
+        Detection((0, 0, 20, 14.9), "b", 0.5),
+        Detection((0, 0, 100, 100), "c", 0.0799),
+        Detection((5, 5, 0, 0), "d", 1.0),
+    ]
     assert [d.category for d in filter_detections(dets, MiningConfig())] == ["a"]
 
 
 def test_merge_same_category_within_radius():
-    pts = [("chair", np.array([0.0, 0, 0]), 0.5, {}), ("chair", np.array([0.4, 0, 0]), 0.9, {}),
-           ("sofa", np.array([0.1, 0, 0]), 0.7, {}), ("chair", np.array([2.0, 0, 0]), 0.3, {}),
-           ("chair", np.array([0.2, 0.3, 0]), 0.2, {})]
+    pts = [
+        ("chair", np.array([0.0, 0, 0]), 0.5, {}),
+        ("chair", np.array([0.4, 0, 0]), 0.9, {}),
+        ("sofa", np.array([0.1, 0, 0]), 0.7, {}),
+        ("chair", np.array([2.0, 0, 0]), 0.3, {}),
+        ("chair", np.array([0.2, 0.3, 0]), 0.2, {}),
+    ]
     objs = merge_objects(pts, 0.5)
     assert [(o.category, o.sightings) for o in objs] == [("chair", 3), ("sofa", 1), ("chair", 1)]
     np.testing.assert_allclose(objs[0].position, [0.2, 0.1, 0.0])
     assert objs[0].confidence == 0.9
     assert merge_objects([], 0.5) == []
-    # Drift: a and b start 0.6 apart (two objects); c joins b and pulls its mean within 0.5 of a -> one object.
-    drift = [("cup", np.array([0.0, 0, 0]), 1.0, {}), ("cup", np.array([0.6, 0, 0]), 1.0, {}),
-             ("cup", np.array([0.35, 0, 0]), 1.0, {})]
+    # Drift: a and b start 0.6 apart; c joins b and pulls its mean within 0.5 of a -> one object.
+    drift = [
+        ("cup", np.array([0.0, 0, 0]), 1.0, {}),
+        ("cup", np.array([0.6, 0, 0]), 1.0, {}),
+        ("cup", np.array([0.35, 0, 0]), 1.0, {}),
+    ]
     objs = merge_objects(drift, 0.5)
     assert len(objs) == 1 and objs[0].sightings == 3
     np.testing.assert_allclose(objs[0].position, [0.95 / 3, 0, 0])
@@ -128,11 +145,26 @@ def test_pinhole_views_look_where_the_panorama_looks():
     views = pinhole_views(frame, MiningConfig(view_size=16))
     assert len(views) == 4
     r = pose[:3, :3]
-    for view, axis, want_lon in zip(views, (r[:, 2], r[:, 0], -r[:, 2], -r[:, 0]), (0.0, np.pi / 2, np.pi, -np.pi / 2)):
+    for view, axis, want_lon in zip(
+        views, (r[:, 2], r[:, 0], -r[:, 2], -r[:, 0]), (0.0, np.pi / 2, np.pi, -np.pi / 2), strict=False
+    ):
         centre = view.rays_world[7:9, 7:9].mean(axis=(0, 1))
         np.testing.assert_allclose(centre / np.linalg.norm(centre), axis, atol=1e-9)
         got = view.range_map[7:9, 7:9].mean() - 4.0
-        assert math.isclose(abs(math.remainder(got - want_lon, 2 * np.pi)), 0.0, abs_tol=0.1) or abs(want_lon) == np.pi
+        assert (
+            math.isclose(abs(math.remainder(got - want_lon, 2 * np.pi)), 0.0, abs_tol=0.1)
+            or abs(want_lon) == np.pi
+        )
+
+
+def test_fast_bilinear_matches_reference_across_the_seam():
+    from image2sim.dataengine.mining import _remap_bilinear, _sample_bilinear_wrap
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 255, (16, 32, 3)).astype(np.float32)
+    uv = np.stack([rng.uniform(-3, 35, (40, 40)), rng.uniform(0.5, 15.5, (40, 40))], axis=-1)
+    uv[0, :, 0] = np.linspace(31.0, 33.0, 40)  # straddle the seam
+    np.testing.assert_allclose(_remap_bilinear(img, uv), _sample_bilinear_wrap(img, uv), atol=0.05)
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +179,9 @@ def test_gt_mining_finds_real_objects_near_their_boxes(tiny_capture):
     from image2sim.simulator.io.registry import open_capture
 
     cats, small = load_categories(tiny_capture)
-    objs, stats = mine_capture(open_capture(tiny_capture), GTDetector(cats), MiningConfig(view_size=160), small)
+    objs, stats = mine_capture(
+        open_capture(tiny_capture), GTDetector(cats), MiningConfig(view_size=160), small
+    )
     attach_gt_metadata(objs, tiny_capture)
     gt = {o["id"]: o for o in json.loads((tiny_capture / "gt" / "objects.json").read_text())["objects"]}
     assert stats["views"] == 4 * len(open_capture(tiny_capture)) and objs

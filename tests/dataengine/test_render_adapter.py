@@ -6,7 +6,6 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-
 from image2sim.dataengine.pipeline import EngineConfig, PixelFlowAdapter
 
 
@@ -23,8 +22,12 @@ def renderer(tmp_path_factory):
 
 def _splat(h, w, seed=0):
     g = torch.Generator().manual_seed(seed)
-    return SimpleNamespace(rgb=torch.rand(1, 3, h, w, generator=g), depth=3 * torch.rand(1, 1, h, w, generator=g),
-                           alpha=torch.rand(1, 1, h, w, generator=g), features=torch.randn(1, 16, h, w, generator=g))
+    return SimpleNamespace(
+        rgb=torch.rand(1, 3, h, w, generator=g),
+        depth=3 * torch.rand(1, 1, h, w, generator=g),
+        alpha=torch.rand(1, 1, h, w, generator=g),
+        features=torch.randn(1, 16, h, w, generator=g),
+    )
 
 
 def test_adapter_matches_direct_condition_and_render(renderer):

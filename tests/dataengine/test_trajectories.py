@@ -1,4 +1,4 @@
-"""Trajectory sampling: bucket roulette, IDF weights, FPS coverage, goal validity, capacity; rollouts, macro-steps."""
+"""Trajectory sampling (buckets, IDF, FPS, goal validity, capacity), rollouts and macro-steps."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ from collections import Counter
 
 import numpy as np
 import pytest
-
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps, movement_text
 from image2sim.dataengine.mining import SceneObject
 from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
@@ -120,7 +119,10 @@ def test_plans_respect_buckets_radii_and_walls(world):
     assert {p.bucket for p in plans} >= {"short", "medium"}
     # Seeded: the same generator state gives the same plans.
     again, _ = sample_plans(g, planner, OBJECTS, 40, SamplingConfig(), np.random.default_rng(0))
-    assert all(np.array_equal(a.start, b.start) and np.array_equal(a.goal, b.goal) for a, b in zip(plans, again))
+    assert all(
+        np.array_equal(a.start, b.start) and np.array_equal(a.goal, b.goal)
+        for a, b in zip(plans, again, strict=True)
+    )
 
 
 def test_rollouts_replay_exactly_and_end_in_the_goal_radius(world):
@@ -163,7 +165,9 @@ def test_stuck_rollout_is_truncated(world):
             return int(Action.MOVE_FORWARD)
 
     start = np.array([3.0, 0.6, 0.0])
-    plan = EpisodePlan(start, 0.0, np.array([3.5, 0.6, 0.0]), {}, 3.0, "short", 1.0)  # heading +X into the wall
+    plan = EpisodePlan(
+        start, 0.0, np.array([3.5, 0.6, 0.0]), {}, 3.0, "short", 1.0
+    )  # heading +X into the wall
     r = rollout_plan(sim, Pusher(), plan, RolloutConfig(allow_collisions=True, min_steps=1))
     assert r.truncated_stuck and r.actions[-1] == int(Action.STOP)
     assert all(a == int(Action.MOVE_FORWARD) for a in r.actions[:-1])

@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
 from image2sim.simulator.conventions import Action
 
 __all__ = ["MacroStep", "ChunkConfig", "macro_steps", "movement_text"]
@@ -67,19 +66,27 @@ def movement_text(distance: float, net_turn_deg: float, config: ChunkConfig) -> 
     return f"walk forward while turning {side}"
 
 
-def macro_steps(actions, positions: np.ndarray, headings: np.ndarray, config: ChunkConfig | None = None) -> list[MacroStep]:
+def macro_steps(
+    actions, positions: np.ndarray, headings: np.ndarray, config: ChunkConfig | None = None
+) -> list[MacroStep]:
     """Split a rollout (T actions, T + 1 states) into macro-steps."""
     cfg = config or ChunkConfig()
     acts = [int(a) for a in actions]
     if len(positions) != len(acts) + 1 or len(headings) != len(acts) + 1:
-        raise ValueError(f"macro_steps: {len(acts)} actions need {len(acts) + 1} states, got "
-                         f"{len(positions)} positions and {len(headings)} headings")
+        raise ValueError(
+            f"macro_steps: {len(acts)} actions need {len(acts) + 1} states, got "
+            f"{len(positions)} positions and {len(headings)} headings"
+        )
     out: list[MacroStep] = []
     s, dist, turn, net = 0, 0.0, 0.0, 0.0
     for t, a in enumerate(acts):
         if a == int(Action.STOP):
             if t > s:
-                out.append(MacroStep(s, t, dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)))
+                out.append(
+                    MacroStep(
+                        s, t, dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)
+                    )
+                )
             out.append(MacroStep(t, t + 1, 0.0, 0.0, True, "stop"))
             return out
         step = float(np.linalg.norm(positions[t + 1, :2] - positions[t, :2]))
@@ -88,8 +95,16 @@ def macro_steps(actions, positions: np.ndarray, headings: np.ndarray, config: Ch
         turn += abs(dh)
         net += dh
         if dist >= cfg.distance - 1e-9 or math.degrees(turn) >= cfg.turn_deg - 1e-9:
-            out.append(MacroStep(s, t + 1, dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)))
+            out.append(
+                MacroStep(
+                    s, t + 1, dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)
+                )
+            )
             s, dist, turn, net = t + 1, 0.0, 0.0, 0.0
     if s < len(acts):
-        out.append(MacroStep(s, len(acts), dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)))
+        out.append(
+            MacroStep(
+                s, len(acts), dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)
+            )
+        )
     return out

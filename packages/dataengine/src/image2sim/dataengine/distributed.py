@@ -58,8 +58,10 @@ def _check_run_manifest(out_dir: Path, config: EngineConfig) -> None:
         old = json.loads(path.read_text()).get("config")
         if old != cfg:
             diff = sorted(k for k in set(old or {}) | set(cfg) if (old or {}).get(k) != cfg.get(k))
-            raise RunError(f"{path}: an earlier run used a different config (fields {diff}); "
-                           "use a new --out folder or the same arguments")
+            raise RunError(
+                f"{path}: an earlier run used a different config (fields {diff}); "
+                "use a new --out folder or the same arguments"
+            )
     else:
         atomic_write_bytes(path, json.dumps({"config": cfg}, indent=1).encode())
 
@@ -72,8 +74,9 @@ def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable
             on_done(s, None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
 
 
-def _run_ray(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, workers: int,
-             address: str | None) -> None:
+def _run_ray(
+    todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, workers: int, address: str | None
+) -> None:
     import ray
 
     started = False
@@ -107,9 +110,16 @@ def _scene_task(scene: str, out_dir: str, cfg: dict):
         return None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}"
 
 
-def run_engine(scenes_root: str | Path, out_dir: str | Path, config: EngineConfig, executor: str = "ray",
-               workers: int = 2, address: str | None = None, progress: bool = True,
-               limit: int | None = None) -> dict:
+def run_engine(
+    scenes_root: str | Path,
+    out_dir: str | Path,
+    config: EngineConfig,
+    executor: str = "ray",
+    workers: int = 2,
+    address: str | None = None,
+    progress: bool = True,
+    limit: int | None = None,
+) -> dict:
     """Process every unfinished scene, then rebuild the merged outputs. Returns the run summary.
 
     ``limit`` processes at most that many pending scenes (used to simulate interruptions in tests).
@@ -150,8 +160,13 @@ def run_engine(scenes_root: str | Path, out_dir: str | Path, config: EngineConfi
         if bar is not None:
             bar.stop()
     merged = merge_outputs(out_dir, [s.name for s in scenes], config.split)
-    return {"scenes": len(scenes), "skipped": skipped, "processed": len(todo) - len(failures),
-            "failed": failures, **merged}
+    return {
+        "scenes": len(scenes),
+        "skipped": skipped,
+        "processed": len(todo) - len(failures),
+        "failed": failures,
+        **merged,
+    }
 
 
 def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -> dict:
@@ -170,5 +185,10 @@ def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -
             shards.append(str((folder / "shard").resolve()))
     main, gt_path = write_episode_files(out_dir, split, episodes, gt)
     atomic_write_bytes(out_dir / "shards.json", json.dumps({"shards": shards}, indent=1).encode())
-    return {"episodes": len(episodes), "scenes_done": len(done), "episode_file": str(main), "gt_file": str(gt_path),
-            "shards": len(shards)}
+    return {
+        "episodes": len(episodes),
+        "scenes_done": len(done),
+        "episode_file": str(main),
+        "gt_file": str(gt_path),
+        "shards": len(shards),
+    }

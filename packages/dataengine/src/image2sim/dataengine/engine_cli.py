@@ -1,4 +1,5 @@
 """``image2sim data mine | episodes | stats``: the navigation data engine commands."""
+# ruff: noqa: B008  (typer declares options as argument defaults)
 
 from __future__ import annotations
 
@@ -6,7 +7,6 @@ import json
 from pathlib import Path
 
 import typer
-
 from image2sim.dataengine.cli import app
 
 
@@ -27,8 +27,12 @@ def _parse_options(items: list[str] | None) -> dict:
 @app.command("mine")
 def mine_command(
     scene: Path = typer.Argument(..., help="Capture folder (or a folder of captures with --all)."),
-    out: Path = typer.Option(None, "--out", help="objects.json path (default: <scene>/objects.json is NOT "
-                             "touched; writes ./objects_<scene>.json)."),
+    out: Path = typer.Option(
+        None,
+        "--out",
+        help="objects.json path (default: <scene>/objects.json is NOT "
+        "touched; writes ./objects_<scene>.json).",
+    ),
     detector: str = typer.Option("gt", "--detector", help="gt or yolo-world."),
     weights: Path | None = typer.Option(None, "--weights", help="Local YOLO-World weights (yolo-world)."),
     vocabulary: str | None = typer.Option(None, "--vocabulary", help="Comma separated classes (yolo-world)."),
@@ -59,17 +63,24 @@ def mine_command(
 
 @app.command("episodes")
 def episodes_command(
-    scenes: Path = typer.Option(..., "--scenes", help="Folder of capture folders (e.g. `data synth` output) or of "
-                                "built scene folders."),
+    scenes: Path = typer.Option(
+        ...,
+        "--scenes",
+        help="Folder of capture folders (e.g. `data synth` output) or of built scene folders.",
+    ),
     out: Path = typer.Option(..., "--out", help="Output folder (episodes, gt, shards, per-scene caches)."),
     per_scene: str = typer.Option("auto", "--per-scene", help="auto (area-based capacity) or N episodes."),
     annotator: str = typer.Option("template", "--annotator", help="template, transformers or openai."),
-    annotator_option: list[str] = typer.Option(None, "--annotator-option", "-A",
-                                               help="Backend option key=value (repeatable), e.g. base_url=..."),
+    annotator_option: list[str] = typer.Option(
+        None, "--annotator-option", "-A", help="Backend option key=value (repeatable), e.g. base_url=..."
+    ),
     render: str = typer.Option("auto", "--render", help="auto, procedural, gaussians or none."),
     view: str = typer.Option("pinhole", "--view", help="Stored observation: pinhole or ultrawide."),
-    renderer: Path | None = typer.Option(None, "--renderer", help="Local pixel-flow renderer weights (with "
-                                         "--view ultrawide; renders Gaussians + pixel flow)."),
+    renderer: Path | None = typer.Option(
+        None,
+        "--renderer",
+        help="Local pixel-flow renderer weights (with --view ultrawide; renders Gaussians + pixel flow).",
+    ),
     obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),
     seed: int = typer.Option(0, "--seed", help="Base seed."),
@@ -88,24 +99,40 @@ def episodes_command(
         typer.echo(f"error: --per-scene must be auto or an integer, got {per_scene!r}", err=True)
         raise typer.Exit(2) from None
     try:
-        cfg = EngineConfig(per_scene=n, annotator=annotator, annotator_options=_parse_options(annotator_option),
-                           render=render, view=view, obs_height=obs_height, split=split, seed=seed,
-                           renderer=None if renderer is None else str(renderer),
-                           rollout={} if min_steps is None else {"min_steps": min_steps})
+        cfg = EngineConfig(
+            per_scene=n,
+            annotator=annotator,
+            annotator_options=_parse_options(annotator_option),
+            render=render,
+            view=view,
+            obs_height=obs_height,
+            split=split,
+            seed=seed,
+            renderer=None if renderer is None else str(renderer),
+            rollout={} if min_steps is None else {"min_steps": min_steps},
+        )
         summary = run_engine(scenes, out, cfg, executor=executor, workers=workers, address=address)
     except (RunError, ValueError) as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
     for name, err in summary["failed"].items():
         typer.echo(f"scene {name} failed: {err.splitlines()[0]}", err=True)
-    typer.echo(json.dumps({k: v for k, v in summary.items() if k != "failed"} | {"failed": sorted(summary["failed"])},
-                          indent=1))
+    typer.echo(
+        json.dumps(
+            {k: v for k, v in summary.items() if k != "failed"} | {"failed": sorted(summary["failed"])},
+            indent=1,
+        )
+    )
 
 
 @app.command("stats")
 def stats_command(
-    episodes: Path = typer.Argument(..., help="Episode file ({split}.json.gz) or an `episodes` output folder."),
-    out: Path | None = typer.Option(None, "--out", help="Folder for stats.json / stats.png (default: beside)."),
+    episodes: Path = typer.Argument(
+        ..., help="Episode file ({split}.json.gz) or an `episodes` output folder."
+    ),
+    out: Path | None = typer.Option(
+        None, "--out", help="Folder for stats.json / stats.png (default: beside)."
+    ),
     split: str = typer.Option("train", "--split", help="Split to read when EPISODES is a folder."),
 ) -> None:
     """Style mix, instruction length, trajectory length and step histograms (JSON + PNG)."""
@@ -117,4 +144,8 @@ def stats_command(
         raise typer.Exit(2)
     gt = path.with_name(path.name.replace(".json.gz", "_gt.json.gz"))
     stats = write_stats(path, out or path.parent / "stats", gt)
-    typer.echo(json.dumps({k: stats[k] for k in ("episodes", "scenes", "style_mix", "distinct_instructions")}, indent=1))
+    typer.echo(
+        json.dumps(
+            {k: stats[k] for k in ("episodes", "scenes", "style_mix", "distinct_instructions")}, indent=1
+        )
+    )

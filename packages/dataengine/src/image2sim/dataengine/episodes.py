@@ -28,8 +28,18 @@ import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-__all__ = ["FRAME", "QUATERNION_ORDER", "tokenize", "build_vocab", "heading_quaternion", "episode_record",
-           "write_episode_files", "validate_episode_doc", "atomic_write_bytes", "EpisodeSchemaError"]
+__all__ = [
+    "FRAME",
+    "QUATERNION_ORDER",
+    "tokenize",
+    "build_vocab",
+    "heading_quaternion",
+    "episode_record",
+    "write_episode_files",
+    "validate_episode_doc",
+    "atomic_write_bytes",
+    "EpisodeSchemaError",
+]
 
 FRAME = "image2sim-z-up"
 QUATERNION_ORDER = "wxyz"
@@ -63,8 +73,18 @@ def _vec(p) -> list[float]:
     return [float(v) for v in p]
 
 
-def episode_record(episode_id: str, scene_id: str, start, heading: float, goal, radius: float, reference_path,
-                   text: str, geodesic: float, extra: dict) -> dict:
+def episode_record(
+    episode_id: str,
+    scene_id: str,
+    start,
+    heading: float,
+    goal,
+    radius: float,
+    reference_path,
+    text: str,
+    geodesic: float,
+    extra: dict,
+) -> dict:
     """One episode entry (instruction tokens are filled in by :func:`write_episode_files`)."""
     return {
         "episode_id": str(episode_id),
@@ -99,18 +119,26 @@ def _gz(obj) -> bytes:
     return gzip.compress(json.dumps(obj, separators=(",", ":")).encode("utf-8"), mtime=0)
 
 
-def write_episode_files(out_dir: str | Path, split: str, episodes: Sequence[dict], gt: dict) -> tuple[Path, Path]:
-    """Tokenise, validate and write ``{out}/{split}/{split}.json.gz`` and ``{split}_gt.json.gz`` atomically."""
+def write_episode_files(
+    out_dir: str | Path, split: str, episodes: Sequence[dict], gt: dict
+) -> tuple[Path, Path]:
+    """Tokenise, validate, write ``{out}/{split}/{split}.json.gz`` + ``{split}_gt.json.gz`` atomically."""
     vocab = build_vocab(e["instruction"]["instruction_text"] for e in episodes)
     index = {w: i for i, w in enumerate(vocab)}
     eps = []
     for e in episodes:
         e = dict(e)
         e["instruction"] = dict(e["instruction"])
-        e["instruction"]["instruction_tokens"] = [index.get(w, 1) for w in tokenize(e["instruction"]["instruction_text"])]
+        e["instruction"]["instruction_tokens"] = [
+            index.get(w, 1) for w in tokenize(e["instruction"]["instruction_text"])
+        ]
         eps.append(e)
-    doc = {"frame": FRAME, "quaternion_order": QUATERNION_ORDER, "episodes": eps,
-           "instruction_vocab": {"word_list": vocab, "num_vocab": len(vocab), "PAD_INDEX": 0, "UNK_INDEX": 1}}
+    doc = {
+        "frame": FRAME,
+        "quaternion_order": QUATERNION_ORDER,
+        "episodes": eps,
+        "instruction_vocab": {"word_list": vocab, "num_vocab": len(vocab), "PAD_INDEX": 0, "UNK_INDEX": 1},
+    }
     validate_episode_doc(doc, gt)
     d = Path(out_dir) / split
     main, gt_path = d / f"{split}.json.gz", d / f"{split}_gt.json.gz"
@@ -120,8 +148,11 @@ def write_episode_files(out_dir: str | Path, split: str, episodes: Sequence[dict
 
 
 def _num_list(v, n: int | None = None) -> bool:
-    return (isinstance(v, list) and (n is None or len(v) == n)
-            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v))
+    return (
+        isinstance(v, list)
+        and (n is None or len(v) == n)
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+    )
 
 
 def validate_episode_doc(doc: dict, gt: dict | None = None) -> None:
@@ -137,7 +168,7 @@ def validate_episode_doc(doc: dict, gt: dict | None = None) -> None:
     for e in doc["episodes"]:
         eid = e.get("episode_id")
 
-        def bad(field: str, why: str) -> EpisodeSchemaError:
+        def bad(field: str, why: str, eid=eid) -> EpisodeSchemaError:
             return EpisodeSchemaError(f"episode {eid!r}: field {field!r}: {why}")
 
         if not isinstance(eid, str) or eid in seen:
@@ -152,9 +183,16 @@ def validate_episode_doc(doc: dict, gt: dict | None = None) -> None:
         if not _num_list(q, 4) or abs(math.sqrt(sum(v * v for v in q)) - 1) > 1e-6:
             raise bad("start_rotation", "must be a unit quaternion (w, x, y, z)")
         goals = e.get("goals")
-        if not (isinstance(goals, list) and goals and all(_num_list(g.get("position"), 3) and
-                                                          isinstance(g.get("radius"), (int, float)) and g["radius"] > 0
-                                                          for g in goals)):
+        if not (
+            isinstance(goals, list)
+            and goals
+            and all(
+                _num_list(g.get("position"), 3)
+                and isinstance(g.get("radius"), (int, float))
+                and g["radius"] > 0
+                for g in goals
+            )
+        ):
             raise bad("goals", "must be a non-empty list of {position: [x, y, z], radius > 0}")
         ref = e.get("reference_path")
         if not (isinstance(ref, list) and len(ref) >= 2 and all(_num_list(p, 3) for p in ref)):
@@ -175,7 +213,9 @@ def validate_episode_doc(doc: dict, gt: dict | None = None) -> None:
             if not (isinstance(g.get("locations"), list) and all(_num_list(p, 3) for p in g["locations"])):
                 raise bad("gt.locations", "must be a list of [x, y, z]")
             acts = g.get("actions")
-            if not (isinstance(acts, list) and acts and all(a in (0, 1, 2, 3) for a in acts) and acts[-1] == 0):
+            if not (
+                isinstance(acts, list) and acts and all(a in (0, 1, 2, 3) for a in acts) and acts[-1] == 0
+            ):
                 raise bad("gt.actions", "must be action ids ending with STOP (0)")
             if g.get("forward_steps") != sum(1 for a in acts if a == 1):
                 raise bad("gt.forward_steps", "must count the MOVE_FORWARD actions")

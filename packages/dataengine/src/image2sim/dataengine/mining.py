@@ -185,7 +185,9 @@ class YoloWorldDetector:
     def __init__(self, weights: str | Path, vocabulary: Sequence[str]) -> None:
         weights = Path(weights)
         if not weights.is_file():
-            raise FileNotFoundError(f"yolo-world: weights file {weights} not found (no download is attempted)")
+            raise FileNotFoundError(
+                f"yolo-world: weights file {weights} not found (no download is attempted)"
+            )
         try:
             from ultralytics import YOLOWorld  # type: ignore[import-not-found]
         except ImportError as err:
@@ -198,7 +200,7 @@ class YoloWorldDetector:
         res = self.model.predict(view.rgb[..., ::-1].copy(), verbose=False, conf=0.0)[0]
         boxes = res.boxes
         out = []
-        for xyxy, c, k in zip(boxes.xyxy.tolist(), boxes.conf.tolist(), boxes.cls.tolist()):
+        for xyxy, c, k in zip(boxes.xyxy.tolist(), boxes.conf.tolist(), boxes.cls.tolist(), strict=True):
             out.append(Detection(tuple(float(v) for v in xyxy), self.vocabulary[int(k)], float(c)))
         return out
 
@@ -220,7 +222,6 @@ def pinhole_views(frame, config: MiningConfig) -> list[View]:
     depth must not be blended across edges).
     """
     import torch
-
     from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 
     pose = np.asarray(frame.cam_to_world, dtype=np.float64)
@@ -231,25 +232,40 @@ def pinhole_views(frame, config: MiningConfig) -> list[View]:
         rays = frame.camera.ray_map(dtype=torch.float64).permute(1, 2, 0).numpy()  # unit rays (H, W, 3)
         rng_map = depth / rays[..., 2]  # pinhole depth is z; range = z / cos(angle to the axis)
         rays_w = rays @ pose[:3, :3].T
-        return [View(np.asarray(frame.rgb), rng_map, rays_w, pose[:3, 3].copy(),
-                     None if sem is None else np.asarray(sem), None if inst is None else np.asarray(inst),
-                     str(frame.frame_id))]
+        return [
+            View(
+                np.asarray(frame.rgb),
+                rng_map,
+                rays_w,
+                pose[:3, 3].copy(),
+                None if sem is None else np.asarray(sem),
+                None if inst is None else np.asarray(inst),
+                str(frame.frame_id),
+            )
+        ]
     if not isinstance(frame.camera, EquirectCamera):
         raise ValueError(f"mining: unsupported camera {type(frame.camera).__name__}")
     s = int(config.view_size)
     pano_cam = frame.camera
     views = []
     for yaw_deg in config.yaws_deg:
-        rays_c, uv = _view_lookup(int(pano_cam.height), int(pano_cam.width), s, float(config.view_hfov_deg),
-                                  float(yaw_deg))
-        rgb = _sample_bilinear_wrap(np.asarray(frame.rgb, dtype=np.float32), uv)
+        rays_c, uv = _view_lookup(
+            int(pano_cam.height), int(pano_cam.width), s, float(config.view_hfov_deg), float(yaw_deg)
+        )
+        rgb = _remap_bilinear(np.asarray(frame.rgb, dtype=np.float32), uv)
         iu = np.floor(uv[..., 0]).astype(np.int64) % pano_cam.width
         iv = np.clip(np.floor(uv[..., 1]).astype(np.int64), 0, pano_cam.height - 1)
-        views.append(View(
-            np.clip(rgb + 0.5, 0, 255).astype(np.uint8), depth[iv, iu].astype(np.float64), rays_c @ pose[:3, :3].T,
-            pose[:3, 3].copy(), None if sem is None else np.asarray(sem)[iv, iu],
-            None if inst is None else np.asarray(inst)[iv, iu], f"{frame.frame_id}@{yaw_deg:g}",
-        ))
+        views.append(
+            View(
+                np.clip(rgb + 0.5, 0, 255).astype(np.uint8),
+                depth[iv, iu].astype(np.float64),
+                rays_c @ pose[:3, :3].T,
+                pose[:3, 3].copy(),
+                None if sem is None else np.asarray(sem)[iv, iu],
+                None if inst is None else np.asarray(inst)[iv, iu],
+                f"{frame.frame_id}@{yaw_deg:g}",
+            )
+        )
     return views
 
 
@@ -260,7 +276,6 @@ def _view_lookup(pano_h: int, pano_w: int, size: int, hfov_deg: float, yaw_deg: 
     Cached: the lookup depends only on the sizes, the field of view and the yaw, not on the frame.
     """
     import torch
-
     from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 
     cam = PinholeCamera.from_fov(hfov_deg, hfov_deg, size, size)
@@ -273,8 +288,21 @@ def _view_lookup(pano_h: int, pano_w: int, size: int, hfov_deg: float, yaw_deg: 
     return rays_c, uv
 
 
+def _remap_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Fast path of :func:`_sample_bilinear_wrap` (OpenCV remap, wrapping columns by padding)."""
+    import cv2
+
+    h, w = img.shape[:2]
+    padded = np.concatenate((img[:, -1:], img, img[:, :1]), axis=1)  # one wrapped column each side
+    mx = (np.mod(uv[..., 0] - 0.5, w) + 1.0).astype(np.float32)
+    my = np.clip(uv[..., 1] - 0.5, 0, h - 1).astype(np.float32)
+    return cv2.remap(padded, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
 def _sample_bilinear_wrap(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of (H, W, C) at continuous pixel coordinates (pixel centres at +0.5), wrapping in u."""
+    """Bilinear sample of (H, W, C) at continuous pixel coordinates (pixel centres at +0.5), wrapping in u.
+
+    Readable reference for :func:`_remap_bilinear` (parity-tested)."""
     h, w = img.shape[:2]
     x = uv[..., 0] - 0.5
     y = np.clip(uv[..., 1] - 0.5, 0, h - 1)
@@ -352,8 +380,10 @@ def merge_objects(points: Sequence[tuple[str, np.ndarray, float, dict]], radius:
         merged = False
         for a in range(len(objs)):
             for b in range(a + 1, len(objs)):
-                if objs[a].category == objs[b].category and \
-                        np.linalg.norm(np.subtract(objs[a].position, objs[b].position)) <= radius:
+                if (
+                    objs[a].category == objs[b].category
+                    and np.linalg.norm(np.subtract(objs[a].position, objs[b].position)) <= radius
+                ):
                     sums[a] += sums[b]
                     objs[a].sightings += objs[b].sightings
                     objs[a].position = (sums[a] / objs[a].sightings).tolist()
@@ -377,8 +407,13 @@ def load_categories(capture_dir: str | Path) -> tuple[dict[int, str], set[str]]:
     return {int(c["id"]): str(c["name"]) for c in data}, {str(c["name"]) for c in data if c.get("small")}
 
 
-def mine_capture(capture, detector: Detector, config: MiningConfig | None = None,
-                 small_categories: Iterable[str] = (), progress: bool = False) -> tuple[list[SceneObject], dict]:
+def mine_capture(
+    capture,
+    detector: Detector,
+    config: MiningConfig | None = None,
+    small_categories: Iterable[str] = (),
+    progress: bool = False,
+) -> tuple[list[SceneObject], dict]:
     """Detect, filter, ground and merge over every frame of a capture -> (objects, statistics)."""
     cfg = config or MiningConfig()
     small = set(small_categories)
@@ -424,8 +459,13 @@ def attach_gt_metadata(objects: list[SceneObject], capture_dir: str | Path) -> N
 def save_objects(path: str | Path, objects: Sequence[SceneObject], meta: dict | None = None) -> Path:
     """Write the object database atomically as JSON."""
     path = Path(path)
-    doc = {"format": OBJECTS_FORMAT, "version": 1, "frame": "image2sim-z-up", **(meta or {}),
-           "objects": [asdict(o) for o in objects]}
+    doc = {
+        "format": OBJECTS_FORMAT,
+        "version": 1,
+        "frame": "image2sim-z-up",
+        **(meta or {}),
+        "objects": [asdict(o) for o in objects],
+    }
     _atomic_write_text(path, json.dumps(doc, indent=1))
     return path
 

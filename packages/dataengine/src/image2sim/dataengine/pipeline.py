@@ -25,15 +25,21 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps
 from image2sim.dataengine.episodes import atomic_write_bytes, episode_record
 from image2sim.dataengine.mining import MiningConfig
 from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
 from image2sim.dataengine.trajectories import SamplingConfig, episode_capacity, sample_plans
 
-__all__ = ["EngineConfig", "SceneInputs", "resolve_scene", "process_scene", "scene_name", "DONE_FILE",
-           "EPISODES_FILE"]
+__all__ = [
+    "EngineConfig",
+    "SceneInputs",
+    "resolve_scene",
+    "process_scene",
+    "scene_name",
+    "DONE_FILE",
+    "EPISODES_FILE",
+]
 
 DONE_FILE = "done.json"
 EPISODES_FILE = "episodes.json"
@@ -88,8 +94,12 @@ class EngineConfig:
             raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
         if self.obs_height < 8:
             raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
-        if self.renderer is not None and (self.view != "ultrawide" or self.render not in ("auto", "gaussians")):
-            raise ValueError("EngineConfig.renderer needs view=ultrawide and render=gaussians (panoramic renderer)")
+        if self.renderer is not None and (
+            self.view != "ultrawide" or self.render not in ("auto", "gaussians")
+        ):
+            raise ValueError(
+                "EngineConfig.renderer needs view=ultrawide and render=gaussians (panoramic renderer)"
+            )
 
     @classmethod
     def from_dict(cls, data: dict) -> EngineConfig:
@@ -131,14 +141,18 @@ def resolve_scene(path: str | Path) -> SceneInputs:
     if (path / "gaussians.safetensors").is_file():
         src = (man.get("source") or {}).get("capture")
         if not src or not (Path(src) / "manifest.json").is_file():
-            raise FileNotFoundError(f"{man_path}: field 'source.capture' ({src!r}) does not point at a capture")
+            raise FileNotFoundError(
+                f"{man_path}: field 'source.capture' ({src!r}) does not point at a capture"
+            )
         gaussian_dir, capture_dir = path, Path(src)
         man = json.loads((capture_dir / "manifest.json").read_text())
     else:
         capture_dir = path
     meta = man.get("metadata") or {}
     procedural = meta.get("generator") == "image2sim.dataengine.procedural"
-    return SceneInputs(path.name, str(man.get("scene_id") or path.name), capture_dir, path, procedural, gaussian_dir)
+    return SceneInputs(
+        path.name, str(man.get("scene_id") or path.name), capture_dir, path, procedural, gaussian_dir
+    )
 
 
 # ---------------------------------------------------------------------------------------- assets
@@ -190,8 +204,9 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
         raise ValueError(f"unknown detector {cfg.detector!r} (gt or yolo-world)")
     objs, stats = mining.mine_capture(cap, det, mcfg, small)
     mining.attach_gt_metadata(objs, inputs.capture_dir)
-    mining.save_objects(cache / "objects.json", objs, {"detector": det.name, "stats": stats,
-                                                       "config": asdict(mcfg)})
+    mining.save_objects(
+        cache / "objects.json", objs, {"detector": det.name, "stats": stats, "config": asdict(mcfg)}
+    )
     return objs
 
 
@@ -205,14 +220,15 @@ class PixelFlowAdapter:
 
     def __call__(self, out):
         import torch
-
         from image2sim.simulator.geometry.cameras import EquirectCamera
         from image2sim.simulator.renderer.condition import build_condition
 
         _, _, h, w = out.rgb.shape
         if w != 2 * h:
             raise ValueError(f"pixel-flow renderer needs a panoramic splat (W = 2H), got {h}x{w}")
-        cond = build_condition(out.features, out.rgb, out.depth, out.alpha, EquirectCamera(h, w).ray_map(out.rgb.dtype))
+        cond = build_condition(
+            out.features, out.rgb, out.depth, out.alpha, EquirectCamera(h, w).ray_map(out.rgb.dtype)
+        )
         with torch.no_grad():
             return self.model.render(cond, generator=torch.Generator().manual_seed(self.seed)).rgb
 
@@ -232,11 +248,17 @@ def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None
         from image2sim.dataengine.procedural.render import render
 
         meta = json.loads((inputs.capture_dir / "manifest.json").read_text())["metadata"]
-        scene = generate_scene(synth_config_from_dict(meta["config"], base=preset("default")), int(meta["seed"]))
+        scene = generate_scene(
+            synth_config_from_dict(meta["config"], base=preset("default")), int(meta["seed"])
+        )
 
         def fn(camera, pose):
             out = render(scene, camera, np.asarray(pose))
-            return {"rgb": out["rgb"].astype(np.float32) / 255.0, "depth": out["depth"], "instances": out["instances"]}
+            return {
+                "rgb": out["rgb"].astype(np.float32) / 255.0,
+                "depth": out["depth"],
+                "instances": out["instances"],
+            }
 
         return fn, mode
     from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
@@ -296,8 +318,13 @@ def _observation_spec(cfg: EngineConfig, pano_height: int):
     h = int(cfg.obs_height)
     if cfg.view == "pinhole":
         return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h)
-    return ObservationSpec(panorama=False, ultrawide=True, pano_height=pano_height, ultrawide_height=h,
-                           ultrawide_width=int(round(h * 512 / 336)))
+    return ObservationSpec(
+        panorama=False,
+        ultrawide=True,
+        pano_height=pano_height,
+        ultrawide_height=h,
+        ultrawide_width=int(round(h * 512 / 336)),
+    )
 
 
 # ---------------------------------------------------------------------------------------- the task
@@ -340,8 +367,9 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         kept.append((plan, r))
     # Annotation requests.
     vlm = cfg.annotator != "template"
-    render_fn, render_mode = (None, "none") if cfg.render == "none" else _render_fn(inputs, out, cfg.render,
-                                                                                  cfg.renderer)
+    render_fn, render_mode = (
+        (None, "none") if cfg.render == "none" else _render_fn(inputs, out, cfg.render, cfg.renderer)
+    )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
     requests, chunks = [], []
@@ -349,14 +377,28 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         eid = f"{inputs.name}-{k:05d}"
         steps = macro_steps(r.actions, r.positions, r.headings, ChunkConfig())
         world = navmap.to_world(r.positions)
-        vis = [_visible(objects, world[m.start], float(r.headings[m.start]), cfg.visible_distance) for m in steps]
+        vis = [
+            _visible(objects, world[m.start], float(r.headings[m.start]), cfg.visible_distance) for m in steps
+        ]
         rooms = [_room_at(objects, world[m.start]) for m in steps]
         style, structure, tone = route_style(rng)
         images = []
         if vlm:
             images = [_annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
-        requests.append(AnnotationRequest(eid, [m.text for m in steps], images, plan.goal_object, vis, rooms, style,
-                                          structure, tone, seed=int(rng.integers(2**31))))
+        requests.append(
+            AnnotationRequest(
+                eid,
+                [m.text for m in steps],
+                images,
+                plan.goal_object,
+                vis,
+                rooms,
+                style,
+                structure,
+                tone,
+                seed=int(rng.integers(2**31)),
+            )
+        )
         chunks.append(steps)
     vocab = sorted({o.category for o in objects})
     annotator = build_annotator(cfg.annotator, vocabulary=vocab, **cfg.annotator_options)
@@ -367,9 +409,11 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     if render_fn is not None:
         from image2sim.dataengine.shards import SceneShardWriter
 
-        writer = SceneShardWriter(out / "shard", {"view": cfg.view, "height": cfg.obs_height, "render": render_mode})
+        writer = SceneShardWriter(
+            out / "shard", {"view": cfg.view, "height": cfg.obs_height, "render": render_mode}
+        )
     try:
-        for (plan, r), steps, req, ann in zip(kept, chunks, requests, annotations):
+        for (plan, r), steps, req, ann in zip(kept, chunks, requests, annotations, strict=True):
             if not ann.accepted:
                 drops[f"annotation: {ann.reason}"] = drops.get(f"annotation: {ann.reason}", 0) + 1
                 continue
@@ -377,29 +421,70 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
             ref_idx = sorted({0, *[m.start for m in steps], len(world) - 1})
             goal_w = navmap.to_world(np.asarray(plan.goal))
             heading_w = _world_heading(navmap, plan.heading)
-            extra = {"style": ann.style, "structure": ann.structure, "tone": ann.tone, "goal_object": plan.goal_object,
-                     "bucket": plan.bucket, "path_length": r.path_length, "num_steps": len(r.actions),
-                     "truncated_stuck": r.truncated_stuck, "macro_steps": [m.text for m in steps]}
-            rec = episode_record(req.episode_id, inputs.scene_id, world[0], heading_w, goal_w, plan.goal_radius,
-                                 world[ref_idx], ann.text, plan.geodesic_distance, extra)
+            extra = {
+                "style": ann.style,
+                "structure": ann.structure,
+                "tone": ann.tone,
+                "goal_object": plan.goal_object,
+                "bucket": plan.bucket,
+                "path_length": r.path_length,
+                "num_steps": len(r.actions),
+                "truncated_stuck": r.truncated_stuck,
+                "macro_steps": [m.text for m in steps],
+            }
+            rec = episode_record(
+                req.episode_id,
+                inputs.scene_id,
+                world[0],
+                heading_w,
+                goal_w,
+                plan.goal_radius,
+                world[ref_idx],
+                ann.text,
+                plan.geodesic_distance,
+                extra,
+            )
             episodes.append(rec)
-            gt[req.episode_id] = {"locations": [[float(v) for v in p] for p in world], "actions": list(r.actions),
-                                  "forward_steps": r.forward_steps}
+            gt[req.episode_id] = {
+                "locations": [[float(v) for v in p] for p in world],
+                "actions": list(r.actions),
+                "forward_steps": r.forward_steps,
+            }
             if writer is not None:
                 frames = _render_rollout(sim, render_fn, plan, r, cfg)
-                writer.add(req.episode_id, inputs.scene_id, ann.text, r.actions, frames, list(range(len(r.actions))),
-                           {"style": ann.style, "start_position": rec["start_position"],
-                            "start_rotation": rec["start_rotation"]})
+                writer.add(
+                    req.episode_id,
+                    inputs.scene_id,
+                    ann.text,
+                    r.actions,
+                    frames,
+                    list(range(len(r.actions))),
+                    {
+                        "style": ann.style,
+                        "start_position": rec["start_position"],
+                        "start_rotation": rec["start_rotation"],
+                    },
+                )
         if writer is not None:
             writer.close()
     except BaseException:
         if writer is not None:
             writer.abort()
         raise
-    summary = {"scene": inputs.name, "scene_id": inputs.scene_id, "navigable_area": area, "capacity": n,
-               "planned": len(plans), "rolled_out_ok": len(kept), "episodes": len(episodes), "drops": drops,
-               "plan_stats": plan_stats, "objects": len(objects), "render": render_mode,
-               "seconds": time.perf_counter() - t0}
+    summary = {
+        "scene": inputs.name,
+        "scene_id": inputs.scene_id,
+        "navigable_area": area,
+        "capacity": n,
+        "planned": len(plans),
+        "rolled_out_ok": len(kept),
+        "episodes": len(episodes),
+        "drops": drops,
+        "plan_stats": plan_stats,
+        "objects": len(objects),
+        "render": render_mode,
+        "seconds": time.perf_counter() - t0,
+    }
     atomic_write_bytes(out / EPISODES_FILE, json.dumps({"episodes": episodes, "gt": gt}).encode())
     atomic_write_bytes(out / DONE_FILE, json.dumps(summary, indent=1).encode())
     return summary
@@ -432,8 +517,13 @@ def _annotation_view(sim, render_fn, plan, r, state: int, cfg: EngineConfig) -> 
 
     h = int(cfg.annotation_view_height)
     sim.render_fn = render_fn
-    sim.spec = ObservationSpec(panorama=False, ultrawide=True, pano_height=max(64, h), ultrawide_height=h,
-                               ultrawide_width=int(round(h * 2 * 180 / 118)))
+    sim.spec = ObservationSpec(
+        panorama=False,
+        ultrawide=True,
+        pano_height=max(64, h),
+        ultrawide_height=h,
+        ultrawide_width=int(round(h * 2 * 180 / 118)),
+    )
     try:
         sim.reset(np.asarray(r.positions[state], float)[None], np.array([r.headings[state]]), observe=False)
         return _to_uint8(sim.observe(0)["ultrawide"]["rgb"])

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from image2sim.simulator.conventions import Action
 
 __all__ = ["RolloutConfig", "Rollout", "rollout_plan", "replay"]
@@ -32,7 +31,9 @@ class RolloutConfig:
 
     def __post_init__(self) -> None:
         if self.max_steps < 1 or self.min_steps < 1 or self.min_steps > self.max_steps:
-            raise ValueError(f"RolloutConfig: need 1 <= min_steps <= max_steps, got {self.min_steps}, {self.max_steps}")
+            raise ValueError(
+                f"RolloutConfig: need 1 <= min_steps <= max_steps, got {self.min_steps}, {self.max_steps}"
+            )
 
 
 @dataclass
@@ -96,7 +97,10 @@ def rollout_plan(sim, follower, plan, config: RolloutConfig | None = None) -> Ro
         # Cut the stuck window (it made no progress) and stop where the agent got stuck.
         keep = max(0, stuck_at - int(sim.embodiment.stuck_window))
         actions, collided = actions[:keep] + [int(Action.STOP)], collided[:keep] + [False]
-        positions, headings = positions[: keep + 1] + [positions[keep]], headings[: keep + 1] + [headings[keep]]
+        positions, headings = (
+            positions[: keep + 1] + [positions[keep]],
+            headings[: keep + 1] + [headings[keep]],
+        )
         truncated = True
     r = Rollout(actions, np.array(positions), np.array(headings), collided, truncated_stuck=truncated)
     if not cfg.allow_collisions and any(collided):
@@ -109,7 +113,7 @@ def rollout_plan(sim, follower, plan, config: RolloutConfig | None = None) -> Ro
 
 
 def replay(sim, start: np.ndarray, heading: float, actions) -> tuple[np.ndarray, np.ndarray, list[bool]]:
-    """Re-execute ``actions`` from (start, heading) -> (positions (T + 1, 3), headings, collided per action)."""
+    """Re-execute ``actions`` from (start, heading) -> (positions (T + 1, 3), headings, collided flags)."""
     _, info = sim.reset(np.asarray(start, float)[None], np.array([heading]), observe=False)
     pos, head, col = [info["position"][0].copy()], [float(info["heading"][0])], []
     for a in actions:

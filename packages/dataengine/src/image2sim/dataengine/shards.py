@@ -17,7 +17,6 @@ import uuid
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.dataengine.episodes import atomic_write_bytes
 from image2sim.simulator.conventions import Action
 
@@ -37,27 +36,55 @@ class SceneShardWriter:
         self.observation = dict(observation or {})
         self.lines: list[str] = []
 
-    def add(self, episode_id: str, scene_id: str, instruction: str, actions, frames: np.ndarray,
-            frame_steps, extra: dict | None = None) -> None:
+    def add(
+        self,
+        episode_id: str,
+        scene_id: str,
+        instruction: str,
+        actions,
+        frames: np.ndarray,
+        frame_steps,
+        extra: dict | None = None,
+    ) -> None:
         f = np.asarray(frames)
         acts = [int(a) for a in actions]
         steps = [int(s) for s in frame_steps]
         if f.ndim != 4 or f.shape[-1] != 3 or f.dtype != np.uint8 or len(f) != len(steps) or not steps:
-            raise ValueError(f"shard {self.root}: episode {episode_id}: frames must be (N, H, W, 3) uint8 with one "
-                             f"step each, got {f.shape} {f.dtype} for {len(steps)} steps")
+            raise ValueError(
+                f"shard {self.root}: episode {episode_id}: frames must be (N, H, W, 3) uint8 with one "
+                f"step each, got {f.shape} {f.dtype} for {len(steps)} steps"
+            )
         if not acts or acts[-1] != int(Action.STOP) or steps[-1] >= len(acts):
-            raise ValueError(f"shard {self.root}: episode {episode_id}: actions must end with STOP and cover the frames")
+            raise ValueError(
+                f"shard {self.root}: episode {episode_id}: actions must end with STOP and cover the frames"
+            )
         rel = f"frames/{len(self.lines):06d}.npz"
         buf = io.BytesIO()
         np.savez_compressed(buf, rgb=np.ascontiguousarray(f))
         atomic_write_bytes(self.tmp / rel, buf.getvalue())
-        self.lines.append(json.dumps({"episode_id": episode_id, "scene_id": scene_id, "instruction": instruction,
-                                      "actions": acts, "frame_steps": steps, "frames": rel, "extra": extra or {}}))
+        self.lines.append(
+            json.dumps(
+                {
+                    "episode_id": episode_id,
+                    "scene_id": scene_id,
+                    "instruction": instruction,
+                    "actions": acts,
+                    "frame_steps": steps,
+                    "frames": rel,
+                    "extra": extra or {},
+                }
+            )
+        )
 
     def close(self) -> Path:
         (self.tmp / "trajectories.jsonl").write_text("".join(line + "\n" for line in self.lines))
-        manifest = {"format": SHARD_FORMAT, "version": SHARD_VERSION, "num_trajectories": len(self.lines),
-                    "action_ids": {a.name: int(a) for a in Action}, "observation": self.observation}
+        manifest = {
+            "format": SHARD_FORMAT,
+            "version": SHARD_VERSION,
+            "num_trajectories": len(self.lines),
+            "action_ids": {a.name: int(a) for a in Action},
+            "observation": self.observation,
+        }
         (self.tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         if self.root.exists():  # a previous, unfinished attempt of the same scene
             shutil.rmtree(self.root)

@@ -9,7 +9,6 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.dataengine.episodes import atomic_write_bytes
 
 __all__ = ["episode_stats", "write_stats"]
@@ -24,15 +23,23 @@ def _summary(values) -> dict:
     v = np.asarray(values, dtype=np.float64)
     if v.size == 0:
         return {"count": 0}
-    return {"count": int(v.size), "mean": float(v.mean()), "std": float(v.std()), "min": float(v.min()),
-            "median": float(np.median(v)), "max": float(v.max())}
+    return {
+        "count": int(v.size),
+        "mean": float(v.mean()),
+        "std": float(v.std()),
+        "min": float(v.min()),
+        "median": float(np.median(v)),
+        "max": float(v.max()),
+    }
 
 
 def episode_stats(episodes: list[dict], gt: dict | None = None) -> dict:
     """Statistics of a list of episode records (the ``episodes`` of a written file)."""
     words = [len(e["instruction"]["instruction_text"].split()) for e in episodes]
     lengths = [float(e.get("path_length", e["info"]["geodesic_distance"])) for e in episodes]
-    steps = [int(e.get("num_steps", len((gt or {}).get(e["episode_id"], {}).get("actions", [])))) for e in episodes]
+    steps = [
+        int(e.get("num_steps", len((gt or {}).get(e["episode_id"], {}).get("actions", [])))) for e in episodes
+    ]
     styles = Counter(e.get("style", "unknown") for e in episodes)
     n = max(1, len(episodes))
     return {
@@ -40,10 +47,18 @@ def episode_stats(episodes: list[dict], gt: dict | None = None) -> dict:
         "scenes": len({e["scene_id"] for e in episodes}),
         "style_mix": {k: {"count": v, "fraction": v / n} for k, v in sorted(styles.items())},
         "buckets": dict(Counter(e.get("bucket", "unknown") for e in episodes)),
-        "goal_categories": dict(Counter(e.get("goal_object", {}).get("category", "unknown") for e in episodes)),
+        "goal_categories": dict(
+            Counter(e.get("goal_object", {}).get("category", "unknown") for e in episodes)
+        ),
         "distinct_instructions": len({e["instruction"]["instruction_text"] for e in episodes}),
-        "instruction_words": {**_summary(words), "histogram": _hist(words, np.arange(0, max(words + [1]) + 6, 5))},
-        "trajectory_length_m": {**_summary(lengths), "histogram": _hist(lengths, np.arange(0, max(lengths + [1]) + 1.5, 1.0))},
+        "instruction_words": {
+            **_summary(words),
+            "histogram": _hist(words, np.arange(0, max(words + [1]) + 6, 5)),
+        },
+        "trajectory_length_m": {
+            **_summary(lengths),
+            "histogram": _hist(lengths, np.arange(0, max(lengths + [1]) + 1.5, 1.0)),
+        },
         "steps": {**_summary(steps), "histogram": _hist(steps, np.arange(0, max(steps + [1]) + 11, 10))},
     }
 
@@ -76,14 +91,25 @@ def _panel(title: str, labels: list[str], counts: list[int], w: int = 320, h: in
     x0, y0, x1, y1 = 30, 30, w - 8, h - 34
     cv2.line(img, (x0, y1), (x1, y1), (0, 0, 0), 1)
     bw = (x1 - x0) / n
-    for i, (lab, c) in enumerate(zip(labels, counts)):
+    for i, (lab, c) in enumerate(zip(labels, counts, strict=True)):
         bh = int(round((y1 - y0) * c / top))
         a, b = int(x0 + i * bw + 1), int(x0 + (i + 1) * bw - 1)
         cv2.rectangle(img, (a, y1 - bh), (max(a, b), y1), (176, 114, 76), -1)
         if c:
-            cv2.putText(img, str(c), (a, y1 - bh - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
+            cv2.putText(
+                img, str(c), (a, y1 - bh - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (0, 0, 0), 1, cv2.LINE_AA
+            )
         if n <= 8 or i % max(1, n // 6) == 0:
-            cv2.putText(img, lab, (a, y1 + 14 + 10 * (i % 2)), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
+            cv2.putText(
+                img,
+                lab,
+                (a, y1 + 14 + 10 * (i % 2)),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.3,
+                (0, 0, 0),
+                1,
+                cv2.LINE_AA,
+            )
     return img
 
 
@@ -92,8 +118,11 @@ def _plot(stats: dict, path: Path) -> None:
 
     mix = stats["style_mix"]
     panels = [_panel("instruction style", list(mix), [v["count"] for v in mix.values()])]
-    for key, title in (("instruction_words", "instruction length (words)"),
-                       ("trajectory_length_m", "trajectory length (m)"), ("steps", "steps")):
+    for key, title in (
+        ("instruction_words", "instruction length (words)"),
+        ("trajectory_length_m", "trajectory length (m)"),
+        ("steps", "steps"),
+    ):
         h = stats[key].get("histogram", {"edges": [0, 1], "counts": [0]})
         panels.append(_panel(title, [f"{e:g}" for e in h["edges"][:-1]], h["counts"]))
     img = np.concatenate(panels, axis=1)

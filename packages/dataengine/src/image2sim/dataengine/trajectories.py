@@ -162,14 +162,17 @@ def _object_radius(obj, config: SamplingConfig) -> float:
     return config.small_radius if obj.small else config.large_radius
 
 
-def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConfig,
-                 rng: np.random.Generator, to_map=None) -> tuple[list[EpisodePlan], dict]:
+def sample_plans(
+    graph, planner, objects: Sequence, n: int, config: SamplingConfig, rng: np.random.Generator, to_map=None
+) -> tuple[list[EpisodePlan], dict]:
     """Sample up to ``n`` episode plans on one scene -> (plans, statistics of rejections).
 
     ``objects`` are :class:`~image2sim.dataengine.mining.SceneObject` (world frame positions);
     ``to_map`` converts world points to the map frame (identity when None).
     """
-    from scipy.sparse.csgraph import dijkstra  # directed=True on the symmetric length matrix: no per-call conversion
+    from scipy.sparse.csgraph import (
+        dijkstra,
+    )  # directed=True on the symmetric length matrix: no per-call conversion
 
     stats = Counter()
     nodes = graph.nodes
@@ -223,9 +226,14 @@ def sample_plans(graph, planner, objects: Sequence, n: int, config: SamplingConf
                 continue
             goal, geo, bname = plan
             heading = float(rng.uniform(-math.pi, math.pi))
-            rec = {"object_id": int(obj.object_id), "category": obj.category,
-                   "position": [float(v) for v in obj.position], "small": bool(obj.small), "radius": radius,
-                   "room_type": obj.room_type}
+            rec = {
+                "object_id": int(obj.object_id),
+                "category": obj.category,
+                "position": [float(v) for v in obj.position],
+                "small": bool(obj.small),
+                "radius": radius,
+                "room_type": obj.room_type,
+            }
             plan = EpisodePlan(start.copy(), heading, goal.copy(), rec, radius, bname, float(geo))
             break
         if plan is None:

@@ -19,9 +19,21 @@ from image2sim.dataengine.annotate.prompts import (
 from image2sim.dataengine.annotate.qa import MalformedReply, ParsedReply, hallucinated_objects, parse_reply
 from image2sim.dataengine.annotate.template import TemplateAnnotator, compose
 
-__all__ = ["STYLES", "Annotation", "AnnotationRequest", "build_messages", "route_style", "MalformedReply",
-           "ParsedReply", "hallucinated_objects", "parse_reply", "TemplateAnnotator", "compose", "build_annotator",
-           "ANNOTATORS"]
+__all__ = [
+    "STYLES",
+    "Annotation",
+    "AnnotationRequest",
+    "build_messages",
+    "route_style",
+    "MalformedReply",
+    "ParsedReply",
+    "hallucinated_objects",
+    "parse_reply",
+    "TemplateAnnotator",
+    "compose",
+    "build_annotator",
+    "ANNOTATORS",
+]
 
 ANNOTATORS = ("template", "transformers", "openai")
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import base64
 import json
-import socket
 import time
 import urllib.error
 import urllib.request
@@ -19,7 +18,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-
 from image2sim.dataengine.annotate.prompts import Annotation, AnnotationRequest
 from image2sim.dataengine.annotate.vlm import annotate_one
 
@@ -77,8 +75,12 @@ def _wire(messages: list[dict]) -> list[dict]:
     for m in messages:
         c = m["content"]
         if isinstance(c, list):
-            c = [{"type": "image_url", "image_url": {"url": encode_image(p["image"])}} if p["type"] == "image" else p
-                 for p in c]
+            c = [
+                {"type": "image_url", "image_url": {"url": encode_image(p["image"])}}
+                if p["type"] == "image"
+                else p
+                for p in c
+            ]
         out.append({"role": m["role"], "content": c})
     return out
 
@@ -96,8 +98,14 @@ class OpenAIAnnotator:
     def complete(self, messages: list[dict]) -> str:
         """One chat completion with transport retries and backoff; raises :class:`TransportError`."""
         cfg = self.config
-        body = json.dumps({"model": cfg.model, "messages": _wire(messages), "temperature": cfg.temperature,
-                           "max_tokens": cfg.max_tokens}).encode()
+        body = json.dumps(
+            {
+                "model": cfg.model,
+                "messages": _wire(messages),
+                "temperature": cfg.temperature,
+                "max_tokens": cfg.max_tokens,
+            }
+        ).encode()
         headers = {"Content-Type": "application/json"}
         if cfg.api_key:
             headers["Authorization"] = f"Bearer {cfg.api_key}"
@@ -117,7 +125,7 @@ class OpenAIAnnotator:
                 last = f"HTTP {err.code}"
                 if err.code != 429 and err.code < 500:
                     raise TransportError(f"{url}: {last} (not retried)") from None
-            except (TimeoutError, socket.timeout) as err:
+            except TimeoutError as err:
                 last = f"timeout after {cfg.timeout}s ({err})"
             except urllib.error.URLError as err:
                 last = f"connection error: {err.reason}"
@@ -131,6 +139,12 @@ class OpenAIAnnotator:
         with ThreadPoolExecutor(max_workers=cfg.max_concurrency) as pool:  # caps requests in flight
             for s in range(0, len(requests), cfg.batch_size):
                 batch = requests[s : s + cfg.batch_size]
-                out += list(pool.map(lambda r: annotate_one(r, self.complete, self.vocabulary, cfg.max_attempts,
-                                                            (TransportError,)), batch))
+                out += list(
+                    pool.map(
+                        lambda r: annotate_one(
+                            r, self.complete, self.vocabulary, cfg.max_attempts, (TransportError,)
+                        ),
+                        batch,
+                    )
+                )
         return out

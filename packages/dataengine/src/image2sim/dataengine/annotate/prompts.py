@@ -13,8 +13,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["STYLES", "STYLE_WEIGHTS", "STRUCTURES", "TONES", "AnnotationRequest", "Annotation", "route_style",
-           "build_messages"]
+__all__ = [
+    "STYLES",
+    "STYLE_WEIGHTS",
+    "STRUCTURES",
+    "TONES",
+    "AnnotationRequest",
+    "Annotation",
+    "route_style",
+    "build_messages",
+]
 
 STYLES = ("r2r", "reverie", "demand")
 STYLE_WEIGHTS = (0.4, 0.3, 0.3)
@@ -77,11 +85,13 @@ def route_style(rng: np.random.Generator, weights=STYLE_WEIGHTS) -> tuple[str, s
 
 _STYLE_GUIDE = {
     "r2r": "Write an R2R-style instruction: fine-grained and sequential, one clause per movement, "
-           "mentioning landmarks the agent passes, ending where it should stop.",
-    "reverie": "Write a REVERIE-style instruction: object-centric and in the passive voice, focused on the goal "
-               "object and where it is located (room, nearby objects), with little route detail.",
-    "demand": "Write a Demand-style instruction: a casual human request expressing a need that the goal object "
-              "satisfies, without naming the route step by step.",
+    "mentioning landmarks the agent passes, ending where it should stop.",
+    "reverie": "Write a REVERIE-style instruction: object-centric and in the passive voice, focused on "
+    "the goal "
+    "object and where it is located (room, nearby objects), with little route detail.",
+    "demand": "Write a Demand-style instruction: a casual human request expressing a need that the "
+    "goal object "
+    "satisfies, without naming the route step by step.",
 }
 
 
@@ -93,10 +103,13 @@ def build_messages(req: AnnotationRequest) -> list[dict]:
     goal = req.goal.get("category", "object").replace("_", " ")
     room = req.goal.get("room_type")
     system = (
-        "You annotate navigation trajectories recorded in a simulator. First write REASONING: check the frames "
-        "for visual freezing (consecutive frames identical although the agent moved) and clipping through walls. "
+        "You annotate navigation trajectories recorded in a simulator. First write REASONING: check "
+        "the frames "
+        "for visual freezing (consecutive frames identical although the agent moved) and "
+        "clipping through walls. "
         "Then write VERDICT: VALID or VERDICT: INVALID, then ISSUES: a comma separated list (or none), then "
-        "INSTRUCTION: one instruction for the whole trajectory. Only the VERDICT line decides. Name only objects "
+        "INSTRUCTION: one instruction for the whole trajectory. Only the VERDICT line decides. "
+        "Name only objects "
         "that are visible in the frames or are the goal."
     )
     content: list[dict] = []
@@ -105,7 +118,12 @@ def build_messages(req: AnnotationRequest) -> list[dict]:
             content.append({"type": "text", "text": f"[image {i + 1}]"})
             content.append({"type": "image", "image": req.images[i]})
         content.append({"type": "text", "text": "[STOP]" if mv == "stop" else f"[movement {i + 1}] {mv}"})
-    task = (f"Goal object: {goal}" + (f" in the {room.replace('_', ' ')}" if room else "") + ". "
-            + _STYLE_GUIDE[req.style] + f" Structure: {req.structure}. Tone: {req.tone}.")
+    task = (
+        f"Goal object: {goal}"
+        + (f" in the {room.replace('_', ' ')}" if room else "")
+        + ". "
+        + _STYLE_GUIDE[req.style]
+        + f" Structure: {req.structure}. Tone: {req.tone}."
+    )
     content.append({"type": "text", "text": task})
     return [{"role": "system", "content": system}, {"role": "user", "content": content}]

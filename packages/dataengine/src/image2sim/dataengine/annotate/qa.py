@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 __all__ = ["MalformedReply", "ParsedReply", "parse_reply", "mentioned_objects", "hallucinated_objects"]
 
-_FIELD = re.compile(r"^\s*(?:\*\*)?(REASONING|VERDICT|ISSUES|INSTRUCTION)(?:\*\*)?\s*:\s*(.*)$", re.IGNORECASE)
+_FIELD = re.compile(
+    r"^\s*(?:\*\*)?(REASONING|VERDICT|ISSUES|INSTRUCTION)(?:\*\*)?\s*:\s*(.*)$", re.IGNORECASE
+)
 
 
 class MalformedReply(ValueError):
@@ -65,9 +67,14 @@ def parse_reply(text: str) -> ParsedReply:
     instruction = " ".join(s.strip() for s in fields.get("INSTRUCTION", [])).strip()
     if verdict == "VALID" and not instruction:
         raise MalformedReply("VALID verdict without an INSTRUCTION")
-    issues = tuple(s.strip().lower() for s in " ".join(fields.get("ISSUES", [])).split(",") if s.strip()
-                   and s.strip().lower() not in ("none", "-", "n/a"))
-    return ParsedReply(verdict == "VALID", "\n".join(fields.get("REASONING", [])).strip(), issues, instruction)
+    issues = tuple(
+        s.strip().lower()
+        for s in " ".join(fields.get("ISSUES", [])).split(",")
+        if s.strip() and s.strip().lower() not in ("none", "-", "n/a")
+    )
+    return ParsedReply(
+        verdict == "VALID", "\n".join(fields.get("REASONING", [])).strip(), issues, instruction
+    )
 
 
 def _phrases(category: str) -> list[str]:

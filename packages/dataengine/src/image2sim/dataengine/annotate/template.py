@@ -8,7 +8,6 @@ Only objects of the request's allow-list (visible at a macro-step start, or the 
 from __future__ import annotations
 
 import numpy as np
-
 from image2sim.dataengine.annotate.prompts import Annotation, AnnotationRequest
 
 __all__ = ["TemplateAnnotator", "compose"]
@@ -17,20 +16,39 @@ _VERB_SYNONYMS = {
     "walk forward": ["walk forward", "go straight", "head straight ahead", "continue forward", "move ahead"],
     "turn left": ["turn left", "make a left", "rotate to your left", "face left"],
     "turn right": ["turn right", "make a right", "rotate to your right", "face right"],
-    "walk forward while turning left": ["walk forward while bearing left", "curve to the left as you walk",
-                                        "veer left while moving ahead"],
-    "walk forward while turning right": ["walk forward while bearing right", "curve to the right as you walk",
-                                         "veer right while moving ahead"],
-    "turn left and walk forward": ["turn left and walk ahead", "go left and continue", "take a left and keep going"],
-    "turn right and walk forward": ["turn right and walk ahead", "go right and continue", "take a right and keep going"],
+    "walk forward while turning left": [
+        "walk forward while bearing left",
+        "curve to the left as you walk",
+        "veer left while moving ahead",
+    ],
+    "walk forward while turning right": [
+        "walk forward while bearing right",
+        "curve to the right as you walk",
+        "veer right while moving ahead",
+    ],
+    "turn left and walk forward": [
+        "turn left and walk ahead",
+        "go left and continue",
+        "take a left and keep going",
+    ],
+    "turn right and walk forward": [
+        "turn right and walk ahead",
+        "go right and continue",
+        "take a right and keep going",
+    ],
     "turn around to the left": ["turn around", "turn all the way around to your left"],
     "turn around to the right": ["turn around", "turn all the way around to your right"],
     "stay in place": ["pause for a moment"],
     "turn slightly left": ["turn slightly left", "bear a little to the left"],
     "turn slightly right": ["turn slightly right", "bear a little to the right"],
 }
-_STOP = ["stop next to the {g}", "wait beside the {g}", "stop when you reach the {g}", "halt near the {g}",
-         "your destination is the {g}"]
+_STOP = [
+    "stop next to the {g}",
+    "wait beside the {g}",
+    "stop when you reach the {g}",
+    "halt near the {g}",
+    "your destination is the {g}",
+]
 _PASS = ["past the {l}", "towards the {l}", "by the {l}", "alongside the {l}"]
 _JOIN = ["then", "and then", "after that", "next"]
 _DEMAND = {
@@ -94,7 +112,11 @@ def compose(req: AnnotationRequest) -> str:
         used: set[str] = set()
         for m, i in merged:
             c = _pick(rng, _VERB_SYNONYMS.get(m, [m]))
-            marks = [v for v in (req.visible[i] if i < len(req.visible) else []) if v not in used and v != req.goal.get("category")]
+            marks = [
+                v
+                for v in (req.visible[i] if i < len(req.visible) else [])
+                if v not in used and v != req.goal.get("category")
+            ]
             if marks and req.structure != "compact" and rng.random() < 0.6:
                 lm = marks[int(rng.integers(len(marks)))]
                 used.add(lm)
@@ -115,20 +137,36 @@ def compose(req: AnnotationRequest) -> str:
         where = f" in the {room}" if room else ""
         near = [v for v in sorted(req.allowed_objects) if v != req.goal.get("category")]
         near_txt = f" near the {_name(_pick(rng, near))}" if near and rng.random() < 0.7 else ""
-        first = _pick(rng, [f"The {goal}{where}{near_txt} should be inspected",
-                            f"The {goal}{where}{near_txt} needs to be checked",
-                            f"The {goal}{near_txt}{where} is to be found",
-                            f"The {goal}{where} has been left{near_txt} and must be located"])
+        first = _pick(
+            rng,
+            [
+                f"The {goal}{where}{near_txt} should be inspected",
+                f"The {goal}{where}{near_txt} needs to be checked",
+                f"The {goal}{near_txt}{where} is to be found",
+                f"The {goal}{where} has been left{near_txt} and must be located",
+            ],
+        )
         if req.structure == "sequential" and moves:
             route = _pick(rng, _VERB_SYNONYMS.get(moves[0], [moves[0]]))
             text = f"{first}; it is reached if you {route} and keep going until it is close."
         else:
             text = first + "."
     else:  # demand
-        need = _pick(rng, _DEMAND.get(req.goal.get("category", ""), [f"I need the {goal}.",
-                                                                     f"Can you find the {goal} for me?"]))
-        ask = _pick(rng, [f" Go to the {goal}.", f" Find the {goal}" + (f" in the {room}" if room else "") + ".",
-                          " Take me there.", f" Head over to the {goal} and wait there."])
+        need = _pick(
+            rng,
+            _DEMAND.get(
+                req.goal.get("category", ""), [f"I need the {goal}.", f"Can you find the {goal} for me?"]
+            ),
+        )
+        ask = _pick(
+            rng,
+            [
+                f" Go to the {goal}.",
+                f" Find the {goal}" + (f" in the {room}" if room else "") + ".",
+                " Take me there.",
+                f" Head over to the {goal} and wait there.",
+            ],
+        )
         text = need if req.structure == "compact" else need + ask
     if req.tone == "polite" and req.style != "demand":
         text = _pick(rng, _POLITE) + text[0].lower() + text[1:]

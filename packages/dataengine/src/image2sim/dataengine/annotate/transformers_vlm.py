@@ -21,8 +21,13 @@ class TransformersAnnotator:
 
     name = "transformers"
 
-    def __init__(self, path: str | Path, vocabulary: Iterable[str] = (), max_new_tokens: int = 384,
-                 max_attempts: int = 2) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        vocabulary: Iterable[str] = (),
+        max_new_tokens: int = 384,
+        max_attempts: int = 2,
+    ) -> None:
         path = Path(path)
         if not (path / "config.json").is_file():
             raise FileNotFoundError(f"{path}: not a local transformers checkpoint (config.json missing)")
@@ -45,7 +50,9 @@ class TransformersAnnotator:
         images, text = [], ""
         for m in messages:
             text += f"<|im_start|>{m['role']}\n"
-            parts = m["content"] if isinstance(m["content"], list) else [{"type": "text", "text": m["content"]}]
+            parts = (
+                m["content"] if isinstance(m["content"], list) else [{"type": "text", "text": m["content"]}]
+            )
             for p in parts:
                 if p["type"] == "image":
                     images.append(p["image"])
@@ -60,14 +67,15 @@ class TransformersAnnotator:
             merge = int(getattr(self.image_processor, "merge_size", 2))
             counts = (proc["image_grid_thw"].prod(-1) // merge**2).tolist()
             pieces = text.split("<|image_pad|>")
-            text = pieces[0] + "".join("<|image_pad|>" * int(n) + p for n, p in zip(counts, pieces[1:]))
+            pads = ["<|image_pad|>" * int(n) for n in counts]
+            text = pieces[0] + "".join(a + b for a, b in zip(pads, pieces[1:], strict=True))
             kwargs = {"pixel_values": proc["pixel_values"], "image_grid_thw": proc["image_grid_thw"]}
         enc = self.tokenizer(text, return_tensors="pt")
         pad_id = self.tokenizer.convert_tokens_to_ids("<|image_pad|>")
         kwargs["mm_token_type_ids"] = (enc["input_ids"] == pad_id).long()
         with torch.no_grad():
             out = self.model.generate(**enc, **kwargs, max_new_tokens=self.max_new_tokens, do_sample=False)
-        return self.tokenizer.decode(out[0, enc["input_ids"].shape[1]:], skip_special_tokens=True)
+        return self.tokenizer.decode(out[0, enc["input_ids"].shape[1] :], skip_special_tokens=True)
 
     def annotate(self, requests: list[AnnotationRequest]) -> list[Annotation]:
         return [annotate_one(r, self.complete, self.vocabulary, self.max_attempts) for r in requests]

@@ -16,8 +16,13 @@ from image2sim.dataengine.annotate.qa import MalformedReply, hallucinated_object
 __all__ = ["annotate_one"]
 
 
-def annotate_one(req: AnnotationRequest, complete: Callable[[list[dict]], str], vocabulary: Iterable[str],
-                 max_attempts: int = 3, transient: Sequence[type[BaseException]] = ()) -> Annotation:
+def annotate_one(
+    req: AnnotationRequest,
+    complete: Callable[[list[dict]], str],
+    vocabulary: Iterable[str],
+    max_attempts: int = 3,
+    transient: Sequence[type[BaseException]] = (),
+) -> Annotation:
     """Annotate one request with retries (see the module docstring)."""
     messages = build_messages(req)
     vocab = list(vocabulary)
@@ -33,16 +38,34 @@ def annotate_one(req: AnnotationRequest, complete: Callable[[list[dict]], str], 
         except MalformedReply as err:
             reason = f"malformed: {err}"
             continue
-        base = dict(episode_id=req.episode_id, style=req.style, structure=req.structure, tone=req.tone,
-                    attempts=attempt, reasoning=parsed.reasoning, issues=parsed.issues)
+        base = dict(
+            episode_id=req.episode_id,
+            style=req.style,
+            structure=req.structure,
+            tone=req.tone,
+            attempts=attempt,
+            reasoning=parsed.reasoning,
+            issues=parsed.issues,
+        )
         if not parsed.valid:
-            return Annotation(text="", accepted=False,
-                              reason="invalid verdict" + (f" ({', '.join(parsed.issues)})" if parsed.issues else ""),
-                              **base)
+            return Annotation(
+                text="",
+                accepted=False,
+                reason="invalid verdict" + (f" ({', '.join(parsed.issues)})" if parsed.issues else ""),
+                **base,
+            )
         bad = hallucinated_objects(parsed.instruction, req.allowed_objects, vocab)
         if bad:
             reason = f"hallucination: {sorted(bad)}"
             continue
         return Annotation(text=parsed.instruction, accepted=True, **base)
-    return Annotation(req.episode_id, "", req.style, req.structure, req.tone, False, reason or "no attempt",
-                      attempts=max_attempts)
+    return Annotation(
+        req.episode_id,
+        "",
+        req.style,
+        req.structure,
+        req.tone,
+        False,
+        reason or "no attempt",
+        attempts=max_attempts,
+    )
