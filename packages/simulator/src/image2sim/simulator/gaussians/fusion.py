@@ -74,37 +74,34 @@ def _settle_levels(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]
     """Move each Gaussian down to the finest level present in its cell, until nothing moves.
 
     One ascending sweep is not enough: a Gaussian moved from level 2 to 0 can land in the level-1
-    cell of a Gaussian the sweep already passed. Levels only decrease, so the loop terminates
-    (usually after two sweeps); the fixpoint makes :func:`fuse` idempotent.
+    cell of a Gaussian the sweep already passed. Levels only decrease (to levels already present),
+    so the loop terminates (usually after two sweeps); the fixpoint makes :func:`fuse` idempotent.
+    The cell grouping of every level is computed once (one ``unique`` per level); a sweep is then
+    one ``scatter_reduce`` per level.
     """
     levels = levels.clone()
-    while True:
-        before = levels.clone()
-        levels = _sweep(means, levels, sizes)
-        if torch.equal(before, levels):
-            return levels
-
-
-def _sweep(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]) -> torch.Tensor:
-    """One ascending sweep over the present levels (see :func:`_settle_levels`)."""
     present = sorted(set(levels.tolist())) if levels.numel() else []
+    if len(present) < 2:
+        return levels
+    zeros = torch.zeros_like(levels)
+    groups = {}
     for L in present[1:]:
-        coarse = levels == L
-        fine = levels < L
-        if not coarse.any() or not fine.any():
-            continue
-        idx = torch.nonzero(coarse | fine).squeeze(1)
-        keys = _keys_at(means[idx], sizes[L])
-        inverse, counts = _unique(torch.zeros_like(idx), keys)
-        # Finest level present per cell among the fine members (L where there is none).
-        lv = levels[idx]
-        fine_lv = torch.where(lv < L, lv, torch.full_like(lv, L))
-        best = torch.full((counts.shape[0],), L, dtype=torch.int64)
-        best.scatter_reduce_(0, inverse, fine_lv, reduce="amin", include_self=True)
-        new = best[inverse]
-        move = (lv == L) & (new < L)
-        levels[idx[move]] = new[move]
-    return levels
+        inverse, counts = _unique(zeros, _keys_at(means, sizes[L]))
+        groups[L] = (inverse, counts.shape[0])
+    while True:
+        moved = False
+        for L in present[1:]:
+            inverse, m = groups[L]
+            # Coarser members count as L, which is neutral for the minimum.
+            best = torch.full((m,), L, dtype=torch.int64)
+            best.scatter_reduce_(0, inverse, levels.clamp_max(L), reduce="amin", include_self=True)
+            new = best[inverse]
+            move = (levels == L) & (new < L)
+            if bool(move.any()):
+                levels = torch.where(move, new, levels)
+                moved = True
+        if not moved:
+            return levels
 
 
 @contextmanager
