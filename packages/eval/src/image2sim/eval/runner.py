@@ -558,9 +558,10 @@ def run_scene(
 
 def _scene_task(task: dict) -> tuple[str, int]:
     """Worker entry point (top level so it pickles): load the scene and run its episodes."""
-    import torch
+    if task.get("worker"):
+        import torch
 
-    torch.set_num_threads(1)  # one process per core
+        torch.set_num_threads(1)  # one process per core; never changes the caller's setting in-process
     protocol = Protocol.from_dict(task["protocol"])
     config = RunConfig(**task["config"])
     render = AGENTS[config.agent] is Image2NavAdapter
@@ -655,7 +656,7 @@ def run_nav_results(
             with ProcessPoolExecutor(
                 min(config.workers, len(tasks)), mp_context=mp.get_context("spawn")
             ) as pool:
-                for _ in pool.map(_scene_task, tasks):
+                for _ in pool.map(_scene_task, [{**t, "worker": True} for t in tasks]):
                     if bar is not None:
                         bar.advance(task_id)
     finally:
