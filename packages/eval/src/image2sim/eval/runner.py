@@ -333,7 +333,8 @@ class ForwardAgent:
     """Blind baseline: ``forward_steps`` MOVE_FORWARD actions, then STOP."""
 
     forward_steps: int = 37
-    """Forward actions before STOP (VLN-CE's hand-crafted baseline uses 37, the mean R2R-CE length)."""
+    """Forward actions before STOP. 37 follows the hand-crafted baseline of VLN-CE (Krantz et al. 2020),
+    which first turns to a random heading; this agent keeps the start heading (fully deterministic)."""
     needs_images: bool = False
 
     def __post_init__(self) -> None:
