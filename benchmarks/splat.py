@@ -35,10 +35,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
-from rich.progress import Progress
-
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting import available_backends, splat
+from rich.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTS = ROOT / "reports"
@@ -53,7 +52,8 @@ def hardware() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({torch.get_num_threads()} threads)"
+    threads = torch.get_num_threads()
+    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
 
 
 def room_scene(n: int, seed: int = 0, channels: int = 16) -> list[torch.Tensor]:
@@ -141,8 +141,12 @@ def peak_memory(n: int, h: int, w: int) -> dict:
     with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
         f.write(_MEM_CHILD)
     try:
-        res = subprocess.run([sys.executable, f.name, str(Path(__file__).parent), str(n), str(h), str(w)],
-                             capture_output=True, text=True, check=True)
+        res = subprocess.run(
+            [sys.executable, f.name, str(Path(__file__).parent), str(n), str(h), str(w)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
     finally:
         os.unlink(f.name)
     data = json.loads(res.stdout.strip().splitlines()[-1])
@@ -171,11 +175,15 @@ def main() -> None:
     pano = EquirectCamera(256, 512)
     pin = PinholeCamera.from_fov(90.0, 90.0, 256, 256)
     plan: list[tuple[str, int, object, str, bool]] = []
-    for cam_name, cam in (("equirect 256x512", pano), ("pinhole 256x256", pin)):
+    for cam in (pano, pin):
         for be in ("cpu", "torch"):
             for bw in (False, True):
                 plan.append(("headline", 20_000, cam, be, bw))
-    plan += [("dense", 2_000, EquirectCamera(64, 128), be, bw) for be in ("cpu", "torch", "reference") for bw in (False, True)]
+    plan += [
+        ("dense", 2_000, EquirectCamera(64, 128), be, bw)
+        for be in ("cpu", "torch", "reference")
+        for bw in (False, True)
+    ]
     if not args.quick:
         for n in (10_000, 100_000, 1_000_000):
             for h, w in ((128, 256), (256, 512), (512, 1024)):
@@ -193,18 +201,38 @@ def main() -> None:
             scene = scenes.setdefault(n, room_scene(n))
             reps = args.repeats
             res = time_case(scene, cam, be, bw, reps)
-            rows.append({
-                "group": group, "n": n, "camera": cam.model, "height": cam.height, "width": cam.width,
-                "backend": be, "pass": "forward+backward" if bw else "forward", **res,
-            })
+            rows.append(
+                {
+                    "group": group,
+                    "n": n,
+                    "camera": cam.model,
+                    "height": cam.height,
+                    "width": cam.width,
+                    "backend": be,
+                    "pass": "forward+backward" if bw else "forward",
+                    **res,
+                }
+            )
             progress.advance(task)
-            print(f"{group} N={n} {cam.model} {cam.height}x{cam.width} {be} {rows[-1]['pass']}: "
-                  f"{res['ms']:.1f} ms (CPU {res['cpu_ms']:.1f} ms)", file=sys.stderr, flush=True)
+            print(
+                f"{group} N={n} {cam.model} {cam.height}x{cam.width} {be} {rows[-1]['pass']}: "
+                f"{res['ms']:.1f} ms (CPU {res['cpu_ms']:.1f} ms)",
+                file=sys.stderr,
+                flush=True,
+            )
 
     # ratios against the torch backend (and the dense reference) measured in this run
     def find(group, n, model, h, w, be, ps):
         for r in rows:
-            if (r["group"], r["n"], r["camera"], r["height"], r["width"], r["backend"], r["pass"]) == (group, n, model, h, w, be, ps):
+            if (r["group"], r["n"], r["camera"], r["height"], r["width"], r["backend"], r["pass"]) == (
+                group,
+                n,
+                model,
+                h,
+                w,
+                be,
+                ps,
+            ):
                 return r
         return None
 
@@ -219,21 +247,27 @@ def main() -> None:
 
     memory = []
     if not args.quick:
-        for n, h, w in ((10_000, 256, 512), (100_000, 256, 512), (1_000_000, 256, 512), (100_000, 128, 256),
-                        (100_000, 512, 1024)):
+        for n, h, w in (
+            (10_000, 256, 512),
+            (100_000, 256, 512),
+            (1_000_000, 256, 512),
+            (100_000, 128, 256),
+            (100_000, 512, 1024),
+        ):
             memory.append({"n": n, "height": h, "width": w, **peak_memory(n, h, w)})
 
     report = {
         "benchmark": "splat",
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "hardware": hardware(),
-        "git_commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                                     text=True).stdout.strip(),
+        "git_commit": subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip(),
         "threads": torch.get_num_threads(),
         "load_average_before": load_before,
         "load_average_after": os.getloadavg(),
         "note": "shared 2-core machine: other jobs ran concurrently (see load averages); medians of "
-                f"{args.repeats} runs after one warm-up; float32, 16 feature channels",
+        f"{args.repeats} runs after one warm-up; float32, 16 feature channels",
         "cases": rows,
         "memory": memory,
     }
@@ -241,24 +275,41 @@ def main() -> None:
     write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
 
     lines = [
-        "# splat benchmark", "",
+        "# splat benchmark",
+        "",
         f"{report['date']} · {report['hardware']} · load average before/after "
-        f"{load_before[0]:.1f} / {report['load_average_after'][0]:.1f} (shared machine)", "",
+        f"{load_before[0]:.1f} / {report['load_average_after'][0]:.1f} (shared machine)",
+        "",
         "ms/frame is wall clock (median); CPU ms is the process CPU time per frame (all threads), which",
-        "is far less sensitive to the other jobs on this machine.", "",
-        "| group | N | camera | HxW | backend | pass | ms/frame (median) | frames/s | CPU ms | vs torch | vs dense |",
+        "is far less sensitive to the other jobs on this machine.",
+        "",
+        "| group | N | camera | HxW | backend | pass | ms/frame (median) | frames/s | CPU ms | vs torch "
+        "| vs dense |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         vs_t = f"{r['speedup_vs_torch']:.1f}x" if "speedup_vs_torch" in r and r["backend"] != "torch" else ""
-        vs_d = f"{r['speedup_vs_dense_reference']:.1f}x" if "speedup_vs_dense_reference" in r and r["backend"] != "reference" else ""
-        lines.append(f"| {r['group']} | {r['n']:,} | {r['camera']} | {r['height']}x{r['width']} | {r['backend']} | "
-                     f"{r['pass']} | {r['ms']:.1f} | {1000 / r['ms']:.1f} | {r['cpu_ms']:.1f} | {vs_t} | {vs_d} |")
+        vs_d = (
+            f"{r['speedup_vs_dense_reference']:.1f}x"
+            if "speedup_vs_dense_reference" in r and r["backend"] != "reference"
+            else ""
+        )
+        lines.append(
+            f"| {r['group']} | {r['n']:,} | {r['camera']} | {r['height']}x{r['width']} | {r['backend']} | "
+            f"{r['pass']} | {r['ms']:.1f} | {1000 / r['ms']:.1f} | {r['cpu_ms']:.1f} | {vs_t} | {vs_d} |"
+        )
     if memory:
-        lines += ["", "Peak RSS of a fresh process, one forward+backward (compiled backend):", "",
-                  "| N | HxW | peak RSS MB | above scene baseline MB |", "|---|---|---|---|"]
+        lines += [
+            "",
+            "Peak RSS of a fresh process, one forward+backward (compiled backend):",
+            "",
+            "| N | HxW | peak RSS MB | above scene baseline MB |",
+            "|---|---|---|---|",
+        ]
         for m in memory:
-            lines.append(f"| {m['n']:,} | {m['height']}x{m['width']} | {m['peak_rss_mb']:.0f} | {m['splat_mb']:.0f} |")
+            lines.append(
+                f"| {m['n']:,} | {m['height']}x{m['width']} | {m['peak_rss_mb']:.0f} | {m['splat_mb']:.0f} |"
+            )
     write_atomic(REPORTS / "splat.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -6,12 +6,17 @@ import math
 
 import pytest
 import torch
-
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting import SplatOutput, available_backends, splat
 from image2sim.simulator.splatting.backends import reference
 from image2sim.simulator.splatting.project import (
-    ALPHA_MAX, ALPHA_MIN, CUTOFF_SIGMA, DILATION, T_MIN, equirect_jacobian, project_gaussians,
+    ALPHA_MAX,
+    ALPHA_MIN,
+    CUTOFF_SIGMA,
+    DILATION,
+    T_MIN,
+    equirect_jacobian,
+    project_gaussians,
 )
 
 BACKENDS = [b for b in available_backends() if b != "reference"]
@@ -25,12 +30,18 @@ def make_scene(n: int, c: int, camera, seed: int, dtype=torch.float64, opaque: b
     g = torch.Generator().manual_seed(seed)
     if isinstance(camera, EquirectCamera):
         d = torch.randn(n, 3, generator=g, dtype=torch.float64)
-        means = d / d.norm(dim=1, keepdim=True) * (1.0 + 2.0 * torch.rand(n, 1, generator=g, dtype=torch.float64))
+        means = (
+            d / d.norm(dim=1, keepdim=True) * (1.0 + 2.0 * torch.rand(n, 1, generator=g, dtype=torch.float64))
+        )
     else:
         means = torch.stack(
-            (torch.rand(n, generator=g, dtype=torch.float64) * 3 - 1.5,
-             torch.rand(n, generator=g, dtype=torch.float64) * 2 - 1.0,
-             torch.rand(n, generator=g, dtype=torch.float64) * 3 + 0.8), dim=1)
+            (
+                torch.rand(n, generator=g, dtype=torch.float64) * 3 - 1.5,
+                torch.rand(n, generator=g, dtype=torch.float64) * 2 - 1.0,
+                torch.rand(n, generator=g, dtype=torch.float64) * 3 + 0.8,
+            ),
+            dim=1,
+        )
     scales = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.25 + 0.02
     quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
     lo, hi = (0.6, 1.0) if opaque else (0.05, 0.9)
@@ -54,6 +65,7 @@ def loss_of(out: SplatOutput, seed: int = 7) -> torch.Tensor:
 
 
 # --- an independent per-pixel oracle (plain Python loops) for the compositing rules -------------
+
 
 def loop_oracle(means2d, conics, opac, values, bg, height, width, wrap):
     """Literal transcription of the semantics, one pixel and one Gaussian at a time."""
@@ -93,7 +105,9 @@ def test_dense_reference_matches_loop_oracle(wrap):
     m = 7
     means2d = torch.rand(m, 2, generator=g, dtype=torch.float64) * torch.tensor([12.0, 8.0])
     means2d[0, 0] = 0.2  # straddles the seam when wrapping
-    cov = torch.rand(m, 3, generator=g, dtype=torch.float64) * torch.tensor([6.0, 1.0, 6.0]) + torch.tensor([0.5, -0.5, 0.5])
+    cov = torch.rand(m, 3, generator=g, dtype=torch.float64) * torch.tensor([6.0, 1.0, 6.0]) + torch.tensor(
+        [0.5, -0.5, 0.5]
+    )
     det = cov[:, 0] * cov[:, 2] - cov[:, 1] ** 2
     conics = torch.stack((cov[:, 2] / det, -cov[:, 1] / det, cov[:, 0] / det), dim=1)
     opac = torch.rand(m, generator=g, dtype=torch.float64) * 0.5 + 0.5
@@ -102,11 +116,12 @@ def test_dense_reference_matches_loop_oracle(wrap):
     bg = torch.tensor([0.1, 0.2, 0.3, 0.0], dtype=torch.float64)
     want = loop_oracle(means2d, conics, opac, values, bg, 8, 12, wrap)
     got = reference.rasterize(means2d, conics, opac, values, bg, 8, 12, wrap)
-    for w, h in zip(want, got):
+    for w, h in zip(want, got, strict=True):
         torch.testing.assert_close(h, w, atol=1e-12, rtol=0)
 
 
 # --- parity of every backend with the dense reference --------------------------------------------
+
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("camera", [EQ, PH], ids=["equirect", "pinhole"])
@@ -140,7 +155,7 @@ def test_backend_gradients_match_reference(backend, camera, dtype):
         out = splat(*scene, camera, EYE, background=bg, backend=b)
         grads[b] = torch.autograd.grad(loss_of(out), scene + [bg])
     names = ["means", "scales", "quats", "opacities", "colors", "features", "background"]
-    for name, got, want in zip(names, grads[backend], grads["reference"]):
+    for name, got, want in zip(names, grads[backend], grads["reference"], strict=True):
         assert torch.isfinite(got).all(), name
         rel = (got - want).abs().max() / want.abs().max().clamp_min(1e-12)
         assert rel <= 1e-3, (name, float(rel))
@@ -148,8 +163,9 @@ def test_backend_gradients_match_reference(backend, camera, dtype):
 
 
 @pytest.mark.parametrize("backend", ["reference", *BACKENDS])
-@pytest.mark.parametrize("camera", [EquirectCamera(5, 10), PinholeCamera(6.0, 6.0, 4.0, 3.0, 6, 8)],
-                         ids=["equirect", "pinhole"])
+@pytest.mark.parametrize(
+    "camera", [EquirectCamera(5, 10), PinholeCamera(6.0, 6.0, 4.0, 3.0, 6, 8)], ids=["equirect", "pinhole"]
+)
 def test_gradcheck_float64(backend, camera):
     g = torch.Generator().manual_seed(5)
     if isinstance(camera, EquirectCamera):
@@ -176,6 +192,7 @@ def test_gradcheck_float64(backend, camera):
 
 # --- analytic footprints ---------------------------------------------------------------------------
 
+
 def _closed_form(dx, dy, var_u, var_v, opacity):
     q = dx * dx / var_u + dy * dy / var_v
     a = torch.clamp(opacity * torch.exp(-0.5 * q), max=ALPHA_MAX)
@@ -189,12 +206,24 @@ def test_pinhole_axis_aligned_gaussian_has_expected_footprint(backend):
     means = torch.tensor([[0.0, 0.0, z]], dtype=torch.float64)
     scales = torch.tensor([[sx, sy, 0.3]], dtype=torch.float64)  # z extent is invisible on the axis
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
-    out = splat(means, scales, quats, torch.tensor([0.8], dtype=torch.float64),
-                torch.tensor([[1.0, 0.5, 0.25]], dtype=torch.float64), None, cam, EYE, backend=backend)
+    out = splat(
+        means,
+        scales,
+        quats,
+        torch.tensor([0.8], dtype=torch.float64),
+        torch.tensor([[1.0, 0.5, 0.25]], dtype=torch.float64),
+        None,
+        cam,
+        EYE,
+        backend=backend,
+    )
     var_u = (cam.fx * sx / z) ** 2 + DILATION
     var_v = (cam.fy * sy / z) ** 2 + DILATION
-    v, u = torch.meshgrid(torch.arange(48, dtype=torch.float64) + 0.5, torch.arange(64, dtype=torch.float64) + 0.5,
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(48, dtype=torch.float64) + 0.5,
+        torch.arange(64, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
     want = _closed_form(u - cam.cx, v - cam.cy, var_u, var_v, 0.8)
     torch.testing.assert_close(out.alpha[0, 0], want, atol=1e-10, rtol=0)
     torch.testing.assert_close(out.depth[0, 0], want * z, atol=1e-10, rtol=0)
@@ -206,11 +235,22 @@ def test_pinhole_axis_aligned_gaussian_has_expected_footprint(backend):
 def test_pinhole_off_axis_centre():
     cam = PinholeCamera(fx=100.0, fy=100.0, cx=32.0, cy=32.0, height=64, width=64)
     means = torch.tensor([[0.2, -0.1, 2.0]], dtype=torch.float64)  # -> (u, v) = (42, 27)
-    out = splat(means, torch.full((1, 3), 0.03, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
-                torch.tensor([0.9], dtype=torch.float64), torch.ones(1, 3, dtype=torch.float64), None, cam, EYE)
+    out = splat(
+        means,
+        torch.full((1, 3), 0.03, dtype=torch.float64),
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+        torch.tensor([0.9], dtype=torch.float64),
+        torch.ones(1, 3, dtype=torch.float64),
+        None,
+        cam,
+        EYE,
+    )
     a = out.alpha[0, 0]
-    v, u = torch.meshgrid(torch.arange(64.0, dtype=torch.float64) + 0.5, torch.arange(64.0, dtype=torch.float64) + 0.5,
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(64.0, dtype=torch.float64) + 0.5,
+        torch.arange(64.0, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
     centre = ((a * u).sum() / a.sum(), (a * v).sum() / a.sum())
     assert abs(float(centre[0]) - 42.0) < 1e-6 and abs(float(centre[1]) - 27.0) < 1e-6
 
@@ -220,13 +260,24 @@ def test_equirect_isotropic_gaussian_ahead(backend):
     cam = EquirectCamera(64, 128)
     r, s = 2.0, 0.08
     means = torch.tensor([[0.0, 0.0, r]], dtype=torch.float64)
-    out = splat(means, torch.full((1, 3), s, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
-                torch.tensor([0.7], dtype=torch.float64), torch.ones(1, 3, dtype=torch.float64), None, cam, EYE,
-                backend=backend)
+    out = splat(
+        means,
+        torch.full((1, 3), s, dtype=torch.float64),
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+        torch.tensor([0.7], dtype=torch.float64),
+        torch.ones(1, 3, dtype=torch.float64),
+        None,
+        cam,
+        EYE,
+        backend=backend,
+    )
     var_u = (cam.width / (2 * math.pi) * s / r) ** 2 + DILATION
     var_v = (cam.height / math.pi * s / r) ** 2 + DILATION
-    v, u = torch.meshgrid(torch.arange(64, dtype=torch.float64) + 0.5, torch.arange(128, dtype=torch.float64) + 0.5,
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(64, dtype=torch.float64) + 0.5,
+        torch.arange(128, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
     want = _closed_form(u - 64.0, v - 32.0, var_u, var_v, 0.7)
     torch.testing.assert_close(out.alpha[0, 0], want, atol=1e-10, rtol=0)
     torch.testing.assert_close(out.depth[0, 0], want * r, atol=1e-10, rtol=0)
@@ -251,6 +302,7 @@ def test_equirect_jacobian_matches_camera_and_finite_differences():
 
 
 # --- hard cases ----------------------------------------------------------------------------------
+
 
 def _one(mean, scale=0.1, opacity=0.8, dtype=torch.float64, c=2):
     return [
@@ -278,8 +330,9 @@ def _yaw_pose(deg: float) -> torch.Tensor:
     a = math.radians(deg)
     pose = torch.eye(4, dtype=torch.float64)
     # rotation about the camera y axis (down): turns the camera to the right for positive angles
-    pose[:3, :3] = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]],
-                                dtype=torch.float64)
+    pose[:3, :3] = torch.tensor(
+        [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]], dtype=torch.float64
+    )
     return pose
 
 
@@ -315,8 +368,11 @@ def test_pole_gaussians_are_finite_and_span_the_width(backend, where):
 
 
 @pytest.mark.parametrize("backend", ["reference", *BACKENDS])
-@pytest.mark.parametrize("camera", [EquirectCamera(16, 32), PinholeCamera(10.0, 10.0, 8.0, 8.0, 16, 16)],
-                         ids=["equirect", "pinhole"])
+@pytest.mark.parametrize(
+    "camera",
+    [EquirectCamera(16, 32), PinholeCamera(10.0, 10.0, 8.0, 8.0, 16, 16)],
+    ids=["equirect", "pinhole"],
+)
 def test_gaussian_one_millimetre_from_camera(backend, camera):
     scene = _one([0.0, 0.0, 1e-3], scale=0.01)
     out, _ = _assert_finite_with_grads(scene, camera, backend=backend)
@@ -326,8 +382,11 @@ def test_gaussian_one_millimetre_from_camera(backend, camera):
 
 
 @pytest.mark.parametrize("backend", ["reference", *BACKENDS])
-@pytest.mark.parametrize("camera", [EquirectCamera(16, 32), PinholeCamera(10.0, 10.0, 8.0, 8.0, 16, 16)],
-                         ids=["equirect", "pinhole"])
+@pytest.mark.parametrize(
+    "camera",
+    [EquirectCamera(16, 32), PinholeCamera(10.0, 10.0, 8.0, 8.0, 16, 16)],
+    ids=["equirect", "pinhole"],
+)
 @pytest.mark.parametrize("scale", [1e-8, 1e3])
 def test_extreme_scales(backend, camera, scale):
     out, _ = _assert_finite_with_grads(_one([0.1, 0.05, 2.0], scale=scale), camera, backend=backend)
@@ -462,6 +521,7 @@ def test_auto_uses_compiled_kernel_when_available():
 
 # --- projection internals ------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("camera", [EQ, PH], ids=["equirect", "pinhole"])
 def test_projected_covariance_matches_textbook_ewa(camera):
     """The fast L L^T form equals J W Sigma W^T J^T + 0.3 I computed the readable way."""
@@ -479,12 +539,15 @@ def test_projected_covariance_matches_textbook_ewa(camera):
     if isinstance(camera, EquirectCamera):  # away from the poles the width clamp is inactive
         v = v & (want[:, 0, 0].sqrt() * CUTOFF_SIGMA < camera.width / 2)
     got = proj.cov2d[v]
-    torch.testing.assert_close(got, torch.stack((want[v, 0, 0], want[v, 0, 1], want[v, 1, 1]), -1), rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(
+        got, torch.stack((want[v, 0, 0], want[v, 0, 1], want[v, 1, 1]), -1), rtol=1e-9, atol=1e-9
+    )
     uv, _, _ = camera.project(p)
     torch.testing.assert_close(proj.means2d[v], uv[v], rtol=0, atol=1e-9)
     inv = torch.linalg.inv(want[v])
-    torch.testing.assert_close(proj.conics[v], torch.stack((inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]), -1),
-                               rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(
+        proj.conics[v], torch.stack((inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]), -1), rtol=1e-8, atol=1e-10
+    )
 
 
 @pytest.mark.parametrize("wrap", [0.0, 48.0])
@@ -503,12 +566,15 @@ def test_compiled_binning_matches_torch_binning(wrap):
     if wrap:
         n_tx = 6
         assert (off_t[1:] - off_t[:-1]).sum() == ids_t.numel()
-        tiles_of_0 = [t for t in range(n_tx * 3) if 0 in ids_t[off_t[t]:off_t[t + 1]].tolist()]
+        tiles_of_0 = [t for t in range(n_tx * 3) if 0 in ids_t[off_t[t] : off_t[t + 1]].tolist()]
         assert len({t % n_tx for t in tiles_of_0}) == n_tx  # every column of tiles, no duplicates
 
 
-@pytest.mark.parametrize("camera", [EquirectCamera(64, 128), PinholeCamera(50.0, 50.0, 32.0, 32.0, 64, 64)],
-                         ids=["equirect", "pinhole"])
+@pytest.mark.parametrize(
+    "camera",
+    [EquirectCamera(64, 128), PinholeCamera(50.0, 50.0, 32.0, 32.0, 64, 64)],
+    ids=["equirect", "pinhole"],
+)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_fused_inference_projection_matches_torch_projection(camera, dtype):
     if "cpu" not in BACKENDS:

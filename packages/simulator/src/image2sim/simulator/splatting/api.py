@@ -28,11 +28,10 @@ Semantics (shared exactly by every backend; the dense reference in
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
-
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting.backends import reference as _reference
 from image2sim.simulator.splatting.backends import torch_tiles as _torch_tiles
@@ -59,8 +58,11 @@ class SplatOutput:
     def normalized_depth(self) -> torch.Tensor:
         """Expected depth depth / alpha where alpha > 0, else 0 (the invalid-depth marker)."""
         pos = self.alpha > 0
-        return torch.where(pos, self.depth / torch.where(pos, self.alpha, torch.ones_like(self.alpha)),
-                           torch.zeros_like(self.depth))
+        return torch.where(
+            pos,
+            self.depth / torch.where(pos, self.alpha, torch.ones_like(self.alpha)),
+            torch.zeros_like(self.depth),
+        )
 
 
 RasterizeFn = Callable[..., tuple[torch.Tensor, torch.Tensor]]
@@ -107,7 +109,9 @@ def resolve_backend(backend: str, device: torch.device) -> str:
             return "cpu"
         warnings.warn(
             f"splat: compiled CPU kernel unavailable ({cpu_kernel.load_error()}); using the slower "
-            "'torch' backend", RuntimeWarning, stacklevel=3,
+            "'torch' backend",
+            RuntimeWarning,
+            stacklevel=3,
         )
         return "torch"
     if name not in BACKENDS:
@@ -123,8 +127,13 @@ def _check(name: str, t: torch.Tensor, shape: tuple, n: int | None) -> None:
     if not t.is_floating_point():
         raise TypeError(f"splat: {name} must be floating point, got {t.dtype}")
     if t.dim() != len(shape) or any(s is not None and t.shape[i] != s for i, s in enumerate(shape)):
-        want = "(" + ", ".join("N" if s is None and i == 0 else ("C" if s is None else str(s))
-                               for i, s in enumerate(shape)) + ")"
+        want = (
+            "("
+            + ", ".join(
+                "N" if s is None and i == 0 else ("C" if s is None else str(s)) for i, s in enumerate(shape)
+            )
+            + ")"
+        )
         raise ValueError(f"splat: {name} must have shape {want}, got {tuple(t.shape)}")
     if n is not None and t.shape[0] != n:
         raise ValueError(f"splat: {name} has {t.shape[0]} rows but means has {n}")
@@ -167,8 +176,13 @@ def splat(
     _check("colors", colors, (None, 3), n)
     _check("features", features, (None, None), n)
     dtype, device = means.dtype, means.device
-    for name, t in (("scales", scales), ("quats", quats), ("opacities", opacities), ("colors", colors),
-                    ("features", features)):
+    for name, t in (
+        ("scales", scales),
+        ("quats", quats),
+        ("opacities", opacities),
+        ("colors", colors),
+        ("features", features),
+    ):
         if t.dtype != dtype or t.device != device:
             raise TypeError(f"splat: {name} is {t.dtype} on {t.device} but means is {dtype} on {device}")
     if not torch.is_tensor(cam_to_world):
@@ -183,8 +197,14 @@ def splat(
         raise ValueError(f"splat: nonfinite must be 'raise' or 'cull', got {nonfinite!r}")
 
     bad = torch.zeros(n, dtype=torch.bool, device=device)
-    for name, t in (("means", means), ("scales", scales), ("quats", quats), ("opacities", opacities),
-                    ("colors", colors), ("features", features)):
+    for name, t in (
+        ("means", means),
+        ("scales", scales),
+        ("quats", quats),
+        ("opacities", opacities),
+        ("colors", colors),
+        ("features", features),
+    ):
         rows = _nonfinite_rows(t) if n else bad
         if rows.any():
             if nonfinite == "raise":
@@ -218,20 +238,39 @@ def splat(
     raster = BACKENDS[name]
     poses = cam_to_world.unsqueeze(0) if cam_to_world.dim() == 2 else cam_to_world
     needs_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means, scales, quats, opacities, colors, features, bg, cam_to_world))
+        t.requires_grad for t in (means, scales, quats, opacities, colors, features, bg, cam_to_world)
+    )
     images, alphas = [], []
     for pose in poses:
         project = project_gaussians
         if name == "cpu" and not needs_grad:  # fused C++ projection for inference
             from image2sim.simulator.splatting.backends.cpu_kernel import project
-        proj = project(means, scales, quats, opacities, camera, pose, near=near, far=far,
-                       finite_mask=~bad if bad.any() else None)
+        proj = project(
+            means,
+            scales,
+            quats,
+            opacities,
+            camera,
+            pose,
+            near=near,
+            far=far,
+            finite_mask=~bad if bad.any() else None,
+        )
         idx = torch.nonzero(proj.valid).squeeze(1)
         idx = idx[torch.argsort(proj.depths.detach()[idx], stable=True)]
         values = torch.cat((colors, proj.depths.unsqueeze(1), features), dim=1)[idx]
         kwargs = {"radii": proj.radii[idx]} if name in ("torch", "cpu") else {}
-        image, alpha = raster(proj.means2d[idx], proj.conics[idx], opacities[idx], values, bg_all,
-                              camera.height, camera.width, proj.wrap_width, **kwargs)
+        image, alpha = raster(
+            proj.means2d[idx],
+            proj.conics[idx],
+            opacities[idx],
+            values,
+            bg_all,
+            camera.height,
+            camera.width,
+            proj.wrap_width,
+            **kwargs,
+        )
         if idx.numel() == 0:  # keep the output in the autograd graph even when nothing is visible
             image = image + 0.0 * values.sum()
         images.append(image)

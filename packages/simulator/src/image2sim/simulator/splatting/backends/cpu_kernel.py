@@ -16,7 +16,6 @@ import threading
 from pathlib import Path
 
 import torch
-
 from image2sim.simulator.splatting.backends.torch_tiles import TILE_SIZE
 
 __all__ = ["available", "load_error", "load", "rasterize", "bin_gaussians"]
@@ -87,24 +86,45 @@ def bin_gaussians(means2d, radii, height: int, width: int, wrap_width: float, ti
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, values, background, radii, offsets, ids, height, width, wrap, tile):
+    def forward(
+        ctx, means2d, conics, opacities, values, background, radii, offsets, ids, height, width, wrap, tile
+    ):
         ext = load()
         args = [t.detach().contiguous() for t in (means2d, radii, conics, opacities, values, background)]
-        image, alpha, t_final, n_contrib = ext.rasterize_forward(*args, offsets, ids, height, width, wrap, tile)
+        image, alpha, t_final, n_contrib = ext.rasterize_forward(
+            *args, offsets, ids, height, width, wrap, tile
+        )
         ctx.save_for_backward(*args, offsets, ids, alpha, t_final, n_contrib)
         ctx.grid = (height, width, wrap, tile)
         return image, alpha
 
     @staticmethod
     def backward(ctx, g_image, g_alpha):
-        means2d, radii, conics, opacities, values, background, offsets, ids, alpha, t_final, n_contrib = ctx.saved_tensors
+        means2d, radii, conics, opacities, values, background, offsets, ids, alpha, t_final, n_contrib = (
+            ctx.saved_tensors
+        )
         height, width, wrap, tile = ctx.grid
         dtype = values.dtype
         g_image = torch.zeros_like(alpha.expand(values.shape[1], -1, -1)) if g_image is None else g_image
         g_alpha = torch.zeros_like(alpha) if g_alpha is None else g_alpha
         d_mean, d_conic, d_opac, d_vals, d_bg = load().rasterize_backward(
-            means2d, radii, conics, opacities, values, background, offsets, ids, height, width, wrap, tile,
-            alpha, t_final, n_contrib, g_image.to(dtype).contiguous(), g_alpha.to(dtype).contiguous(),
+            means2d,
+            radii,
+            conics,
+            opacities,
+            values,
+            background,
+            offsets,
+            ids,
+            height,
+            width,
+            wrap,
+            tile,
+            alpha,
+            t_final,
+            n_contrib,
+            g_image.to(dtype).contiguous(),
+            g_alpha.to(dtype).contiguous(),
         )
         return d_mean, d_conic, d_opac, d_vals, d_bg, None, None, None, None, None, None, None
 
@@ -132,12 +152,25 @@ def rasterize(
         radii = CUTOFF_SIGMA * torch.sqrt(torch.stack((c / det, a / det), dim=-1))
     offsets, ids = bin_gaussians(means2d, radii, height, width, wrap_width, tile)
     radii = radii.detach().to(values.dtype)
-    return _Rasterize.apply(means2d, conics, opacities, values, background, radii, offsets, ids,
-                            int(height), int(width), float(wrap_width), int(tile))
+    return _Rasterize.apply(
+        means2d,
+        conics,
+        opacities,
+        values,
+        background,
+        radii,
+        offsets,
+        ids,
+        int(height),
+        int(width),
+        float(wrap_width),
+        int(tile),
+    )
 
 
-def project(means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None,
-            finite_mask=None):
+def project(
+    means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None, finite_mask=None
+):
     """Inference-only fused projection (no autograd); same result as :func:`project_gaussians`."""
     from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.splatting.project import ProjectedGaussians
@@ -146,9 +179,28 @@ def project(means, scales, quats, opacities, camera, cam_to_world, *, near: floa
     fx, fy, cx, cy = (0.0, 0.0, 0.0, 0.0) if equirect else (camera.fx, camera.fy, camera.cx, camera.cy)
     mask = torch.empty(0, dtype=torch.bool) if finite_mask is None else finite_mask.contiguous()
     uv, conic, cov, depth, radii, valid = load().project_forward(
-        means.detach().contiguous(), scales.detach().contiguous(), quats.detach().contiguous(),
-        opacities.detach().contiguous(), mask, cam_to_world.detach().cpu(), equirect, float(fx), float(fy),
-        float(cx), float(cy), int(camera.height), int(camera.width), float(near), -1.0 if far is None else float(far),
+        means.detach().contiguous(),
+        scales.detach().contiguous(),
+        quats.detach().contiguous(),
+        opacities.detach().contiguous(),
+        mask,
+        cam_to_world.detach().cpu(),
+        equirect,
+        float(fx),
+        float(fy),
+        float(cx),
+        float(cy),
+        int(camera.height),
+        int(camera.width),
+        float(near),
+        -1.0 if far is None else float(far),
     )
-    return ProjectedGaussians(means2d=uv, conics=conic, cov2d=cov, depths=depth, radii=radii, valid=valid,
-                              wrap_width=float(camera.width) if equirect else 0.0)
+    return ProjectedGaussians(
+        means2d=uv,
+        conics=conic,
+        cov2d=cov,
+        depths=depth,
+        radii=radii,
+        valid=valid,
+        wrap_width=float(camera.width) if equirect else 0.0,
+    )

@@ -7,7 +7,6 @@ tiled and compiled backends are tested against, and it supports autograd for eve
 from __future__ import annotations
 
 import torch
-
 from image2sim.simulator.splatting.project import ALPHA_MAX, ALPHA_MIN, CUTOFF_SIGMA, T_MIN, wrap_offset
 
 __all__ = ["rasterize", "composite"]
@@ -30,7 +29,9 @@ def composite(
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
     one_minus = 1.0 - alpha
     # Exclusive cumulative product: transmittance in front of each Gaussian.
-    trans = torch.cumprod(torch.cat((torch.ones_like(one_minus[..., :1]), one_minus[..., :-1]), dim=-1), dim=-1)
+    trans = torch.cumprod(
+        torch.cat((torch.ones_like(one_minus[..., :1]), one_minus[..., :-1]), dim=-1), dim=-1
+    )
     counted = trans.detach() >= T_MIN
     return torch.where(counted, alpha * trans, torch.zeros_like(alpha))
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import torch
-
 from image2sim.simulator.splatting.backends.reference import composite
 from image2sim.simulator.splatting.project import wrap_offset
 
@@ -23,7 +22,12 @@ _CHUNK_ELEMENTS = 1 << 22  # padded tile x pixel x list entries per chunk (memor
 
 
 def tile_ranges(
-    means2d: torch.Tensor, radii: torch.Tensor, height: int, width: int, wrap_width: float, tile: int = TILE_SIZE
+    means2d: torch.Tensor,
+    radii: torch.Tensor,
+    height: int,
+    width: int,
+    wrap_width: float,
+    tile: int = TILE_SIZE,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Inclusive tile index ranges (tx0, tx1, ty0, ty1) of every footprint box, each (M,) int64.
 
@@ -50,7 +54,12 @@ def tile_ranges(
 
 
 def bin_gaussians(
-    means2d: torch.Tensor, radii: torch.Tensor, height: int, width: int, wrap_width: float, tile: int = TILE_SIZE
+    means2d: torch.Tensor,
+    radii: torch.Tensor,
+    height: int,
+    width: int,
+    wrap_width: float,
+    tile: int = TILE_SIZE,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-tile lists of Gaussian indices in input (depth) order.
 
@@ -106,7 +115,9 @@ def rasterize(
     lengths = offsets[1:] - offsets[:-1]
 
     # Pixel centres of every tile (tiles may overhang the image; those pixels are dropped).
-    ly, lx = torch.meshgrid(torch.arange(tile, device=device), torch.arange(tile, device=device), indexing="ij")
+    ly, lx = torch.meshgrid(
+        torch.arange(tile, device=device), torch.arange(tile, device=device), indexing="ij"
+    )
     ly, lx = ly.reshape(-1), lx.reshape(-1)
     tile_idx = torch.arange(n_tiles, device=device)
     pix_x = (tile_idx % n_tx).unsqueeze(1) * tile + lx  # (n_tiles, tile^2) integer columns
@@ -135,7 +146,9 @@ def rasterize(
             slot = torch.arange(kmax, device=device)
             valid_slot = slot.unsqueeze(0) < lengths[t].unsqueeze(1)  # (Tc, K)
             gather = torch.where(valid_slot, offsets[t].unsqueeze(1) + slot, torch.zeros_like(slot))
-            g = torch.where(valid_slot, ids[gather.clamp_max(max(ids.numel() - 1, 0))], torch.zeros_like(gather))
+            g = torch.where(
+                valid_slot, ids[gather.clamp_max(max(ids.numel() - 1, 0))], torch.zeros_like(gather)
+            )
             mu = means2d[g]  # (Tc, K, 2)
             px = pix_x[t].to(dtype) + 0.5
             py = pix_y[t].to(dtype) + 0.5
