@@ -186,6 +186,39 @@ class AgentConfig:
 
 
 @dataclass
+class DaggerConfig:
+    """Stage 2: online DAgger in the NeuralSimulator (see :mod:`image2sim.navpolicy.dagger`)."""
+
+    rounds: int = 2
+    """Collect-then-train rounds; each round's data joins the aggregated dataset."""
+    episodes_per_round: int = 4
+    """Episodes rolled out per round."""
+    train_steps_per_round: int = 10
+    """Optimizer steps on the aggregated dataset after each collection."""
+    model_probability: float = 0.5
+    """Probability that a control chunk is driven by the model (else by the oracle) in round 0."""
+    final_model_probability: float = 0.9
+    """Model probability in the last round (``schedule`` interpolates between the two)."""
+    schedule: str = "linear"
+    """``constant`` (always ``model_probability``), ``linear`` or ``exponential`` (geometric) over rounds."""
+    chunk_min: int = 4
+    """Shortest control chunk in steps (inclusive)."""
+    chunk_max: int = 32
+    """Longest control chunk in steps (inclusive); lengths are uniform in [chunk_min, chunk_max]."""
+    max_steps: int = 200
+    """Step cap per episode (the episode is truncated and logged as ``max_steps``)."""
+    stop_on_stuck: bool = True
+    """Truncate an episode when the simulator's stuck detector fires (logged as ``stuck``)."""
+    override_model_stop: bool = True
+    """A model STOP the oracle disagrees with is labelled but not executed (the oracle's action is),
+    so an untrained policy's early STOPs do not end episodes after one step."""
+    include_bc_data: bool = True
+    """Seed the aggregated dataset with the BC shards (``data.shards``) when they exist."""
+    seed: int = 0
+    """Seed of chunk sampling and episode order."""
+
+
+@dataclass
 class NavPolicyConfig:
     """Everything an Image2Nav run needs; saved beside every run's outputs."""
 
@@ -201,6 +234,8 @@ class NavPolicyConfig:
     """Behaviour cloning."""
     agent: AgentConfig = field(default_factory=AgentConfig)
     """Inference."""
+    dagger: DaggerConfig = field(default_factory=DaggerConfig)
+    """Online DAgger (stage 2)."""
     system_prompt: str = (
         "You are a navigation agent in an indoor environment. Follow the instruction. "
         "Actions: STOP, FORWARD (move 0.25 m), LEFT (turn 15 degrees), RIGHT (turn 15 degrees). "
@@ -227,6 +262,18 @@ class NavPolicyConfig:
             raise ConfigError(f"agent.fallback_action {self.agent.fallback_action} is not an action id 0..3")
         if self.train.strategy not in ("auto", "ddp", "deepspeed_zero2"):
             raise ConfigError(f"train.strategy {self.train.strategy!r} is not auto, ddp or deepspeed_zero2")
+        d = self.dagger
+        if not 1 <= d.chunk_min <= d.chunk_max:
+            raise ConfigError(
+                f"dagger.chunk_min/chunk_max must satisfy 1 <= min <= max, got {d.chunk_min}, {d.chunk_max}"
+            )
+        for name in ("model_probability", "final_model_probability"):
+            if not 0.0 <= getattr(d, name) <= 1.0:
+                raise ConfigError(f"dagger.{name} must lie in [0, 1], got {getattr(d, name)}")
+        if d.schedule not in ("constant", "linear", "exponential"):
+            raise ConfigError(f"dagger.schedule {d.schedule!r} is not constant, linear or exponential")
+        if d.rounds < 1 or d.episodes_per_round < 1 or d.max_steps < 1 or d.train_steps_per_round < 0:
+            raise ConfigError("dagger.rounds, episodes_per_round, max_steps must be >= 1 (train steps >= 0)")
         if self.model.dtype not in ("float32", "bfloat16", "float16"):
             raise ConfigError(f"model.dtype {self.model.dtype!r} is not float32, bfloat16 or float16")
         return self

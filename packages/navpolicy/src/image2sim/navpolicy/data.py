@@ -156,9 +156,22 @@ def make_sample(
         observations=np.asarray(traj.frames)[idx],
         steps=steps,
         executed=executed,
-        targets=[next_actions(traj.actions, s) for s in steps],
+        targets=[oracle_targets(traj, s) for s in steps],
         episode_id=traj.episode_id,
     )
+
+
+def oracle_targets(traj: Trajectory, step: int) -> tuple[int, ...]:
+    """Labels at ``step``: ``extra["oracle_labels"][step]`` when present (DAgger: the executed
+    ``actions`` may be the model's, the labels are the oracle's), else the next executed actions."""
+    labels = traj.extra.get("oracle_labels") if traj.extra else None
+    if labels is None:
+        return next_actions(traj.actions, step)
+    if len(labels) != len(traj.actions):
+        raise ShardError(
+            f"{traj.episode_id}: extra.oracle_labels has {len(labels)} entries for {len(traj.actions)} steps"
+        )
+    return tuple(int(a) for a in labels[step])
 
 
 # ----------------------------------------------------------------------------------------------- shards
