@@ -57,6 +57,11 @@ def test_save_refuses_to_overwrite_and_load_names_bad_files(tmp_path):
     with pytest.raises(SceneError, match="already exists"):
         scene.save(tmp_path / "s")
     scene.save(tmp_path / "s", overwrite=True)
+    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    manifest["fusion"]["polcy"] = "fixed"
+    (tmp_path / "s" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(SceneError, match="manifest.json.*fusion.polcy"):
+        GaussianScene.load(tmp_path / "s")
     (tmp_path / "s" / "manifest.json").write_text('{"format": "something-else", "version": 1}')
     with pytest.raises(SceneError, match="manifest.json.*format"):
         GaussianScene.load(tmp_path / "s")

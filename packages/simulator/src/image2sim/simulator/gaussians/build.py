@@ -6,6 +6,7 @@ Learned encoders are stored as ``<name>.safetensors`` (weights) next to ``<name>
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -115,7 +116,8 @@ def build_scene(
         ckpt = ckpt if ckpt.suffix == ".safetensors" else next(iter(sorted(ckpt.glob("*.safetensors"))), ckpt)
         enc_info = {"kind": "learned", "checkpoint": str(Path(encoder).resolve()), "sha256": _sha256(ckpt)}
     if net is not None:
-        cfg = net.cfg
+        # The checkpoint brings its encoder (sizes, heads); fusion is a scene-building choice from cfg.
+        cfg = dataclasses.replace(net.cfg, fusion=cfg.fusion)
     h, w = cfg.encoder.height, cfg.encoder.width
     scene = GaussianScene(fusion=cfg.fusion)
     camera = None

@@ -71,8 +71,6 @@ def build_scene_command(
             raise SceneError(f"{out}: already exists (pass --overwrite)")
         t0 = time.perf_counter()
         scene = build_scene(capture, cfg, encoder=encoder, frames=_parse_frames(frames), progress=True)
-        if encoder != "identity":
-            scene.fusion = fusion  # the checkpoint's config brings its own; CLI overrides still win
         elapsed = time.perf_counter() - t0
         scene.save(out, overwrite=overwrite)
         if ply:

@@ -196,9 +196,12 @@ class GaussianScene:
             gaussians = GaussianSet(**{k: tensors[k] for k in _TENSORS})
         except ValueError as exc:
             raise SceneError(f"{st_path}: {exc}") from None
-        fusion = FusionConfig(
-            **{k: (tuple(v) if isinstance(v, list) else v) for k, v in manifest.get("fusion", {}).items()}
-        )
+        from image2sim.simulator.gaussians.config import ConfigError, _build
+
+        try:
+            fusion = _build(FusionConfig, manifest.get("fusion", {}), "fusion")
+        except ConfigError as exc:
+            raise SceneError(f"{man_path}: {exc}") from None
         info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "config")}
         return cls(fusion=fusion, gaussians=gaussians, frames=list(manifest.get("frames", [])), info=info)
 
