@@ -151,6 +151,9 @@ def nav_cmd(
     metrics: Annotated[Path, typer.Option(help="Headline metrics file to update.")] = Path(
         "metrics/nav.json"
     ),
+    wandb: Annotated[
+        bool, typer.Option(help="Also log the headline metrics to W&B (offline by default).")
+    ] = False,
 ) -> None:
     """Run agents on navigation episodes (resumes an interrupted run) and update metrics/nav.json."""
     from image2sim.eval.metrics.nav import aggregate
@@ -201,6 +204,11 @@ def nav_cmd(
         rows.append((name, report))
     typer.echo(nav_table_markdown(rows))
     typer.echo(f"updated {metrics}")
+    if wandb:
+        from image2sim.eval.tracking import log_metrics_wandb
+
+        run_dir = log_metrics_wandb(json.loads(metrics.read_text()), "nav", stage="eval_nav")
+        typer.echo(f"W&B run: {run_dir}")
 
 
 @app.command("render")
@@ -231,6 +239,9 @@ def render_cmd(
     threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
     out: Annotated[Path, typer.Option(help="Headline metrics file.")] = Path("metrics/render.json"),
     plot: Annotated[Path | None, typer.Option(help="Speed-vs-PSNR PNG.")] = Path("plots/render_speed.png"),
+    wandb: Annotated[
+        bool, typer.Option(help="Also log the headline metrics to W&B (offline by default).")
+    ] = False,
 ) -> None:
     """The paper's Table-1 protocol: splat-only vs 1/2/4/8-step pixel flow on held-out panoramas."""
     from image2sim.eval.plots import plot_speed_vs_error
@@ -262,3 +273,7 @@ def render_cmd(
     typer.echo(f"wrote {out}")
     if plot is not None:
         typer.echo(f"wrote {plot_speed_vs_error(doc, plot)}")
+    if wandb:
+        from image2sim.eval.tracking import log_metrics_wandb
+
+        typer.echo(f"W&B run: {log_metrics_wandb(doc, 'render', stage='eval_render')}")
