@@ -34,14 +34,13 @@ def test_adapter_matches_direct_condition_and_render(renderer):
     from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.renderer.condition import build_condition
 
-    out = _splat(32, 64)
+    out = _splat(16, 32)
     got = PixelFlowAdapter(renderer, seed=3)(out)
-    cond = build_condition(out.features, out.rgb, out.depth, out.alpha, EquirectCamera(32, 64).ray_map())
+    cond = build_condition(out.features, out.rgb, out.depth, out.alpha, EquirectCamera(16, 32).ray_map())
     with torch.no_grad():
         want = renderer.render(cond, generator=torch.Generator().manual_seed(3)).rgb
-    assert got.shape == (1, 3, 32, 64)
-    torch.testing.assert_close(got, want)
-    torch.testing.assert_close(PixelFlowAdapter(renderer, seed=3)(out), got)  # same pose, same image
+    assert got.shape == (1, 3, 16, 32)
+    torch.testing.assert_close(got, want)  # fresh generator per call: the same splat renders the same image
 
 
 def test_adapter_refuses_non_panoramic_splats(renderer):

@@ -97,11 +97,11 @@ OBJECTS = [
 
 def test_plans_respect_buckets_radii_and_walls(world):
     m, g, planner = world
-    plans, stats = sample_plans(g, planner, OBJECTS, 40, SamplingConfig(), np.random.default_rng(0))
-    assert len(plans) >= 30, stats
+    plans, stats = sample_plans(g, planner, OBJECTS, 24, SamplingConfig(), np.random.default_rng(0))
+    assert len(plans) >= 18, stats
     buckets = {b.name: b for b in DEFAULT_BUCKETS}
     for k, p in enumerate(plans):
-        if k < 8:  # the planner's own query (slow on this dense graph): spot-check
+        if k < 4:  # the planner's own query (slow on this dense graph): spot-check
             geo, why = planner.geodesic_distance(p.start, p.goal)
             assert not why and geo == pytest.approx(p.geodesic_distance, abs=1e-9)
         if p.bucket != "fallback":
@@ -112,13 +112,13 @@ def test_plans_respect_buckets_radii_and_walls(world):
         if p.goal_object["category"] == "cup":
             # Beside the cup, or through the door: never straight behind the wall (x > 4, y < 1.2).
             assert not (p.goal[0] > 4.0 and p.goal[1] < 1.2), p.goal
-            if k < 8:
+            if k < 4:
                 near_cup = np.array([3.75, 0.5, p.goal[2]])
                 assert planner.geodesic_distance(p.goal, near_cup)[0] <= 1.5 + 0.1
     assert stats["stand_rejected_geodesic"] > 0  # the far-side cells were seen and rejected
     assert {p.bucket for p in plans} >= {"short", "medium"}
     # Seeded: the same generator state gives the same plans.
-    again, _ = sample_plans(g, planner, OBJECTS, 40, SamplingConfig(), np.random.default_rng(0))
+    again, _ = sample_plans(g, planner, OBJECTS, 24, SamplingConfig(), np.random.default_rng(0))
     assert all(
         np.array_equal(a.start, b.start) and np.array_equal(a.goal, b.goal)
         for a, b in zip(plans, again, strict=True)
