@@ -93,18 +93,18 @@ def identity_gaussians(frame: FrameInputs, cfg: GaussianConfig) -> GaussianSet:
     foot = pixel_footprint(depth, camera).reshape(-1)[valid]
     sigma = (foot * cfg.encoder.scale_init).clamp(cfg.encoder.scale_min, cfg.encoder.scale_max)
     n = pts.shape[0]
-    quats = torch.zeros(n, 4, dtype=depth.dtype)
+    quats = torch.zeros(n, 4, dtype=depth.dtype, device=depth.device)
     quats[:, 0] = 1.0
     return GaussianSet(
         means=pts,
         scales=sigma[:, None].expand(n, 3).contiguous(),
         quats=quats,
-        opacities=torch.ones(n, dtype=depth.dtype),
+        opacities=torch.ones(n, dtype=depth.dtype, device=depth.device),
         colors=_flatten(frame.rgb)[valid].clamp(0, 1),
-        features=torch.zeros(n, 0, dtype=depth.dtype),
+        features=torch.zeros(n, 0, dtype=depth.dtype, device=depth.device),
         footprints=foot,
-        weights=torch.ones(n, dtype=depth.dtype),
-        levels=torch.zeros(n, dtype=torch.int64),
+        weights=torch.ones(n, dtype=depth.dtype, device=depth.device),
+        levels=torch.zeros(n, dtype=torch.int64, device=depth.device),
     )
 
 
@@ -286,8 +286,8 @@ def pixel_maps_to_gaussians(
                 colors=colors[b][m],
                 features=feats[b][m],
                 footprints=foot[b][m],
-                weights=torch.ones(n, dtype=dtype),
-                levels=torch.zeros(n, dtype=torch.int64),
+                weights=torch.ones(n, dtype=dtype, device=rgb.device),
+                levels=torch.zeros(n, dtype=torch.int64, device=depth.device),
             )
         )
     return out

@@ -33,7 +33,7 @@ def cell_sizes(cfg: FusionConfig) -> list[float]:
 def assign_levels(footprints: torch.Tensor, cfg: FusionConfig) -> torch.Tensor:
     """Initial level per Gaussian: nearest power of two of footprint_factor x footprint / base_voxel."""
     if cfg.policy == "fixed":
-        return torch.zeros(footprints.shape, dtype=torch.int64)
+        return torch.zeros(footprints.shape, dtype=torch.int64, device=footprints.device)
     target = (footprints.double() * cfg.footprint_factor / cfg.base_voxel).clamp_min(1e-30)
     return torch.round(torch.log2(target)).clamp(0, cfg.levels - 1).to(torch.int64)
 
@@ -93,7 +93,7 @@ def _settle_levels(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]
         for L in present[1:]:
             inverse, m = groups[L]
             # Coarser members count as L, which is neutral for the minimum.
-            best = torch.full((m,), L, dtype=torch.int64)
+            best = torch.full((m,), L, dtype=torch.int64, device=levels.device)
             best.scatter_reduce_(0, inverse, levels.clamp_max(L), reduce="amin", include_self=True)
             new = best[inverse]
             move = (levels == L) & (new < L)
@@ -134,35 +134,40 @@ def _fuse(gaussians: GaussianSet, cfg: FusionConfig) -> GaussianSet:
     if n == 0:
         return gaussians
     g = gaussians.detach()
+    dev = g.means.device
     if not torch.isfinite(g.means).all():
         raise ValueError("fuse: Gaussian means contain NaN/inf; drop them before fusion")
     sizes = cell_sizes(cfg)
     levels = g.levels.clamp(0, len(sizes) - 1)
     if cfg.policy == "footprint":
         levels = _settle_levels(g.means, levels, sizes)
-    size_of = torch.tensor(sizes, dtype=torch.float64)[levels]
+    size_of = torch.tensor(sizes, dtype=torch.float64, device=dev)[levels]
     keys = torch.floor(g.means.double() / size_of[:, None]).to(torch.int64)
     inverse, counts = _unique(levels, keys)
     m = counts.shape[0]
     w = g.weights.double()
-    wsum = torch.zeros(m, dtype=torch.float64).index_add_(0, inverse, w)
+    wsum = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, inverse, w)
 
     def mean_of(values: torch.Tensor) -> torch.Tensor:
         v = values.double().reshape(n, -1)
-        acc = torch.zeros(m, v.shape[1], dtype=torch.float64).index_add_(0, inverse, v * w[:, None])
+        acc = torch.zeros(m, v.shape[1], dtype=torch.float64, device=dev).index_add_(
+            0, inverse, v * w[:, None]
+        )
         return (acc / wsum[:, None]).reshape(m, *values.shape[1:]).to(values.dtype)
 
-    first = torch.full((m,), n, dtype=torch.int64)
-    first.scatter_reduce_(0, inverse, torch.arange(n), reduce="amin", include_self=True)
+    first = torch.full((m,), n, dtype=torch.int64, device=dev)
+    first.scatter_reduce_(0, inverse, torch.arange(n, device=dev), reduce="amin", include_self=True)
     q = g.quats
     ref = q[first][inverse]
     sign = torch.where((q * ref).sum(dim=1, keepdim=True) < 0, -1.0, 1.0).to(q.dtype)
     qm = mean_of(q * sign).double()
     qm = (qm / torch.linalg.vector_norm(qm, dim=1, keepdim=True).clamp_min(1e-300)).to(q.dtype)
-    out_levels = torch.zeros(m, dtype=torch.int64).scatter_(0, inverse, levels)
+    out_levels = torch.zeros(m, dtype=torch.int64, device=dev).scatter_(0, inverse, levels)
     scales = mean_of(g.scales)
     if cfg.cover_factor > 0:
-        floor = (torch.tensor(sizes, dtype=torch.float64)[out_levels] * cfg.cover_factor).to(scales.dtype)
+        floor = (torch.tensor(sizes, dtype=torch.float64, device=dev)[out_levels] * cfg.cover_factor).to(
+            scales.dtype
+        )
         # Only merged cells need the floor: a single observation keeps its own (e.g. learned) scale.
         floor = torch.where(counts > 1, floor, torch.zeros_like(floor))
         scales = torch.maximum(scales, floor[:, None])
