@@ -447,6 +447,18 @@ AGENTS: dict[str, Callable[..., Any]] = {
 """Agent registry."""
 
 
+def _forward_turn_agent(**options: Any) -> Any:
+    """navpolicy's forward-until-collision-then-turn baseline (one implementation, imported lazily)."""
+    try:
+        from image2sim.navpolicy.baselines import ForwardTurnAgent
+    except ImportError as exc:
+        raise RunnerError(f"the forward_turn agent needs image2sim-navpolicy installed ({exc})") from exc
+    return ForwardTurnAgent(**options)
+
+
+AGENTS["forward_turn"] = _forward_turn_agent
+
+
 def make_agent(spec: AgentSpec) -> Any:
     """Build an agent from its spec; unknown names and options are errors naming them."""
     if spec.name not in AGENTS:

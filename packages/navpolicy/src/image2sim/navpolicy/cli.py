@@ -116,14 +116,21 @@ def train_cmd(
     threads: Annotated[
         int, typer.Option(help="torch threads (0 = torch default; tiny models prefer 1).")
     ] = 0,
+    init: Annotated[
+        str, typer.Option(help="dagger: policy to start from (exported folder, e.g. the BC export).")
+    ] = "",
+    scenes: Annotated[int, typer.Option(help="dagger: procedural scenes to roll out in.")] = 2,
+    tasks_per_scene: Annotated[int, typer.Option(help="dagger: start/goal pairs per scene.")] = 16,
+    scene_seed: Annotated[int, typer.Option(help="dagger: seed of the first procedural scene.")] = 100,
 ) -> None:
-    """Train the policy. Writes config.json, CSV/W&B logs, checkpoints and a merged export."""
+    """Train the policy. Writes config.json, CSV/W&B logs, checkpoints and a merged export.
+
+    ``--stage dagger`` runs online DAgger (``dagger`` section of the config) in NeuralSimulators on
+    procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
+    """
     if stage == "dagger":
-        raise typer.BadParameter(
-            "online DAgger needs the NeuralSimulator rollout loop, which this build "
-            "does not include yet; run --stage bc",
-            param_hint="--stage",
-        )
+        _train_dagger(config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed)
+        return
     if stage != "bc":
         raise typer.BadParameter(f"unknown stage {stage!r}; use bc or dagger", param_hint="--stage")
     overrides: dict = {}
@@ -158,6 +165,83 @@ def train_cmd(
             indent=2,
         )
     )
+
+
+def _train_dagger(config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed) -> None:
+    import torch
+
+    overrides: dict = {}
+    if shards:
+        overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
+    if max_steps:
+        overrides.setdefault("dagger", {})["train_steps_per_round"] = max_steps
+    if init:
+        if not Path(init).is_dir():
+            typer.echo(f"error: --init {init}: no such model folder", err=True)
+            raise typer.Exit(2)
+        overrides.setdefault("model", {})["source"] = str(init)
+    cfg = _config(config, overrides)
+    if threads:
+        torch.set_num_threads(threads)
+    from image2sim.navpolicy.dagger import procedural_scenes, run_dagger
+    from image2sim.navpolicy.data import ShardError, ShardReader
+
+    base = []
+    if cfg.dagger.include_bc_data:
+        try:
+            for sh in cfg.data.shards:
+                reader = ShardReader(sh)
+                base.extend(reader[i] for i in range(len(reader)))
+        except ShardError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+    sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed)
+    res = run_dagger(cfg, sc, out, base_trajectories=base)
+    ends: dict[str, int] = {}
+    for e in res.episodes:
+        ends[e["end"]] = ends.get(e["end"], 0) + 1
+    typer.echo(
+        json.dumps(
+            {
+                "out_dir": str(res.out_dir),
+                "episodes": len(res.episodes),
+                "episode_ends": ends,
+                "dataset_sizes": res.dataset_sizes,
+                "final_loss": res.losses[-1][-1] if res.losses and res.losses[-1] else None,
+                "export": str(res.export_dir),
+            },
+            indent=2,
+        )
+    )
+
+
+@app.command("act")
+def act_cmd(
+    agent: Annotated[
+        str, typer.Option(help="image2nav, random, forward, forward_turn or oracle.")
+    ] = "image2nav",
+    model: Annotated[str, typer.Option(help="image2nav: exported policy folder or 'tiny'.")] = "tiny",
+    config: Annotated[str, typer.Option(help="Preset or YAML (observation and agent settings).")] = "tiny",
+    scene_seed: Annotated[int, typer.Option(help="Procedural scene seed.")] = 1000,
+    episode: Annotated[int, typer.Option(help="Episode index on that scene.")] = 0,
+    max_steps: Annotated[int, typer.Option(help="Step limit.")] = 200,
+    success_distance: Annotated[float, typer.Option(help="Success radius (metres).")] = 0.5,
+    seed: Annotated[int, typer.Option(help="Episode seed (random baselines, model).")] = 0,
+    out: Annotated[Path, typer.Option(help="Output folder (topdown.png, frames/, episode.json).")] = Path(
+        "outputs/nav-act"
+    ),
+) -> None:
+    """Run one agent on one episode of a procedural scene; write a top-down trajectory PNG, the
+    observed frames and the episode's metrics (through the evaluation runner)."""
+    from image2sim.navpolicy.act import run_act
+
+    cfg = _config(config, {"model": {"source": model}} if model != "tiny" else None)
+    try:
+        rec = run_act(cfg, agent, out, scene_seed, episode, max_steps, success_distance, seed)
+    except (ValueError, FileNotFoundError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(json.dumps(rec, indent=2))
 
 
 @app.command("replay")

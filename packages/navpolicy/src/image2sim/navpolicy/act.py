@@ -1,0 +1,162 @@
+"""``image2sim nav act``: one agent, one episode, a top-down trajectory PNG and the frames.
+
+The episode runs through the evaluation runner (:func:`image2sim.eval.runner.run_episode` on a
+:class:`~image2sim.eval.runner.NeuralSimBackend`), so its metrics are the harness's; a recording
+backend keeps the map-frame positions and renders a frame at every visited state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+from image2sim.navpolicy.config import NavPolicyConfig
+
+
+def act_protocol(cfg: NavPolicyConfig, max_steps: int, success_distance: float):
+    """The paper's protocol with the policy's camera, a step limit and a success radius that fits
+    the small procedural rooms (the paper's 3 m would count most starts as successes)."""
+    from image2sim.eval.protocols import IMAGE2SIM, CameraSpec
+
+    o = cfg.observation
+    if o.camera != "pinhole":
+        raise ValueError(f"observation.camera {o.camera!r}: nav act renders pinhole observations only")
+    return dataclasses.replace(
+        IMAGE2SIM,
+        name="nav-act",
+        max_steps=int(max_steps),
+        success_distance_m=float(success_distance),
+        ndtw_threshold_m=float(success_distance),
+        camera=CameraSpec("pinhole", o.width, o.height, o.hfov_deg, o.vfov_deg),
+    )
+
+
+def make_agent(cfg: NavPolicyConfig, name: str):
+    """The runner agent called ``name``: ``image2nav`` (the policy of ``cfg.model``) or a baseline."""
+    if name == "image2nav":
+        from image2sim.eval.runner import Image2NavAdapter
+        from image2sim.navpolicy.agent import Image2NavAgent
+        from image2sim.navpolicy.model import build_policy
+
+        policy = build_policy(cfg, seed=cfg.train.seed)
+        policy.model.eval()
+        return Image2NavAdapter.from_agent(Image2NavAgent(policy, cfg.agent, cfg.system_prompt))
+    from image2sim.navpolicy.baselines import make_baseline
+
+    return make_baseline(name)
+
+
+def task_episodes(sim, n: int, seed: int, scene_id: str, min_distance: float = 1.5):
+    """Runner episodes from :func:`image2sim.navpolicy.dagger.sample_tasks` (same instructions as
+    DAgger's rollouts: the goal relative to the start pose)."""
+    from image2sim.eval.datasets import Instruction, NavEpisode
+    from image2sim.navpolicy.dagger import sample_tasks
+
+    out = []
+    for t in sample_tasks(sim, n, np.random.default_rng([seed, 2]), min_distance, scene_id):
+        path = sim.planner.shortest_path(t.start, t.goal)
+        h = t.heading
+        out.append(
+            NavEpisode(
+                episode_id=t.episode_id,
+                scene_id=scene_id,
+                start_position=np.asarray(sim.navmap.to_world(t.start), float).reshape(3),
+                start_rotation=np.array([np.cos(h / 2), 0.0, 0.0, np.sin(h / 2)]),
+                start_heading=h,
+                goal_position=np.asarray(sim.navmap.to_world(t.goal), float).reshape(3),
+                goal_radius=None,
+                geodesic_distance=float(path.length),
+                reference_path=np.asarray(sim.navmap.to_world(path.waypoints), float).reshape(-1, 3),
+                instruction=Instruction(text=t.instruction),
+            )
+        )
+    return out
+
+
+def topdown_png(sim, positions: np.ndarray, goal: np.ndarray, radius: float, path: Path, title: str) -> Path:
+    """Navigable nodes (grey), the trajectory (blue, start green), goal and success radius (red)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    nodes = np.asarray(sim.graph.nodes)
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=100)
+    ax.scatter(nodes[:, 0], nodes[:, 1], s=2, c="0.8", marker="s", linewidths=0)
+    ax.plot(positions[:, 0], positions[:, 1], "-", c="tab:blue", lw=1.5)
+    ax.plot(positions[0, 0], positions[0, 1], "o", c="tab:green", ms=7, label="start")
+    ax.plot(positions[-1, 0], positions[-1, 1], "x", c="tab:blue", ms=7, label="end")
+    ax.plot(goal[0], goal[1], "*", c="tab:red", ms=11, label="goal")
+    ax.add_patch(plt.Circle((goal[0], goal[1]), radius, fill=False, ec="tab:red", ls="--"))
+    ax.set_aspect("equal")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="best", fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def run_act(
+    cfg: NavPolicyConfig,
+    agent_name: str,
+    out: str | Path,
+    scene_seed: int = 1000,
+    episode_index: int = 0,
+    max_steps: int = 200,
+    success_distance: float = 0.5,
+    seed: int = 0,
+) -> dict:
+    """Run ``agent_name`` on episode ``episode_index`` of procedural scene ``scene_seed``; writes
+    ``topdown.png``, ``frames/NNNN.png`` and ``episode.json`` under ``out``; returns the record."""
+    from image2sim.eval.runner import NeuralSimBackend, embodiment_for, run_episode
+    from image2sim.navpolicy.dagger import procedural_simulator
+    from PIL import Image
+
+    proto = act_protocol(cfg, max_steps, success_distance)
+    sim = procedural_simulator(scene_seed, "tiny", embodiment_for(proto))
+    scene_id = f"procedural-tiny-{scene_seed:03d}"
+    episodes = task_episodes(sim, episode_index + 1, scene_seed, scene_id)
+    ep = episodes[episode_index]
+
+    class Recording(NeuralSimBackend):
+        """Renders every visited state and keeps map-frame positions."""
+
+        def _obs(self, info, collided, observe):
+            o = super()._obs(info, collided, True)
+            self.positions.append(np.array(info["position"][0], dtype=np.float64))
+            self.frames.append(o.rgb)
+            return o
+
+    backend = Recording(sim, proto, scene_id)
+    backend.positions, backend.frames = [], []
+    agent = make_agent(cfg, agent_name)
+    result, actions = run_episode(backend, agent, ep, proto, seed)
+    outp = Path(out)
+    (outp / "frames").mkdir(parents=True, exist_ok=True)
+    # Frame i is the observation at visited state i (reset, then after every non-STOP action).
+    for i, f in enumerate(backend.frames):
+        Image.fromarray(f).save(outp / "frames" / f"{i:04d}.png")
+    pos = np.array(backend.positions)
+    goal_map = np.asarray(sim.navmap.to_map(ep.goal_position), float).reshape(3)
+    m = result.metrics
+    title = f"{agent_name} on {ep.episode_id}: success={m.get('success')} spl={m.get('spl', 0) or 0:.2f}"
+    png = topdown_png(sim, pos, goal_map, success_distance, outp / "topdown.png", title)
+    rec = {
+        "agent": agent_name,
+        "episode_id": ep.episode_id,
+        "instruction": ep.instruction.text,
+        "actions": actions,
+        "metrics": dict(m),
+        "topdown": str(png),
+        "frames": len(backend.frames),
+    }
+    tmp = outp / "episode.json.tmp"
+    tmp.write_text(json.dumps(rec, indent=2, default=float))
+    tmp.replace(outp / "episode.json")
+    return rec
