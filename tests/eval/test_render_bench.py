@@ -206,3 +206,54 @@ def test_cli_render_then_report(tmp_path):
     md = (tmp_path / "rep" / "render.md").read_text()
     assert "| splat_only |" in md and "PSNR↑ (none)" in md and "untrained" in md
     assert (tmp_path / "rep" / "render_speed.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.fixture(scope="module")
+def tiny_capture(tmp_path_factory):
+    """A tiny procedural capture on disk (4 equirect frames, 64 x 128)."""
+    from image2sim.dataengine.procedural import generate_scene, preset, write_scene
+
+    out = tmp_path_factory.mktemp("captures") / "scene_000"
+    write_scene(generate_scene(preset("tiny"), seed=0), out)
+    return out
+
+
+def test_splat_samples_hold_out_the_renderer_split_and_splat_the_other_frames(tiny_capture):
+    from image2sim.eval.render_bench import splat_samples
+    from image2sim.simulator.renderer.config import CONDITION_FEATURES
+
+    samples = splat_samples([tiny_capture], 32, 64, holdout_every=4)
+    assert [s["index"] for s in samples] == [3]  # frames 0-2 build the Gaussians, frame 3 is held out
+    s = samples[0]
+    cond = s["condition"]
+    assert cond.shape == (24, 32, 64) and torch.isfinite(cond).all()
+    assert (cond[:CONDITION_FEATURES] == 0).all()  # identity Gaussians carry no features
+    alpha = cond[CONDITION_FEATURES + 4]
+    assert 0.2 < float(alpha.mean()) <= 1.0  # the neighbouring frames cover much of the held-out view
+    # Where the splat covers the view, its expected range agrees with the held-out target's. Measured:
+    # 7.6 % median relative error here; the tiny Gaussian preset shows 8.7 % even on a training view.
+    covered = (alpha > 0.9) & (s["target_depth"][0] > 0)
+    rel = (cond[CONDITION_FEATURES + 3][covered] - s["target_depth"][0][covered]).abs() / s["target_depth"][
+        0
+    ][covered]
+    assert float(rel.median()) < 0.15
+    with pytest.raises(RenderBenchError, match="gaussians"):
+        RenderBenchConfig(condition_source="gaussians")
+    with pytest.raises(RenderBenchError, match="tier_data"):
+        RenderBenchConfig(tier_data={"none": ["x"]})
+
+
+@pytest.mark.slow
+def test_run_render_bench_on_splatted_gaussians(tiny_capture, tmp_path):
+    bench = RenderBenchConfig(
+        condition_source="gaussians",
+        tier_data={"none": [str(tiny_capture)]},
+        holdout_every=4,
+        steps=[1],
+        warmup=0,
+        runs=1,
+    )
+    doc = run_render_bench(bench, tmp_path / "render.json", show_progress=False)
+    assert doc["protocol"]["condition_source"].startswith("gaussians")
+    assert doc["protocol"]["held_out_views"] == 1 and set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert doc["methods"]["splat_only"]["n_views"] == 1 and doc["methods"]["splat_only"]["psnr"] > 10

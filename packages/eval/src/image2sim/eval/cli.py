@@ -233,6 +233,13 @@ def render_cmd(
         list[str],
         typer.Option(help="SWITCH=CHECKPOINT of an ablation model (no_semantic, no_alpha_gate, no_distill)."),
     ] = [],  # noqa: B006
+    condition_source: Annotated[
+        str, typer.Option(help="degraded (renderer's degradations) or gaussians (splat identity Gaussians).")
+    ] = "degraded",
+    tier_data: Annotated[
+        list[str], typer.Option(help="gaussians: TIER=CAPTURE (repeatable), captures at that noise tier.")
+    ] = [],  # noqa: B006
+    gaussian_config: Annotated[str, typer.Option(help="gaussians: Gaussian scene preset or file.")] = "tiny",
     lpips_weights: Annotated[Path | None, typer.Option(help="LPIPS weights (safetensors).")] = None,
     warmup: Annotated[int, typer.Option(help="Untimed warm-up calls before FPS timing.")] = 2,
     runs: Annotated[int, typer.Option(help="Timed calls (FPS = 1 / median).")] = 5,
@@ -253,7 +260,16 @@ def render_cmd(
             raise typer.BadParameter(f"--ablation {item!r}: expected SWITCH=CHECKPOINT")
         k, v = item.split("=", 1)
         abl[k] = v
+    tiers_data: dict[str, list[str]] = {}
+    for item in tier_data:
+        if "=" not in item:
+            raise typer.BadParameter(f"--tier-data {item!r}: expected TIER=CAPTURE")
+        k, v = item.split("=", 1)
+        tiers_data.setdefault(k, []).append(v)
     bench = RenderBenchConfig(
+        condition_source=condition_source,
+        tier_data=tiers_data,
+        gaussian_config=gaussian_config,
         renderer_config=config,
         checkpoint=str(checkpoint) if checkpoint else None,
         data=[str(d) for d in data],

@@ -44,6 +44,8 @@ __all__ = [
     "load_renderer",
     "method_record",
     "render_markdown",
+    "splat_condition",
+    "splat_samples",
     "run_render_bench",
 ]
 
@@ -93,6 +95,15 @@ class RenderBenchConfig:
     """Noise tiers to evaluate (keys of :data:`NOISE_TIERS`)."""
     ablations: dict[str, str] = field(default_factory=dict)
     """Ablation switch -> checkpoint trained with it (scored at one step as ``ablation_<switch>``)."""
+    condition_source: str = "degraded"
+    """``degraded``: the renderer's splat-like degradations of the targets, noise per tier;
+    ``gaussians``: identity Gaussian scenes built from each capture's training frames, splatted at
+    the held-out poses (the tier is the capture's own noise, see ``tier_data``)."""
+    tier_data: dict[str, list[str]] = field(default_factory=dict)
+    """``gaussians`` source: tier name -> capture folders captured at that noise tier (e.g. the
+    procedural ``--noise none/middle/high`` captures); empty = ``data`` as one tier ``capture``."""
+    gaussian_config: str = "tiny"
+    """``gaussians`` source: Gaussian scene preset or YAML/JSON."""
     lpips_weights: str | None = None
     """LPIPS weight file (safetensors); None = LPIPS reported as n/a."""
     warmup: int = 2
@@ -109,9 +120,19 @@ class RenderBenchConfig:
             raise RenderBenchError(f"holdout_every must be >= 1, got {self.holdout_every}")
         if not self.steps or any(int(s) < 1 for s in self.steps):
             raise RenderBenchError(f"steps must be positive integers, got {self.steps}")
-        unknown = [t for t in self.tiers if t not in NOISE_TIERS]
-        if unknown or not self.tiers:
-            raise RenderBenchError(f"tiers: unknown {unknown} (known: {list(NOISE_TIERS)})")
+        if self.condition_source not in ("degraded", "gaussians"):
+            raise RenderBenchError(
+                f"condition_source must be 'degraded' or 'gaussians', got {self.condition_source!r}"
+            )
+        if self.condition_source == "gaussians":
+            if not (self.tier_data or self.data):
+                raise RenderBenchError("condition_source 'gaussians' needs captures (data or tier_data)")
+        else:
+            unknown = [t for t in self.tiers if t not in NOISE_TIERS]
+            if unknown or not self.tiers:
+                raise RenderBenchError(f"tiers: unknown {unknown} (known: {list(NOISE_TIERS)})")
+            if self.tier_data:
+                raise RenderBenchError("tier_data is only used with condition_source 'gaussians'")
         bad = [a for a in self.ablations if a not in ABLATIONS]
         if bad:
             raise RenderBenchError(f"ablations: unknown switch(es) {bad} (known: {list(ABLATIONS)})")
@@ -178,6 +199,78 @@ def _tier_samples(held: list, tier: str, seed: int, max_views: int | None) -> li
     dcfg = DegradeConfig(seed=seed, **dict(NOISE_TIERS[tier]))
     ds = DegradedPanoramaDataset(held[:n], n, dcfg)
     return [ds[i] for i in range(n)]
+
+
+def splat_condition(scene_gaussians: Any, camera: Any, cam_to_world: Any) -> torch.Tensor:
+    """The 24-channel condition ``(24, H, W)`` of a Gaussian set splatted at one pose.
+
+    Expected colour / range come from :func:`~image2sim.simulator.renderer.condition.unpremultiply`;
+    features are the scene's when it carries the renderer's 16 channels, else zeros (identity
+    Gaussians carry none).
+    """
+    from image2sim.simulator.renderer.condition import build_condition, unpremultiply
+    from image2sim.simulator.renderer.config import CONDITION_FEATURES
+    from image2sim.simulator.splatting import splat
+
+    g = scene_gaussians
+    pose = torch.as_tensor(cam_to_world, dtype=g.means.dtype)
+    feats = g.features if g.features is not None and g.features.shape[-1] == CONDITION_FEATURES else None
+    with torch.no_grad():
+        out = splat(g.means, g.scales, g.quats, g.opacities, g.colors, feats, camera, pose, background=0.0)
+    rgb, depth = unpremultiply(out.rgb, out.depth, out.alpha, background=0.0)
+    f = (
+        out.features
+        if feats is not None
+        else rgb.new_zeros(rgb.shape[0], CONDITION_FEATURES, *rgb.shape[-2:])
+    )
+    return build_condition(
+        f.float(), rgb.float(), depth.float(), out.alpha.float(), camera.ray_map(torch.float32)
+    )[0]
+
+
+def splat_samples(
+    captures: Sequence[str | Path],
+    height: int,
+    width: int,
+    holdout_every: int,
+    gaussian_config: str = "tiny",
+    max_views: int | None = None,
+    start_index: int = 0,
+) -> list[dict]:
+    """Held-out views of ``captures`` with conditions splatted from Gaussians of the other frames.
+
+    Frame ``k`` (counted over the captures in order, from ``start_index``) is held out when
+    ``k % holdout_every == holdout_every - 1``: the split of ``sim train`` / ``sim renderer-eval``.
+    Each capture's Gaussians are built (identity encoder) from its own non-held-out frames only.
+    """
+    from image2sim.simulator.gaussians import build_scene
+    from image2sim.simulator.gaussians.config import load_gaussian_config
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.io.registry import open_capture
+    from image2sim.simulator.renderer.data import load_capture_targets
+
+    gcfg = load_gaussian_config(gaussian_config)
+    camera = EquirectCamera(height, width)
+    samples: list[dict] = []
+    k = start_index
+    for path in captures:
+        targets = load_capture_targets(path, height, width)
+        held = [i for i in range(len(targets)) if (k + i) % holdout_every == holdout_every - 1]
+        train = [i for i in range(len(targets)) if i not in set(held)]
+        base, k = k, k + len(targets)
+        if not held:
+            continue
+        if not train:
+            raise RenderBenchError(f"{path}: every frame is held out; no frames left to build Gaussians from")
+        scene = build_scene(path, gcfg, encoder="identity", frames=train)
+        capture = open_capture(path)
+        for i in held:
+            if max_views is not None and len(samples) >= max_views:
+                return samples
+            rgb, depth = targets[i]
+            cond = splat_condition(scene.gaussians, camera, capture[i].cam_to_world)
+            samples.append({"condition": cond, "target_rgb": rgb, "target_depth": depth, "index": base + i})
+    return samples
 
 
 def benchmark_methods(
@@ -277,19 +370,44 @@ def run_render_bench(
 
     torch.set_num_threads(bench.threads)
     cfg = load_renderer_config(bench.renderer_config)
-    targets = _targets([Path(d) for d in bench.data], cfg.height, cfg.width, bench.max_frames)
-    _, held = _split(targets, bench.holdout_every)
-    if not held:
-        raise RenderBenchError(
-            f"no held-out views: {len(targets)} targets with holdout_every={bench.holdout_every}"
-        )
+    held: list = []
+    if bench.condition_source == "degraded":
+        targets = _targets([Path(d) for d in bench.data], cfg.height, cfg.width, bench.max_frames)
+        _, held = _split(targets, bench.holdout_every)
+        if not held:
+            raise RenderBenchError(
+                f"no held-out views: {len(targets)} targets with holdout_every={bench.holdout_every}"
+            )
     lpips_model = None
     if bench.lpips_weights:
         from image2sim.eval.metrics.lpips import load_lpips
 
         lpips_model = load_lpips(bench.lpips_weights)
     methods = _methods(cfg, bench)
-    samples = {t: _tier_samples(held, t, bench.seed, bench.max_views) for t in bench.tiers}
+    if bench.condition_source == "gaussians":
+        tier_data = bench.tier_data or {"capture": list(bench.data)}
+        samples = {
+            t: splat_samples(
+                paths, cfg.height, cfg.width, bench.holdout_every, bench.gaussian_config, bench.max_views
+            )
+            for t, paths in tier_data.items()
+        }
+        empty = [t for t, v in samples.items() if not v]
+        if empty:
+            raise RenderBenchError(
+                f"tier(s) {empty}: no held-out views (holdout_every={bench.holdout_every})"
+            )
+        held_views = sum(len(v) for v in samples.values())
+        tiers_doc: dict[str, Any] = {t: {"captures": list(p)} for t, p in tier_data.items()}
+        source = (
+            f"gaussians: identity Gaussian scenes ({bench.gaussian_config}) of the training frames, "
+            "splatted at the held-out poses"
+        )
+    else:
+        samples = {t: _tier_samples(held, t, bench.seed, bench.max_views) for t in bench.tiers}
+        held_views = len(held)
+        tiers_doc = {t: dict(NOISE_TIERS[t]) for t in bench.tiers}
+        source = "renderer.data.DegradedPanoramaDataset (splat-like degradation of targets)"
     bar = None
     advance = None
     if show_progress:
@@ -319,9 +437,9 @@ def run_render_bench(
             "data": list(bench.data)
             or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
             "holdout_every": bench.holdout_every,
-            "held_out_views": len(held),
-            "tiers": {t: dict(NOISE_TIERS[t]) for t in bench.tiers},
-            "condition_source": "renderer.data.DegradedPanoramaDataset (splat-like degradation of targets)",
+            "held_out_views": held_views,
+            "tiers": tiers_doc,
+            "condition_source": source,
             "fps": {
                 "warmup": bench.warmup,
                 "runs": bench.runs,
