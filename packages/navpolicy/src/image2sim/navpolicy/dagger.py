@@ -390,6 +390,8 @@ class DaggerResult:
     losses: list[list[float]]
     """Training losses per round."""
     export_dir: Path | None
+    seen: list[list[str]] = field(default_factory=list)
+    """Episode ids trained on in each round (flattened over batches)."""
 
 
 def _append_jsonl(path: Path, rec: dict) -> None:
@@ -437,7 +439,7 @@ def run_dagger(
     pool = [(s, t) for s in scenes for t in s.tasks]
     order = np.random.default_rng([dc.seed, 1]).permutation(len(pool))
     aggregated = list(base_trajectories)
-    logs, sizes, losses = [], [], []
+    logs, sizes, losses, seen = [], [], [], []
     k = 0
     for r in range(dc.rounds):
         p = mixing_probability(dc, r)
@@ -487,14 +489,16 @@ def run_dagger(
             )
             res = train_bc(rc, out / f"round_{r:02d}" / "train", dataset=ds, export=False, policy=policy)
             losses.append(list(res.module.losses))
+            seen.append([i for batch in res.module.seen for i in batch])
         else:
             losses.append([])
+            seen.append([])
     export_dir = export_policy(policy, out / "export") if export else None
     summary = {"dataset_sizes": sizes, "losses": losses, "episodes": len(logs)}
     tmp = out / "summary.json.tmp"
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(out / "summary.json")
-    return DaggerResult(out, logs, sizes, losses, export_dir)
+    return DaggerResult(out, logs, sizes, losses, export_dir, seen)
 
 
 def procedural_scenes(

@@ -1,0 +1,322 @@
+"""Online DAgger: chunk mixing statistics, schedules, oracle labels at visited states, truncation,
+and a tiny end-to-end round on a procedural scene that adds samples and trains on them."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from image2sim.navpolicy.config import ConfigError, DaggerConfig, load_config
+from image2sim.navpolicy.dagger import (
+    MODEL,
+    ORACLE,
+    ChunkMixer,
+    NavTask,
+    OracleLabeler,
+    dagger_rollout,
+    goal_instruction,
+    mixing_probability,
+    run_dagger,
+    sample_tasks,
+)
+from image2sim.navpolicy.data import ShardReader, make_sample
+from image2sim.simulator.conventions import Action
+
+# ------------------------------------------------------------------------------------------ mixing
+
+
+@pytest.mark.parametrize("p, lo, hi", [(0.3, 4, 32), (0.8, 4, 32), (0.5, 2, 5)])
+def test_mixing_statistics_match_the_config(p, lo, hi):
+    from scipy.stats import chisquare
+
+    mixer = ChunkMixer(p, lo, hi, np.random.default_rng(123))
+    steps = [mixer.next() for _ in range(120_000)]
+    chunks = mixer.chunks[:-1]  # the last chunk may be cut by the step budget
+    n = len(chunks)
+    lengths = np.array([c[1] for c in chunks])
+    model = np.array([c[0] == MODEL for c in chunks])
+    # Controller per chunk: Bernoulli(p) (4 standard errors).
+    assert abs(model.mean() - p) < 4 * math.sqrt(p * (1 - p) / n)
+    # Lengths: exactly the integers lo..hi, uniform (chi-square goodness of fit).
+    assert lengths.min() == lo and lengths.max() == hi
+    counts = np.bincount(lengths - lo, minlength=hi - lo + 1)
+    assert chisquare(counts).pvalue > 1e-3
+    # Fraction of model-controlled *steps*: lengths are independent of the controller, so it is p too.
+    frac = np.mean([s == MODEL for s in steps])
+    assert abs(frac - p) < 0.02
+    # The per-step sequence is the chunks laid end to end.
+    rebuilt = [who for who, k in mixer.chunks for _ in range(k)][: len(steps)]
+    assert rebuilt == steps
+
+
+def test_mixing_extremes_and_bad_arguments():
+    rng = np.random.default_rng(0)
+    assert {ChunkMixer(0.0, 4, 32, rng).next() for _ in range(500)} == {ORACLE}
+    assert {ChunkMixer(1.0, 4, 32, rng).next() for _ in range(500)} == {MODEL}
+    with pytest.raises(ValueError, match="chunk range"):
+        ChunkMixer(0.5, 5, 4, rng)
+    with pytest.raises(ValueError, match="probability"):
+        ChunkMixer(1.5, 4, 32, rng)
+
+
+def test_mixing_schedules():
+    c = DaggerConfig(rounds=5, model_probability=0.2, final_model_probability=0.8, schedule="linear")
+    assert [round(mixing_probability(c, r), 6) for r in range(5)] == [0.2, 0.35, 0.5, 0.65, 0.8]
+    c.schedule = "exponential"
+    vals = [mixing_probability(c, r) for r in range(5)]
+    assert vals[0] == pytest.approx(0.2) and vals[-1] == pytest.approx(0.8)
+    ratios = np.array(vals[1:]) / np.array(vals[:-1])
+    assert np.allclose(ratios, ratios[0])  # geometric
+    c.schedule = "constant"
+    assert {mixing_probability(c, r) for r in range(5)} == {0.2}
+    one = DaggerConfig(rounds=1, model_probability=0.3)
+    assert mixing_probability(one, 0) == 0.3
+
+
+def test_dagger_config_is_validated():
+    cfg = load_config("tiny", {"dagger": {"chunk_min": 4, "chunk_max": 32, "model_probability": 0.25}})
+    assert (cfg.dagger.chunk_min, cfg.dagger.chunk_max, cfg.dagger.model_probability) == (4, 32, 0.25)
+    with pytest.raises(ConfigError, match="chunk_min"):
+        load_config("tiny", {"dagger": {"chunk_min": 10, "chunk_max": 4}})
+    with pytest.raises(ConfigError, match="model_probability"):
+        load_config("tiny", {"dagger": {"model_probability": -0.1}})
+    with pytest.raises(ConfigError, match="schedule"):
+        load_config("tiny", {"dagger": {"schedule": "cosine"}})
+    with pytest.raises(ConfigError, match="dagger.bogus"):
+        load_config("tiny", {"dagger": {"bogus": 1}})
+
+
+def test_goal_instruction_is_egocentric():
+    s = np.zeros(3)
+    # Facing +Y (heading 90 deg): a goal at +Y is ahead, a goal at +X is to the right.
+    assert goal_instruction(s, math.pi / 2, np.array([0.0, 2.0, 0.0])) == (
+        "Go to the point 2.0 m ahead and 0.0 m to the left, then stop."
+    )
+    assert "1.5 m to the right" in goal_instruction(s, math.pi / 2, np.array([1.5, 0.0, 0.0]))
+    assert "behind you" in goal_instruction(s, 0.0, np.array([-1.0, 0.0, 0.0]))
+
+
+# --------------------------------------------------------------------------------- scene rollouts
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from image2sim.navpolicy.dagger import procedural_simulator
+
+    sim = procedural_simulator(0, "tiny")
+    tasks = sample_tasks(sim, 4, np.random.default_rng(0), 1.2, "tiny-000")
+    return sim, tasks
+
+
+class RandomController:
+    """A stand-in policy: two random actions (never STOP) per call; records its calls."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.calls: list[tuple[tuple, list | None]] = []
+
+    def reset(self, instruction: str, seed: int = 0) -> None:
+        self.calls = []
+
+    def act(self, rgb, executed=None):
+        out = [int(a) for a in self.rng.choice([1, 1, 2, 3], size=2)]
+        self.calls.append((rgb.shape, None if executed is None else list(executed)))
+        return out
+
+
+def _reference_oracle(sim, state, goal):
+    """The planner's action at ``state``: a brand-new follower planned from there (slow, obvious)."""
+    from image2sim.simulator.navigation.agent import Kinematics
+    from image2sim.simulator.navigation.follower import OracleFollower
+
+    f = OracleFollower(sim.planner, sim.embodiment, None, Kinematics(sim.world, sim.embodiment))
+    f.reset(np.array(state.position), np.asarray(goal, float))
+    return int(f.act(state))
+
+
+def test_oracle_labels_are_the_planners_actions_at_visited_states(scene, tiny_cfg):
+    from image2sim.dataengine.rollout import replay
+    from image2sim.simulator.navigation.agent import AgentState, Kinematics
+
+    sim, tasks = scene
+    task = tasks[0]
+    ctrl = RandomController(1)
+    mixer = ChunkMixer(0.5, 4, 8, np.random.default_rng(5))
+    ep = dagger_rollout(sim, task, ctrl, mixer, tiny_cfg.observation, max_steps=40, stop_on_stuck=False)
+    T = len(ep.trajectory.actions)
+    assert T >= 8 and len(ep.labels) == T and ep.trajectory.frames.shape == (T, 64, 64, 3)
+    assert {MODEL, ORACLE} <= set(ep.controllers)  # both drove
+    kin = Kinematics(sim.world, sim.embodiment)
+    for t in range(T):
+        state = AgentState(ep.positions[t].copy(), float(ep.headings[t]))
+        first, second = ep.labels[t]
+        assert first == _reference_oracle(sim, state, task.goal)
+        nxt, _, _ = kin.apply(state, first)
+        assert second == (
+            int(Action.STOP) if first == int(Action.STOP) else _reference_oracle(sim, nxt, task.goal)
+        )
+        if ep.controllers[t] == ORACLE:
+            assert ep.trajectory.actions[t] == first  # the oracle executes its own label
+    # The recorded states are the ones the executed actions visit (replay in a fresh episode).
+    pos, _, _ = replay(sim, task.start, task.heading, ep.trajectory.actions)
+    np.testing.assert_allclose(pos, ep.positions, atol=1e-9)
+    # The controller was called only in model chunks and told everything executed since its last look.
+    assert len(ctrl.calls) >= 1 and ctrl.calls[0][1] is None
+    total_told = sum(len(c[1]) for c in ctrl.calls[1:])
+    first_call = ep.controllers.index(MODEL)
+    assert total_told <= T - first_call
+    # Stored labels become the sample's targets; the executed actions its history.
+    s = make_sample(ep.trajectory, 32, 64)
+    assert s.targets == [tuple(ep.labels[k]) for k in s.steps]
+    for j in range(1, len(s.steps)):
+        assert list(s.executed[j]) == ep.trajectory.actions[s.steps[j - 1] : s.steps[j]]
+
+
+def test_oracle_only_rollout_reaches_the_goal(scene, tiny_cfg):
+    sim, tasks = scene
+    for task in tasks[:2]:
+        ep = dagger_rollout(
+            sim, task, None, ChunkMixer(0.0, 4, 32, np.random.default_rng(0)), tiny_cfg.observation
+        )
+        assert ep.end == "stop" and set(ep.controllers) == {ORACLE}
+        assert ep.distance_to_goal < 0.5
+        assert ep.trajectory.actions == [lab[0] for lab in ep.labels]
+
+
+class _StuckAfter:
+    """Proxy simulator whose stuck detector 'fires' after ``k`` steps."""
+
+    def __init__(self, sim, k: int) -> None:
+        self.sim, self.k, self.n = sim, k, 0
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+    def reset(self, *a, **kw):
+        self.n = 0
+        return self.sim.reset(*a, **kw)
+
+    def step(self, actions, observe=True):
+        obs, info = self.sim.step(actions, observe)
+        self.n += 1
+        info = dict(info, stuck=np.array([self.n >= self.k]))
+        return obs, info
+
+
+def test_stuck_and_step_cap_truncate_and_are_logged(scene, tiny_cfg):
+    sim, tasks = scene
+    ctrl = RandomController(2)
+    ep = dagger_rollout(
+        _StuckAfter(sim, 6),
+        tasks[1],
+        ctrl,
+        ChunkMixer(1.0, 4, 32, np.random.default_rng(0)),
+        tiny_cfg.observation,
+    )
+    assert ep.end == "stuck" and len(ep.trajectory.actions) == 6 and ep.log()["truncated"]
+    ep2 = dagger_rollout(
+        sim,
+        tasks[1],
+        ctrl,
+        ChunkMixer(1.0, 4, 32, np.random.default_rng(0)),
+        tiny_cfg.observation,
+        max_steps=5,
+    )
+    assert ep2.end == "max_steps" and len(ep2.trajectory.actions) == 5
+    assert ep2.log()["model_steps"] == 5
+    # Not stopping on stuck: the proxy's flag is ignored.
+    ep3 = dagger_rollout(
+        _StuckAfter(sim, 2),
+        tasks[1],
+        ctrl,
+        ChunkMixer(1.0, 4, 32, np.random.default_rng(0)),
+        tiny_cfg.observation,
+        max_steps=5,
+        stop_on_stuck=False,
+    )
+    assert ep3.end == "max_steps"
+
+
+def test_model_stop_override(scene, tiny_cfg):
+    sim, tasks = scene
+
+    class Stopper(RandomController):
+        def act(self, rgb, executed=None):
+            return [int(Action.STOP), int(Action.STOP)]
+
+    mixer = ChunkMixer(1.0, 4, 32, np.random.default_rng(0))
+    ep = dagger_rollout(sim, tasks[0], Stopper(), mixer, tiny_cfg.observation)
+    assert ep.end == "stop" and len(ep.trajectory.actions) == 1  # faithful: a model STOP ends it
+    mixer = ChunkMixer(1.0, 4, 32, np.random.default_rng(0))
+    ep = dagger_rollout(sim, tasks[0], Stopper(), mixer, tiny_cfg.observation, override_model_stop=True)
+    assert ep.end == "stop" and ep.distance_to_goal < 0.5  # the oracle's actions were executed
+    assert ep.trajectory.extra["model_stop_overrides"] == len(ep.trajectory.actions) - 1
+
+
+def test_oracle_labeler_is_stateless(scene):
+    from image2sim.simulator.navigation.agent import AgentState
+
+    sim, tasks = scene
+    lab = OracleLabeler(sim, tasks[2].goal)
+    s = AgentState(np.array(tasks[2].start), 0.3)
+    a = lab.labels(s)
+    lab.labels(AgentState(np.array(tasks[3].start), -1.0))  # unrelated query in between
+    assert lab.labels(s) == a
+
+
+# ------------------------------------------------------------------------------------ end to end
+
+
+def test_tiny_dagger_run_adds_samples_and_trains_on_them(scene, tiny_cfg, tiny_policy, tmp_path):
+    sim, tasks = scene
+    from image2sim.navpolicy.dagger import DaggerScene
+
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.data.max_observations, cfg.data.max_action_labels = 6, 12
+    cfg.train.batch_size, cfg.train.warmup_steps, cfg.train.lr = 1, 1, 3e-3
+    cfg.dagger = DaggerConfig(
+        rounds=2,
+        episodes_per_round=1,
+        train_steps_per_round=2,
+        max_steps=16,
+        model_probability=0.5,
+        chunk_min=4,
+    )
+    policy = copy.deepcopy(tiny_policy)
+    before = {k: v.clone() for k, v in policy.model.state_dict().items()}
+    res = run_dagger(cfg, [DaggerScene(sim, tasks, "tiny-000")], tmp_path / "dagger", policy=policy)
+    # Each round adds its episodes to the aggregated data and trains on the data so far.
+    assert res.dataset_sizes == [1, 2]
+    assert [len(x) for x in res.losses] == [2, 2] and all(math.isfinite(v) for x in res.losses for v in x)
+    assert set(res.seen[0]) == {res.episodes[0]["episode_id"]}
+    assert set(res.seen[1]) <= {e["episode_id"] for e in res.episodes}
+    changed = [k for k, v in policy.model.state_dict().items() if not torch.equal(v, before[k])]
+    assert changed and not any("visual.blocks" in k or "patch_embed" in k for k in changed)
+    # Logs and shards on disk.
+    lines = [json.loads(x) for x in (tmp_path / "dagger" / "episodes.jsonl").read_text().splitlines()]
+    assert [x["round"] for x in lines] == [0, 1] and all(
+        x["end"] in ("stop", "stuck", "max_steps") for x in lines
+    )
+    assert lines[0]["model_probability"] == 0.5 and lines[1]["model_probability"] == 0.9
+    for r in range(2):
+        reader = ShardReader(tmp_path / "dagger" / f"round_{r:02d}" / "shard")
+        t = reader[0]
+        assert len(t.extra["oracle_labels"]) == len(t.actions) == lines[r]["steps"]
+    assert (res.export_dir / "config.json").is_file()
+
+
+def test_dagger_needs_tasks(tiny_cfg, tmp_path):
+    with pytest.raises(ValueError, match="no scenes"):
+        run_dagger(tiny_cfg, [], tmp_path)
+
+
+def test_navtask_from_sample_tasks_are_far_enough(scene):
+    sim, tasks = scene
+    for t in tasks:
+        assert isinstance(t, NavTask)
+        d, _ = sim.planner.geodesic_distance(t.start, t.goal)
+        assert d >= 1.2
