@@ -131,10 +131,11 @@ def run_act(
             o = super()._obs(info, collided, True)
             self.positions.append(np.array(info["position"][0], dtype=np.float64))
             self.frames.append(o.rgb)
+            self.collided.append(bool(collided))
             return o
 
     backend = Recording(sim, proto, scene_id)
-    backend.positions, backend.frames = [], []
+    backend.positions, backend.frames, backend.collided = [], [], []
     agent = make_agent(cfg, agent_name)
     result, actions = run_episode(backend, agent, ep, proto, seed)
     outp = Path(out)
@@ -152,6 +153,7 @@ def run_act(
         "episode_id": ep.episode_id,
         "instruction": ep.instruction.text,
         "actions": actions,
+        "collided": backend.collided[1:],
         "metrics": dict(m),
         "topdown": str(png),
         "frames": len(backend.frames),
