@@ -953,13 +953,33 @@ def _select_components(
     xy = origin[:2] + (c_ij + 0.5) * vox
     if cams is not None and len(cams):
         tree = cKDTree(xy)
-        seeds = []
+        cands = []
         for cam in cams:
             cand = np.asarray(tree.query_ball_point(cam[:2], r=cfg.camera_support_radius), dtype=np.int64)
-            cand = cand[c_z[cand] <= cam[2] - cfg.min_camera_height]
-            if len(cand):
-                best = cand[np.argmin(np.linalg.norm(xy[cand] - cam[:2], axis=1))]
-                seeds.append(comp[best])
+            cands.append(cand[c_z[cand] <= cam[2] - cfg.min_camera_height])
+        # Pass 1: the nearest floor below each camera gives the typical camera height of the capture.
+        first = [
+            c[np.argmin(np.linalg.norm(xy[c] - cam[:2], axis=1))]
+            for c, cam in zip(cands, cams, strict=True)
+            if len(c)
+        ]
+        heights = [
+            cam[2] - c_z[f]
+            for f, cam in zip(first, [cm for c, cm in zip(cands, cams, strict=True) if len(c)], strict=True)
+        ]
+        typical = float(np.median(heights)) if heights else None
+        # Pass 2: prefer cells at that height below the camera (on stairs the nearest cell may be
+        # another flight); fall back to the nearest cell.
+        seeds = []
+        for cand, cam in zip(cands, cams, strict=True):
+            if not len(cand):
+                continue
+            d = np.linalg.norm(xy[cand] - cam[:2], axis=1)
+            if typical is not None:
+                ok = np.abs(cam[2] - c_z[cand] - typical) <= 0.3
+                if ok.any():
+                    cand, d = cand[ok], d[ok]
+            seeds.append(comp[cand[np.argmin(d)]])
         missing = len(cams) - len(seeds)
         if missing:
             notes.append(
