@@ -194,7 +194,7 @@ _CHILD = textwrap.dedent(
 
     class Slow(RandomAgent):
         def reset(self, episode, backend, seed):
-            time.sleep(0.4)  # long enough to be killed between episodes
+            time.sleep(0.25)  # long enough to be killed between episodes
             super().reset(episode, backend, seed)
 
     log = out + "/random/scene_000.jsonl"
