@@ -162,3 +162,83 @@ def run_act(
     tmp.write_text(json.dumps(rec, indent=2, default=float))
     tmp.replace(outp / "episode.json")
     return rec
+
+
+def compare_agents(
+    cfg: NavPolicyConfig,
+    agents: list[str],
+    scene_seeds: list[int],
+    episodes_per_scene: int = 8,
+    max_steps: int = 200,
+    success_distance: float = 0.5,
+    seed: int = 0,
+) -> dict:
+    """SR / SPL (with the runner's 95 % intervals) of each agent on the same held-out procedural
+    episodes (scenes ``scene_seeds``), through :func:`image2sim.eval.runner.run_episode`."""
+    from image2sim.eval.runner import NeuralSimBackend, embodiment_for, episode_seed, nav_summary, run_episode
+    from image2sim.navpolicy.dagger import procedural_simulator
+    from rich.progress import Progress
+
+    proto = act_protocol(cfg, max_steps, success_distance)
+    built = []
+    for s in scene_seeds:
+        sim = procedural_simulator(s, "tiny", embodiment_for(proto))
+        name = f"procedural-tiny-{s:03d}"
+        built.append((NeuralSimBackend(sim, proto, name), task_episodes(sim, episodes_per_scene, s, name)))
+    out = {}
+    with Progress(transient=True) as progress:
+        bar = progress.add_task("episodes", total=len(agents) * sum(len(e) for _, e in built))
+        for name in agents:
+            agent = make_agent(cfg, name)
+            results = []
+            for backend, episodes in built:
+                for ep in episodes:
+                    results.append(
+                        run_episode(backend, agent, ep, proto, episode_seed(seed, ep.episode_id))[0]
+                    )
+                    progress.advance(bar)
+            try:
+                out[name] = nav_summary(results)
+            except ValueError as exc:
+                out[name] = _sr_spl_only(results, str(exc))
+    return out
+
+
+def _sr_spl_only(results, why: str) -> dict:
+    """SR/SPL with the runner's intervals when the full summary refuses a non-finite metric (an
+    episode ended off the navigation graph: its distance to the goal is inf, but success = 0 and
+    SPL = 0 are well defined); ``ne`` is then the mean over finite episodes and says how many."""
+    from image2sim.eval.runner import bootstrap_ci, wilson_interval
+
+    sr = [float(r.metrics["success"]) for r in results]
+    spl = [float(r.metrics["spl"]) for r in results]
+    ne = [float(r.metrics["distance_to_goal"]) for r in results]
+    finite = [v for v in ne if np.isfinite(v)]
+    return {
+        "sr": float(np.mean(sr)),
+        "spl": float(np.mean(spl)),
+        "ne": float(np.mean(finite)) if finite else float("nan"),
+        "ne_off_graph_episodes": len(ne) - len(finite),
+        "steps": float(np.mean([float(r.metrics["steps"]) for r in results])),
+        "n_episodes": len(results),
+        "sr_ci": list(wilson_interval(sum(sr), len(sr))),
+        "spl_ci": list(bootstrap_ci(spl)),
+        "note": why,
+    }
+
+
+def comparison_markdown(summary: dict) -> str:
+    """A Markdown table of :func:`compare_agents`' output."""
+    lines = [
+        "| agent | SR [95% CI] | SPL [95% CI] | NE (m) | steps | episodes |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, s in summary.items():
+        # NE marked * when some episodes ended off the navigation graph (mean over the others).
+        star = "*" if s.get("ne_off_graph_episodes") else ""
+        lines.append(
+            f"| {name} | {s['sr']:.3f} [{s['sr_ci'][0]:.3f}, {s['sr_ci'][1]:.3f}] "
+            f"| {s['spl']:.3f} [{s['spl_ci'][0]:.3f}, {s['spl_ci'][1]:.3f}] "
+            f"| {s['ne']:.2f}{star} | {s['steps']:.1f} | {s['n_episodes']} |"
+        )
+    return "\n".join(lines) + "\n"

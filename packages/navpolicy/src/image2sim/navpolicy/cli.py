@@ -244,6 +244,44 @@ def act_cmd(
     typer.echo(json.dumps(rec, indent=2))
 
 
+@app.command("compare")
+def compare_cmd(
+    model: Annotated[str, typer.Option(help="Exported policy folder for image2nav, or 'tiny'.")] = "tiny",
+    config: Annotated[str, typer.Option(help="Preset or YAML.")] = "tiny",
+    agents: Annotated[
+        str, typer.Option(help="Comma-separated agents.")
+    ] = "image2nav,random,forward,forward_turn,oracle",
+    scene_seeds: Annotated[
+        str, typer.Option(help="Held-out procedural scene seeds, comma-separated.")
+    ] = "1000,1001",
+    episodes_per_scene: Annotated[int, typer.Option(help="Episodes per scene.")] = 10,
+    max_steps: Annotated[int, typer.Option(help="Step limit.")] = 150,
+    success_distance: Annotated[float, typer.Option(help="Success radius (metres).")] = 0.5,
+    out: Annotated[Path, typer.Option(help="JSON report (a .md table is written beside it).")] = Path(
+        "outputs/nav-compare.json"
+    ),
+) -> None:
+    """Image2Nav vs the baselines on held-out procedural episodes (SR/SPL with 95% intervals)."""
+    from image2sim.navpolicy.act import compare_agents, comparison_markdown
+
+    cfg = _config(config, {"model": {"source": model}} if model != "tiny" else None)
+    seeds = [int(x) for x in scene_seeds.split(",") if x.strip()]
+    names = [x.strip() for x in agents.split(",") if x.strip()]
+    try:
+        summary = compare_agents(cfg, names, seeds, episodes_per_scene, max_steps, success_distance)
+    except (ValueError, FileNotFoundError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    rec = {"model": model, "scene_seeds": seeds, "success_distance": success_distance, "agents": summary}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rec, indent=2))
+    tmp.replace(out)
+    md = comparison_markdown(summary)
+    out.with_suffix(".md").write_text(md)
+    typer.echo(md)
+
+
 @app.command("replay")
 def replay_cmd(
     shard: Annotated[Path, typer.Argument(help="Shard folder with recorded trajectories.")],
