@@ -160,13 +160,119 @@ def write_atomic(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
+def render_markdown(report: dict) -> str:
+    """Markdown tables of a report dict (as written to splat.json)."""
+    lines = [
+        "# splat benchmark",
+        "",
+        f"{report['date']} · {report['hardware']} · load average before/after "
+        f"{report['load_average_before'][0]:.1f} / {report['load_average_after'][0]:.1f} (shared machine)",
+        "",
+        "ms/frame is wall clock (median); CPU ms is the process CPU time per frame (all threads), which",
+        "is far less sensitive to the other jobs on this machine.",
+        "",
+        "| group | N | camera | HxW | backend | pass | ms/frame (median) | frames/s | CPU ms | vs torch "
+        "| vs dense |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in report["cases"]:
+        vs_t = f"{r['speedup_vs_torch']:.1f}x" if "speedup_vs_torch" in r and r["backend"] != "torch" else ""
+        vs_d = (
+            f"{r['speedup_vs_dense_reference']:.1f}x"
+            if "speedup_vs_dense_reference" in r and r["backend"] != "reference"
+            else ""
+        )
+        lines.append(
+            f"| {r['group']} | {r['n']:,} | {r['camera']} | {r['height']}x{r['width']} | {r['backend']} | "
+            f"{r['pass']} | {r['ms']:.1f} | {1000 / r['ms']:.1f} | {r['cpu_ms']:.1f} | {vs_t} | {vs_d} |"
+        )
+    memory = report.get("memory", [])
+    if memory:
+        lines += [
+            "",
+            "Peak RSS of a fresh process, one forward+backward (compiled backend):",
+            "",
+            "| N | HxW | peak RSS MB | above scene baseline MB |",
+            "|---|---|---|---|",
+        ]
+        for m in memory:
+            lines.append(
+                f"| {m['n']:,} | {m['height']}x{m['width']} | {m['peak_rss_mb']:.0f} | {m['splat_mb']:.0f} |"
+            )
+    single = report.get("single_thread", [])
+    if single:
+        lines += [
+            "",
+            "Single thread (`torch.set_num_threads(1)`), process CPU time per frame (median): the",
+            "figure least affected by the other jobs on this machine.",
+            "",
+            "| N | HxW | backend | pass | CPU ms/frame | frames/s per core | vs torch |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for r in single:
+            vs = f"{r['cpu_speedup_vs_torch']:.1f}x" if "cpu_speedup_vs_torch" in r else ""
+            lines.append(
+                f"| {r['n']:,} | {r['height']}x{r['width']} | {r['backend']} | {r['pass']} | "
+                f"{r['cpu_ms']:.1f} | {1000 / r['cpu_ms']:.1f} | {vs} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def single_thread_rows(repeats: int) -> list[dict]:
+    """One-thread process-CPU time of the headline panorama cases, cpu vs torch backend."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    rows = []
+    try:
+        cam = EquirectCamera(256, 512)
+        for n, bw in ((20_000, False), (100_000, False), (20_000, True)):
+            scene = room_scene(n)
+            for be in ("cpu", "torch"):
+                res = time_case(scene, cam, be, bw, repeats)
+                rows.append(
+                    {
+                        "n": n,
+                        "height": 256,
+                        "width": 512,
+                        "backend": be,
+                        "pass": "forward+backward" if bw else "forward",
+                        **res,
+                    }
+                )
+                print(
+                    f"single-thread N={n} {be} {rows[-1]['pass']}: CPU {res['cpu_ms']:.1f} ms",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            rows[-2]["cpu_speedup_vs_torch"] = rows[-1]["cpu_ms"] / rows[-2]["cpu_ms"]
+    finally:
+        torch.set_num_threads(threads)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="headline cases only")
+    ap.add_argument(
+        "--single-thread-only",
+        action="store_true",
+        help="only (re)measure the single-thread section and merge it into an existing reports/splat.json",
+    )
     args = ap.parse_args()
     if args.repeats < 5:
         raise SystemExit("--repeats must be >= 5")
+    if args.single_thread_only:
+        report = json.loads((REPORTS / "splat.json").read_text())
+        report["single_thread"] = single_thread_rows(args.repeats)
+        report["single_thread_date"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        report["single_thread_git_commit"] = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip()
+        write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
+        write_atomic(REPORTS / "splat.md", render_markdown(report))
+        print(render_markdown(report))
+        return
     backends = available_backends()
     if "cpu" not in backends:
         raise SystemExit("compiled CPU backend unavailable; nothing to benchmark against")
@@ -270,48 +376,13 @@ def main() -> None:
         f"{args.repeats} runs after one warm-up; float32, 16 feature channels",
         "cases": rows,
         "memory": memory,
+        "single_thread": [] if args.quick else single_thread_rows(args.repeats),
     }
     REPORTS.mkdir(exist_ok=True)
     write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
 
-    lines = [
-        "# splat benchmark",
-        "",
-        f"{report['date']} · {report['hardware']} · load average before/after "
-        f"{load_before[0]:.1f} / {report['load_average_after'][0]:.1f} (shared machine)",
-        "",
-        "ms/frame is wall clock (median); CPU ms is the process CPU time per frame (all threads), which",
-        "is far less sensitive to the other jobs on this machine.",
-        "",
-        "| group | N | camera | HxW | backend | pass | ms/frame (median) | frames/s | CPU ms | vs torch "
-        "| vs dense |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        vs_t = f"{r['speedup_vs_torch']:.1f}x" if "speedup_vs_torch" in r and r["backend"] != "torch" else ""
-        vs_d = (
-            f"{r['speedup_vs_dense_reference']:.1f}x"
-            if "speedup_vs_dense_reference" in r and r["backend"] != "reference"
-            else ""
-        )
-        lines.append(
-            f"| {r['group']} | {r['n']:,} | {r['camera']} | {r['height']}x{r['width']} | {r['backend']} | "
-            f"{r['pass']} | {r['ms']:.1f} | {1000 / r['ms']:.1f} | {r['cpu_ms']:.1f} | {vs_t} | {vs_d} |"
-        )
-    if memory:
-        lines += [
-            "",
-            "Peak RSS of a fresh process, one forward+backward (compiled backend):",
-            "",
-            "| N | HxW | peak RSS MB | above scene baseline MB |",
-            "|---|---|---|---|",
-        ]
-        for m in memory:
-            lines.append(
-                f"| {m['n']:,} | {m['height']}x{m['width']} | {m['peak_rss_mb']:.0f} | {m['splat_mb']:.0f} |"
-            )
-    write_atomic(REPORTS / "splat.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_atomic(REPORTS / "splat.md", render_markdown(report))
+    print(render_markdown(report))
 
 
 if __name__ == "__main__":
