@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup test test-slow demo lint bench clean help profile train-sim-tiny
+.PHONY: setup test test-slow demo lint bench clean help profile train-sim-tiny train-nav-tiny
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -48,6 +48,23 @@ bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports
 RENDERER_DATA ?= $(wildcard ../shared/data/hm3d_360/00000-kfPV7w3FaU5)
 train-sim-tiny: setup  ## train the tiny pixel-flow renderer on CPU (HM3D sample if present, else procedural rooms)
 	$(VENV)/bin/image2sim sim train --config tiny --out outputs/renderer-tiny $(addprefix --data ,$(RENDERER_DATA))
+
+NAV_TINY ?= outputs/nav-tiny
+NAV_SHARDS = $$(for d in $(NAV_TINY)/engine/scenes/*/shard; do printf -- '--shard %s ' $$d; done)
+train-nav-tiny: setup  ## Image2Nav on CPU: data-engine episodes on procedural scenes, BC, online DAgger, vs baselines
+	$(VENV)/bin/image2sim data synth --out $(NAV_TINY)/synth --scenes 4 --preset tiny --seed 0 --noise none --overwrite
+	$(VENV)/bin/image2sim data episodes --scenes $(NAV_TINY)/synth --out $(NAV_TINY)/engine --per-scene 16 \
+	  --obs-height 64 --executor local --render procedural
+	$(VENV)/bin/image2sim nav train --stage bc --config configs/navpolicy/tiny-dagger.yaml $(NAV_SHARDS) \
+	  --out $(NAV_TINY)/bc --threads 1
+	$(VENV)/bin/image2sim nav train --stage dagger --config configs/navpolicy/tiny-dagger.yaml $(NAV_SHARDS) \
+	  --init $(NAV_TINY)/bc/export --out $(NAV_TINY)/dagger --scenes 2 --tasks-per-scene 24 --threads 1
+	$(VENV)/bin/image2sim nav compare --config configs/navpolicy/tiny-dagger.yaml --model $(NAV_TINY)/bc/export \
+	  --agents image2nav --out $(NAV_TINY)/compare-bc.json
+	$(VENV)/bin/image2sim nav compare --config configs/navpolicy/tiny-dagger.yaml --model $(NAV_TINY)/dagger/export \
+	  --out $(NAV_TINY)/compare.json
+	$(VENV)/bin/image2sim nav act --config configs/navpolicy/tiny-dagger.yaml --model $(NAV_TINY)/dagger/export \
+	  --out $(NAV_TINY)/act
 
 lint: setup
 	$(VENV)/bin/ruff check packages tests benchmarks
