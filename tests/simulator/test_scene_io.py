@@ -211,3 +211,15 @@ def test_real_hm3d_identity_held_out_view(hm3d_scene_dir):
         f"alpha>0.5 coverage {coverage:.3f}"
     )
     assert psnr > 18.0 and coverage > 0.9
+
+
+def test_batched_fusion_matches_incremental(procedural_capture):
+    cfg = tiny()
+    cfg = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, height=64, width=128))
+    one = build_scene(procedural_capture, cfg, fuse_every=1)
+    many = build_scene(procedural_capture, cfg, fuse_every=3)
+    assert one.frames == many.frames and [f["index"] for f in one.frames] == [0, 1, 2, 3, 4]
+    assert abs(len(one) - len(many)) < 0.1 * len(one)
+    torch.testing.assert_close(one.gaussians.weights.sum(), many.gaussians.weights.sum())
+    with pytest.raises(ValueError, match="fuse_every"):
+        build_scene(procedural_capture, cfg, fuse_every=0)

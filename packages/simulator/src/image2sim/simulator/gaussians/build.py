@@ -93,8 +93,15 @@ def build_scene(
     encoder: str | Path | GaussianEncoder = "identity",
     frames: Sequence[int] | None = None,
     progress: bool = False,
+    fuse_every: int = 1,
 ) -> GaussianScene:
-    """Open a capture (any format ``open_capture`` reads), encode the chosen frames and fuse them."""
+    """Open a capture (any format ``open_capture`` reads), encode the chosen frames and fuse them.
+
+    ``fuse_every`` frames are fused into memory in one pass (1: frame by frame, the incremental
+    MemoryState; larger: fewer passes over the growing scene, much faster for long captures).
+    """
+    if fuse_every < 1:
+        raise ValueError(f"build_scene: fuse_every must be >= 1, got {fuse_every}")
     from image2sim.simulator.io.registry import open_capture
 
     capture = open_capture(capture_path)
@@ -126,6 +133,7 @@ def build_scene(
         from rich.progress import track
 
         it = track(indices, description=f"encoding {len(indices)} frames")
+    pending = []
     for i in it:
         inputs = prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance)
         if net is not None and isinstance(inputs.camera, EquirectCamera) != net.panoramic:
@@ -133,8 +141,12 @@ def build_scene(
                 f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})"
             )
         camera = camera or inputs.camera
-        gs = encode_frames([inputs], cfg, net)[0]
-        scene.integrate(gs, frame_id=inputs.frame_id, index=i, cam_to_world=inputs.cam_to_world)
+        pending.append(encode_frames([inputs], cfg, net)[0])
+        scene.record_frame(inputs.frame_id, i, inputs.cam_to_world)
+        if len(pending) >= fuse_every:
+            scene.integrate_many(pending)
+            pending = []
+    scene.integrate_many(pending)
     scene.info = {
         "source": {
             "capture": str(Path(capture_path).resolve()),

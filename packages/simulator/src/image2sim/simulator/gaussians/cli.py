@@ -44,6 +44,7 @@ def build_scene_command(
     ply: bool = typer.Option(True, help="Also export <out>/gaussians.ply in the 3DGS layout."),
     overwrite: bool = typer.Option(False, help="Replace an existing scene folder."),
     threads: int = typer.Option(0, help="torch threads (0 = torch default)."),
+    fuse_every: int = typer.Option(8, help="Frames fused into memory per pass (1 = strictly incremental)."),
 ) -> None:
     """Encode a capture's frames into a persistent feature-Gaussian scene."""
     import dataclasses
@@ -70,7 +71,9 @@ def build_scene_command(
         if out.exists() and not overwrite:
             raise SceneError(f"{out}: already exists (pass --overwrite)")
         t0 = time.perf_counter()
-        scene = build_scene(capture, cfg, encoder=encoder, frames=_parse_frames(frames), progress=True)
+        scene = build_scene(
+            capture, cfg, encoder=encoder, frames=_parse_frames(frames), progress=True, fuse_every=fuse_every
+        )
         elapsed = time.perf_counter() - t0
         scene.save(out, overwrite=overwrite)
         if ply:

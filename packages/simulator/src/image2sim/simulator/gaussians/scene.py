@@ -90,16 +90,33 @@ class GaussianScene:
         cam_to_world: torch.Tensor | np.ndarray | None = None,
     ) -> int:
         """Fuse one frame's Gaussians into memory (levels from their footprints); returns the new count."""
+        self.integrate_many([new])
+        self.record_frame(frame_id, index, cam_to_world)
+        return len(self)
+
+    def integrate_many(self, sets: list[GaussianSet]) -> int:
+        """Fuse several frames' Gaussians in one pass (one fusion over memory + all of them, so the
+        cost per frame drops by the batch size); frames are recorded with :meth:`record_frame`."""
         from image2sim.simulator.gaussians.fusion import assign_levels, torch_threads
 
+        if not sets:
+            return len(self)
         with torch_threads(self.fusion.threads):
-            new = prune(new.detach(), self.fusion)
+            new = prune(GaussianSet.cat([s.detach() for s in sets]), self.fusion)
             new = GaussianSet(**{**new.tensors(), "levels": assign_levels(new.footprints, self.fusion)})
             merged = new if self.gaussians is None else GaussianSet.cat([self.gaussians, new])
             self.gaussians = prune(fuse(merged, self.fusion), self.fusion)
+        return len(self)
+
+    def record_frame(
+        self,
+        frame_id: str = "",
+        index: int | None = None,
+        cam_to_world: torch.Tensor | np.ndarray | None = None,
+    ) -> None:
+        """Add a frame to the provenance list written into the manifest."""
         pose = None if cam_to_world is None else np.asarray(cam_to_world, dtype=np.float64).tolist()
         self.frames.append({"index": index, "frame_id": frame_id, "cam_to_world": pose})
-        return len(self)
 
     def bounds(self) -> tuple[list[float], list[float]]:
         """Axis-aligned (min, max) of the means; zeros for an empty scene."""
