@@ -320,3 +320,15 @@ def test_navtask_from_sample_tasks_are_far_enough(scene):
         assert isinstance(t, NavTask)
         d, _ = sim.planner.geodesic_distance(t.start, t.goal)
         assert d >= 1.2
+
+
+def test_cli_dagger_refuses_a_missing_init_folder(tmp_path):
+    from image2sim.navpolicy.cli import app
+    from typer.testing import CliRunner
+
+    res = CliRunner().invoke(
+        app, ["train", "--stage", "dagger", "--init", str(tmp_path / "nope"), "--out", str(tmp_path)]
+    )
+    assert res.exit_code == 2 and "no such model folder" in res.output
+    res = CliRunner().invoke(app, ["train", "--stage", "rl", "--out", str(tmp_path)])
+    assert res.exit_code != 0
