@@ -3,9 +3,11 @@
 Motion comes from :mod:`image2sim.simulator.navigation` (navigable map, collision world, graph).
 Observations are produced by a *render function* ``render_fn(camera, cam_to_world) -> {"rgb": (H, W,
 3) float32 in [0, 1], "depth": (H, W) float32}``; :class:`GaussianRenderFn` builds one from a Gaussian
-scene through :func:`image2sim.simulator.splatting.splat` (plus an optional pixel-flow renderer that
-maps the splatted condition to the final image). Any callable with that signature can be injected
-(tests use analytic renderers). Positions are map-frame feet positions (see :class:`NavMap`).
+scene through :func:`image2sim.simulator.splatting.splat`; :class:`PixelFlowRenderFn` renders
+panoramas as splat -> condition C_p -> one-step (or N-step) pixel flow with deterministic per-pose
+noise, and the simulator cuts pinhole / ultra-wide views out of that panorama (the renderer is
+panoramic). Any callable with the render-function signature can be injected (tests use analytic
+renderers). Positions are map-frame feet positions (see :class:`NavMap`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,15 @@ from image2sim.simulator.navigation.graph import NavGraph
 from image2sim.simulator.navigation.navmap import NavMap
 from image2sim.simulator.navigation.planner import DistanceField, Planner
 
-__all__ = ["ObservationSpec", "GaussianRenderFn", "NeuralSimulator", "NavEnv", "RenderFn"]
+__all__ = [
+    "ObservationSpec",
+    "GaussianRenderFn",
+    "PixelFlowRenderFn",
+    "NeuralSimulator",
+    "NavEnv",
+    "RenderFn",
+    "views_from_panorama",
+]
 
 RenderFn = Callable[[Camera, np.ndarray], dict]
 
@@ -111,6 +121,113 @@ class GaussianRenderFn:
         }
 
 
+class PixelFlowRenderFn:
+    """Panoramic render function: splat -> condition C_p -> pixel-flow renderer in ``steps`` steps.
+
+    The splat is unpremultiplied into expected colour / range (background 0), the 24-channel
+    condition is built with :func:`~image2sim.simulator.renderer.condition.build_condition` (the
+    scene's features when it carries the renderer's 16 channels, zeros otherwise) and the model's
+    :meth:`~image2sim.simulator.renderer.model.PixelFlowRenderer.render` runs with noise seeded by
+    the pose (:func:`~image2sim.simulator.renderer.meanflow.pose_noise`), so revisiting a pose renders
+    the same image. Only equirectangular cameras with W = 2H are accepted: :class:`NeuralSimulator`
+    cuts pinhole and ultra-wide views from the panorama (``panoramic = True``).
+    """
+
+    panoramic = True
+
+    def __init__(self, gaussians: dict, model, steps: int = 1, seed: int = 0, backend: str = "auto") -> None:
+        missing = [k for k in ("means", "scales", "quats", "opacities", "colors") if k not in gaussians]
+        if missing:
+            raise ValueError(f"PixelFlowRenderFn: gaussians are missing {missing}")
+        if int(steps) < 1:
+            raise ValueError(f"PixelFlowRenderFn: steps must be >= 1, got {steps}")
+        self.gaussians = gaussians
+        self.model = model.eval()
+        self.steps = int(steps)
+        self.seed = int(seed)
+        self.backend = backend
+
+    def condition(self, camera: EquirectCamera, cam_to_world: np.ndarray):
+        """The (1, 24, H, W) condition C_p of the Gaussians splatted at ``cam_to_world``."""
+        import torch
+        from image2sim.simulator.renderer.condition import build_condition, unpremultiply
+        from image2sim.simulator.renderer.config import CONDITION_FEATURES
+        from image2sim.simulator.splatting import splat
+
+        g = self.gaussians
+        feats = g.get("features")
+        if feats is not None and (feats.dim() != 2 or feats.shape[-1] != CONDITION_FEATURES):
+            feats = None  # features of another encoder width carry no meaning for this renderer
+        pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype)
+        with torch.no_grad():
+            out = splat(
+                g["means"],
+                g["scales"],
+                g["quats"],
+                g["opacities"],
+                g["colors"],
+                feats,
+                camera,
+                pose,
+                background=0.0,
+                backend=self.backend,
+            )
+            rgb, depth = unpremultiply(out.rgb, out.depth, out.alpha, background=0.0)
+            f = out.features if feats is not None else rgb.new_zeros(1, CONDITION_FEATURES, *rgb.shape[-2:])
+            return build_condition(
+                f.float(), rgb.float(), depth.float(), out.alpha.float(), camera.ray_map(torch.float32)
+            )
+
+    def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
+        import torch
+
+        if not isinstance(camera, EquirectCamera) or camera.width != 2 * camera.height:
+            raise ValueError(
+                f"PixelFlowRenderFn renders panoramas only (EquirectCamera with W = 2H), got {camera!r}"
+            )
+        cond = self.condition(camera, cam_to_world)
+        pose = torch.as_tensor(np.asarray(cam_to_world, dtype=np.float64))
+        with torch.no_grad():
+            res = self.model.render(cond, steps=self.steps, poses=[pose], seed=self.seed)
+        return {
+            "rgb": res.rgb[0].permute(1, 2, 0).clamp(0, 1).float().numpy(),
+            "depth": res.depth[0, 0].float().numpy(),
+        }
+
+
+def views_from_panorama(pano: dict, spec: ObservationSpec) -> dict:
+    """Pinhole and ultra-wide views (as selected by ``spec``) cut from an RGB-D panorama centred on
+    the heading with :func:`~image2sim.simulator.geometry.reproject.perspective_from_equirect`.
+
+    RGB is sampled bilinearly, depth with nearest neighbour (no blending across depth edges); the
+    pinhole depth is converted from range to z (pinhole convention), the ultra-wide crop keeps range.
+    """
+    import torch
+    from image2sim.simulator.geometry.reproject import perspective_from_equirect
+
+    rgb = torch.from_numpy(np.ascontiguousarray(pano["rgb"], dtype=np.float32)).permute(2, 0, 1)[None]
+    depth = torch.from_numpy(np.ascontiguousarray(pano["depth"], dtype=np.float32))[None, None]
+    out: dict = {}
+
+    def cut(hfov: float, vfov: float, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        c = perspective_from_equirect(rgb, 0.0, 0.0, hfov, vfov, h, w, mode="bilinear")
+        d = perspective_from_equirect(depth, 0.0, 0.0, hfov, vfov, h, w, mode="nearest")
+        return c[0].permute(1, 2, 0).clamp(0, 1).numpy(), d[0, 0].numpy()
+
+    if spec.pinhole:
+        s = spec.pinhole_size
+        c, d = cut(spec.pinhole_hfov_deg, spec.pinhole_hfov_deg, s, s)
+        cam = PinholeCamera.from_fov(spec.pinhole_hfov_deg, spec.pinhole_hfov_deg, s, s)
+        z_over_range = cam.ray_map(torch.float32)[2].numpy()  # unit rays: z component = cos(off-axis)
+        out["pinhole"] = {"rgb": c, "depth": (d * z_over_range).astype(np.float32)}
+    if spec.ultrawide:
+        c, d = cut(
+            spec.ultrawide_hfov_deg, spec.ultrawide_vfov_deg, spec.ultrawide_height, spec.ultrawide_width
+        )
+        out["ultrawide"] = {"rgb": c, "depth": d}
+    return out
+
+
 def _ultrawide_from_pano(pano: dict, spec: ObservationSpec) -> dict:
     """Crop lon in +-hfov/2, lat in +-vfov/2 out of an equirect panorama and resample it (cv2)."""
     import cv2
@@ -128,6 +245,21 @@ def _ultrawide_from_pano(pano: dict, spec: ObservationSpec) -> dict:
     out_rgb = cv2.remap(rgb.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     out_depth = cv2.remap(depth.astype(np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_WRAP)
     return {"rgb": out_rgb, "depth": out_depth}
+
+
+def _load_pixel_flow(renderer):
+    """A ``PixelFlowRenderer`` from a weights path or module; None for None / other callables."""
+    import os
+
+    if renderer is None:
+        return None
+    if isinstance(renderer, (str, os.PathLike)):
+        from image2sim.simulator.renderer.model import load_renderer
+
+        return load_renderer(renderer)
+    from image2sim.simulator.renderer.model import PixelFlowRenderer
+
+    return renderer if isinstance(renderer, PixelFlowRenderer) else None
 
 
 class NeuralSimulator:
@@ -160,12 +292,21 @@ class NeuralSimulator:
         cls,
         folder,
         observations: ObservationSpec | None = None,
-        renderer: Callable | None = None,
+        renderer=None,
         backend: str = "auto",
+        steps: int = 1,
+        seed: int = 0,
     ) -> NeuralSimulator:
         """Open a scene folder: ``gaussians.safetensors`` (+ ``navmap.npz`` / ``navgraph.npz`` when
-        present; otherwise the map is extracted from the Gaussians). ``renderer`` is an optional
-        pixel-flow renderer applied after splatting."""
+        present; otherwise the map is extracted from the Gaussians).
+
+        ``renderer``: None = splat-only observations; a path to pixel-flow renderer weights
+        (``.safetensors`` from ``save_renderer`` or a Lightning ``.ckpt``, read by
+        :func:`~image2sim.simulator.renderer.model.load_renderer`) or a ``PixelFlowRenderer`` module =
+        panoramas rendered by :class:`PixelFlowRenderFn` in ``steps`` network evaluations with noise
+        seeded by the pose and ``seed``; any other callable ``renderer(splat_output) -> rgb`` is
+        applied after splatting (:class:`GaussianRenderFn`).
+        """
         from pathlib import Path
 
         from image2sim.simulator.gaussians.scene import GaussianScene
@@ -176,6 +317,7 @@ class NeuralSimulator:
         g = scene.gaussians
         if g is None:
             raise ValueError(f"{folder}: the Gaussian scene is empty")
+        model = _load_pixel_flow(renderer)  # fail early on a bad path, before the map extraction
         if (folder / "navmap.npz").is_file():
             navmap = NavMap.load(folder / "navmap.npz")
         else:
@@ -193,7 +335,13 @@ class NeuralSimulator:
             )
         graph = NavGraph.load(folder / "navgraph.npz") if (folder / "navgraph.npz").is_file() else None
         tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
-        return cls(navmap, graph, GaussianRenderFn(tensors, renderer, backend), observations)
+        if tensors["features"] is None:
+            del tensors["features"]
+        if model is not None:
+            render_fn: RenderFn = PixelFlowRenderFn(tensors, model, steps=steps, seed=seed, backend=backend)
+        else:
+            render_fn = GaussianRenderFn(tensors, renderer, backend)
+        return cls(navmap, graph, render_fn, observations)
 
     @property
     def graph(self) -> NavGraph:
@@ -261,18 +409,26 @@ class NeuralSimulator:
         return pose
 
     def observe(self, index: int) -> dict | None:
-        """Selected observations of one agent (``None`` without a render function)."""
+        """Selected observations of one agent (``None`` without a render function).
+
+        A panoramic render function (``render_fn.panoramic``, e.g. :class:`PixelFlowRenderFn`) renders
+        the panorama once and the pinhole / ultra-wide views are cut from it; other render functions
+        render the pinhole view directly with a pinhole camera.
+        """
         if self.render_fn is None or not self.spec.any:
             return None
         pose = self.camera_pose(index)
         out: dict = {}
-        if self.spec.panorama or self.spec.ultrawide:
+        panoramic = bool(getattr(self.render_fn, "panoramic", False))
+        if self.spec.panorama or self.spec.ultrawide or (panoramic and self.spec.pinhole):
             pano = self.render_fn(EquirectCamera(self.spec.pano_height, 2 * self.spec.pano_height), pose)
             if self.spec.panorama:
                 out["panorama"] = pano
-            if self.spec.ultrawide:
+            if panoramic:
+                out.update(views_from_panorama(pano, self.spec))
+            elif self.spec.ultrawide:
                 out["ultrawide"] = _ultrawide_from_pano(pano, self.spec)
-        if self.spec.pinhole:
+        if self.spec.pinhole and not panoramic:
             s = self.spec.pinhole_size
             cam = PinholeCamera.from_fov(self.spec.pinhole_hfov_deg, self.spec.pinhole_hfov_deg, s, s)
             out["pinhole"] = self.render_fn(cam, pose)
