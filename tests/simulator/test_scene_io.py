@@ -223,3 +223,26 @@ def test_batched_fusion_matches_incremental(procedural_capture):
     torch.testing.assert_close(one.gaussians.weights.sum(), many.gaussians.weights.sum())
     with pytest.raises(ValueError, match="fuse_every"):
         build_scene(procedural_capture, cfg, fuse_every=0)
+
+
+def test_scene_condition_for_the_renderer():
+    from image2sim.simulator.gaussians.condition import scene_condition
+    from image2sim.simulator.renderer.condition import ALPHA, DEPTH, FEATURES, RGB
+
+    scene = _scene(feat=16)
+    cam = EquirectCamera(32, 64)
+    cond = scene_condition(scene, cam, torch.eye(4), backend="torch")
+    out = scene.render(cam, torch.eye(4), backend="torch")
+    assert cond.shape == (1, 24, 32, 64)
+    torch.testing.assert_close(cond[:, ALPHA], out.alpha)
+    ok = out.alpha > 0.1
+    torch.testing.assert_close(cond[:, DEPTH][ok], (out.depth / out.alpha)[ok])
+    torch.testing.assert_close(
+        (cond[:, RGB] * out.alpha)[ok.expand(-1, 3, -1, -1)], out.rgb[ok.expand(-1, 3, -1, -1)]
+    )
+    torch.testing.assert_close(
+        (cond[:, FEATURES] * out.alpha)[ok.expand(-1, 16, -1, -1)], out.features[ok.expand(-1, 16, -1, -1)]
+    )
+    assert torch.all(scene_condition(_scene(feat=0), cam, torch.eye(4), backend="torch")[:, FEATURES] == 0)
+    with pytest.raises(SceneError, match="feature channels"):
+        scene_condition(_scene(feat=3), cam, torch.eye(4), backend="torch")

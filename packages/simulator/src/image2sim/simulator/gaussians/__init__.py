@@ -41,6 +41,7 @@ _EXPORTS = {
     "semantic": ("DinoV3Backbone", "build_semantic"),
     "fusion": ("fuse", "prune", "assign_levels", "cell_sizes"),
     "scene": ("GaussianScene", "SceneError"),
+    "condition": ("scene_condition",),
     "build": ("build_scene", "save_encoder", "load_encoder", "nearest_frames", "encode_frames"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}

@@ -118,6 +118,12 @@ def render_command(
     height: int = typer.Option(0, help="Output height (default: the scene's input camera)."),
     width: int = typer.Option(0, help="Output width (default: the scene's input camera)."),
     backend: str = typer.Option("auto", help="Splatting backend (auto, cpu, torch, reference)."),
+    renderer: Path = typer.Option(
+        None,
+        "--renderer",
+        help="Pixel-flow renderer weights (.safetensors / .ckpt): RGB-D from the renderer.",
+    ),
+    steps: int = typer.Option(1, "--steps", help="Pixel-flow network evaluations (with --renderer)."),
 ) -> None:
     """Render a saved scene at a frame's pose or a given pose: RGB, depth and alpha images."""
     import numpy as np
@@ -139,11 +145,26 @@ def render_command(
         if height or width:
             camera = resize_camera(camera, height or camera.height, width or camera.width)
         res = sc.render(camera, torch.as_tensor(c2w, dtype=sc.gaussians.means.dtype), backend=backend)
-    except (SceneError, ValueError) as exc:
+        flow = None
+        if renderer is not None:
+            # Splat -> condition C_p -> pixel flow with per-pose noise (the simulator's render path).
+            from image2sim.simulator.renderer.model import load_renderer
+            from image2sim.simulator.sim import PixelFlowRenderFn
+
+            g = sc.gaussians
+            fn = PixelFlowRenderFn(
+                {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")},
+                load_renderer(renderer),
+                steps=steps,
+                backend=backend,
+            )
+            flow = fn(camera, np.asarray(c2w, dtype=np.float64))
+    except (SceneError, ValueError, FileNotFoundError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    rgb = (res.rgb[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-    depth = res.normalized_depth()[0, 0].numpy()
+    rgb_f = res.rgb[0].permute(1, 2, 0).clamp(0, 1).numpy() if flow is None else flow["rgb"]
+    rgb = (rgb_f * 255 + 0.5).astype(np.uint8)
+    depth = res.normalized_depth()[0, 0].numpy() if flow is None else flow["depth"]
     alpha = (res.alpha[0, 0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_rgb_png(out, rgb)
@@ -155,6 +176,7 @@ def render_command(
     typer.echo(
         f"{out}: {camera.width}x{camera.height}, {len(sc)} Gaussians, alpha>0.5 on {cover:.1%} of pixels "
         f"({res.backend} backend)"
+        + ("" if flow is None else f", pixel-flow renderer {renderer} in {steps} step(s)")
     )
 
 
