@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch
-
 from image2sim.simulator.gaussians.scene import GaussianScene, SceneError
 from image2sim.simulator.geometry.cameras import Camera
 
