@@ -179,3 +179,30 @@ def test_views_from_panorama_match_ray_geometry():
     assert u[21, 32, 2] == pytest.approx(1.0, abs=0.02)  # forward: z = 1
     assert u[21, 0, 0] == pytest.approx((1 - math.sin(math.radians(90 - 90 / 64))) / 2, abs=0.02)
     assert u[21, -1, 0] == pytest.approx((1 + math.sin(math.radians(90 - 90 / 64))) / 2, abs=0.02)
+
+
+def test_cli_sim_render_with_renderer_matches_the_simulator_render_fn(scene_and_ckpt, tmp_path):
+    from image2sim.simulator.cli import sim_app
+    from image2sim.simulator.io.images import read_rgb
+    from image2sim.simulator.renderer.model import load_renderer
+    from typer.testing import CliRunner
+
+    folder, ckpt = scene_and_ckpt
+    out = tmp_path / "r.png"
+    args = ["render", str(folder), "--pose", "3 2 1.25 1 0 0 0", "--out", str(out), "--backend", "torch"]
+    res = CliRunner().invoke(sim_app, [*args, "--renderer", str(ckpt), "--steps", "1"])
+    assert res.exit_code == 0, res.output
+    assert "pixel-flow renderer" in res.output
+    scene = GaussianScene.load(folder)
+    g = scene.gaussians
+    fn = PixelFlowRenderFn(
+        {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")},
+        load_renderer(ckpt),
+        backend="torch",
+    )
+    pose = np.eye(4)
+    pose[:3, 3] = (3.0, 2.0, 1.25)
+    want = (fn(EquirectCamera(PANO_H, 2 * PANO_H), pose)["rgb"] * 255 + 0.5).astype(np.uint8)
+    np.testing.assert_array_equal(read_rgb(out), want)
+    res = CliRunner().invoke(sim_app, [*args, "--renderer", str(tmp_path / "missing.safetensors")])
+    assert res.exit_code == 2 and "missing.safetensors" in res.output
