@@ -121,23 +121,41 @@ def time_case(scene, camera, backend: str, backward: bool, repeats: int) -> dict
 
 
 _MEM_CHILD = r"""
-import json, resource, sys, torch
+import json, sys, torch
+from pathlib import Path
 sys.path.insert(0, sys.argv[1])
 from splat import room_scene, upright_pose
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.splatting import splat
+
+
+def status(key):
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(key)
+
+
 n, h, w = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 scene = [t.requires_grad_() for t in room_scene(n)]
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-out = splat(*scene, EquirectCamera(h, w), upright_pose(), backend="cpu")
+cam, pose = EquirectCamera(h, w), upright_pose()
+with torch.no_grad():
+    splat(*scene, EquirectCamera(8, 16), pose, backend="cpu")  # load the extension first
+base = status("VmRSS")
+Path("/proc/self/clear_refs").write_text("5")  # reset the high-water mark (VmHWM) to the current RSS
+with torch.no_grad():
+    splat(*scene, cam, pose, backend="cpu")
+fwd = status("VmHWM")
+Path("/proc/self/clear_refs").write_text("5")
+out = splat(*scene, cam, pose, backend="cpu")
 (out.rgb.sum() + out.features.sum() + out.depth.sum()).backward()
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-print(json.dumps({"peak_rss_mb": peak / 1024, "baseline_rss_mb": base / 1024}))
+print(json.dumps({"baseline_rss_mb": base, "peak_forward_mb": fwd, "peak_rss_mb": status("VmHWM")}))
 """
 
 
 def peak_memory(n: int, h: int, w: int) -> dict:
-    """Peak RSS (MB) of a fresh process: scene built (baseline) and after one forward+backward."""
+    """Peak RSS (MB, VmHWM) of a fresh process above its baseline (scene built, extension loaded)
+    for one inference forward and for one forward+backward."""
     with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
         f.write(_MEM_CHILD)
     try:
@@ -151,6 +169,7 @@ def peak_memory(n: int, h: int, w: int) -> dict:
         os.unlink(f.name)
     data = json.loads(res.stdout.strip().splitlines()[-1])
     data["splat_mb"] = data["peak_rss_mb"] - data["baseline_rss_mb"]
+    data["splat_forward_mb"] = data["peak_forward_mb"] - data["baseline_rss_mb"]
     return data
 
 
@@ -190,14 +209,16 @@ def render_markdown(report: dict) -> str:
     if memory:
         lines += [
             "",
-            "Peak RSS of a fresh process, one forward+backward (compiled backend):",
+            "Peak memory of a fresh process above its baseline (scene built, extension loaded), compiled",
+            "backend, from /proc VmHWM reset before each pass:",
             "",
-            "| N | HxW | peak RSS MB | above scene baseline MB |",
-            "|---|---|---|---|",
+            "| N | HxW | baseline RSS MB | forward (no grad) MB | forward+backward MB |",
+            "|---|---|---|---|---|",
         ]
         for m in memory:
             lines.append(
-                f"| {m['n']:,} | {m['height']}x{m['width']} | {m['peak_rss_mb']:.0f} | {m['splat_mb']:.0f} |"
+                f"| {m['n']:,} | {m['height']}x{m['width']} | {m['baseline_rss_mb']:.0f} | "
+                f"{m.get('splat_forward_mb', float('nan')):.0f} | {m['splat_mb']:.0f} |"
             )
     single = report.get("single_thread", [])
     if single:
@@ -250,10 +271,26 @@ def single_thread_rows(repeats: int) -> list[dict]:
     return rows
 
 
+def memory_rows() -> list[dict]:
+    """Peak memory for N in {10k, 100k, 1M} at 256x512 and 100k at three resolutions."""
+    rows = []
+    for n, h, w in (
+        (10_000, 256, 512),
+        (100_000, 256, 512),
+        (1_000_000, 256, 512),
+        (100_000, 128, 256),
+        (100_000, 512, 1024),
+    ):
+        rows.append({"n": n, "height": h, "width": w, **peak_memory(n, h, w)})
+        print(f"memory N={n} {h}x{w}: {rows[-1]}", file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="headline cases only")
+    ap.add_argument("--memory-only", action="store_true", help="only (re)measure peak memory, merge it in")
     ap.add_argument(
         "--single-thread-only",
         action="store_true",
@@ -262,6 +299,16 @@ def main() -> None:
     args = ap.parse_args()
     if args.repeats < 5:
         raise SystemExit("--repeats must be >= 5")
+    if args.memory_only:
+        report = json.loads((REPORTS / "splat.json").read_text())
+        report["memory"] = memory_rows()
+        report["memory_git_commit"] = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip()
+        write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
+        write_atomic(REPORTS / "splat.md", render_markdown(report))
+        print(render_markdown(report))
+        return
     if args.single_thread_only:
         report = json.loads((REPORTS / "splat.json").read_text())
         report["single_thread"] = single_thread_rows(args.repeats)
@@ -351,16 +398,7 @@ def main() -> None:
         if d is not None:
             r["speedup_vs_dense_reference"] = d["ms"] / r["ms"]
 
-    memory = []
-    if not args.quick:
-        for n, h, w in (
-            (10_000, 256, 512),
-            (100_000, 256, 512),
-            (1_000_000, 256, 512),
-            (100_000, 128, 256),
-            (100_000, 512, 1024),
-        ):
-            memory.append({"n": n, "height": h, "width": w, **peak_memory(n, h, w)})
+    memory = [] if args.quick else memory_rows()
 
     report = {
         "benchmark": "splat",
