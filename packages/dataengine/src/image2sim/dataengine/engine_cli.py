@@ -79,7 +79,7 @@ def episodes_command(
     renderer: Path | None = typer.Option(
         None,
         "--renderer",
-        help="Local pixel-flow renderer weights (with --view ultrawide; renders Gaussians + pixel flow).",
+        help="Local pixel-flow renderer weights: Gaussians are splatted, then rendered by the renderer.",
     ),
     obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),

@@ -67,7 +67,7 @@ class EngineConfig:
     """Height of the 180 degree views given to VLM annotators (width = 2 x height x 180 / 118)."""
     renderer: str | None = None
     """Local pixel-flow renderer weights (``save_renderer`` safetensors or a Lightning checkpoint) applied
-    after splatting; gaussians rendering with view=ultrawide only (it is a panoramic renderer)."""
+    after splatting (the simulator's ``PixelFlowRenderFn``); needs render=gaussians (or auto)."""
     detector: str = "gt"
     """Object detector: gt or yolo-world."""
     detector_weights: str | None = None
@@ -94,12 +94,8 @@ class EngineConfig:
             raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
         if self.obs_height < 8:
             raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
-        if self.renderer is not None and (
-            self.view != "ultrawide" or self.render not in ("auto", "gaussians")
-        ):
-            raise ValueError(
-                "EngineConfig.renderer needs view=ultrawide and render=gaussians (panoramic renderer)"
-            )
+        if self.renderer is not None and self.render not in ("auto", "gaussians"):
+            raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
 
     @classmethod
     def from_dict(cls, data: dict) -> EngineConfig:
@@ -210,29 +206,6 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
     return objs
 
 
-class PixelFlowAdapter:
-    """``renderer(splat_output) -> rgb (B, 3, H, W)`` for :class:`GaussianRenderFn`: builds the 24-channel
-    condition from a panoramic splat and renders it in one step with fixed noise (deterministic)."""
-
-    def __init__(self, model, seed: int = 0) -> None:
-        self.model = model.eval()
-        self.seed = int(seed)
-
-    def __call__(self, out):
-        import torch
-        from image2sim.simulator.geometry.cameras import EquirectCamera
-        from image2sim.simulator.renderer.condition import build_condition
-
-        _, _, h, w = out.rgb.shape
-        if w != 2 * h:
-            raise ValueError(f"pixel-flow renderer needs a panoramic splat (W = 2H), got {h}x{w}")
-        cond = build_condition(
-            out.features, out.rgb, out.depth, out.alpha, EquirectCamera(h, w).ray_map(out.rgb.dtype)
-        )
-        with torch.no_grad():
-            return self.model.render(cond, generator=torch.Generator().manual_seed(self.seed)).rgb
-
-
 def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None = None):
     """(render function or None, mode actually used)."""
     if renderer is not None and mode == "auto":
@@ -268,14 +241,14 @@ def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None
     if not (folder / "gaussians.safetensors").is_file():
         build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True)
     g = GaussianScene.load(folder).gaussians
-    adapter = None
+    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
     if renderer is not None:
         from image2sim.simulator.renderer.model import load_renderer
+        from image2sim.simulator.sim import PixelFlowRenderFn
 
-        adapter = PixelFlowAdapter(load_renderer(renderer))
-        mode = "gaussians+pixel-flow"
-    keys = ("means", "scales", "quats", "opacities", "colors", "features")
-    return GaussianRenderFn({k: getattr(g, k) for k in keys}, adapter), mode
+        # Panoramic: the simulator cuts the pinhole / ultra-wide views out of the rendered panorama.
+        return PixelFlowRenderFn(tensors, load_renderer(renderer)), "gaussians+pixel-flow"
+    return GaussianRenderFn(tensors), mode
 
 
 # ---------------------------------------------------------------------------------------- helpers
