@@ -50,6 +50,16 @@ def train_command(
     logger: str = typer.Option("csv", help="csv or wandb (offline)."),
     checkpoint_every: int = typer.Option(250, help="Checkpoint every n steps."),
     grid_every: int = typer.Option(250, help="Image grid (prior | one-step | target | alpha) every n steps."),
+    condition_source: str = typer.Option(
+        "splat",
+        help="splat: leave-target-out splats of the capture's identity Gaussians (needs --data); "
+        "degraded: synthetic degradations of the targets.",
+    ),
+    gaussian_config: str = typer.Option("tiny", help="Gaussian preset/YAML of the splat conditions."),
+    splat_cache: Path = typer.Option(
+        Path("outputs/cache/splat_conditions"), help="Cache folder of the splat conditions."
+    ),
+    degraded_fraction: float = typer.Option(0.0, help="With splat: fraction of degraded samples mixed in."),
 ) -> None:
     """Train the pixel-flow renderer with the three-stage curriculum."""
     import torch
@@ -59,10 +69,32 @@ def train_command(
 
     torch.set_num_threads(threads)
     cfg = load_renderer_config(config)
-    targets = _targets(data, cfg.height, cfg.width, None if max_frames < 0 else max_frames)
-    train, held = _split(targets, holdout_every)
-    typer.echo(f"{len(train)} training / {len(held)} held-out panoramas at {cfg.height}x{cfg.width}")
-    ds = DegradedPanoramaDataset(train, cfg.curriculum.total_steps * cfg.curriculum.batch_size)
+    if condition_source not in ("splat", "degraded"):
+        raise typer.BadParameter(f"--condition-source must be splat or degraded, got {condition_source!r}")
+    if condition_source == "splat" and not data:
+        typer.echo("no --data given: splat conditions need captures, using degraded conditions instead")
+        condition_source = "degraded"
+    if condition_source == "splat":
+        from image2sim.simulator.renderer.splat_data import SplatConditionDataset, SplatDataConfig
+
+        scfg = SplatDataConfig(
+            gaussian_config=gaussian_config,
+            holdout_every=holdout_every,
+            degraded_fraction=degraded_fraction,
+            cache_dir=str(splat_cache),
+            max_frames=None if max_frames < 0 else max_frames,
+        )
+        ds = SplatConditionDataset(data, cfg.height, cfg.width, scfg, progress=True)
+        cached = sum(s.cached for s in ds.sources)
+        typer.echo(
+            f"{ds.num_splat} splat + {ds.num_degraded} degraded training samples at {cfg.height}x{cfg.width} "
+            f"({cached}/{len(ds.sources)} captures from the cache {splat_cache})"
+        )
+    else:
+        targets = _targets(data, cfg.height, cfg.width, None if max_frames < 0 else max_frames)
+        train, held = _split(targets, holdout_every)
+        typer.echo(f"{len(train)} training / {len(held)} held-out panoramas at {cfg.height}x{cfg.width}")
+        ds = DegradedPanoramaDataset(train, cfg.curriculum.total_steps * cfg.curriculum.batch_size)
     ckpt = str(out / "checkpoints" / "last.ckpt") if resume == "last" else (resume or None)
     fit(
         cfg,

@@ -1,0 +1,180 @@
+"""Splatted training conditions (renderer.splat_data): parity with a direct splat, leave-target-out,
+cache hit/miss, determinism, split and config checks. Captures are tiny analytic box rooms."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from image2sim.simulator.geometry.cameras import EquirectCamera
+from image2sim.simulator.io.canonical import write_capture
+from image2sim.simulator.io.records import Frame
+from image2sim.simulator.renderer import splat_data as sd
+from image2sim.simulator.renderer.condition import ALPHA, DEPTH, RGB
+
+H, W = 32, 64
+HALF = np.array([3.0, 2.0, 1.5])  # box room half-extents (x, y, z) around the origin
+
+
+def _gcfg():
+    from image2sim.simulator.gaussians.config import tiny
+
+    g = tiny()
+    return dataclasses.replace(g, encoder=dataclasses.replace(g.encoder, height=H, width=W))
+
+
+def _pose(centre) -> np.ndarray:
+    """Camera looking along world +X, Z up (OpenCV camera: x right = -Y, y down = -Z, z fwd = +X)."""
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    T[:3, 3] = centre
+    return T
+
+
+def _box_frame(centre, invalid_left: bool = False, name: str = "") -> Frame:
+    """Exact range / colour of the box room seen from ``centre``; optionally no depth on the left half."""
+    pose = _pose(np.asarray(centre, dtype=np.float64))
+    rays = EquirectCamera(H, W).ray_map(torch.float64).numpy().reshape(3, -1)
+    d = pose[:3, :3] @ rays
+    c = pose[:3, 3][:, None]
+    with np.errstate(divide="ignore"):
+        t = np.where(d > 0, (HALF[:, None] - c) / d, np.where(d < 0, (-HALF[:, None] - c) / d, np.inf))
+    rng = t.min(axis=0)
+    hit = c + d * rng
+    rgb = np.stack([0.5 + 0.4 * np.sin(2.0 * hit[0]), 0.5 + 0.4 * np.cos(1.7 * hit[1]), 0.3 + 0.2 * hit[2] / 1.5])
+    rgb = (np.clip(rgb, 0, 1).T.reshape(H, W, 3) * 255).round().astype(np.uint8)
+    depth = rng.reshape(H, W).astype(np.float32)
+    if invalid_left:
+        depth[:, : W // 2] = 0.0
+    return Frame(rgb=rgb, depth=depth, camera=EquirectCamera(H, W), cam_to_world=pose, frame_id=name)
+
+
+@pytest.fixture(scope="module")
+def box_capture(tmp_path_factory):
+    centres = [(0.0, 0.0, 0.0), (0.4, 0.1, 0.0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0.0)]
+    frames = [_box_frame(c, name=f"{i:05d}") for i, c in enumerate(centres)]
+    return write_capture(tmp_path_factory.mktemp("cap") / "box", frames, scene_id="box")
+
+
+@pytest.fixture(scope="module")
+def half_capture(tmp_path_factory):
+    """Three frames at one pose: frame 1 sees everything, frames 0 and 2 only the right half."""
+    frames = [_box_frame((0, 0, 0), invalid_left=(i != 1), name=f"{i:05d}") for i in range(3)]
+    return write_capture(tmp_path_factory.mktemp("cap") / "half", frames, scene_id="half")
+
+
+def test_condition_matches_a_direct_splat_of_the_other_frames(box_capture):
+    from image2sim.simulator.gaussians import build_scene
+    from image2sim.simulator.splatting import splat
+
+    cfg = sd.SplatDataConfig(holdout_every=0, fuse_every=1)
+    ds = sd.SplatConditionDataset([box_capture], H, W, cfg, gaussian_config=_gcfg())
+    assert len(ds) == 4 and ds.num_degraded == 0
+    for target in (0, 2):
+        # Independent path: the scene-building API over the other frames, then a raw splat call.
+        others = [i for i in range(4) if i != target]
+        g = build_scene(box_capture, _gcfg(), frames=others, fuse_every=1).gaussians
+        pose = torch.as_tensor(_pose(np.array([(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)][target])))
+        out = splat(g.means, g.scales, g.quats, g.opacities, g.colors, None, EquirectCamera(H, W), pose.float())
+        item = ds[target]
+        cond = item["condition"]
+        assert cond.shape == (24, H, W) and torch.isfinite(cond).all()
+        torch.testing.assert_close(cond[ALPHA][0], out.alpha[0, 0], atol=1e-5, rtol=0)
+        seen = out.alpha[0, 0] > 0.05
+        torch.testing.assert_close(cond[RGB][:, seen], (out.rgb[0] / out.alpha[0])[:, seen], atol=1e-4, rtol=0)
+        # The target is the frame itself, area-resized (here: same size).
+        assert item["target_rgb"].shape == (3, H, W) and item["target_depth"].shape == (1, H, W)
+        # A covered pixel's expected range agrees with the exact one (box room, nearby frames).
+        covered = (cond[ALPHA][0] > 0.9) & (item["target_depth"][0] > 0)
+        rel = (cond[DEPTH][0][covered] - item["target_depth"][0][covered]).abs() / item["target_depth"][0][covered]
+        assert covered.float().mean() > 0.5 and float(rel.median()) < 0.1
+
+
+def test_target_frame_gaussians_are_excluded(half_capture):
+    cfg = sd.SplatDataConfig(holdout_every=0, fuse_every=1)
+    ds = sd.SplatConditionDataset([half_capture], H, W, cfg, gaussian_config=_gcfg())
+    # Away from the poles, where all longitudes meet and the right half's ceiling/floor Gaussians
+    # legitimately cover the left half's columns too.
+    interior_left = (slice(8, H - 8), slice(6, W // 2 - 6))
+    interior_right = (slice(8, H - 8), slice(W // 2 + 6, W - 6))
+    # Target 1 is the only frame that saw the left half: its condition has nothing there.
+    a1 = ds[1]["condition"][ALPHA][0]
+    assert float(a1[interior_left].max()) < 1e-3
+    assert float(a1[interior_right].min()) > 0.9
+    # Targets 0 and 2 have frame 1 among their sources, so the left half is covered for them.
+    for t in (0, 2):
+        assert float(ds[t]["condition"][ALPHA][0][interior_left].min()) > 0.9
+
+
+def test_cache_hit_and_miss(box_capture, tmp_path, monkeypatch):
+    cfg = sd.SplatDataConfig(holdout_every=0, cache_dir=str(tmp_path / "cache"))
+    first = sd.SplatConditionDataset([box_capture], H, W, cfg, gaussian_config=_gcfg())
+    assert [s.cached for s in first.sources] == [False]
+    files = sorted((tmp_path / "cache").glob("*.safetensors"))
+    assert len(files) == 1 and not list((tmp_path / "cache").glob(".*tmp*"))
+
+    def no_rebuild(*args, **kwargs):
+        raise AssertionError("a cache hit must not re-encode frames")
+
+    monkeypatch.setattr(sd, "encode_capture", no_rebuild)
+    second = sd.SplatConditionDataset([box_capture], H, W, cfg, gaussian_config=_gcfg())
+    assert [s.cached for s in second.sources] == [True]
+    assert torch.equal(first.conditions, second.conditions)
+    monkeypatch.undo()
+    # Another Gaussian config or another target list is a miss (a new file).
+    g = _gcfg()
+    g = dataclasses.replace(g, fusion=dataclasses.replace(g.fusion, base_voxel=0.02))
+    third = sd.SplatConditionDataset([box_capture], H, W, cfg, gaussian_config=g)
+    split = dataclasses.replace(cfg, holdout_every=4)
+    fourth = sd.SplatConditionDataset([box_capture], H, W, split, gaussian_config=_gcfg())
+    assert [s.cached for s in third.sources + fourth.sources] == [False, False]
+    assert len(list((tmp_path / "cache").glob("*.safetensors"))) == 3
+    assert len(fourth) == 3  # frame 3 held out
+
+
+def test_deterministic_and_split_matches_sim_train(box_capture, half_capture):
+    from image2sim.simulator.renderer.cli import _split
+
+    cfg = sd.SplatDataConfig(holdout_every=3)
+    a = sd.SplatConditionDataset([box_capture, half_capture], H, W, cfg, gaussian_config=_gcfg())
+    b = sd.SplatConditionDataset([box_capture, half_capture], H, W, cfg, gaussian_config=_gcfg())
+    assert torch.equal(a.conditions, b.conditions)
+    # Global counting over captures: frames 2 (box) and 1 (half, global 5) are held out.
+    assert [s.frames for s in a.sources] == [[0, 1, 3], [0, 2]]
+    lengths = [4, 3, 9, 1]
+    split = sd.holdout_split(lengths, 4)
+    flat = list(range(sum(lengths)))
+    train, held = _split(flat, 4)
+    offsets = np.cumsum([0] + lengths[:-1])
+    assert [o + i for o, (h, _) in zip(offsets, split, strict=True) for i in h] == held
+    assert [o + i for o, (_, t) in zip(offsets, split, strict=True) for i in t] == train
+    assert sd.holdout_split([5], 0) == [([], [0, 1, 2, 3, 4])]
+
+
+def test_degraded_mix_and_neighbours(box_capture):
+    cfg = sd.SplatDataConfig(holdout_every=0, degraded_fraction=0.5, neighbours=1)
+    ds = sd.SplatConditionDataset([box_capture], H, W, cfg, gaussian_config=_gcfg())
+    assert ds.num_splat == 4 and ds.num_degraded == 4 and len(ds) == 8
+    assert [ds[i]["source"] for i in (0, 3, 4, 7)] == ["splat", "splat", "degraded", "degraded"]
+    assert ds[5]["condition"].shape == (24, H, W)
+    with pytest.raises(IndexError):
+        ds[8]
+    poses = {i: _pose(np.array(c)) for i, c in enumerate([(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)])}
+    assert sd._sources_for(0, [0, 1, 2, 3], poses, 1) == [1]  # distances 0.41 < 0.44 < 0.45
+    assert sd._sources_for(0, [0, 1, 2, 3], poses, 2) == [1, 2]
+    assert sd._sources_for(0, [0, 1, 2, 3], poses, 0) == [1, 2, 3]
+
+
+def test_config_errors(box_capture):
+    with pytest.raises(sd.SplatDataError, match="unknown key"):
+        sd.splat_data_config_from_dict({"holdout": 3})
+    with pytest.raises(sd.SplatDataError, match="degraded_fraction"):
+        sd.splat_data_config_from_dict({"degraded_fraction": 1.0})
+    with pytest.raises(sd.SplatDataError, match="fuse_every"):
+        sd.SplatDataConfig(fuse_every=0).validate()
+    with pytest.raises(sd.SplatDataError, match="at least 2"):
+        sd.SplatConditionDataset([box_capture], H, W, sd.SplatDataConfig(max_frames=1), gaussian_config=_gcfg())
+    with pytest.raises(sd.SplatDataError, match="at least one capture"):
+        sd.SplatConditionDataset([], H, W)
