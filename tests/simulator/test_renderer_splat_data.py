@@ -43,7 +43,9 @@ def _box_frame(centre, invalid_left: bool = False, name: str = "") -> Frame:
         t = np.where(d > 0, (HALF[:, None] - c) / d, np.where(d < 0, (-HALF[:, None] - c) / d, np.inf))
     rng = t.min(axis=0)
     hit = c + d * rng
-    rgb = np.stack([0.5 + 0.4 * np.sin(2.0 * hit[0]), 0.5 + 0.4 * np.cos(1.7 * hit[1]), 0.3 + 0.2 * hit[2] / 1.5])
+    rgb = np.stack(
+        [0.5 + 0.4 * np.sin(2.0 * hit[0]), 0.5 + 0.4 * np.cos(1.7 * hit[1]), 0.3 + 0.2 * hit[2] / 1.5]
+    )
     rgb = (np.clip(rgb, 0, 1).T.reshape(H, W, 3) * 255).round().astype(np.uint8)
     depth = rng.reshape(H, W).astype(np.float32)
     if invalid_left:
@@ -76,19 +78,27 @@ def test_condition_matches_a_direct_splat_of_the_other_frames(box_capture):
         # Independent path: the scene-building API over the other frames, then a raw splat call.
         others = [i for i in range(4) if i != target]
         g = build_scene(box_capture, _gcfg(), frames=others, fuse_every=1).gaussians
-        pose = torch.as_tensor(_pose(np.array([(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)][target])))
-        out = splat(g.means, g.scales, g.quats, g.opacities, g.colors, None, EquirectCamera(H, W), pose.float())
+        pose = torch.as_tensor(
+            _pose(np.array([(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)][target]))
+        )
+        out = splat(
+            g.means, g.scales, g.quats, g.opacities, g.colors, None, EquirectCamera(H, W), pose.float()
+        )
         item = ds[target]
         cond = item["condition"]
         assert cond.shape == (24, H, W) and torch.isfinite(cond).all()
         torch.testing.assert_close(cond[ALPHA][0], out.alpha[0, 0], atol=1e-5, rtol=0)
         seen = out.alpha[0, 0] > 0.05
-        torch.testing.assert_close(cond[RGB][:, seen], (out.rgb[0] / out.alpha[0])[:, seen], atol=1e-4, rtol=0)
+        torch.testing.assert_close(
+            cond[RGB][:, seen], (out.rgb[0] / out.alpha[0])[:, seen], atol=1e-4, rtol=0
+        )
         # The target is the frame itself, area-resized (here: same size).
         assert item["target_rgb"].shape == (3, H, W) and item["target_depth"].shape == (1, H, W)
         # A covered pixel's expected range agrees with the exact one (box room, nearby frames).
         covered = (cond[ALPHA][0] > 0.9) & (item["target_depth"][0] > 0)
-        rel = (cond[DEPTH][0][covered] - item["target_depth"][0][covered]).abs() / item["target_depth"][0][covered]
+        rel = (cond[DEPTH][0][covered] - item["target_depth"][0][covered]).abs() / item["target_depth"][0][
+            covered
+        ]
         assert covered.float().mean() > 0.5 and float(rel.median()) < 0.1
 
 
@@ -161,7 +171,10 @@ def test_degraded_mix_and_neighbours(box_capture):
     assert ds[5]["condition"].shape == (24, H, W)
     with pytest.raises(IndexError):
         ds[8]
-    poses = {i: _pose(np.array(c)) for i, c in enumerate([(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)])}
+    poses = {
+        i: _pose(np.array(c))
+        for i, c in enumerate([(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)])
+    }
     assert sd._sources_for(0, [0, 1, 2, 3], poses, 1) == [1]  # distances 0.41 < 0.44 < 0.45
     assert sd._sources_for(0, [0, 1, 2, 3], poses, 2) == [1, 2]
     assert sd._sources_for(0, [0, 1, 2, 3], poses, 0) == [1, 2, 3]
@@ -175,6 +188,8 @@ def test_config_errors(box_capture):
     with pytest.raises(sd.SplatDataError, match="fuse_every"):
         sd.SplatDataConfig(fuse_every=0).validate()
     with pytest.raises(sd.SplatDataError, match="at least 2"):
-        sd.SplatConditionDataset([box_capture], H, W, sd.SplatDataConfig(max_frames=1), gaussian_config=_gcfg())
+        sd.SplatConditionDataset(
+            [box_capture], H, W, sd.SplatDataConfig(max_frames=1), gaussian_config=_gcfg()
+        )
     with pytest.raises(sd.SplatDataError, match="at least one capture"):
         sd.SplatConditionDataset([], H, W)

@@ -204,28 +204,12 @@ def _tier_samples(held: list, tier: str, seed: int, max_views: int | None) -> li
 def splat_condition(scene_gaussians: Any, camera: Any, cam_to_world: Any) -> torch.Tensor:
     """The 24-channel condition ``(24, H, W)`` of a Gaussian set splatted at one pose.
 
-    Expected colour / range come from :func:`~image2sim.simulator.renderer.condition.unpremultiply`;
-    features are the scene's when it carries the renderer's 16 channels, else zeros (identity
-    Gaussians carry none).
+    One place for training and evaluation: the renderer's training conditions use the same
+    :func:`~image2sim.simulator.renderer.splat_data.gaussians_condition`.
     """
-    from image2sim.simulator.renderer.condition import build_condition, unpremultiply
-    from image2sim.simulator.renderer.config import CONDITION_FEATURES
-    from image2sim.simulator.splatting import splat
+    from image2sim.simulator.renderer.splat_data import gaussians_condition
 
-    g = scene_gaussians
-    pose = torch.as_tensor(cam_to_world, dtype=g.means.dtype)
-    feats = g.features if g.features is not None and g.features.shape[-1] == CONDITION_FEATURES else None
-    with torch.no_grad():
-        out = splat(g.means, g.scales, g.quats, g.opacities, g.colors, feats, camera, pose, background=0.0)
-    rgb, depth = unpremultiply(out.rgb, out.depth, out.alpha, background=0.0)
-    f = (
-        out.features
-        if feats is not None
-        else rgb.new_zeros(rgb.shape[0], CONDITION_FEATURES, *rgb.shape[-2:])
-    )
-    return build_condition(
-        f.float(), rgb.float(), depth.float(), out.alpha.float(), camera.ray_map(torch.float32)
-    )[0]
+    return gaussians_condition(scene_gaussians, camera, cam_to_world)
 
 
 def splat_samples(
@@ -248,6 +232,7 @@ def splat_samples(
     from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.io.registry import open_capture
     from image2sim.simulator.renderer.data import load_capture_targets
+    from image2sim.simulator.renderer.splat_data import holdout_split
 
     gcfg = load_gaussian_config(gaussian_config)
     camera = EquirectCamera(height, width)
@@ -255,8 +240,7 @@ def splat_samples(
     k = start_index
     for path in captures:
         targets = load_capture_targets(path, height, width)
-        held = [i for i in range(len(targets)) if (k + i) % holdout_every == holdout_every - 1]
-        train = [i for i in range(len(targets)) if i not in set(held)]
+        ((held, train),) = holdout_split([len(targets)], holdout_every, start_index=k)
         base, k = k, k + len(targets)
         if not held:
             continue

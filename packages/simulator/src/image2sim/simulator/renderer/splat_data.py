@@ -104,7 +104,9 @@ def splat_data_config_from_dict(data: dict[str, Any]) -> SplatDataConfig:
     return SplatDataConfig(**data).validate()
 
 
-def holdout_split(lengths: Sequence[int], holdout_every: int, start_index: int = 0) -> list[tuple[list[int], list[int]]]:
+def holdout_split(
+    lengths: Sequence[int], holdout_every: int, start_index: int = 0
+) -> list[tuple[list[int], list[int]]]:
     """Per capture ``(held_out, training)`` frame indices for captures of ``lengths`` frames.
 
     Frame ``i`` of a capture whose first frame has global index ``k`` is held out when
@@ -137,7 +139,11 @@ def gaussians_condition(gaussians: Any, camera: Any, cam_to_world: Any) -> torch
     with torch.no_grad():
         out = splat(g.means, g.scales, g.quats, g.opacities, g.colors, feats, camera, pose, background=0.0)
     rgb, depth = unpremultiply(out.rgb, out.depth, out.alpha, background=0.0)
-    f = out.features if feats is not None else rgb.new_zeros(rgb.shape[0], CONDITION_FEATURES, *rgb.shape[-2:])
+    f = (
+        out.features
+        if feats is not None
+        else rgb.new_zeros(rgb.shape[0], CONDITION_FEATURES, *rgb.shape[-2:])
+    )
     return build_condition(
         f.float(), rgb.float(), depth.float(), out.alpha.float(), camera.ray_map(torch.float32)
     )[0]
@@ -155,7 +161,9 @@ def encode_capture(capture: Any, indices: Sequence[int], gcfg: Any) -> dict[int,
     }
 
 
-def leave_one_out_gaussians(sets: dict[int, Any], sources: Sequence[int], fusion: Any, fuse_every: int) -> Any:
+def leave_one_out_gaussians(
+    sets: dict[int, Any], sources: Sequence[int], fusion: Any, fuse_every: int
+) -> Any:
     """Fuse ``sets[i]`` for ``i in sources`` (in that order, ``fuse_every`` per pass) into one scene
     memory, exactly as ``build_scene(frames=sources, fuse_every=...)`` would; returns the fused set."""
     from image2sim.simulator.gaussians.scene import GaussianScene
@@ -171,7 +179,9 @@ def leave_one_out_gaussians(sets: dict[int, Any], sources: Sequence[int], fusion
     return scene.gaussians
 
 
-def _sources_for(target: int, train: Sequence[int], poses: dict[int, np.ndarray], neighbours: int) -> list[int]:
+def _sources_for(
+    target: int, train: Sequence[int], poses: dict[int, np.ndarray], neighbours: int
+) -> list[int]:
     others = [i for i in train if i != target]
     if neighbours <= 0 or neighbours >= len(others):
         return others
@@ -312,7 +322,9 @@ class SplatConditionDataset(Dataset):
         self.cfg = (cfg or SplatDataConfig()).validate()
         if not captures:
             raise SplatDataError("SplatConditionDataset needs at least one capture")
-        gcfg = gaussian_config if gaussian_config is not None else load_gaussian_config(self.cfg.gaussian_config)
+        gcfg = (
+            gaussian_config if gaussian_config is not None else load_gaussian_config(self.cfg.gaussian_config)
+        )
         all_targets = [load_capture_targets(p, height, width, self.cfg.max_frames) for p in captures]
         split = holdout_split([len(t) for t in all_targets], self.cfg.holdout_every)
         conds, rgbs, depths = [], [], []
