@@ -1,8 +1,11 @@
 """``image2sim sim train`` / ``image2sim sim renderer-eval``: train and measure the pixel-flow renderer.
 
-Until the splatting pipeline feeds cached splats, training samples are splat-like degradations
-of target panoramas (:class:`~image2sim.simulator.renderer.data.DegradedPanoramaDataset`) read
-from any capture ``open_capture`` understands (the HM3D sample, procedural captures).
+Training samples (``--condition-source``): ``splat`` (default) pairs every training frame with the
+splat of the identity Gaussians of the capture's OTHER training frames at its pose
+(:class:`~image2sim.simulator.renderer.splat_data.SplatConditionDataset`, cached per capture);
+``degraded`` uses splat-like degradations of the targets
+(:class:`~image2sim.simulator.renderer.data.DegradedPanoramaDataset`). Captures are anything
+``open_capture`` understands (the HM3D sample, procedural captures).
 """
 
 from __future__ import annotations
