@@ -75,14 +75,21 @@ class CollisionWorld:
         self.obstacles = np.asarray(navmap.obstacle_xyz, dtype=np.float64)
         self._tree = cKDTree(self.obstacles[:, :2]) if len(self.obstacles) else None
         ny = navmap.shape2d[1]
-        keys = navmap.floor_ij[:, 0] * ny + navmap.floor_ij[:, 1]
+        # Feet may stand on floor cells and on support cells (floor seen under an obstacle voxel):
+        # the column of a stair riser holds only support (the riser covers the tread edge), and
+        # without it every riser would be a one-cell hole that no forward micro-step can cross.
+        # The graph already counts support as floor for its unknown-space test.
+        ij = np.concatenate((navmap.floor_ij, navmap.support_ij.reshape(-1, 2)))
+        zs = np.concatenate((navmap.floor_z, navmap.support_z.reshape(-1)))
+        keys = ij[:, 0] * ny + ij[:, 1]
         order = np.argsort(keys, kind="stable")
         self._keys = keys[order]
-        self._floor_z = navmap.floor_z[order]
+        self._floor_z = zs[order]
         self._ny = ny
 
     def floor_height(self, xy: np.ndarray, z_ref: float) -> float:
-        """Floor height of the column under ``xy`` closest to ``z_ref`` within the max step (NaN if none)."""
+        """Floor (or support) height of the column under ``xy`` closest to ``z_ref`` within the max
+        step (NaN if none)."""
         ij = self.navmap.xy_to_ij(np.asarray(xy, dtype=np.float64).reshape(1, 2))[0]
         nx, ny = self.navmap.shape2d
         if not (0 <= ij[0] < nx and 0 <= ij[1] < ny):

@@ -222,8 +222,17 @@ class FollowerConfig(_DictMixin):
     """Replan when the agent is farther than this (metres) from the current path."""
     turn_tolerance_deg: float | None = None
     """Turn while the heading error exceeds this (degrees); None = half the embodiment's turn angle."""
+    slide_when_cycling: int = 0
+    """0 = never take a step the kinematics predicts to collide (collision-free oracle). n > 0 = once
+    the agent has been blocked n times at the same spot without path progress, accept a colliding
+    (wall-sliding) step that still gets closer to the target: breaks avoidance loops next to thin
+    obstacles on real scans (the HM3D staircase's newel post) at the price of a few collisions."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.slide_when_cycling, int) or self.slide_when_cycling < 0:
+            raise ConfigError(
+                f"FollowerConfig.slide_when_cycling must be an integer >= 0, got {self.slide_when_cycling!r}"
+            )
         if int(self.smoothing_window) < 1:
             raise ConfigError(f"FollowerConfig.smoothing_window must be >= 1, got {self.smoothing_window!r}")
         _check_positive(self, "lookahead", "stop_radius", "replan_distance")

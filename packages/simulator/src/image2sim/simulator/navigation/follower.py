@@ -8,6 +8,7 @@ import numpy as np
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation.agent import AgentState, Kinematics, wrap_angle
 from image2sim.simulator.navigation.embodiment import Embodiment, FollowerConfig
+from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE
 from image2sim.simulator.navigation.planner import PathResult, Planner
 
 __all__ = ["smooth_path", "pure_pursuit_action", "OracleFollower"]
@@ -57,6 +58,8 @@ class OracleFollower:
         self.planner = planner
         self.kinematics = kinematics
         self._blocked_turn: int | None = None
+        self._blocked_at: list[np.ndarray] = []
+        self._cycling = False
         self.embodiment = embodiment or planner.graph.embodiment
         self.config = config or FollowerConfig()
         tol = self.config.turn_tolerance_deg
@@ -82,6 +85,7 @@ class OracleFollower:
             else np.zeros((0, 3))
         )
         self._progress = 0
+        self._blocked_at, self._cycling = [], False
         return self.result
 
     def act(self, state: AgentState, collided: bool = False) -> int:
@@ -101,12 +105,27 @@ class OracleFollower:
                 return int(Action.STOP)
             dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
             nearest = int(np.argmin(dist))
+        if nearest > self._progress:
+            self._blocked_at, self._cycling = [], False
         self._progress = nearest
         target = self._target(pos, dist, nearest)
+        if self._blocked_turn is not None and self.kinematics is not None:
+            # Blocked last time: keep turning the same way until a forward step is free, then take
+            # it. Handing control back to pursuit while still blocked makes the agent dither
+            # left/right on the spot (seen at the foot of the HM3D staircase next to the newel post).
+            if not self._forward_blocked(state, target):
+                self._blocked_turn = None
+                return int(Action.MOVE_FORWARD)
+            return self._blocked_turn
         action = pure_pursuit_action(state, target[:2], self.turn_tolerance)
         if action == Action.MOVE_FORWARD and self.kinematics is not None:
-            _, would_collide, _ = self.kinematics.apply(state, Action.MOVE_FORWARD)
-            if would_collide:
+            if self._forward_blocked(state, target):
+                # Blocked again where it was blocked before (no path progress since): a cycle.
+                n = self.config.slide_when_cycling
+                self._cycling = (
+                    n > 0 and sum(np.linalg.norm(p - pos[:2]) < 0.05 for p in self._blocked_at) >= n - 1
+                )
+                self._blocked_at.append(pos[:2].copy())
                 # Keep turning the same way until the forward step is free (no left/right dithering).
                 if self._blocked_turn is None:
                     d = target[:2] - pos[:2]
@@ -115,6 +134,22 @@ class OracleFollower:
                 return self._blocked_turn
         self._blocked_turn = None
         return action
+
+    def _forward_blocked(self, state: AgentState, target: np.ndarray) -> bool:
+        """Would MOVE_FORWARD collide? Once avoidance cycles (blocked ``config.slide_when_cycling``
+        times at the same spot without path progress), a colliding step that still gets closer to
+        the target (wall sliding) is accepted: the graph's column model and the agent's point
+        footprint disagree by a few centimetres next to thin obstacles (posts, railings), and pure
+        avoidance then loops."""
+        assert self.kinematics is not None
+        new, would_collide, _ = self.kinematics.apply(state, Action.MOVE_FORWARD)
+        if not would_collide:
+            return False
+        if not self._cycling:
+            return True
+        before = np.linalg.norm(target[:2] - state.position[:2])
+        after = np.linalg.norm(target[:2] - new.position[:2])
+        return not after < before - 0.25 * self.embodiment.micro_step
 
     def _target(self, pos: np.ndarray, dist: np.ndarray, nearest: int) -> np.ndarray:
         """Farthest path point within the lookahead that the agent sees through navigable cells.
@@ -135,6 +170,12 @@ class OracleFollower:
         t = np.linspace(0.0, 1.0, n)[:, None]
         idx, off = graph.snap(a + (b - a) * t)
         if not ((idx >= 0).all() and (off <= 0.75 * graph.voxel_size).all()):
+            return False
+        # On stairs a straight line can cut across a flight from the side: the floor under it must
+        # change by at most a step between consecutive samples (otherwise the agent would be blocked
+        # by a riser and the oracle would turn in place forever).
+        z = graph.nodes[idx, 2]
+        if len(z) > 1 and np.abs(np.diff(z)).max() > self.embodiment.max_step_height + HEIGHT_TOLERANCE:
             return False
         # Discrete turns leave up to half a turn of heading error: keep that much lateral margin.
         margin = self.config.lookahead * math.sin(self.turn_tolerance)
