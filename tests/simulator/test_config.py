@@ -84,3 +84,32 @@ def test_presets_yaml_and_round_trip(tmp_path):
     (tmp_path / "bad.yaml").write_text("base: huge\n")
     with pytest.raises(ConfigError, match="base 'huge'"):
         load_config(PRESETS, tmp_path / "bad.yaml")
+
+
+@dataclass(frozen=True)
+class Fixed:
+    mean: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    """A fixed-length tuple of mixed int/float input."""
+    counts: tuple[int, str] = (1, "a")
+    """A fixed-length tuple of different types."""
+    inner: Inner = field(default_factory=Inner)
+    """Nested."""
+
+
+def test_fixed_length_tuples_coerce_each_item_with_its_own_type():
+    cfg = config_from_dict(Fixed, {"mean": [1, 2.5, 3], "counts": [7, "b"]})
+    assert cfg.mean == (1.0, 2.5, 3.0) and all(isinstance(v, float) for v in cfg.mean)
+    assert cfg.counts == (7, "b")
+    with pytest.raises(ConfigError, match=r"counts\[1\]: expected str"):
+        config_from_dict(Fixed, {"counts": [7, 8]})
+    with pytest.raises(ConfigError, match=r"mean: expected 3 values, got 2"):
+        config_from_dict(Fixed, {"mean": [1.0, 2.0]})
+
+
+def test_an_already_built_section_is_kept_and_messages_use_plain_words():
+    section = Inner(size=9, scale=3.0)
+    assert config_from_dict(Fixed, {"inner": section}).inner is section
+    with pytest.raises(ConfigError, match=r"inner\.size: expected int, got str \('9'\); an integer is required"):
+        config_from_dict(Fixed, {"inner": {"size": "9"}})
+    with pytest.raises(ConfigError, match=r"unknown config key\(s\) \['inner\.sise'\] \(an unknown key is an error"):
+        config_from_dict(Fixed, {"inner": {"sise": 9}})

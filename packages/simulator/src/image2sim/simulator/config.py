@@ -26,6 +26,10 @@ class ConfigError(ValueError):
     """A config has an unknown key, a wrong type or an impossible value; the message names the field."""
 
 
+_KIND = {int: "an integer", float: "a number", bool: "true/false", str: "a string"}
+"""Plain-words name of each scalar type, for error messages read by people who write YAML."""
+
+
 def _strip_optional(annotation: Any) -> tuple[Any, bool]:
     if typing.get_origin(annotation) in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(annotation) if a is not type(None)]
@@ -53,19 +57,24 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(args) != len(value):
                 raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-            items = [_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value))]
+            items = [_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args))]
         else:
             item_type = args[0] if args else Any
             items = [_coerce(v, item_type, f"{where}[{i}]") for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
     if dataclasses.is_dataclass(annotation) and isinstance(annotation, type):
+        if isinstance(value, annotation):  # an already-built section is taken as is
+            return value
         return merge_config(annotation(), value, where)
     if annotation is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if annotation in (int, float) and isinstance(value, bool):
         raise ConfigError(f"{where}: expected {annotation.__name__}, got a boolean")
     if annotation in (int, float, bool, str) and not isinstance(value, annotation):
-        raise ConfigError(f"{where}: expected {annotation.__name__}, got {type(value).__name__} ({value!r})")
+        raise ConfigError(
+            f"{where}: expected {annotation.__name__}, got {type(value).__name__} ({value!r}); "
+            f"{_KIND[annotation]} is required"
+        )
     return value
 
 
@@ -84,7 +93,10 @@ def merge_config(base: T, data: Mapping[str, Any] | None, where: str = "") -> T:
     unknown = sorted(set(data) - set(names))
     if unknown:
         prefix = f"{where}." if where else ""
-        raise ConfigError(f"unknown config key(s) {[prefix + k for k in unknown]}; known: {sorted(names)}")
+        raise ConfigError(
+            f"unknown config key(s) {[prefix + k for k in unknown]} (an unknown key is an error, never "
+            f"ignored); known: {sorted(names)}"
+        )
     updates = {}
     for key, value in data.items():
         sub = f"{where}.{key}" if where else key

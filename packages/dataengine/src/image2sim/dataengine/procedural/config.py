@@ -1,17 +1,18 @@
 """Configuration of the procedural scene generator: layout, objects, capture and noise tiers.
 
 Every field has a docstring (the attribute docstring below it). Configs are plain frozen
-dataclasses; :func:`synth_config_from_dict` builds one from nested dicts (YAML/JSON) and rejects
-unknown keys, and :meth:`SynthConfig.validate` rejects impossible values with a message that names
-the field. Presets: :func:`preset` (``"default"``, ``"tiny"``).
+dataclasses; :func:`synth_config_from_dict` builds one from nested dicts (YAML/JSON) with the shared
+:mod:`image2sim.simulator.config` mechanism (unknown keys and wrong types rejected), and
+:meth:`SynthConfig.validate` rejects impossible values with a message that names the field. Presets: :func:`preset` (``"default"``, ``"tiny"``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from dataclasses import dataclass, field, fields
+
+from image2sim.simulator.config import ConfigError as SharedConfigError
+from image2sim.simulator.config import config_to_dict, merge_config
 
 __all__ = [
     "LayoutConfig",
@@ -28,8 +29,8 @@ __all__ = [
 ]
 
 
-class ConfigError(ValueError):
-    """An invalid generator configuration; the message names the field and the problem."""
+ConfigError = SharedConfigError
+"""An invalid generator configuration (the repository's one config error class)."""
 
 
 @dataclass(frozen=True)
@@ -316,7 +317,7 @@ class SynthConfig:
 
     def to_dict(self) -> dict:
         """Plain nested dict (JSON-serialisable), the inverse of :func:`synth_config_from_dict`."""
-        return dataclasses.asdict(self)
+        return config_to_dict(self)
 
 
 def _check_finite(cfg: SynthConfig) -> None:
@@ -328,73 +329,13 @@ def _check_finite(cfg: SynthConfig) -> None:
                 raise ConfigError(f"{section}.{f.name} must be finite, got {value}")
 
 
-def _build(cls: type, data: Any, where: str):
-    """Instantiate dataclass ``cls`` from ``data`` (a dict), rejecting unknown keys and bad types."""
-    if isinstance(data, cls):
-        return data
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    known = {f.name: f for f in fields(cls)}
-    unknown = sorted(set(data) - set(known))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown} (known: {sorted(known)})")
-    defaults = cls()
-    kwargs = {
-        name: _coerce(value, type(getattr(defaults, name)), f"{where}.{name}") for name, value in data.items()
-    }
-    return cls(**kwargs)
-
-
-def _coerce(value: Any, kind: type, where: str):
-    if kind is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true/false, got {value!r}")
-        return value
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if kind is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if kind is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    return value
-
-
-_NESTED = {"layout": LayoutConfig, "objects": ObjectConfig, "capture": CaptureConfig}
-
-
 def synth_config_from_dict(data: dict, base: SynthConfig | None = None) -> SynthConfig:
     """Build and validate a :class:`SynthConfig` from nested dicts, overriding ``base`` (default preset).
 
-    Unknown keys anywhere are a :class:`ConfigError` that lists the known ones.
+    A thin wrapper over the shared :func:`image2sim.simulator.config.merge_config`: unknown keys
+    anywhere and wrong types are a :class:`ConfigError` naming the dotted field path.
     """
-    base = base or SynthConfig()
-    if not isinstance(data, dict):
-        raise ConfigError(f"synth config: expected a mapping, got {type(data).__name__}")
-    unknown = sorted(set(data) - {f.name for f in fields(SynthConfig)})
-    if unknown:
-        raise ConfigError(
-            f"synth config: unknown key(s) {unknown} (known: {sorted(f.name for f in fields(SynthConfig))})"
-        )
-    kwargs: dict[str, Any] = {}
-    for name, value in data.items():
-        if name in _NESTED:
-            merged = {**dataclasses.asdict(getattr(base, name)), **_require_mapping(value, name)}
-            kwargs[name] = _build(_NESTED[name], merged, name)
-        else:
-            kwargs[name] = _coerce(value, str, name)
-    return replace(base, **kwargs).validate()
-
-
-def _require_mapping(value: Any, where: str) -> dict:
-    if not isinstance(value, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__}")
-    return value
+    return merge_config(base or SynthConfig(), data).validate()
 
 
 PRESETS: dict[str, SynthConfig] = {

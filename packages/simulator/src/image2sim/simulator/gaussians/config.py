@@ -1,18 +1,20 @@
 """Typed configuration of scene encoding and Gaussian scene construction (presets ``tiny`` / ``paper``).
 
 Every field carries a docstring. :func:`gaussian_config_from_dict` / :func:`load_gaussian_config`
-start from a named preset, overlay plain data (e.g. YAML/JSON) and reject unknown keys with the
-dotted path of the offending field, so a typo never silently falls back to a default.
+start from a named preset and overlay plain data (e.g. YAML/JSON) with the shared
+:mod:`image2sim.simulator.config` mechanism, which rejects unknown keys with the dotted path of the
+offending field, so a typo never silently falls back to a default.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
+
+from image2sim.simulator.config import ConfigError as SharedConfigError
+from image2sim.simulator.config import config_to_dict, merge_config
 
 __all__ = [
     "SemanticConfig",
@@ -33,8 +35,8 @@ FEATURE_DIM = 16
 """Channels of the per-Gaussian scene features (the renderer's condition expects 16)."""
 
 
-class ConfigError(ValueError):
-    """Invalid Gaussian/encoder configuration; the message names the field and the problem."""
+ConfigError = SharedConfigError
+"""Invalid Gaussian/encoder configuration (the repository's one config error class)."""
 
 
 @dataclass
@@ -248,84 +250,13 @@ PRESETS = {"tiny": tiny, "paper": paper}
 """Named presets (factories returning fresh configs)."""
 
 
-def _coerce(value: Any, hint: Any, where: str) -> Any:
-    origin = typing.get_origin(hint)
-    args = typing.get_args(hint)
-    if dataclasses.is_dataclass(hint):
-        return _build(hint, value, where)
-    if origin is Literal:
-        if value not in args:
-            raise ConfigError(f"{where}: {value!r} is not one of {list(args)}")
-        return value
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
-        if value is None and type(None) in args:
-            return None
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _coerce(value, arg, where)
-            except ConfigError:
-                continue
-        raise ConfigError(f"{where}: {value!r} does not match {hint}")
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true/false, got {value!r}")
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    return value
-
-
-def _build(cls: type, data: Any, where: str, base: Any = None) -> Any:
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(data) - set(names))
-    if unknown:
-        prefix = f"{where}." if where else ""
-        raise ConfigError(f"unknown config key(s) {[prefix + k for k in unknown]} (valid: {names})")
-    current = base if base is not None else cls()
-    values = {}
-    for name in names:
-        path = f"{where}.{name}" if where else name
-        if name in data:
-            sub = getattr(current, name)
-            if dataclasses.is_dataclass(hints[name]):
-                values[name] = _build(hints[name], data[name], path, sub)
-            else:
-                values[name] = _coerce(data[name], hints[name], path)
-        else:
-            values[name] = getattr(current, name)
-    return cls(**values)
-
-
 def gaussian_config_from_dict(data: dict, preset: str | None = None) -> GaussianConfig:
     """Build a config from plain data over a preset (``data["preset"]`` or ``preset``, default tiny)."""
     data = dict(data)
     name = data.pop("preset", None) or preset or data.get("name") or "tiny"
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r} (expected one of {sorted(PRESETS)})")
-    return _build(GaussianConfig, data, "", PRESETS[name]()).validate()
+    return merge_config(PRESETS[name](), data).validate()
 
 
 def load_gaussian_config(path_or_name: str | Path) -> GaussianConfig:
@@ -347,8 +278,3 @@ def load_gaussian_config(path_or_name: str | Path) -> GaussianConfig:
         return gaussian_config_from_dict(data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
-
-
-def config_to_dict(cfg: GaussianConfig) -> dict:
-    """JSON-serialisable nested dict (tuples become lists); inverse of :func:`gaussian_config_from_dict`."""
-    return json.loads(json.dumps(dataclasses.asdict(cfg)))

@@ -213,10 +213,10 @@ class GaussianScene:
             gaussians = GaussianSet(**{k: tensors[k] for k in _TENSORS})
         except ValueError as exc:
             raise SceneError(f"{st_path}: {exc}") from None
-        from image2sim.simulator.gaussians.config import ConfigError, _build
+        from image2sim.simulator.config import ConfigError, config_from_dict
 
         try:
-            fusion = _build(FusionConfig, manifest.get("fusion", {}), "fusion")
+            fusion = config_from_dict(FusionConfig, manifest.get("fusion", {}), "fusion")
         except ConfigError as exc:
             raise SceneError(f"{man_path}: {exc}") from None
         info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "config")}
