@@ -332,3 +332,17 @@ def test_cli_dagger_refuses_a_missing_init_folder(tmp_path):
     assert res.exit_code == 2 and "no such model folder" in res.output
     res = CliRunner().invoke(app, ["train", "--stage", "rl", "--out", str(tmp_path)])
     assert res.exit_code != 0
+
+
+def test_rerun_in_the_same_folder_replaces_the_rounds(scene, tiny_cfg, tiny_policy, tmp_path):
+    from image2sim.navpolicy.dagger import DaggerScene
+
+    sim, tasks = scene
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.dagger = DaggerConfig(rounds=1, episodes_per_round=1, train_steps_per_round=0, max_steps=6)
+    for _ in range(2):
+        res = run_dagger(
+            cfg, [DaggerScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False
+        )
+    assert res.dataset_sizes == [1] and res.losses == [[]]
+    assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1

@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -415,7 +416,8 @@ def run_dagger(
     Args:
         cfg: run config (``cfg.dagger`` for the loop, ``cfg.train`` for the optimiser settings).
         scenes: where episodes come from (tasks are drawn round-robin over scenes, shuffled by seed).
-        out_dir: run folder: ``episodes.jsonl``, ``round_rr/shard`` (collected data), ``round_rr/train``.
+        out_dir: run folder: ``episodes.jsonl``, ``round_rr/shard`` (collected data), ``round_rr/train``;
+            an earlier run's rounds and log there are replaced.
         policy: the policy to improve (e.g. the BC export); default a fresh one from ``cfg``.
         base_trajectories: trajectories the aggregated dataset starts with (BC data).
     """
@@ -434,7 +436,10 @@ def run_dagger(
 
     save_config(cfg, out / "config.yaml")
     log_path = out / "episodes.jsonl"
+    # A run starts from scratch (no resume): clear what an earlier run left in this folder.
     log_path.unlink(missing_ok=True)
+    for stale in out.glob("round_*"):
+        shutil.rmtree(stale)
     policy = policy or build_policy(cfg, seed=cfg.train.seed)
     pool = [(s, t) for s in scenes for t in s.tasks]
     order = np.random.default_rng([dc.seed, 1]).permutation(len(pool))
