@@ -22,8 +22,9 @@ settings.register_profile(
 )
 settings.load_profile("image2sim")
 
-# Two cores: keep torch from oversubscribing when pytest runs alongside other work.
-torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+# One intra-op thread: the tests use small tensors, and on a shared 2-core machine OpenMP threads
+# oversubscribe (measured 10-100x slower small convolutions with 2 threads under load).
+torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")
