@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+from image2sim.simulator.config import config_from_dict
 
 __all__ = [
     "Detection",
@@ -80,12 +81,9 @@ class MiningConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> MiningConfig:
-        """Build from a mapping; unknown keys raise ``ValueError`` naming them."""
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"MiningConfig: unknown field(s) {unknown}; known: {sorted(known)}")
-        return cls(**data)
+        """Build from a mapping with the shared config mechanism: unknown keys and wrong types raise
+        :class:`~image2sim.simulator.config.ConfigError` (a ``ValueError``) naming the field."""
+        return config_from_dict(cls, data)
 
 
 @dataclass(frozen=True)

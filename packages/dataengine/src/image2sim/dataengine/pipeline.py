@@ -21,7 +21,7 @@ import math
 import shutil
 import time
 import zlib
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ from image2sim.dataengine.episodes import atomic_write_bytes, episode_record
 from image2sim.dataengine.mining import MiningConfig
 from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
 from image2sim.dataengine.trajectories import SamplingConfig, episode_capacity, sample_plans
+from image2sim.simulator.config import config_from_dict
 
 __all__ = [
     "EngineConfig",
@@ -99,11 +100,9 @@ class EngineConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> EngineConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"EngineConfig: unknown field(s) {unknown}; known: {sorted(known)}")
-        return cls(**data)
+        """Build from a mapping with the shared config mechanism: unknown keys and wrong types raise
+        :class:`~image2sim.simulator.config.ConfigError` (a ``ValueError``) naming the field."""
+        return config_from_dict(cls, data)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -185,7 +184,7 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
                 raise
     from image2sim.simulator.io.registry import open_capture
 
-    mcfg = MiningConfig.from_dict(cfg.mining) if cfg.mining else MiningConfig()
+    mcfg = config_from_dict(MiningConfig, cfg.mining, "mining")
     cap = open_capture(inputs.capture_dir)
     small: set[str] = set()
     if cfg.detector == "gt":
@@ -318,8 +317,8 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         shutil.rmtree(stale, ignore_errors=True)
     navmap, graph = _navigation(inputs, out)
     objects = _objects(inputs, out, cfg)
-    scfg = SamplingConfig(**cfg.sampling) if cfg.sampling else SamplingConfig()
-    rcfg = RolloutConfig(**cfg.rollout) if cfg.rollout else RolloutConfig()
+    scfg = config_from_dict(SamplingConfig, cfg.sampling, "sampling")
+    rcfg = config_from_dict(RolloutConfig, cfg.rollout, "rollout")
     area = navmap.navigable_area()
     n = cfg.per_scene if cfg.per_scene is not None else episode_capacity(area, scfg)
     rng = _rng(cfg.seed, inputs.name)

@@ -13,7 +13,6 @@ mapped onto the slices. Files: ``.safetensors`` or ``.pt/.pth/.bin`` read with
 
 from __future__ import annotations
 
-import dataclasses
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from image2sim.simulator.config import config_from_dict
 from torch import nn
 
 # VGG16 "D" configuration: conv widths, "M" = 2x2 max-pool. Indices below are torchvision's.
@@ -214,12 +214,9 @@ class LpipsConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> LpipsConfig:
-        """Build from a mapping, rejecting unknown keys."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ValueError(f"lpips config: unknown key(s) {unknown}; allowed: {sorted(names)}")
-        return cls(**dict(data))
+        """Build from a mapping with the shared config mechanism: unknown keys and wrong types raise
+        :class:`~image2sim.simulator.config.ConfigError` (a ``ValueError``) naming the field."""
+        return config_from_dict(cls, data, "lpips")
 
 
 def build_lpips(config: LpipsConfig) -> LPIPS | None:
