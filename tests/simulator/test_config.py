@@ -109,7 +109,9 @@ def test_fixed_length_tuples_coerce_each_item_with_its_own_type():
 def test_an_already_built_section_is_kept_and_messages_use_plain_words():
     section = Inner(size=9, scale=3.0)
     assert config_from_dict(Fixed, {"inner": section}).inner is section
-    with pytest.raises(ConfigError, match=r"inner\.size: expected int, got str \('9'\); an integer is required"):
+    plain_words = r"inner\.size: expected int, got str \('9'\); an integer is required"
+    with pytest.raises(ConfigError, match=plain_words):
         config_from_dict(Fixed, {"inner": {"size": "9"}})
-    with pytest.raises(ConfigError, match=r"unknown config key\(s\) \['inner\.sise'\] \(an unknown key is an error"):
+    unknown = r"unknown config key\(s\) \['inner\.sise'\] \(an unknown key is an error"
+    with pytest.raises(ConfigError, match=unknown):
         config_from_dict(Fixed, {"inner": {"sise": 9}})

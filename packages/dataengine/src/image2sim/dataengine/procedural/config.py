@@ -3,7 +3,8 @@
 Every field has a docstring (the attribute docstring below it). Configs are plain frozen
 dataclasses; :func:`synth_config_from_dict` builds one from nested dicts (YAML/JSON) with the shared
 :mod:`image2sim.simulator.config` mechanism (unknown keys and wrong types rejected), and
-:meth:`SynthConfig.validate` rejects impossible values with a message that names the field. Presets: :func:`preset` (``"default"``, ``"tiny"``).
+:meth:`SynthConfig.validate` rejects impossible values with a message that names the field.
+Presets: :func:`preset` (``"default"``, ``"tiny"``).
 """
 
 from __future__ import annotations
