@@ -12,18 +12,14 @@ hardware string). Run: ``.venv/bin/python benchmarks/bench_capture_io.py``.
 
 from __future__ import annotations
 
-import json
 import os
-import platform
-import statistics
-import time
 from collections.abc import Callable
-from datetime import datetime, timezone
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
+from harness import hardware, time_it, utc_now, write_report
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.geometry.voxel import voxel_downsample
 from image2sim.simulator.io import Frame, open_capture
@@ -32,7 +28,6 @@ from image2sim.simulator.io.realsee import _source_coords
 from image2sim.simulator.io.resample import sample_rgb
 
 ROOT = Path(__file__).resolve().parents[1]
-REPORTS = ROOT / "reports"
 HM3D = (
     Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data"))
     / "hm3d_360"
@@ -40,28 +35,9 @@ HM3D = (
 )
 
 
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    threads = torch.get_num_threads()
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
-
-
 def timeit(fn: Callable[[], object], repeats: int) -> float:
     """Median wall time (s) of ``repeats`` runs after one warm-up."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return time_it(fn, warmup=1, repeats=repeats).wall
 
 
 def synthetic_frames(n: int, h: int = 512, w: int = 1024, seed: int = 0) -> list[Frame]:
@@ -166,14 +142,7 @@ def main() -> None:
             }
         )
 
-    report = {
-        "hardware": hardware(),
-        "measured": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "method": "median wall time after 1 warm-up",
-        "rows": rows,
-    }
-    REPORTS.mkdir(exist_ok=True)
-    (REPORTS / "bench_capture_io.json").write_text(json.dumps(report, indent=2) + "\n")
+    report = {"hardware": hardware(), "measured": utc_now(), "method": "median wall time after 1 warm-up"}
     lines = [
         "# Capture I/O benchmarks",
         "",
@@ -190,7 +159,7 @@ def main() -> None:
         lines.append(
             f"| {r['case']} | {r['ours_ms']:.1f} | {r['reference']} | {ref_ms} | {speed} | {r['note']} |"
         )
-    (REPORTS / "bench_capture_io.md").write_text("\n".join(lines) + "\n")
+    write_report("bench_capture_io", rows, report, markdown=lines)
     print("\n".join(lines))
 
 

@@ -7,18 +7,13 @@ Numbers depend on machine load: the ratio column compares against a reference ti
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import platform
-import statistics
-import tempfile
-import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
+from harness import hardware, time_it, utc_now, write_report
 from image2sim.simulator.geometry import (
     EquirectCamera,
     equirect_to_cubemap,
@@ -28,31 +23,10 @@ from image2sim.simulator.geometry import (
     voxel_downsample,
 )
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
-
-
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    threads = torch.get_num_threads()
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
-
 
 def timeit(fn: Callable[[], object], repeats: int) -> float:
     """Median wall time in seconds of ``repeats`` runs after one warm-up run."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return time_it(fn, warmup=1, repeats=repeats).wall
 
 
 # --- numpy references ---------------------------------------------------------------------------
@@ -189,13 +163,8 @@ def main() -> None:
         r["speedup_vs_reference"] = (
             (r["reference_seconds"] / r["seconds"]) if r["reference_seconds"] else None
         )
-    report = {
-        "benchmark": "geometry",
-        "hardware": hardware(),
-        "statistic": "median wall time, 1 warm-up",
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "results": results,
-    }
+    meta = {"hardware": hardware(), "statistic": "median wall time, 1 warm-up", "date_utc": utc_now()}
+    report = {**meta, "results": results}
 
     lines = [
         "# Geometry benchmarks",
@@ -213,12 +182,8 @@ def main() -> None:
         lines.append(
             f"| {r['case']} | {1e3 * r['seconds']:.1f} | {r['reference'] or '–'} | {ref_ms} | {speed} |"
         )
-    REPORTS.mkdir(exist_ok=True)
-    for suffix, text in ((".json", json.dumps(report, indent=2) + "\n"), (".md", "\n".join(lines) + "\n")):
-        target = REPORTS / f"bench_geometry{suffix}"
-        with tempfile.NamedTemporaryFile("w", dir=REPORTS, delete=False, suffix=".tmp") as tmp:
-            tmp.write(text)
-        os.replace(tmp.name, target)
+    meta = {"benchmark": "geometry", **meta}
+    write_report("bench_geometry", results, meta, markdown=lines, rows_key="results")
     print("\n".join(lines))
 
 

@@ -11,48 +11,23 @@ Numbers depend on machine load; the ratio column is what carries over.
 from __future__ import annotations
 
 import copy
-import json
-import os
-import platform
-import statistics
-import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
+from harness import hardware, time_it, write_report
 from image2sim.navpolicy.agent import Image2NavAgent
 from image2sim.navpolicy.config import tiny_config
 from image2sim.navpolicy.data import NavCollator, make_sample, synthetic_trajectories
 from image2sim.navpolicy.model import build_policy
 from image2sim.navpolicy.prompting import PromptBuilder
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
 NAME = "bench_navpolicy_agent"
-
-
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    threads = torch.get_num_threads()
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> float:
     """Median wall time in seconds of ``repeats`` runs after one warm-up run."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return time_it(fn, warmup=1, repeats=repeats).wall
 
 
 def main(steps: int = 60, repeats: int = 3) -> dict:
@@ -118,10 +93,6 @@ def main(steps: int = 60, repeats: int = 3) -> dict:
         "context_tokens_reused_fraction": reused,
         "rows": rows,
     }
-    REPORTS.mkdir(exist_ok=True)
-    tmp = REPORTS / f".{NAME}.json.tmp"
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(REPORTS / f"{NAME}.json")
     md = [
         f"# {NAME}",
         "",
@@ -136,9 +107,7 @@ def main(steps: int = 60, repeats: int = 3) -> dict:
     for r in rows:
         ratio = "" if r["ratio_vs_reference"] is None else f"{r['ratio_vs_reference']:.2f}x"
         md.append(f"| {r['case']} | {r['seconds']:.3f} | {r['per_step_ms']:.1f} | {ratio} |")
-    tmp = REPORTS / f".{NAME}.md.tmp"
-    tmp.write_text("\n".join(md) + "\n")
-    tmp.replace(REPORTS / f"{NAME}.md")
+    write_report(NAME, rows, {k: v for k, v in result.items() if k != "rows"}, markdown=md)
     print("\n".join(md))
     return result
 

@@ -12,53 +12,27 @@ hardware string, thread count). Run: ``.venv/bin/python benchmarks/bench_rendere
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import statistics
-import time
 from collections.abc import Callable
-from datetime import datetime, timezone
-from pathlib import Path
 
 import torch
+from harness import hardware, load_average, time_it, utc_now, write_report
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.renderer.condition import build_condition
 from image2sim.simulator.renderer.config import renderer_config_from_dict, tiny
 from image2sim.simulator.renderer.model import PixelFlowRenderer
 
-ROOT = Path(__file__).resolve().parents[1]
-REPORTS = ROOT / "reports"
 
-
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (
-        f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} "
-        f"({torch.get_num_threads()} threads); 1-min load {load:.1f} at start"
-    )
+def hardware_and_load() -> str:
+    """The harness hardware string plus the 1-minute load average at start."""
+    return f"{hardware()}; 1-min load {load_average():.1f} at start"
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, list[float], float]:
     """Median wall time (s) of ``repeats`` runs after one warm-up, all wall samples, and the median
     process CPU time (s): on a machine shared with other jobs the wall time also counts waiting for
     a core, the CPU time does not."""
-    fn()
-    times, cpu = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return statistics.median(times), times, statistics.median(cpu)
+    t = time_it(fn, warmup=1, repeats=repeats)
+    return t.wall, list(t.walls), t.cpu
 
 
 def main() -> None:
@@ -84,7 +58,7 @@ def main() -> None:
     model = PixelFlowRenderer(cfg).eval()
     splat = PixelFlowRenderer(renderer_config_from_dict({"ablation": {"no_pixel_flow": True}}, preset="tiny"))
     rows = []
-    started = hardware()
+    started = hardware_and_load()
     t_splat, s_splat, c_splat = timeit(lambda: splat.render(cond, noise=noise), args.repeats)
     rows.append(
         {
@@ -126,7 +100,7 @@ def main() -> None:
     t_train, s_train, c_train = timeit(train_step, max(3, args.repeats // 2))
     result = {
         "benchmark": "renderer",
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "date": utc_now(),
         "hardware": started,
         "config": "tiny (128x256), batch 1 render, batch 2 train step",
         "parameters": sum(p.numel() for p in model.parameters()),
@@ -136,10 +110,6 @@ def main() -> None:
         "train_step_samples_s": s_train,
         "train_step_batch2_cpu_s": c_train,
     }
-    REPORTS.mkdir(exist_ok=True)
-    tmp = REPORTS / ".bench_renderer.json.tmp"
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(REPORTS / "bench_renderer.json")
     lines = [
         "# Renderer speed (tiny, 128x256)",
         "",
@@ -160,9 +130,8 @@ def main() -> None:
         f"{c_train:.2f} s CPU.",
         "",
     ]
-    tmp = REPORTS / ".bench_renderer.md.tmp"
-    tmp.write_text("\n".join(lines))
-    tmp.replace(REPORTS / "bench_renderer.md")
+    meta = {k: v for k, v in result.items() if k != "render"}
+    write_report("bench_renderer", rows, meta, markdown=lines, rows_key="render")
     print("\n".join(lines))
 
 

@@ -58,6 +58,35 @@ class FpsMeasurement:
         return out
 
 
+def time_calls(
+    fn: Callable[[], Any],
+    *,
+    warmup: int = 1,
+    runs: int = 5,
+    clock: Callable[[], float] = time.perf_counter,
+    synchronize: Callable[[], None] | None = None,
+) -> tuple[list[float], list[float]]:
+    """Call ``fn`` ``warmup`` times untimed, then ``runs`` times timed.
+
+    Returns the wall time (``clock``) and the process CPU time (all threads) of every timed call;
+    the one timing loop shared by :func:`measure_fps` and the ``benchmarks/`` harness.
+    """
+    if warmup < 0 or runs < 1:
+        raise ValueError(f"need warmup >= 0 and runs >= 1; got {warmup}, {runs}")
+    sync = synchronize or (lambda: None)
+    for _ in range(warmup):
+        fn()
+    sync()
+    walls, cpus = [], []
+    for _ in range(runs):
+        start, cpu_start = clock(), time.process_time()
+        fn()
+        sync()
+        walls.append(clock() - start)
+        cpus.append(time.process_time() - cpu_start)
+    return walls, cpus
+
+
 def measure_fps(
     fn: Callable[[], Any],
     *,
@@ -76,16 +105,7 @@ def measure_fps(
         raise ValueError(
             f"need warmup >= 0, runs >= 1, frames_per_call >= 1; got {warmup}, {runs}, {frames_per_call}"
         )
-    sync = synchronize or (lambda: None)
-    for _ in range(warmup):
-        fn()
-    sync()
-    times = []
-    for _ in range(runs):
-        start = clock()
-        fn()
-        sync()
-        times.append(clock() - start)
+    times, _ = time_calls(fn, warmup=warmup, runs=runs, clock=clock, synchronize=synchronize)
     med = statistics.median(times)
     if med <= 0:
         raise ValueError(f"median time per call is {med} s: the clock is too coarse for this workload")
