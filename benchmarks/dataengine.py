@@ -16,39 +16,17 @@ Run: ``.venv/bin/python benchmarks/dataengine.py [--quick]``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import shutil
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
-
-
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return f"{cpu}; {os.cpu_count()} logical cores; load average {load:.1f} at start"
+from harness import hardware, load_average, time_it, write_report
 
 
 def _runs(fn, repeats: int) -> list[float]:
-    fn()  # warm-up (imports, caches of the first scene)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return times
+    """Wall seconds of ``repeats`` runs after one warm-up (imports, caches of the first scene)."""
+    return list(time_it(fn, warmup=1, repeats=repeats).walls)
 
 
 def main() -> None:
@@ -68,7 +46,7 @@ def main() -> None:
     from image2sim.dataengine.pipeline import EngineConfig
     from image2sim.dataengine.procedural import preset, synthesize
 
-    hw = hardware()
+    hw = f"{hardware()}; load average {load_average():.1f} at start"
     work = Path(tempfile.mkdtemp(prefix="bench_dataengine_"))
     try:
         scenes = work / "scenes"
@@ -142,8 +120,6 @@ def main() -> None:
         "ray_speedup_2_over_1": speedup,
         "target_speedup": 1.8,
     }
-    REPORTS.mkdir(exist_ok=True)
-    (REPORTS / "dataengine.json").write_text(json.dumps(report, indent=2))
     lines = [
         "# Data engine benchmark",
         "",
@@ -166,7 +142,7 @@ def main() -> None:
         f"Ray speed-up, 2 workers over 1 (same run, Ray start-up excluded): **{speedup:.2f}x** "
         "(target >= 1.8x; the machine is shared, see the load average above).",
     ]
-    (REPORTS / "dataengine.md").write_text("\n".join(lines) + "\n")
+    write_report("dataengine", rows, {k: v for k, v in report.items() if k != "rows"}, markdown=lines)
     print("\n".join(lines))
 
 

@@ -13,15 +13,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
-import statistics
 import time
 import tracemalloc
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
+from harness import hardware, load_average, time_it, write_report
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
@@ -30,31 +27,10 @@ from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.navigation.planner import Planner
 from scipy.sparse.csgraph import dijkstra
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
-
-
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return f"{cpu}; {os.cpu_count()} logical cores; load average {load:.1f} at start"
-
 
 def timeit(fn: Callable[[], object], repeats: int) -> float:
     """Median wall time (s) of ``repeats`` runs after one warm-up run."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return time_it(fn, warmup=1, repeats=repeats).wall
 
 
 def ray_march_reference(a, b, masks, keys, origin, vox, step) -> np.ndarray:
@@ -158,7 +134,7 @@ def main() -> None:
     args = ap.parse_args()
     grids = [(1, 2), (2, 2)] if args.quick else [(1, 2), (2, 2), (3, 3), (4, 4), (5, 4)]
     repeats = 2 if args.quick else 5
-    hw = hardware()
+    hw = f"{hardware()}; load average {load_average():.1f} at start"
     rows = []
     for nx, ny in grids:
         row = bench_scene(nx, ny, repeats)
@@ -173,8 +149,6 @@ def main() -> None:
         "targets": {"graph_build_s_at_150m2": 30.0, "field_lookup_ms": 1.0},
         "rows": rows,
     }
-    REPORTS.mkdir(exist_ok=True)
-    (REPORTS / "navigation.json").write_text(json.dumps(result, indent=2))
     cols = list(rows[0])
     lines = [
         "# Navigation benchmark",
@@ -188,8 +162,8 @@ def main() -> None:
         "|" + "---|" * len(cols),
     ]
     lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
-    (REPORTS / "navigation.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {REPORTS / 'navigation.json'} and {REPORTS / 'navigation.md'}")
+    paths = write_report("navigation", rows, {k: v for k, v in result.items() if k != "rows"}, markdown=lines)
+    print(f"wrote {paths[0]} and {paths[1]}")
 
 
 if __name__ == "__main__":

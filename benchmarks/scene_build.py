@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -24,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from harness import hardware, load_average, time_it, write_report
 from image2sim.simulator.gaussians import GaussianEncoder, GaussianScene, tiny
 from image2sim.simulator.gaussians.encoder import identity_gaussians
 from image2sim.simulator.gaussians.frames import prepare_frame
@@ -31,7 +30,6 @@ from image2sim.simulator.gaussians.fusion import cell_sizes, fuse
 from image2sim.simulator.io.registry import open_capture
 
 ROOT = Path(__file__).resolve().parents[1]
-REPORTS = ROOT / "reports"
 HM3D = (
     Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data"))
     / "hm3d_360"
@@ -39,31 +37,9 @@ HM3D = (
 )
 
 
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (
-        f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} "
-        f"({torch.get_num_threads()} threads); "
-        f"load average {load:.1f} at start"
-    )
-
-
 def median_time(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    """Median wall seconds of ``repeats`` runs after one warm-up."""
+    return time_it(fn, warmup=1, repeats=repeats).wall
 
 
 def reference_fuse_fixed(means: np.ndarray, colors: np.ndarray, size: float) -> int:
@@ -187,7 +163,7 @@ def main() -> None:
                 print(rows[-1], flush=True)
 
     result = {
-        "hardware": hardware(),
+        "hardware": f"{hardware()}; load average {load_average():.1f} at start",
         "source": source,
         "resolution": f"{w}x{h}",
         "held_out_targets": targets,
@@ -199,10 +175,6 @@ def main() -> None:
         "rows": rows,
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
     }
-    REPORTS.mkdir(exist_ok=True)
-    tmp = REPORTS / ".scene_build.json.tmp"
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(REPORTS / "scene_build.json")
     md = [
         "# Scene construction benchmark (`benchmarks/scene_build.py`)",
         "",
@@ -242,9 +214,7 @@ def main() -> None:
             + ", ".join(f"{c:.3f}" for c in r["coverage_per_target"])
             + " |"
         )
-    tmp = REPORTS / ".scene_build.md.tmp"
-    tmp.write_text("\n".join(md) + "\n")
-    tmp.replace(REPORTS / "scene_build.md")
+    write_report("scene_build", rows, {k: v for k, v in result.items() if k != "rows"}, markdown=md)
     print("\n".join(md))
 
 
