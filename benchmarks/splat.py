@@ -25,35 +25,18 @@ import argparse
 import json
 import math
 import os
-import platform
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
+from harness import REPORTS, hardware, time_it, utc_now, write_report, write_text_atomic
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting import available_backends, splat
 from rich.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
-REPORTS = ROOT / "reports"
-
-
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    threads = torch.get_num_threads()
-    return f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__} ({threads} threads)"
 
 
 def room_scene(n: int, seed: int = 0, channels: int = 16) -> list[torch.Tensor]:
@@ -104,17 +87,12 @@ def time_case(scene, camera, backend: str, backward: bool, repeats: int) -> dict
         with torch.no_grad():
             return splat(*inputs, camera, pose, backend=backend)
 
-    out = run()
-    times, cpu_times = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        run()
-        times.append(time.perf_counter() - t0)
-        cpu_times.append(time.process_time() - c0)
+    out = run()  # the warm-up; its output gives the mean alpha
+    t = time_it(run, warmup=0, repeats=repeats)
     return {
-        "ms": 1000 * statistics.median(times),
-        "ms_min": 1000 * min(times),
-        "cpu_ms": 1000 * statistics.median(cpu_times),
+        "ms": 1000 * t.wall,
+        "ms_min": 1000 * min(t.walls),
+        "cpu_ms": 1000 * t.cpu,
         "runs": repeats,
         "mean_alpha": float(out.alpha.detach().mean()),
     }
@@ -171,12 +149,6 @@ def peak_memory(n: int, h: int, w: int) -> dict:
     data["splat_mb"] = data["peak_rss_mb"] - data["baseline_rss_mb"]
     data["splat_forward_mb"] = data["peak_forward_mb"] - data["baseline_rss_mb"]
     return data
-
-
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
 
 
 def render_markdown(report: dict) -> str:
@@ -305,19 +277,19 @@ def main() -> None:
         report["memory_git_commit"] = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
-        write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
-        write_atomic(REPORTS / "splat.md", render_markdown(report))
+        write_text_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
+        write_text_atomic(REPORTS / "splat.md", render_markdown(report))
         print(render_markdown(report))
         return
     if args.single_thread_only:
         report = json.loads((REPORTS / "splat.json").read_text())
         report["single_thread"] = single_thread_rows(args.repeats)
-        report["single_thread_date"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        report["single_thread_date"] = utc_now()
         report["single_thread_git_commit"] = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
-        write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
-        write_atomic(REPORTS / "splat.md", render_markdown(report))
+        write_text_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
+        write_text_atomic(REPORTS / "splat.md", render_markdown(report))
         print(render_markdown(report))
         return
     backends = available_backends()
@@ -402,7 +374,7 @@ def main() -> None:
 
     report = {
         "benchmark": "splat",
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "date": utc_now(),
         "hardware": hardware(),
         "git_commit": subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
@@ -416,10 +388,8 @@ def main() -> None:
         "memory": memory,
         "single_thread": [] if args.quick else single_thread_rows(args.repeats),
     }
-    REPORTS.mkdir(exist_ok=True)
-    write_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
-
-    write_atomic(REPORTS / "splat.md", render_markdown(report))
+    meta = {k: v for k, v in report.items() if k != "cases"}
+    write_report("splat", rows, meta, markdown=render_markdown(report), rows_key="cases")
     print(render_markdown(report))
 
 

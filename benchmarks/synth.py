@@ -15,19 +15,12 @@ Run: ``.venv/bin/python benchmarks/synth.py [--quick]``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
-from datetime import datetime, timezone
 from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-REPORTS = ROOT / "reports"
 
 
 def pin_one_core() -> str:
@@ -48,6 +41,7 @@ import torch  # noqa: E402
 
 torch.set_num_threads(1)
 
+from harness import hardware, time_it, utc_now, write_report  # noqa: E402
 from image2sim.dataengine.procedural.capture import pose_matrix, sample_viewpoints, write_scene  # noqa: E402
 from image2sim.dataengine.procedural.config import preset  # noqa: E402
 from image2sim.dataengine.procedural.raycast import BoxCaster, EmbreeCaster, embree_available  # noqa: E402
@@ -56,16 +50,9 @@ from image2sim.dataengine.procedural.scene import generate_scene, seed_streams  
 from image2sim.simulator.geometry.cameras import EquirectCamera  # noqa: E402
 
 
-def hardware() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}; {os.cpu_count()} logical cores ({PINNED}); numpy {np.__version__}; python {sys.version.split()[0]}"
+def hardware_pinned() -> str:
+    """The harness hardware string plus the core pinning and the numpy version."""
+    return f"{hardware()}; {PINNED}; numpy {np.__version__}"
 
 
 CPU_TIMES: list[float] = []
@@ -78,16 +65,9 @@ def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
     The process CPU time of each run is kept in :data:`CPU_TIMES`: on a shared, loaded machine it is
     the better measure of what one core needs (wall time includes waiting for other jobs).
     """
-    fn()
-    times = []
-    CPU_TIMES.clear()
-    for _ in range(repeats):
-        c0 = time.process_time()
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-        CPU_TIMES.append(time.process_time() - c0)
-    return statistics.median(times), times
+    t = time_it(fn, warmup=1, repeats=repeats)
+    CPU_TIMES[:] = t.cpus
+    return t.wall, list(t.walls)
 
 
 def cpu() -> float:
@@ -193,16 +173,14 @@ def main() -> None:
         }
     )
 
-    results["hardware"] = hardware()
-    results["date"] = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    results["hardware"] = hardware_pinned()
+    results["date"] = utc_now()
     results["load_average_before_after"] = [list(load_before), list(os.getloadavg())]
     results["target"] = "< 1 s per 512x1024 RGB-D+semantics panorama on one core"
     results["timing_note"] = (
         "seconds = median wall time; cpu_seconds = median process CPU time (all threads, "
         "process pinned to one core); the caster comparison uses CPU time"
     )
-    REPORTS.mkdir(exist_ok=True)
-    (REPORTS / "bench_synth.json").write_text(json.dumps(results, indent=2) + "\n")
     lines = [
         "# Procedural synthesis benchmark",
         "",
@@ -227,7 +205,8 @@ def main() -> None:
     ]
     lines += [f"- {k}: {v:.1f}x" for k, v in results["caster_ratio_vs_fastest"].items()]
     lines.append("")
-    (REPORTS / "bench_synth.md").write_text("\n".join(lines))
+    meta = {k: v for k, v in results.items() if k != "cases"}
+    write_report("bench_synth", results["cases"], meta, markdown=lines, rows_key="cases")
     print("\n".join(lines))
 
 
