@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from harness import hardware, load_average, time_it, write_report
 from image2sim.eval.metrics.lpips import LPIPS
 from image2sim.eval.metrics.nav import (
     IncrementalNDTW,
@@ -31,10 +30,6 @@ from image2sim.eval.metrics.nav import (
     pairwise_distances,
 )
 from image2sim.eval.metrics.render import psnr, ssim
-from image2sim.eval.metrics.timing import hardware_string, measure_fps
-from image2sim.eval.results import write_json_atomic
-
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
 
 def python_dtw(cost: np.ndarray) -> float:
@@ -64,7 +59,8 @@ def walk(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def seconds(fn: Callable[[], Any], warmup: int, runs: int) -> float:
-    return measure_fps(fn, warmup=warmup, runs=runs).median_seconds
+    """Median wall seconds of ``runs`` timed calls after ``warmup`` untimed ones."""
+    return time_it(fn, warmup=warmup, repeats=runs).wall
 
 
 def main() -> None:
@@ -143,11 +139,10 @@ def main() -> None:
         add("lpips-vgg16 forward", f"1x3x{lh}x{lw}", seconds(lambda: model(xi, yi), 1, max(3, runs // 2)),
             "-", None)
 
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None  # shared machines: context
-    result = {"benchmark": "eval_metrics", "hardware": hardware_string(), "runs": runs,
+    load = load_average()  # shared machines: context
+    load = None if math.isnan(load) else load
+    result = {"benchmark": "eval_metrics", "hardware": hardware(), "runs": runs,
               "load_average_1min": load, "statistic": "median seconds after warm-up", "rows": rows}
-    REPORTS.mkdir(exist_ok=True)
-    write_json_atomic(REPORTS / "bench_eval_metrics.json", result)
     lines = [
         "# Evaluation metrics benchmark",
         "",
@@ -164,11 +159,9 @@ def main() -> None:
         speed = "–" if r["speedup"] is None else f"{r['speedup']:.1f}×"
         ours_ms = f"{r['seconds'] * 1e3:.2f}"
         lines.append(f"| {r['case']} | {r['size']} | {ours_ms} | {r['reference']} | {ref_ms} | {speed} |")
-    md = REPORTS / "bench_eval_metrics.md"
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    tmp.replace(md)
-    print(f"wrote {REPORTS / 'bench_eval_metrics.json'} and {md}")
+    meta = {k: v for k, v in result.items() if k != "rows"}
+    paths = write_report("bench_eval_metrics", rows, meta, markdown=lines)
+    print(f"wrote {paths[0]} and {paths[1]}")
 
 
 if __name__ == "__main__":

@@ -19,15 +19,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import statistics
 import subprocess
-import time
-from pathlib import Path
 
 import numpy as np
-from image2sim.eval.metrics.timing import hardware_string
+from harness import hardware, time_it, write_report
 from image2sim.eval.protocols import IMAGE2SIM
-from image2sim.eval.results import write_json_atomic
 from image2sim.eval.runner import (
     AgentSpec,
     NeuralSimBackend,
@@ -38,20 +34,13 @@ from image2sim.eval.runner import (
     sample_point_goal_episodes,
 )
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
 PROTO = dataclasses.replace(IMAGE2SIM, name="bench-tiny", success_distance_m=0.5, ndtw_threshold_m=0.5)
 
 
 def _timed(fn, warmup: int, runs: int) -> tuple[float, list[float]]:
     """Median seconds of ``fn()`` over ``runs`` calls after ``warmup`` untimed calls."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times
+    t = time_it(fn, warmup=warmup, repeats=runs)
+    return t.wall, list(t.walls)
 
 
 def main() -> None:
@@ -108,7 +97,7 @@ def main() -> None:
     ).stdout.strip()
     result = {
         "benchmark": "eval runner episode loop",
-        "hardware": hardware_string(),
+        "hardware": hardware(),
         "load_average": list(os.getloadavg()),
         "git_commit": commit,
         "scene": {"preset": "tiny", "seed": 0, "graph_nodes": int(sim.graph.num_nodes), "episodes": len(eps)},
@@ -127,8 +116,6 @@ def main() -> None:
         ],
         "distance_field_seconds": {"median": field_s, "all": field_t},
     }
-    REPORTS.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(REPORTS / "bench_eval_runner.json", result)
     load = ", ".join(f"{x:.1f}" for x in result["load_average"])
     nodes = result["scene"]["graph_nodes"]
     lines = [
@@ -149,10 +136,8 @@ def main() -> None:
         "",
         f"One distance field (Dijkstra from the goal, once per episode): {1e3 * field_s:.1f} ms median.",
     ]
-    md = REPORTS / "bench_eval_runner.md"
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    tmp.replace(md)
+    meta = {k: v for k, v in result.items() if k != "rows"}
+    write_report("bench_eval_runner", result["rows"], meta, markdown=lines)
     print("\n".join(lines))
 
 

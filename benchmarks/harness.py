@@ -36,8 +36,9 @@ __all__ = [
     "write_text_atomic",
 ]
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
-"""Where reports go: ``<repo>/reports/<name>.json`` and ``.md``."""
+REPORTS = Path(os.environ.get("IMAGE2SIM_BENCH_REPORTS") or Path(__file__).resolve().parents[1] / "reports")
+"""Where reports go: ``<repo>/reports/<name>.json`` and ``.md``; ``IMAGE2SIM_BENCH_REPORTS`` redirects
+them (smoke runs that must not overwrite the committed figures)."""
 
 
 def hardware() -> str:
