@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from image2sim.eval.metrics.lpips import LPIPS
 from image2sim.eval.metrics.timing import hardware_string, measure_fps
 from image2sim.eval.render_scores import RenderCell, score_views, summarize_views
 from image2sim.eval.results import write_json_atomic
+from image2sim.simulator.config import ConfigError, config_from_dict
 
 __all__ = [
     "HEADLINE_METHODS",
@@ -141,12 +142,12 @@ class RenderBenchConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = "render bench config") -> RenderBenchConfig:
-        """Build from a mapping; unknown keys are an error naming them."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise RenderBenchError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(names)}")
-        return cls(**dict(data))
+        """Build from a mapping with the shared config mechanism; unknown keys, wrong types and invalid
+        values are a :class:`RenderBenchError` naming the field."""
+        try:
+            return config_from_dict(cls, data)
+        except ConfigError as err:
+            raise RenderBenchError(f"{where}: {err}") from err
 
 
 def load_renderer(cfg: Any, checkpoint: str | Path | None):

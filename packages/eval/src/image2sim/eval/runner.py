@@ -29,7 +29,7 @@ import os
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 from typing import Protocol as TypingProtocol
@@ -46,6 +46,7 @@ from image2sim.eval.metrics.nav import (
 )
 from image2sim.eval.protocols import Protocol
 from image2sim.eval.results import EpisodeLog, read_episode_log, read_result_file, write_result_file
+from image2sim.simulator.config import ConfigError, config_from_dict
 from image2sim.simulator.conventions import Action
 
 __all__ = [
@@ -520,12 +521,12 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = "run config") -> RunConfig:
-        """Build from a mapping; unknown keys are an error naming them."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise RunnerError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(names)}")
-        return cls(**dict(data))
+        """Build from a mapping with the shared config mechanism; unknown keys, wrong types and invalid
+        values are a :class:`RunnerError` naming the field."""
+        try:
+            return config_from_dict(cls, data)
+        except ConfigError as err:
+            raise RunnerError(f"{where}: {err}") from err
 
 
 def _append_jsonl(path: Path, obj: Any) -> None:
