@@ -289,15 +289,19 @@ def test_reconstruction_and_saturation_ground_truth():
 
 
 def _random_lpips_file(path):
+    """A torchvision-style file (``features.{i}.*`` + ``lin{k}.model.1.weight``) with random weights."""
     torch.manual_seed(0)
-    net = LPIPS()
     tensors = {}
-    for i, m in enumerate(net.features):
-        if isinstance(m, torch.nn.Conv2d):
-            tensors[f"features.{i}.weight"] = torch.randn_like(m.weight) * (2.0 / m.weight[0].numel()) ** 0.5
-            tensors[f"features.{i}.bias"] = torch.zeros_like(m.bias)
-    for k, lin in enumerate(net.lins):
-        tensors[f"lin{k}.model.1.weight"] = torch.rand_like(lin.weight)
+    for name, p in LPIPS().state_dict().items():
+        if name.startswith("net.slice"):
+            _, _, index, kind = name.split(".")  # net.slice{k}.{i}.{weight|bias}
+            key = f"features.{index}.{kind}"
+            if kind == "weight":
+                tensors[key] = torch.randn_like(p) * (2.0 / p[0].numel()) ** 0.5  # He init
+            else:
+                tensors[key] = 0.01 * torch.randn_like(p)
+        else:
+            tensors[name] = torch.rand_like(p)
     save_file(tensors, str(path))
     return tensors
 
@@ -306,7 +310,8 @@ def test_lpips_loads_weights_and_behaves_like_a_distance(tmp_path):
     path = tmp_path / "lpips_vgg.safetensors"
     tensors = _random_lpips_file(path)
     net = load_lpips(path)
-    assert torch.equal(net.features[0].weight, tensors["features.0.weight"])
+    assert torch.equal(net.state_dict()["net.slice1.0.weight"], tensors["features.0.weight"])
+    assert torch.equal(net.state_dict()["net.slice5.28.bias"], tensors["features.28.bias"])
     g = torch.Generator().manual_seed(1)
     a, b = torch.rand(2, 3, 32, 32, generator=g), torch.rand(2, 3, 32, 32, generator=g)
     d_ab, d_ba, d_aa = net(a, b), net(b, a), net(a, a)
@@ -319,6 +324,27 @@ def test_lpips_loads_weights_and_behaves_like_a_distance(tmp_path):
     save_file(bad, str(tmp_path / "bad.safetensors"))
     with pytest.raises(ValueError, match="missing"):
         load_lpips(tmp_path / "bad.safetensors")
+
+
+def test_lpips_perceptual_loss_has_input_gradients(tmp_path):
+    """The renderer back-propagates the perceptual term into its output: the frozen network must pass
+    gradients to the input, and they must match finite differences."""
+    path = tmp_path / "lpips_vgg.safetensors"
+    _random_lpips_file(path)
+    net = load_lpips(path).double()
+    assert not any(p.requires_grad for p in net.parameters())
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(1, 3, 16, 16, generator=g, dtype=torch.float64).requires_grad_(True)
+    b = torch.rand(1, 3, 16, 16, generator=g, dtype=torch.float64)
+    net(a, b).sum().backward()
+    assert a.grad is not None and a.grad.abs().sum() > 0
+    eps = 1e-6
+    for idx in [(0, 0, 0, 0), (0, 1, 7, 9), (0, 2, 15, 15)]:
+        plus, minus = a.detach().clone(), a.detach().clone()
+        plus[idx] += eps
+        minus[idx] -= eps
+        fd = (net(plus, b) - net(minus, b)).item() / (2 * eps)
+        assert a.grad[idx].item() == pytest.approx(fd, rel=1e-4, abs=1e-8)
 
 
 def test_lpips_missing_weights_warn_once_and_disable(tmp_path, caplog):
@@ -356,6 +382,35 @@ def test_metrics_ground_truth():
     gt = torch.tensor([[[[2.0, 0.0], [4.0, 1.0]]]])
     pred = torch.tensor([[[[1.0, 9.0], [4.0, 1.5]]]])
     assert torch.allclose(abs_rel(pred, gt), torch.tensor([(0.5 + 0.0 + 0.5) / 3], dtype=torch.float64))
+
+
+def test_per_image_metrics_match_the_evaluation_definitions():
+    """The lenient training-log forms agree with the validated eval metrics where both are defined,
+    and differ only where documented (100 dB cap, NaN propagates, NaN for no valid depth)."""
+    from image2sim.eval.metrics.render import depth_metrics, psnr, ssim
+    from image2sim.simulator.renderer.metrics import abs_rel, psnr_per_image, ssim_per_image
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.rand(3, 3, 20, 24, generator=g)
+    b = (a + 0.05 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    assert torch.allclose(psnr_per_image(a, b), psnr(a, b), rtol=0, atol=1e-12)
+    assert torch.allclose(ssim_per_image(a, b), ssim(a, b), rtol=0, atol=1e-12)
+    gt = torch.rand(3, 1, 20, 24, generator=g) * 5
+    gt[:, :, :4] = 0.0
+    pred = gt + 0.3 * torch.randn(gt.shape, generator=g)
+    assert torch.allclose(abs_rel(pred, gt), depth_metrics(pred, gt).abs_rel, rtol=0, atol=1e-12)
+    # documented differences
+    assert torch.isinf(psnr(a, a)).all()
+    assert torch.allclose(psnr_per_image(a, a), torch.full((3,), 100.0, dtype=torch.float64))
+    nan = a.clone()
+    nan[1, 0, 5, 5] = float("nan")
+    assert torch.isnan(ssim_per_image(nan, b)[1]) and not torch.isnan(ssim_per_image(nan, b)[[0, 2]]).any()
+    with pytest.raises(ValueError, match="NaN"):
+        ssim(nan, b)
+    gt[2] = 0.0
+    assert torch.isnan(abs_rel(pred, gt)[2]) and not torch.isnan(abs_rel(pred, gt)[:2]).any()
+    with pytest.raises(ValueError, match="no valid target pixel"):
+        depth_metrics(pred, gt)
 
 
 # --- overfit (slow) -------------------------------------------------------------------------

@@ -1,8 +1,13 @@
-"""Rendering metrics in torch: PSNR, SSIM (Wang et al. 2004), depth AbsRel / RMSE / δ<1.25.
+"""Image-quality metrics in torch: PSNR, SSIM (Wang et al. 2004), depth AbsRel / RMSE / δ<1.25.
 
 Image tensors are ``(..., C, H, W)`` (a 2-D ``(H, W)`` tensor is one single-channel image); every
 metric reduces over ``(C, H, W)`` and returns a float64 tensor with the leading shape (a 0-d tensor
 for a single image). Metrics are computed in float64 so that they do not depend on the input dtype.
+
+:func:`psnr`, :func:`ssim`, :func:`depth_metrics` validate their inputs (NaN/inf, empty, shapes) and
+are the evaluation definitions. The ``*_per_image`` variants and :func:`abs_rel` are the lenient
+forms the renderer's training logs use on ``(B, C, H, W)`` batches: same definitions, but NaN
+propagates instead of raising, PSNR is capped at 100 dB and an image without valid depth gives NaN.
 """
 
 from __future__ import annotations
@@ -11,6 +16,24 @@ import math
 from dataclasses import dataclass
 
 import torch
+
+__all__ = [
+    "SSIM_K1",
+    "SSIM_K2",
+    "SSIM_SIGMA",
+    "SSIM_WINDOW",
+    "DepthMetrics",
+    "abs_rel",
+    "depth_metrics",
+    "gaussian_filter_valid",
+    "gaussian_kernel_1d",
+    "gaussian_window",
+    "psnr",
+    "psnr_per_image",
+    "ssim",
+    "ssim_map",
+    "ssim_per_image",
+]
 
 SSIM_WINDOW = 11
 """Gaussian window size of SSIM (Wang et al. 2004)."""
@@ -129,6 +152,11 @@ def ssim_map(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) 
     """
     data_range = _check_range(data_range)
     p, t = _pair(pred, target)
+    return _ssim_map_f64(p, t, data_range)
+
+
+def _ssim_map_f64(p: torch.Tensor, t: torch.Tensor, data_range: float) -> torch.Tensor:
+    """:func:`ssim_map` on float64 tensors of equal shape ``(..., C, H, W)`` (no NaN/inf check)."""
     h, w = p.shape[-2:]
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
         raise ValueError(f"ssim: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {h}x{w}")
@@ -211,3 +239,40 @@ def depth_metrics(
     )
     delta1 = (valid & (ratio < delta_threshold)).sum(dim=dims).to(torch.float64) / n
     return DepthMetrics(abs_rel, rmse, delta1, count)
+
+
+# ------------------------------------------------------------------ lenient per-image forms (training logs)
+
+
+def _batch_f64(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Detached float64 copies of two ``(B, C, H, W)`` tensors of equal shape."""
+    if pred.ndim != 4 or pred.shape != target.shape:
+        shapes = f"{tuple(pred.shape)} and {tuple(target.shape)}"
+        raise ValueError(f"expected two (B, C, H, W) tensors of equal shape, got {shapes}")
+    return pred.detach().to(torch.float64), target.detach().to(torch.float64)
+
+
+def psnr_per_image(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
+    """PSNR (dB) per image of ``(B, C, H, W)`` tensors; MSE floored at 1e-10 (identical -> 100 dB
+    for ``data_range`` 1) so that training logs stay finite. NaN inputs give NaN."""
+    data_range = _check_range(data_range)
+    p, t = _batch_f64(pred, target)
+    mse = (p - t).pow(2).flatten(1).mean(1).clamp_min(1e-10)
+    return 10.0 * torch.log10(data_range**2 / mse)
+
+
+def ssim_per_image(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
+    """:func:`ssim` per image of ``(B, C, H, W)`` tensors (mean over channels and the valid region);
+    NaN inputs give NaN instead of raising."""
+    data_range = _check_range(data_range)
+    p, t = _batch_f64(pred, target)
+    return _ssim_map_f64(p, t, data_range).mean(dim=(-3, -2, -1))
+
+
+def abs_rel(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean ``|pred - gt| / gt`` over valid (gt > 0) pixels per image of ``(B, 1, H, W)`` depth
+    (NaN for an image without a valid pixel; :func:`depth_metrics` raises there instead)."""
+    p, t = _batch_f64(pred, target)
+    valid = t > 0
+    rel = torch.where(valid, (p - t).abs() / t.clamp_min(1e-12), 0.0)
+    return rel.flatten(1).sum(1) / valid.flatten(1).sum(1)
