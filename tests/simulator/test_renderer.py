@@ -385,9 +385,9 @@ def test_metrics_ground_truth():
 
 
 def test_per_image_metrics_match_the_evaluation_definitions():
-    """The lenient training-log forms agree with the validated eval metrics where both are defined,
+    """The lenient training-log forms agree with the validated metrics where both are defined,
     and differ only where documented (100 dB cap, NaN propagates, NaN for no valid depth)."""
-    from image2sim.eval.metrics.render import depth_metrics, psnr, ssim
+    from image2sim.simulator.metrics.image import depth_metrics, psnr, ssim
     from image2sim.simulator.renderer.metrics import abs_rel, psnr_per_image, ssim_per_image
 
     g = torch.Generator().manual_seed(3)
