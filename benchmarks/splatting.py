@@ -15,8 +15,8 @@ Cases
   show linear growth in N and in pixels.
 
 Timing: median of ``--repeats`` (>= 5) runs after one warm-up; the CPU model, thread count and the
-load average (the machine is shared) are recorded. Writes ``reports/splat.json`` and
-``reports/splat.md``. Run: ``.venv/bin/python benchmarks/splat.py [--quick]``.
+load average (the machine is shared) are recorded. Writes ``reports/splatting.json`` and
+``reports/splatting.md``. Run: ``.venv/bin/python benchmarks/splatting.py [--quick]``.
 """
 
 from __future__ import annotations
@@ -266,30 +266,30 @@ def main() -> None:
     ap.add_argument(
         "--single-thread-only",
         action="store_true",
-        help="only (re)measure the single-thread section and merge it into an existing reports/splat.json",
+        help="only (re)measure the single-thread section and merge it into an existing reports/splatting.json",
     )
     args = ap.parse_args()
     if args.repeats < 5:
         raise SystemExit("--repeats must be >= 5")
     if args.memory_only:
-        report = json.loads((REPORTS / "splat.json").read_text())
+        report = json.loads((REPORTS / "splatting.json").read_text())
         report["memory"] = memory_rows()
         report["memory_git_commit"] = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
-        write_text_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
-        write_text_atomic(REPORTS / "splat.md", render_markdown(report))
+        write_text_atomic(REPORTS / "splatting.json", json.dumps(report, indent=2) + "\n")
+        write_text_atomic(REPORTS / "splatting.md", render_markdown(report))
         print(render_markdown(report))
         return
     if args.single_thread_only:
-        report = json.loads((REPORTS / "splat.json").read_text())
+        report = json.loads((REPORTS / "splatting.json").read_text())
         report["single_thread"] = single_thread_rows(args.repeats)
         report["single_thread_date"] = utc_now()
         report["single_thread_git_commit"] = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
         ).stdout.strip()
-        write_text_atomic(REPORTS / "splat.json", json.dumps(report, indent=2) + "\n")
-        write_text_atomic(REPORTS / "splat.md", render_markdown(report))
+        write_text_atomic(REPORTS / "splatting.json", json.dumps(report, indent=2) + "\n")
+        write_text_atomic(REPORTS / "splatting.md", render_markdown(report))
         print(render_markdown(report))
         return
     backends = available_backends()
@@ -373,7 +373,7 @@ def main() -> None:
     memory = [] if args.quick else memory_rows()
 
     report = {
-        "benchmark": "splat",
+        "benchmark": "splatting",
         "date": utc_now(),
         "hardware": hardware(),
         "git_commit": subprocess.run(
@@ -389,7 +389,7 @@ def main() -> None:
         "single_thread": [] if args.quick else single_thread_rows(args.repeats),
     }
     meta = {k: v for k, v in report.items() if k != "cases"}
-    write_report("splat", rows, meta, markdown=render_markdown(report), rows_key="cases")
+    write_report("splatting", rows, meta, markdown=render_markdown(report), rows_key="cases")
     print(render_markdown(report))
 
 
