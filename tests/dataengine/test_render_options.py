@@ -24,6 +24,6 @@ def test_invalid_options_are_rejected(field, value):
 
 
 def test_unknown_config_keys_are_rejected():
-    with pytest.raises(ValueError, match="unknown field"):
+    with pytest.raises(ValueError, match="unknown config key"):
         EngineConfig.from_dict({"per_scen": 3})
     assert EngineConfig.from_dict(EngineConfig(per_scene=3).to_dict()).per_scene == 3
