@@ -6,6 +6,7 @@
 # Leaves params.yaml as it found it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+export PATH="$PWD/.venv/bin:$PATH"
 export DVC_NO_ANALYTICS=1 HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1 WANDB_MODE=offline
 cp params.yaml /tmp/image2sim-params.backup.yaml
 trap 'cp /tmp/image2sim-params.backup.yaml params.yaml' EXIT

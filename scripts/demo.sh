@@ -3,6 +3,7 @@
 # add the real HM3D sample when ../shared/data is present, and print where everything is.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+export PATH="$PWD/.venv/bin:$PATH"
 export DVC_NO_ANALYTICS=1 HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1 WANDB_MODE="${WANDB_MODE:-offline}"
 start=$(date +%s)
 
