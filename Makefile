@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup test test-slow demo lint bench clean help profile train-sim-tiny train-nav-tiny
+.PHONY: setup test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -35,6 +35,9 @@ $(STAMP): $(SETUP_INPUTS)
 
 test: setup  ## fast test suite (CPU, a few minutes)
 	$(PY) -m pytest -q -m "not slow"
+
+pipeline-ci: setup  ## the whole dvc pipeline end to end on the `ci` profile, with its checks
+	bash scripts/ci_pipeline.sh
 
 test-slow: setup  ## slow tests only
 	$(PY) -m pytest -q -m slow
