@@ -32,7 +32,13 @@ first=$(ls -d data/synthetic/scene_* | head -n 1)
 image2sim data inspect "$first" --max-frames 4
 
 echo "== outputs =="
-ls -1 outputs/clouds/*.ply
-[ -d outputs/real ] && ls -1 outputs/real/*.ply || true
-if ls metrics/*.json >/dev/null 2>&1; then dvc metrics show; fi
+echo "point clouds:  $(ls outputs/clouds/*.ply | tr '\n' ' ')"
+[ -d outputs/real ] && echo "real clouds:   $(ls outputs/real/*.ply | tr '\n' ' ')" || true
+echo "scenes:        outputs/scenes/ (Gaussians + navigation maps; top-down PNGs in outputs/navmaps/)"
+echo "episodes:      outputs/episodes/ ; renderer: outputs/renderer/ ; policy: outputs/nav/"
+echo "metrics:       metrics/render.json metrics/nav.json ; report: reports/pipeline/ ; plot: plots/render_speed.png"
+echo
+cat reports/pipeline/render.md
+echo
+cat reports/pipeline/nav.md
 echo "demo finished in $(( $(date +%s) - start )) s"
