@@ -105,6 +105,18 @@ def test_fps_excludes_warm_up_calls(held):
     assert cold.fps < 10
 
 
+def test_fps_includes_the_condition_splatting_time_when_known(held):
+    samples = [dict(s, condition_seconds=0.5) for s in _tier_samples(held, "none", seed=0, max_views=1)]
+
+    def instant(cond, poses):
+        return cond[:, 16:19], cond[:, 19:20]
+
+    cell = benchmark_methods({"m": instant}, {"none": samples}, warmup=1, runs=3)["m"]["none"]
+    assert 1.0 < cell.fps <= 2.0  # end to end: at most 1 / 0.5 s of splatting per frame
+    plain = benchmark_methods({"m": instant}, {"none": _tier_samples(held, "none", seed=0, max_views=1)})
+    assert plain["m"]["none"].fps > 10 * cell.fps
+
+
 def test_method_record_weights_tiers_by_views(held):
     s_none = _tier_samples(held, "none", seed=0, max_views=3)
     s_high = _tier_samples(held, "high", seed=0, max_views=1)
