@@ -6,13 +6,13 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import pytest
-
 from image2sim.simulator.config import (
     ConfigError,
     config_from_dict,
     config_to_dict,
     load_config,
     merge_config,
+    read_mapping,
     save_config,
 )
 
@@ -115,3 +115,30 @@ def test_an_already_built_section_is_kept_and_messages_use_plain_words():
     unknown = r"unknown config key\(s\) \['inner\.sise'\] \(an unknown key is an error"
     with pytest.raises(ConfigError, match=unknown):
         config_from_dict(Fixed, {"inner": {"sise": 9}})
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "message"),
+    [
+        ("a.yaml", "x: [1, 2", "a.yaml: cannot parse"),
+        ("a.json", "{x: 1}", "a.json: cannot parse"),
+        ("a.yaml", "- 1\n- 2\n", "a.yaml: expected a mapping at the top level, got list"),
+        ("a.json", "[1]", "a.json: expected a mapping at the top level, got list"),
+    ],
+)
+def test_read_mapping_names_the_file_and_the_problem(tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        read_mapping(path)
+
+
+def test_read_mapping_reads_yaml_and_json_and_empty_files(tmp_path):
+    (tmp_path / "a.yaml").write_text("x: 1\ny: {z: two}\n")
+    (tmp_path / "b.json").write_text('{"x": 1}')
+    (tmp_path / "c.yml").write_text("")
+    assert read_mapping(tmp_path / "a.yaml") == {"x": 1, "y": {"z": "two"}}
+    assert read_mapping(tmp_path / "b.json") == {"x": 1}
+    assert read_mapping(tmp_path / "c.yml") == {}
+    with pytest.raises(ConfigError, match="missing.yaml: config file not found"):
+        read_mapping(tmp_path / "missing.yaml")

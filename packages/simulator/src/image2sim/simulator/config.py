@@ -19,7 +19,15 @@ from typing import Any, TypeVar
 
 T = TypeVar("T")
 
-__all__ = ["ConfigError", "merge_config", "config_from_dict", "config_to_dict", "load_config", "save_config"]
+__all__ = [
+    "ConfigError",
+    "merge_config",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+    "read_mapping",
+    "save_config",
+]
 
 
 class ConfigError(ValueError):
@@ -149,14 +157,7 @@ def load_config(
         path = Path(key)
         if not path.is_file():
             raise ConfigError(f"config {key!r} is neither a preset {sorted(presets)} nor an existing file")
-        import yaml
-
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as err:
-            raise ConfigError(f"{path}: not valid YAML ({err})") from err
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+        data = read_mapping(path)
         base = data.pop("base", next(iter(presets)))
         if base not in presets:
             raise ConfigError(f"{path}: base {base!r} is not a preset {sorted(presets)}")
@@ -165,6 +166,32 @@ def load_config(
         except ConfigError as err:
             raise ConfigError(f"{path}: {err}") from err
     return merge_config(config, overrides)
+
+
+def read_mapping(path: str | os.PathLike) -> dict[str, Any]:
+    """The top-level mapping of a YAML (``.yaml``/``.yml``) or JSON file; an empty file is ``{}``.
+
+    Every config file in the repository is read through this, so a missing file, a parse error or a
+    non-mapping top level always gives the same :class:`ConfigError` naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    text = path.read_text(encoding="utf-8")
+    try:
+        if path.suffix.lower() == ".json":
+            import json
+
+            data = json.loads(text) if text.strip() else {}
+        else:
+            import yaml
+
+            data = yaml.safe_load(text) or {}
+    except Exception as err:  # yaml.YAMLError / json.JSONDecodeError: both are parse errors here
+        raise ConfigError(f"{path}: cannot parse ({err})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
 
 
 def save_config(config: Any, path: str | os.PathLike) -> Path:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
@@ -35,11 +34,12 @@ def synth(
 
     from image2sim.dataengine.procedural.capture import synthesize
     from image2sim.dataengine.procedural.config import ConfigError, preset, synth_config_from_dict
+    from image2sim.simulator.config import read_mapping
 
     try:
         cfg = preset(preset_name)
         if config is not None:
-            cfg = synth_config_from_dict(_load_mapping(config), base=cfg)
+            cfg = synth_config_from_dict(read_mapping(config), base=cfg)
         cap = {
             k: v
             for k, v in (("views", views), ("height", height), ("width", width), ("camera", camera))
@@ -53,23 +53,3 @@ def synth(
     paths = synthesize(cfg, out, scenes=scenes, seed=seed, overwrite=overwrite, progress=True)
     for p in paths:
         typer.echo(str(p))
-
-
-def _load_mapping(path: Path) -> dict:
-    from image2sim.dataengine.procedural.config import ConfigError
-
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    text = path.read_text(encoding="utf-8")
-    try:
-        if path.suffix in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text)
-        else:
-            data = json.loads(text)
-    except Exception as err:  # parse errors of either format
-        raise ConfigError(f"{path}: cannot parse ({err})") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: top level must be a mapping")
-    return data

@@ -8,13 +8,12 @@ offending field, so a typo never silently falls back to a default.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from image2sim.simulator.config import ConfigError as SharedConfigError
-from image2sim.simulator.config import config_to_dict, merge_config
+from image2sim.simulator.config import config_to_dict, merge_config, read_mapping
 
 __all__ = [
     "SemanticConfig",
@@ -267,13 +266,7 @@ def load_gaussian_config(path_or_name: str | Path) -> GaussianConfig:
     path = Path(text)
     if not path.is_file():
         raise ConfigError(f"{path}: no such config file (and not a preset name {sorted(PRESETS)})")
-    raw = path.read_text()
-    if path.suffix == ".json":
-        data = json.loads(raw)
-    else:
-        import yaml
-
-        data = yaml.safe_load(raw) or {}
+    data = read_mapping(path)
     try:
         return gaussian_config_from_dict(data)
     except ConfigError as exc:
