@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import os
 import statistics
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from image2sim.eval.metrics.timing import hardware_string, time_calls
+from image2sim.simulator.io.atomic import write_text_atomic
 
 __all__ = [
     "REPORTS",
@@ -87,21 +87,6 @@ def time_it(
     """Run ``fn`` ``warmup`` times untimed, then ``repeats`` times timed; medians of wall and CPU time."""
     walls, cpus = time_calls(fn, warmup=warmup, runs=repeats, synchronize=synchronize)
     return Timing(statistics.median(walls), statistics.median(cpus), tuple(walls), tuple(cpus), warmup)
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` via a temp file in the same folder + rename (never a torn file)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def _cell(value: Any) -> str:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -197,15 +196,6 @@ def read_mapping(path: str | os.PathLike) -> dict[str, Any]:
 def save_config(config: Any, path: str | os.PathLike) -> Path:
     """Write the resolved config as YAML atomically (temp file + rename); returns the path."""
     import yaml
+    from image2sim.simulator.io.atomic import write_text_atomic
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            yaml.safe_dump(config_to_dict(config), handle, sort_keys=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text_atomic(path, yaml.safe_dump(config_to_dict(config), sort_keys=False))

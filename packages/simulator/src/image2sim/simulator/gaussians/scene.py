@@ -292,27 +292,9 @@ def write_gaussian_ply(path: str | Path, g: GaussianSet) -> Path:
         data[f"rot_{i}"] = t["quats"][:, i]
     for i in range(c):
         data[f"feat_{i}"] = t["features"][:, i]
-    header = (
-        [
-            "ply",
-            "format binary_little_endian 1.0",
-            "comment image2sim gaussian scene (3DGS layout)",
-            f"element vertex {n}",
-        ]
-        + [f"property float {k}" for k in names]
-        + ["end_header"]
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with tmp.open("wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    from image2sim.simulator.io.ply import write_ply_vertices
+
+    return write_ply_vertices(path, data, comment="image2sim gaussian scene (3DGS layout)")
 
 
 def read_gaussian_ply(path: str | Path) -> GaussianSet:

@@ -23,6 +23,7 @@ from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict
 from image2sim.simulator.gaussians.encoder import GaussianEncoder, pixel_maps_to_gaussians
 from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, camera_from_dict
+from image2sim.simulator.io.atomic import write_json_atomic
 from torch.utils.data import DataLoader, Dataset
 
 __all__ = [
@@ -246,9 +247,7 @@ def train_stage1(
         raise ValueError(
             f"train_stage1: all frames must share one camera at the encoder size, got {len(cams)}"
         )
-    tmp = out / ".config.json.tmp"
-    tmp.write_text(json.dumps(config_to_dict(cfg), indent=2))
-    os.replace(tmp, out / "config.json")
+    write_json_atomic(out / "config.json", config_to_dict(cfg))
     L.seed_everything(cfg.train.seed, workers=True, verbose=False)
     module = GeometryModule(cfg, semantic_model, panoramic=panoramic, image_dir=str(out / "images"))
     data = GeometryDataModule(scenes, cfg)

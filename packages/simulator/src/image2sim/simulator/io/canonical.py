@@ -107,12 +107,6 @@ def _frame_name(frame: Frame, index: int, seen: set[str]) -> str:
     return name
 
 
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
-
-
 def _write_frame(tmp: Path, name: str, frame: Frame, index: int) -> None:
     source = f"frame {index} ({name!r})"
     if not isinstance(frame, Frame):

@@ -7,13 +7,11 @@ nx, ny, nz``) + ``uchar red, green, blue``. The reader parses any ``binary_littl
 
 from __future__ import annotations
 
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_ply", "read_ply", "PlyError"]
+__all__ = ["write_ply", "write_ply_vertices", "read_ply", "PlyError"]
 
 _PLY_TYPES = {
     "char": "i1",
@@ -75,23 +73,48 @@ def write_ply(
         data["nx"], data["ny"], data["nz"] = nrm[:, 0], nrm[:, 1], nrm[:, 2]
     if colors is not None:
         data["red"], data["green"], data["blue"] = col[:, 0], col[:, 1], col[:, 2]
+    return write_ply_vertices(path, data, comment=comment)
+
+
+_PLY_NAME_OF = {
+    "f4": "float",
+    "f8": "double",
+    "u1": "uchar",
+    "i1": "char",
+    "u2": "ushort",
+    "i2": "short",
+    "u4": "uint",
+    "i4": "int",
+}
+"""PLY property type of each little-endian numpy scalar type."""
+
+
+def write_ply_vertices(path: str | Path, vertices: np.ndarray, *, comment: str | None = None) -> Path:
+    """Write a structured array as the ``vertex`` element of a binary little-endian PLY, atomically.
+
+    Property names and types come from the array's fields (any scalar type in the PLY spec); the one
+    writer behind :func:`write_ply` and the 3DGS scene writer.
+    """
+    from image2sim.simulator.io.atomic import atomic_open
+
+    path = Path(path)
+    if vertices.dtype.names is None:
+        raise PlyError(f"{path}: vertices must be a structured array, got dtype {vertices.dtype}")
     header = ["ply", "format binary_little_endian 1.0"]
     if comment:
         header += [f"comment {line}" for line in comment.splitlines()]
-    header.append(f"element vertex {n}")
-    names = {"<f4": "float", "u1": "uchar"}
-    header += [f"property {names[t]} {name}" for name, t in fields]
+    header.append(f"element vertex {vertices.shape[0]}")
+    for name in vertices.dtype.names:
+        scalar = vertices.dtype.fields[name][0]
+        key = scalar.newbyteorder("<").str.lstrip("<|")
+        if key not in _PLY_NAME_OF or scalar.shape:
+            raise PlyError(f"{path}: field {name!r} has type {scalar} which PLY cannot store")
+        header.append(f"property {_PLY_NAME_OF[key]} {name}")
     header.append("end_header")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with tmp.open("wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    data = vertices.astype(vertices.dtype.newbyteorder("<"), copy=False)
+    with atomic_open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(np.ascontiguousarray(data).tobytes())
     return path
 
 

@@ -1,0 +1,53 @@
+"""Atomic output: the target holds the old or the complete new content, never a torn file."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from image2sim.simulator.io.atomic import atomic_open, atomic_path, write_json_atomic, write_text_atomic
+from image2sim.simulator.io.ply import PlyError, read_ply, write_ply_vertices
+
+
+def test_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
+    target = tmp_path / "a.txt"
+    write_text_atomic(target, "old")
+    with pytest.raises(RuntimeError), atomic_open(target) as handle:
+        handle.write("half of the new")
+        raise RuntimeError("killed mid-write")
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_atomic_path_keeps_the_suffix_for_format_sniffing_writers(tmp_path):
+    target = tmp_path / "sub" / "arrays.npz"
+    with atomic_path(target) as tmp:
+        assert tmp.suffix == ".npz" and tmp.parent == target.parent
+        np.savez(tmp, x=np.arange(3))
+    assert np.array_equal(np.load(target)["x"], np.arange(3))
+    assert sorted(p.name for p in target.parent.iterdir()) == ["arrays.npz"]
+
+
+def test_json_refuses_nan_and_converts_with_default(tmp_path):
+    with pytest.raises(ValueError):
+        write_json_atomic(tmp_path / "m.json", {"psnr": float("nan")})
+    assert not (tmp_path / "m.json").exists()
+    write_json_atomic(tmp_path / "m.json", {"n": np.int64(3)}, default=int)
+    assert json.loads((tmp_path / "m.json").read_text()) == {"n": 3}
+
+
+def test_ply_vertices_round_trip_every_type(tmp_path):
+    dtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("d", "<f8"), ("red", "u1"), ("label", "<i4")]
+    data = np.zeros(4, dtype=dtype)
+    data["x"] = [0, 1, 2, 3]
+    data["d"] = [0.5, 1e-9, -2, 7]
+    data["red"] = [0, 128, 255, 3]
+    data["label"] = [-1, 5, 6, 7]
+    path = write_ply_vertices(tmp_path / "v.ply", data, comment="two\nlines")
+    cols = read_ply(path)
+    assert np.array_equal(cols["points"][:, 0], data["x"])
+    for name in ("d", "red", "label"):
+        assert np.array_equal(cols[name], data[name]), name
+    with pytest.raises(PlyError, match="structured"):
+        write_ply_vertices(tmp_path / "bad.ply", np.zeros(3))
