@@ -113,10 +113,12 @@ def main() -> None:
     lines = [
         "# Renderer speed (tiny, 128x256)",
         "",
-        f"Hardware: {started}. {result['parameters']:,} parameters. Median of {args.repeats} runs after a warm-up; "
+        f"Hardware: {started}. {result['parameters']:,} parameters. "
+        f"Median of {args.repeats} runs after a warm-up; "
         "ratio against the 4-step sampler in the same run.",
         "",
-        "| case | median wall (ms) | FPS (wall) | speed-up vs 4 steps (wall) | median CPU (ms) | speed-up (CPU) |",
+        "| case | median wall (ms) | FPS (wall) | speed-up vs 4 steps (wall) "
+        "| median CPU (ms) | speed-up (CPU) |",
         "|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:

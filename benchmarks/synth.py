@@ -185,9 +185,11 @@ def main() -> None:
         "# Procedural synthesis benchmark",
         "",
         f"Hardware: {results['hardware']}  ",
-        f"Date: {results['date']}; load average before/after: {load_before[0]:.1f} / {os.getloadavg()[0]:.1f} "
+        f"Date: {results['date']}; "
+        f"load average before/after: {load_before[0]:.1f} / {os.getloadavg()[0]:.1f} "
         "(shared machine: other jobs inflate every figure)  ",
-        f"Scene: default preset seed 0, {results['scene']['rooms']} rooms, {results['scene']['objects']} objects, "
+        f"Scene: default preset seed 0, {results['scene']['rooms']} rooms, "
+        f"{results['scene']['objects']} objects, "
         f"{results['scene']['boxes']} boxes. Median of {repeats} runs after a warm-up unless stated.",
         "",
         "| case | wall s | CPU s (one core) |",
@@ -200,7 +202,9 @@ def main() -> None:
         lines.append(f"| {case['case']} | {case['seconds']:.3f} | {case['cpu_seconds']:.3f}{extra} |")
     lines += [
         "",
-        f'Fastest caster (CPU time): **{fastest}** (`caster="auto"` uses Embree when embreex is importable, else the culled numpy caster). CPU time relative to it:',
+        f"Fastest caster (CPU time): **{fastest}** "
+        '(`caster="auto"` uses Embree when embreex is importable, else the culled numpy caster). '
+        "CPU time relative to it:",
         "",
     ]
     lines += [f"- {k}: {v:.1f}x" for k, v in results["caster_ratio_vs_fastest"].items()]

@@ -1,4 +1,5 @@
-"""Procedural captures: viewpoints, noise tiers, fusion consistency, canonical output + gt/, determinism, CLI."""
+"""Procedural captures: viewpoints, noise tiers, fusion consistency, canonical output + gt/,
+determinism, CLI."""
 
 from __future__ import annotations
 

@@ -352,8 +352,8 @@ def write_scene(
             tmp / "gt",
             extra={
                 "poses.json": {
-                    "note": "exact camera-to-world poses (OpenCV camera, Z-up world); frames/ hold the stored, "
-                    "possibly jittered ones",
+                    "note": "exact camera-to-world poses (OpenCV camera, Z-up world); "
+                    "frames/ hold the stored, possibly jittered ones",
                     "poses": lazy.true_poses,
                 },
             },

@@ -204,7 +204,7 @@ class SynthConfig:
     noise: str = "none"
     """Noise tier name: "none", "middle" or "high" (parameters in :data:`NOISE_TIERS`)."""
     caster: str = "auto"
-    """Ray caster: "auto" (embree when importable, else numpy), "embree" or "numpy" (tile-culled slab test)."""
+    """Ray caster: "auto" (embree when importable, else numpy), "embree" or "numpy" (tile-culled slabs)."""
 
     def noise_config(self) -> NoiseConfig:
         """The parameters of :attr:`noise`."""
@@ -251,17 +251,20 @@ class SynthConfig:
         narrowest = min(lay.room_size_min, lay.corridor_width)
         if lay.door_width_min + lay.wall_thickness + 0.2 > narrowest:
             raise ConfigError(
-                f"layout: a door of {lay.door_width_min} m with walls of {lay.wall_thickness} m (and 10 cm margins) "
+                f"layout: a door of {lay.door_width_min} m with walls of {lay.wall_thickness} m "
+                "(and 10 cm margins) "
                 f"does not fit in a room/corridor side of {narrowest} m"
             )
         if lay.corridor_width - lay.wall_thickness <= 2 * cap.agent_radius + 2 * cap.grid_resolution:
             raise ConfigError(
-                f"layout.corridor_width ({lay.corridor_width} m) leaves no navigable floor for an agent of radius "
+                f"layout.corridor_width ({lay.corridor_width} m) leaves no navigable floor "
+                "for an agent of radius "
                 f"{cap.agent_radius} m"
             )
         if lay.door_width_min <= 2 * cap.agent_radius + 2 * cap.grid_resolution:
             raise ConfigError(
-                f"layout.door_width_min ({lay.door_width_min} m) must exceed the agent diameter plus two grid cells "
+                f"layout.door_width_min ({lay.door_width_min} m) must exceed "
+                "the agent diameter plus two grid cells "
                 f"(2 * capture.agent_radius + 2 * capture.grid_resolution = "
                 f"{2 * cap.agent_radius + 2 * cap.grid_resolution:g} m) or rooms cannot connect"
             )

@@ -114,7 +114,8 @@ def floor_mask(layout: Layout, origin: np.ndarray, shape: tuple[int, int], resol
 def rasterise_box(
     shape: tuple[int, int], origin: np.ndarray, resolution: float, lo: np.ndarray, hi: np.ndarray
 ) -> tuple[slice, slice]:
-    """Row/column slices of every cell whose square overlaps the footprint ``[lo, hi]`` (x, y) with positive area."""
+    """Row/column slices of the cells whose square overlaps the footprint ``[lo, hi]`` (x, y) with
+    positive area."""
     eps = 1e-9
     ix0 = int(np.floor((lo[0] - origin[0]) / resolution + eps))
     ix1 = int(np.ceil((hi[0] - origin[0]) / resolution - eps))

@@ -683,7 +683,8 @@ def build_parts(
     base: tuple[float, float, float],
     rng: np.random.Generator,
 ) -> tuple[list[Part], list[Surface]]:
-    """World parts and support surfaces of ``category`` with ``size`` at ``base`` (footprint centre, bottom z)."""
+    """World parts and support surfaces of ``category`` with ``size`` at ``base`` (footprint centre,
+    bottom z)."""
     w, d, h = size
     local_parts, local_surfaces = SHAPES[category.shape](w, d, h, rng)
     cx, cy, z0 = base

@@ -276,7 +276,8 @@ class _Placer:
         if _overlaps(lo, hi, klo, khi):
             return False
         return not any(
-            _overlaps(pl, ph, self.part_lo[room], self.part_hi[room]) for pl, ph in zip(parts_lo, parts_hi, strict=False)
+            _overlaps(pl, ph, self.part_lo[room], self.part_hi[room])
+            for pl, ph in zip(parts_lo, parts_hi, strict=False)
         )
 
     def _accept(self, cat, room, size, quarter, base, parts, surfaces, support=0) -> SceneObject:

@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from image2sim.simulator.geometry.cameras import Camera
 
 
@@ -102,4 +101,7 @@ class Capture(Sequence):
             yield self[i]
 
     def __repr__(self) -> str:
-        return f"Capture(format={self.format!r}, scene={self.scene_id!r}, frames={len(self)}, root='{self.root}')"
+        return (
+            f"Capture(format={self.format!r}, scene={self.scene_id!r}, frames={len(self)}, "
+            f"root='{self.root}')"
+        )
