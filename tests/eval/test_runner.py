@@ -24,6 +24,7 @@ from image2sim.eval.runner import (
     RandomAgent,
     RunConfig,
     RunnerError,
+    StepObservation,
     bootstrap_ci,
     embodiment_for,
     episode_seed,
@@ -123,6 +124,31 @@ def test_backend_refuses_a_map_built_for_another_embodiment(scene):
     _, sim, _ = scene
     with pytest.raises(RunnerError, match="radius"):
         NeuralSimBackend(sim, VLNCE)  # radius 0.1 m, eye 1.5 m vs the map's 0.15 m / 1.25 m
+
+
+def test_unreachable_goal_is_an_error_naming_the_episode_not_a_silent_drop(scene):
+    _, sim, episodes = scene
+    backend = NeuralSimBackend(sim, PROTO)
+    bad = dataclasses.replace(episodes[0], episode_id="far-goal", goal_position=np.array([80.0, 80.0, 0.0]))
+    with pytest.raises(RunnerError, match=r"episode far-goal: the agent starts .*off the navigable map"):
+        run_episode(backend, make_agent(AgentSpec("oracle")), bad, PROTO, 0)
+
+
+class _EndsOffGraphBackend:
+    """Walks the scene's episode normally, then reports an undefined goal distance after FORWARD."""
+
+    def reset(self, episode, observe=False):
+        return StepObservation(np.zeros(3), 0.0, 4.0)
+
+    def step(self, action, observe=False):
+        return StepObservation(np.array([0.25, 0.0, 0.0]), 0.0, np.inf, distance_reason="node 7 is cut off")
+
+
+def test_an_episode_ending_where_the_distance_is_undefined_raises_with_the_reason(scene):
+    ep = scene[2][1]
+    agent = make_agent(AgentSpec("forward", {"forward_steps": 1}))
+    with pytest.raises(RunnerError, match=rf"episode {ep.episode_id}: the agent ends .*node 7 is cut off"):
+        run_episode(_EndsOffGraphBackend(), agent, ep, PROTO, 0)
 
 
 def test_habitat_backend_is_import_guarded():

@@ -110,6 +110,8 @@ class StepObservation:
     """Heading in radians (map frame yaw; equal to world yaw without gravity correction)."""
     distance_to_goal: float
     """Geodesic distance to the goal in metres (inf when off the graph / unreachable)."""
+    distance_reason: str = ""
+    """Why ``distance_to_goal`` is inf ("" when it is finite)."""
     collided: bool = False
     """The last action hit an obstacle."""
     rgb: np.ndarray | None = None
@@ -178,7 +180,7 @@ class NeuralSimBackend:
         self.name = name
         self.field = None
         self._last_pos: np.ndarray | None = None
-        self._last_dist = float("inf")
+        self._last_dist, self._last_reason = float("inf"), ""
         cam = protocol.camera
         self._camera = None
         if sim.render_fn is not None:
@@ -207,11 +209,13 @@ class NeuralSimBackend:
             rgb = np.clip(np.asarray(out["rgb"], np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
         # Turns do not move the agent: reuse the last distance instead of another graph snap.
         if self._last_pos is None or not np.array_equal(pos_map, self._last_pos):
-            self._last_pos, self._last_dist = np.array(pos_map, dtype=np.float64), self.field(pos_map)
+            self._last_pos = np.array(pos_map, dtype=np.float64)
+            self._last_dist, self._last_reason = self.field.query(pos_map)
         return StepObservation(
             position=np.asarray(self.sim.navmap.to_world(pos_map), dtype=np.float64).reshape(3),
             heading=float(info["heading"][0]),
             distance_to_goal=self._last_dist,
+            distance_reason=self._last_reason,
             collided=collided,
             rgb=rgb,
         )
@@ -221,7 +225,7 @@ class NeuralSimBackend:
         goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
         self.goal_map = goal
         self.field = self.sim.planner.distance_field(goal)
-        self._last_pos, self._last_dist = None, float("inf")
+        self._last_pos, self._last_dist, self._last_reason = None, float("inf"), ""
         _, info = self.sim.reset(
             start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False
         )
@@ -480,6 +484,7 @@ def run_episode(
     ms = Measurements(protocol, DEFAULT_MEASURES)
     wants = (lambda: getattr(agent, "wants_image", True)) if agent.needs_images else (lambda: False)
     obs = backend.reset(episode, observe=bool(agent.needs_images))
+    _require_finite_distance(obs, episode, "starts")
     agent.reset(episode, backend, seed)
     ms.reset(episode.metric_spec(), AgentState(obs.position, obs.distance_to_goal))
     actions: list[int] = []
@@ -493,7 +498,20 @@ def run_episode(
             break
         obs = backend.step(a, observe=bool(agent.needs_images and wants()))
         ms.update(a, AgentState(obs.position, obs.distance_to_goal))
+    _require_finite_distance(obs, episode, "ends")
     return EpisodeResult(episode.episode_id, ms.values(), protocol), actions
+
+
+def _require_finite_distance(obs: StepObservation, episode: NavEpisode, when: str) -> None:
+    """Raise :class:`RunnerError` naming the episode when the goal distance at its start / end is
+    undefined (NE would be infinite; the episode is never dropped silently from the averages)."""
+    if not math.isfinite(obs.distance_to_goal):
+        raise RunnerError(
+            f"episode {episode.episode_id}: the agent {when} at world position "
+            f"{np.round(obs.position, 3).tolist()} where the geodesic distance to the goal is undefined "
+            f"({obs.distance_reason or 'the backend gave no reason'}); fix the episode or the scene's "
+            "navigation graph instead of dropping the episode"
+        )
 
 
 @dataclass

@@ -232,15 +232,13 @@ class NavGraph:
         p = np.atleast_2d(np.asarray(points, dtype=np.float64))
         if self.num_nodes == 0:
             return np.full(len(p), -1, np.int64), np.full(len(p), np.inf)
-        _, idx = self.tree.query(p * np.array([1.0, 1.0, 4.0]))
-        idx = np.asarray(idx, dtype=np.int64)
+        finite = np.isfinite(p).all(axis=1)
+        idx = np.zeros(len(p), dtype=np.int64)
+        if finite.any():  # the KD-tree rejects non-finite queries
+            idx[finite] = self.tree.query(p[finite] * np.array([1.0, 1.0, 4.0]))[1]
         off = np.linalg.norm(self.nodes[idx, :2] - p[:, :2], axis=1)
         dz = np.abs(self.nodes[idx, 2] - p[:, 2])
-        bad = (
-            (off > self.config.max_snap_distance)
-            | (dz > self.embodiment.height)
-            | ~np.isfinite(p).all(axis=1)
-        )
+        bad = (off > self.config.max_snap_distance) | (dz > self.embodiment.height) | ~finite
         idx[bad] = -1
         off[bad] = np.inf
         return idx, off

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from image2sim.simulator.navigation.graph import NavGraph
 from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
 
 __all__ = ["PathResult", "DistanceField", "Planner"]
 
@@ -44,7 +45,11 @@ class DistanceField:
     """Distances from every node to one goal (one Dijkstra), then cheap lookups per query.
 
     ``distance(p)`` = horizontal offset of ``p`` to its snapped node + the node's distance to the
-    goal node + the goal point's offset to that node, inf when off the graph or unreachable.
+    goal node + the goal point's offset to that node. When the snapped node cannot reach the goal
+    (or ``p`` snaps to no node), ``p`` snaps instead to the nearest node that *can* reach it within
+    :attr:`reach_radius` horizontally (and a body height vertically), plus the horizontal remainder:
+    an agent that stops next to a wall, beside a pocket of nodes the graph left unconnected, still
+    gets a finite distance. Otherwise the distance is inf and :meth:`query` says why.
     """
 
     graph: NavGraph
@@ -55,15 +60,71 @@ class DistanceField:
     reason: str = ""
     _cache: dict = field(default_factory=dict, repr=False)
 
+    @property
+    def reach_radius(self) -> float:
+        """Horizontal radius (m) of the fallback snap to a goal-connected node: the agent radius
+        plus two cells (an agent stopped against a wall is within it of a node it can stand on)."""
+        return float(self.graph.embodiment.radius + 2.0 * self.graph.voxel_size)
+
+    def _snap_reachable(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest node with a finite distance to the goal within :attr:`reach_radius` horizontally
+        and a body height vertically -> (node ids (N,), horizontal offsets (N,)); -1 / inf if none."""
+        idx = np.full(len(p), -1, np.int64)
+        off = np.full(len(p), np.inf)
+        if "reach" not in self._cache:
+            ids = np.flatnonzero(np.isfinite(self.node_distance))
+            self._cache["reach"] = (ids, cKDTree(self.graph.nodes[ids, :2]) if len(ids) else None)
+        ids, tree = self._cache["reach"]
+        if tree is None:
+            return idx, off
+        for k, cand in enumerate(tree.query_ball_point(p[:, :2], self.reach_radius)):
+            if not cand:
+                continue
+            nodes = ids[np.asarray(cand, dtype=np.int64)]
+            d = np.linalg.norm(self.graph.nodes[nodes, :2] - p[k, :2], axis=1)
+            d[np.abs(self.graph.nodes[nodes, 2] - p[k, 2]) > self.graph.embodiment.height] = np.inf
+            best = int(np.argmin(d))
+            if np.isfinite(d[best]):
+                idx[k], off[k] = nodes[best], d[best]
+        return idx, off
+
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Geodesic distance (metres) of map-frame feet positions (N, 3) or (3,) to the goal."""
         p = np.asarray(points, dtype=np.float64)
         single = p.ndim == 1
-        idx, off = self.graph.snap(np.atleast_2d(p))
+        p2 = np.atleast_2d(p)
+        idx, off = self.graph.snap(p2)
         out = np.full(len(idx), np.inf)
         ok = idx >= 0
         out[ok] = self.node_distance[idx[ok]] + off[ok] + self.goal_offset
+        miss = ~np.isfinite(out) & np.isfinite(p2).all(axis=1)
+        if self.goal_node >= 0 and miss.any():
+            j, o = self._snap_reachable(p2[miss])
+            sel = np.flatnonzero(miss)[j >= 0]
+            out[sel] = self.node_distance[j[j >= 0]] + o[j >= 0] + self.goal_offset
         return out[0] if single else out
+
+    def query(self, point: np.ndarray) -> tuple[float, str]:
+        """Distance of one position and, when it is inf, why ("" otherwise)."""
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        if not np.isfinite(p).all():
+            return float("inf"), f"position {p.tolist()} is not finite"
+        d = float(self.distance(p))
+        if np.isfinite(d):
+            return d, ""
+        if self.goal_node < 0:
+            return d, self.reason
+        idx, _ = self.graph.snap(p[None])
+        where = np.round(p, 3).tolist()
+        if idx[0] < 0:
+            return d, (
+                f"position {where} is off the navigable map (no node within "
+                f"{self.graph.config.max_snap_distance} m horizontally and a body height vertically)"
+            )
+        return d, (
+            f"position {where} snaps to node {int(idx[0])}, which is not connected to goal node "
+            f"{self.goal_node}, and no node connected to the goal lies within {self.reach_radius:.3f} m"
+        )
 
     def __call__(self, point: np.ndarray) -> float:
         """Scalar distance of one position (fast path for per-step evaluation)."""
