@@ -59,9 +59,9 @@ def bench_scene(nx: int, ny: int, repeats: int, seed: int = 0) -> dict:
     area = navmap.navigable_area()
 
     tracemalloc.start()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     graph = NavGraph.build(navmap)
-    t_build = time.perf_counter() - t0
+    t_build, c_build = time.perf_counter() - t0, time.process_time() - c0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     graph_bytes = (
@@ -79,7 +79,8 @@ def bench_scene(nx: int, ny: int, repeats: int, seed: int = 0) -> dict:
         for q in queries:
             field(q)
 
-    t_lookup = timeit(lookups, repeats) / len(queries)
+    lookup_timing = time_it(lookups, warmup=1, repeats=repeats)
+    t_lookup = lookup_timing.wall / len(queries)
     # Reference: no field, one Dijkstra per query (what a naive evaluator would do).
     g_node = int(graph.snap(goal[None])[0][0])
     t_ref = timeit(
@@ -114,17 +115,40 @@ def bench_scene(nx: int, ny: int, repeats: int, seed: int = 0) -> dict:
         "edges": graph.num_edges,
         "extract_s": round(t_extract, 3),
         "graph_build_s": round(t_build, 3),
+        "graph_build_cpu_s": round(c_build, 3),
         "graph_build_peak_mb": round(peak / 2**20, 1),
         "graph_mb": round(graph_bytes / 2**20, 2),
         "build_peak_kb_per_m2": round(peak / 1024 / max(area, 1e-9), 1),
         "dijkstra_ms": round(1e3 * t_dijkstra, 2),
         "field_lookup_us": round(1e6 * t_lookup, 1),
+        "field_lookup_cpu_us": round(1e6 * lookup_timing.cpu / len(queries), 1),
         "per_query_dijkstra_ms": round(1e3 * t_ref, 2),
         "lookup_speedup_vs_dijkstra": round(t_ref / t_lookup, 1),
         "ray_march_us_per_edge": round(1e6 * t_march, 2),
         "ray_march_ref_us_per_edge": round(1e6 * t_march_ref, 1),
         "ray_march_speedup": round(t_march_ref / t_march, 1),
         "agent_steps_per_s": round(len(acts) / t_steps, 1),
+    }
+
+
+def check_targets(rows: list[dict], build_limit_s: float = 30.0, lookup_limit_ms: float = 1.0) -> dict:
+    """The issue's targets on measured rows: build time at 150 m^2 (linear interpolation between the
+    scenes around it, or the nearest larger scene), the slowest distance-field lookup, and memory
+    linearity (build peak per m^2: largest / smallest scene)."""
+    areas = np.array([r["navigable_area_m2"] for r in rows])
+    build = np.array([r["graph_build_s"] for r in rows])
+    order = np.argsort(areas)
+    at150 = float(np.interp(150.0, areas[order], build[order])) if areas.max() >= 150.0 else None
+    lookup_ms = max(r["field_lookup_us"] for r in rows) / 1e3
+    per_m2 = [r["build_peak_kb_per_m2"] for r in rows]
+    ratio = float(per_m2[int(order[-1])] / per_m2[int(order[0])])
+    return {
+        "graph_build_s_at_150m2": None if at150 is None else round(at150, 2),
+        "graph_build_ok": None if at150 is None else bool(at150 < build_limit_s),
+        "field_lookup_ms_max": round(lookup_ms, 4),
+        "field_lookup_ok": bool(lookup_ms < lookup_limit_ms),
+        "memory_kb_per_m2_ratio_largest_vs_smallest": round(ratio, 3),
+        "memory_linear_ok": bool(0.8 <= ratio <= 1.25),
     }
 
 
@@ -135,18 +159,25 @@ def main() -> None:
     grids = [(1, 2), (2, 2)] if args.quick else [(1, 2), (2, 2), (3, 3), (4, 4), (5, 4)]
     repeats = 2 if args.quick else 5
     hw = f"{hardware()}; load average {load_average():.1f} at start"
+    t_start, c_start = time.perf_counter(), time.process_time()
     rows = []
     for nx, ny in grids:
         row = bench_scene(nx, ny, repeats)
         rows.append(row)
         print(json.dumps(row))
     # Linear-memory check: peak per m^2 of the largest vs the smallest scene.
+    checks = check_targets(rows)
+    hw += (
+        f", {load_average():.1f} at end; whole run {time.perf_counter() - t_start:.0f} s wall, "
+        f"{time.process_time() - c_start:.0f} s CPU"
+    )
     result = {
         "benchmark": "navigation",
         "hardware": hw,
         "repeats": repeats,
         "method": "median after one warm-up; worlds: syn.rooms_grid (4 m rooms, 1 m doors, 2 boxes/room)",
         "targets": {"graph_build_s_at_150m2": 30.0, "field_lookup_ms": 1.0},
+        "checks": checks,
         "rows": rows,
     }
     cols = list(rows[0])
@@ -162,6 +193,23 @@ def main() -> None:
         "|" + "---|" * len(cols),
     ]
     lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
+    lines += [
+        "",
+        "Targets (2 cores): graph build for 150 m^2 < 30 s, distance-field lookup < 1 ms, "
+        "memory linear in area.",
+        "",
+        f"- graph build at 150 m^2 (interpolated): {checks['graph_build_s_at_150m2']} s "
+        + (
+            "-> not measured (no scene of 150 m^2 or more)"
+            if checks["graph_build_ok"] is None
+            else f"-> {'met' if checks['graph_build_ok'] else 'NOT met'}"
+        ),
+        f"- slowest distance-field lookup: {checks['field_lookup_ms_max']} ms "
+        f"-> {'met' if checks['field_lookup_ok'] else 'NOT met'}",
+        f"- build peak memory per m^2, largest / smallest scene: "
+        f"{checks['memory_kb_per_m2_ratio_largest_vs_smallest']} "
+        f"-> {'linear' if checks['memory_linear_ok'] else 'NOT linear'}",
+    ]
     paths = write_report("navigation", rows, {k: v for k, v in result.items() if k != "rows"}, markdown=lines)
     print(f"wrote {paths[0]} and {paths[1]}")
 
