@@ -84,7 +84,12 @@ class EngineConfig:
     mining: dict = field(default_factory=dict)
     """Overrides of :class:`MiningConfig` fields."""
     visible_distance: float = 3.5
-    """Objects within this distance and inside the 180 degree view count as visible at a macro-step."""
+    """Objects within this distance and inside the 180 x 118 degree view count as visible at a macro-step
+    (and may be named by the annotator) when nothing occludes them (see :mod:`.visibility`)."""
+    occlusion: bool = True
+    """Occlusion test of the visibility: a ray march through the navigation map's obstacle voxels."""
+    occlusion_tolerance: float = 0.3
+    """Obstacle voxels within this distance (metres) of an object do not occlude it (its own surface)."""
 
     def __post_init__(self) -> None:
         if self.render not in RENDER_MODES:
@@ -257,18 +262,6 @@ def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
 
 
-def _visible(objects, pos_world: np.ndarray, heading: float, max_dist: float) -> list[str]:
-    """Categories inside the forward 180 degree half-space and within ``max_dist`` (sorted, unique)."""
-    out = set()
-    d = np.array([math.cos(heading), math.sin(heading)])
-    for o in objects:
-        v = np.asarray(o.position[:2]) - pos_world[:2]
-        dist = float(np.linalg.norm(v))
-        if dist <= max_dist and float(v @ d) >= 0:
-            out.add(o.category)
-    return sorted(out)
-
-
 def _room_at(objects, pos_world: np.ndarray) -> str | None:
     best, room = math.inf, None
     for o in objects:
@@ -344,13 +337,23 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
+    from image2sim.dataengine.visibility import Occupancy, VisibilityConfig, visible_categories
+
+    vis_cfg = VisibilityConfig(
+        max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
+    )
+    occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and objects else None
+    obj_map = navmap.to_map(np.array([o.position for o in objects], dtype=np.float64).reshape(-1, 3))
+    eye_up = np.array([0.0, 0.0, float(navmap.embodiment.eye_height)])
     requests, chunks = [], []
     for k, (plan, r) in enumerate(kept):
         eid = f"{inputs.name}-{k:05d}"
         steps = macro_steps(r.actions, r.positions, r.headings, ChunkConfig())
         world = navmap.to_world(r.positions)
+        eyes = np.asarray(r.positions, dtype=np.float64) + eye_up
         vis = [
-            _visible(objects, world[m.start], float(r.headings[m.start]), cfg.visible_distance) for m in steps
+            visible_categories(objects, obj_map, eyes[m.start], r.headings[m.start], occupancy, vis_cfg)
+            for m in steps
         ]
         rooms = [_room_at(objects, world[m.start]) for m in steps]
         style, structure, tone = route_style(rng)
