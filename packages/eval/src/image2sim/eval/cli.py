@@ -207,7 +207,20 @@ def nav_cmd(
     if wandb:
         from image2sim.eval.tracking import log_metrics_wandb
 
-        run_dir = log_metrics_wandb(json.loads(metrics.read_text()), "nav", stage="eval_nav")
+        command = {
+            "agents": list(agent),
+            "protocol": proto.name,
+            "episodes": str(episodes) if episodes else None,
+            "point_goal": point_goal,
+            "min_distance": min_distance,
+            "forward_steps": forward_steps,
+            "model": model,
+            "policy_config": policy_config,
+            "seed": seed,
+            "max_episodes": max_episodes,
+            "scenes": str(scenes),
+        }
+        run_dir = log_metrics_wandb(json.loads(metrics.read_text()), "nav", stage="eval_nav", config=command)
         typer.echo(f"W&B run: {run_dir}")
 
 
@@ -240,6 +253,13 @@ def render_cmd(
         list[str], typer.Option(help="gaussians: TIER=CAPTURE (repeatable), captures at that noise tier.")
     ] = [],  # noqa: B006
     gaussian_config: Annotated[str, typer.Option(help="gaussians: Gaussian scene preset or file.")] = "tiny",
+    target: Annotated[
+        str,
+        typer.Option(
+            help="gaussians: score against 'exact' (noise-free procedural GT at the pose), 'capture' "
+            "(the held-out frame) or 'auto' (exact for procedural captures)."
+        ),
+    ] = "auto",
     lpips_weights: Annotated[Path | None, typer.Option(help="LPIPS weights (safetensors).")] = None,
     warmup: Annotated[int, typer.Option(help="Untimed warm-up calls before FPS timing.")] = 2,
     runs: Annotated[int, typer.Option(help="Timed calls (FPS = 1 / median).")] = 5,
@@ -270,6 +290,7 @@ def render_cmd(
         condition_source=condition_source,
         tier_data=tiers_data,
         gaussian_config=gaussian_config,
+        target=target,
         renderer_config=config,
         checkpoint=str(checkpoint) if checkpoint else None,
         data=[str(d) for d in data],
@@ -290,6 +311,9 @@ def render_cmd(
     if plot is not None:
         typer.echo(f"wrote {plot_speed_vs_error(doc, plot)}")
     if wandb:
+        from dataclasses import asdict
+
         from image2sim.eval.tracking import log_metrics_wandb
 
-        typer.echo(f"W&B run: {log_metrics_wandb(doc, 'render', stage='eval_render')}")
+        run_dir = log_metrics_wandb(doc, "render", stage="eval_render", config=asdict(bench))
+        typer.echo(f"W&B run: {run_dir}")

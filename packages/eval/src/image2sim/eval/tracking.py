@@ -2,21 +2,24 @@
 
 :func:`flatten_metrics` turns ``metrics/nav.json`` / ``metrics/render.json`` into flat scalar keys
 (``nav/<agent>/<metric>``, ``render/<method>/<metric>``; pure, testable). :func:`log_metrics_wandb`
-writes them to a W&B run together with the protocol, the git commit, the DVC stage and the params
-profile. wandb is imported only here; ``WANDB_MODE`` defaults to ``offline`` so nothing leaves the
-machine unless the user asks for it. Artifacts are never uploaded (DVC owns them).
+writes them to a W&B run together with the protocol, the git commit, the DVC stage, the params
+profile and the resolved configuration (the command's settings and the stage's section of
+``params.yaml``). wandb is imported only here; ``WANDB_MODE`` defaults to ``offline`` so nothing
+leaves the machine unless the user asks for it. Artifacts and checkpoints are never logged (DVC owns
+them). :func:`read_offline_run` reads an offline run's ``.wandb`` log back (wandb ships no reader).
 """
 
 from __future__ import annotations
 
 import math
 import os
+import struct
 import subprocess
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["flatten_metrics", "git_commit", "log_metrics_wandb"]
+__all__ = ["flatten_metrics", "git_commit", "log_metrics_wandb", "read_offline_run", "run_metadata"]
 
 
 def flatten_metrics(doc: Mapping[str, Any], kind: str) -> dict[str, float]:
@@ -60,6 +63,43 @@ def git_commit(cwd: str | Path | None = None) -> str | None:
     return res.stdout.strip() or None
 
 
+def run_metadata(
+    stage: str | None = None,
+    profile: str | None = None,
+    config: Mapping[str, Any] | None = None,
+    params_file: str | Path = "params.yaml",
+) -> dict[str, Any]:
+    """Run metadata: git commit, DVC stage, params profile and the resolved configuration.
+
+    The commit is that of the repository holding ``params_file`` (DVC runs stages at its root),
+    else that of the checkout this module is installed from. The stage defaults to ``$DVC_STAGE``;
+    the profile to ``$IMAGE2SIM_PROFILE``, else the ``profile`` key of ``params_file``.
+    ``resolved_config`` holds ``command`` (the command's own settings) and ``params`` (the stage's
+    section of ``params_file``, when the file has one).
+    """
+    stage = stage or os.environ.get("DVC_STAGE")
+    params: Mapping[str, Any] = {}
+    path = Path(params_file)
+    if path.is_file():
+        import yaml
+
+        loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if loaded is not None and not isinstance(loaded, Mapping):
+            raise ValueError(f"{path}: expected a mapping of stage sections, got {type(loaded).__name__}")
+        params = loaded or {}
+    section = params.get(stage) if stage else None
+    return {
+        # The commit of the project the params file belongs to, else of this code's checkout.
+        "git_commit": git_commit(path.resolve().parent) or git_commit(Path(__file__).resolve().parent),
+        "dvc_stage": stage,
+        "params_profile": profile or os.environ.get("IMAGE2SIM_PROFILE") or params.get("profile"),
+        "resolved_config": {
+            "command": dict(config or {}),
+            "params": dict(section) if isinstance(section, Mapping) else None,
+        },
+    }
+
+
 def log_metrics_wandb(
     doc: Mapping[str, Any],
     kind: str,
@@ -67,9 +107,15 @@ def log_metrics_wandb(
     project: str = "image2sim-eval",
     stage: str | None = None,
     profile: str | None = None,
+    config: Mapping[str, Any] | None = None,
+    params_file: str | Path = "params.yaml",
     directory: str | Path | None = None,
 ) -> Path:
-    """Log a metrics document to one W&B run (offline by default); returns the run's local directory."""
+    """Log a metrics document to one W&B run (offline by default); returns the run's local directory.
+
+    The run's config holds the protocol and :func:`run_metadata` (``config`` is the command's
+    resolved settings). Only scalars are logged: no artifact, no checkpoint, no code snapshot.
+    """
     try:
         import wandb
     except ImportError as exc:  # optional dependency
@@ -77,24 +123,71 @@ def log_metrics_wandb(
 
     os.environ.setdefault("WANDB_MODE", "offline")
     os.environ.setdefault("WANDB_SILENT", "true")
-    config = {
+    run_config = {
         "kind": kind,
         "protocol": doc.get("protocol"),
-        "git_commit": git_commit(),
-        "dvc_stage": stage or os.environ.get("DVC_STAGE"),
-        "params_profile": profile or os.environ.get("IMAGE2SIM_PROFILE"),
+        **run_metadata(stage, profile, config, params_file),
     }
     run = wandb.init(
         project=project,
         job_type=f"eval_{kind}",
-        config=config,
+        config=run_config,
         dir=str(directory) if directory is not None else None,
         reinit="finish_previous",
+        save_code=False,
     )
     try:
         flat = flatten_metrics(doc, kind)
         run.log(flat)
         run.summary.update(flat)
-        return Path(run.dir).parent
+        run_dir = Path(run.dir).parent
     finally:
         run.finish()
+    # finish() can return before W&B's service process has flushed the run log (an offline run file
+    # was seen holding only its 7-byte header): shutting the service down flushes and closes it.
+    wandb.teardown()
+    return run_dir
+
+
+_WANDB_BLOCK = 32768
+_WANDB_HEADER = b":W&B"
+
+
+def read_offline_run(run_dir: str | Path) -> list[tuple[str, Any]]:
+    """The records of an offline run's ``run-*.wandb`` log as ``(record type, protobuf message)``.
+
+    The log is W&B's framing of LevelDB's log format: a 7-byte file header (``:W&B``, magic,
+    version), then 32 KiB blocks of chunks with a 7-byte header (CRC, little-endian length, type
+    1 = full, 2 = first, 3 = middle, 4 = last); each whole record is a ``wandb_internal_pb2.Record``.
+    """
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    files = sorted(Path(run_dir).glob("run-*.wandb"))
+    if not files:
+        raise FileNotFoundError(f"{run_dir}: no run-*.wandb file")
+    data = files[0].read_bytes()
+    if data[:4] != _WANDB_HEADER:
+        raise ValueError(f"{files[0]}: not a W&B run log (header {data[:4]!r})")
+    out: list[tuple[str, Any]] = []
+    pos, pending = 7, b""
+    while pos + 7 <= len(data):
+        left = _WANDB_BLOCK - pos % _WANDB_BLOCK
+        _, n, kind = struct.unpack("<IHB", data[pos : pos + 7])
+        if left < 7 or kind == 0:  # block trailer / zero padding
+            pos += left
+            continue
+        chunk = data[pos + 7 : pos + 7 + n]
+        pos += 7 + n
+        if kind in (1, 2):
+            pending = chunk
+        elif kind in (3, 4):
+            pending += chunk
+        else:
+            raise ValueError(f"{files[0]}: bad chunk type {kind} at byte {pos - 7 - n}")
+        if kind in (1, 4):
+            rec = pb.Record()
+            rec.ParseFromString(pending)
+            name = rec.WhichOneof("record_type")
+            out.append((name, getattr(rec, name)))
+            pending = b""
+    return out
