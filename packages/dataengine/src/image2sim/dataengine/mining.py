@@ -171,11 +171,28 @@ class GTDetector:
         return out
 
 
+DEFAULT_VOCABULARY = (
+    "sofa", "armchair", "coffee_table", "tv", "bookshelf", "plant", "floor_lamp", "painting",
+    "dining_table", "chair", "kitchen_counter", "fridge", "stove", "sink", "bed", "nightstand",
+    "wardrobe", "dresser", "desk", "toilet", "bathtub", "washing_machine", "mirror", "cabinet",
+    "monitor", "laptop", "table_lamp", "vase", "bowl", "cup", "microwave", "kettle", "clock",
+)  # fmt: skip
+"""Open-vocabulary prompts used when a scene has no category table (indoor goal objects)."""
+
+DEFAULT_SMALL = frozenset(
+    {"vase", "bowl", "cup", "laptop", "table_lamp", "kettle", "microwave", "clock", "plant", "monitor"}
+)
+"""Small, manipulable categories of :data:`DEFAULT_VOCABULARY` (goal radius 1.5 m, not 3.0 m)."""
+
+
 class YoloWorldDetector:
     """Open-vocabulary detection with a local YOLO-World checkpoint (``pip install ultralytics``).
 
-    Nothing is downloaded: ``weights`` must be an existing file. The import is deferred so the data
-    engine runs without the optional dependency.
+    Nothing is downloaded: ``weights`` must be an existing file, checked before the optional
+    dependency is imported. The checkpoint's class names are kept when they already equal
+    ``vocabulary`` (a checkpoint saved after ``set_classes``); otherwise ``set_classes(vocabulary)``
+    re-embeds the prompts, which needs Ultralytics' CLIP text encoder in its local cache.
+    ``predict`` runs with confidence 0 so that the paper's filters (:func:`filter_detections`) decide.
     """
 
     name = "yolo-world"
@@ -184,22 +201,37 @@ class YoloWorldDetector:
         weights = Path(weights)
         if not weights.is_file():
             raise FileNotFoundError(
-                f"yolo-world: weights file {weights} not found (no download is attempted)"
+                f"yolo-world: weights file {weights} not found (no download is attempted; "
+                "pass the path of a local YOLO-World .pt checkpoint)"
             )
+        self.vocabulary = [str(v) for v in vocabulary]
+        if not self.vocabulary:
+            raise ValueError("yolo-world: the vocabulary (class prompts) is empty")
         try:
             from ultralytics import YOLOWorld  # type: ignore[import-not-found]
         except ImportError as err:
-            raise ImportError("yolo-world detector needs the optional 'ultralytics' package") from err
+            raise ImportError(
+                "yolo-world detector needs the optional 'ultralytics' package (pip install ultralytics)"
+            ) from err
+        self.weights = weights
         self.model = YOLOWorld(str(weights))
-        self.vocabulary = [str(v) for v in vocabulary]
-        self.model.set_classes(self.vocabulary)
+        names = getattr(self.model, "names", None)
+        current = [names[k] for k in sorted(names)] if isinstance(names, dict) else list(names or [])
+        if current != self.vocabulary:
+            self.model.set_classes(self.vocabulary)
 
     def detect(self, view: View) -> list[Detection]:
+        # Ultralytics takes numpy images as BGR (OpenCV order).
         res = self.model.predict(view.rgb[..., ::-1].copy(), verbose=False, conf=0.0)[0]
         boxes = res.boxes
         out = []
         for xyxy, c, k in zip(boxes.xyxy.tolist(), boxes.conf.tolist(), boxes.cls.tolist(), strict=True):
-            out.append(Detection(tuple(float(v) for v in xyxy), self.vocabulary[int(k)], float(c)))
+            k = int(k)
+            if not 0 <= k < len(self.vocabulary):
+                raise ValueError(
+                    f"yolo-world: class index {k} outside the vocabulary of {len(self.vocabulary)}"
+                )
+            out.append(Detection(tuple(float(v) for v in xyxy), self.vocabulary[k], float(c)))
         return out
 
 
@@ -498,4 +530,4 @@ def _atomic_write_text(path: Path, text: str) -> None:
         raise
 
 
-__all__ += ["attach_gt_metadata"]
+__all__ += ["attach_gt_metadata", "DEFAULT_VOCABULARY", "DEFAULT_SMALL"]

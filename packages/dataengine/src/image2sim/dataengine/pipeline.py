@@ -198,7 +198,11 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
     elif cfg.detector == "yolo-world":
         if not cfg.detector_weights:
             raise ValueError("detector yolo-world needs detector_weights (a local file)")
-        vocab = sorted(small)
+        if (inputs.capture_dir / "gt" / "categories.json").is_file():
+            cats, small = mining.load_categories(inputs.capture_dir)
+            vocab = sorted(set(cats.values()) - {"floor", "wall", "ceiling", "rug"})
+        else:
+            vocab, small = list(mining.DEFAULT_VOCABULARY), set(mining.DEFAULT_SMALL)
         det = mining.YoloWorldDetector(cfg.detector_weights, vocab)
     else:
         raise ValueError(f"unknown detector {cfg.detector!r} (gt or yolo-world)")
