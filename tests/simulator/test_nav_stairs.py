@@ -27,6 +27,24 @@ def _plan(world: syn.SyntheticWorld, emb: Embodiment):
     return m, pl, pl.shortest_path(low, high)
 
 
+def _episode(m, pl, start, goal, max_steps, follower_cfg=None):
+    """Roll the oracle follower (the map's body) from ``start`` to ``goal``: (last action, collisions,
+    feet heights, agent)."""
+    agent = Agent(CollisionWorld(m))
+    agent.reset(start, 0.0)
+    fol = OracleFollower(pl, config=follower_cfg, kinematics=agent.kinematics)
+    fol.reset(start, goal)
+    hit, collisions, action, zs = False, 0, None, []
+    for _ in range(max_steps):
+        action = fol.act(agent.state, hit)
+        if action == Action.STOP:
+            break
+        hit = agent.step(action).collided
+        collisions += hit
+        zs.append(agent.state.position[2])
+    return action, collisions, np.array(zs), agent
+
+
 def test_risers_above_the_step_height_separate_the_storeys_and_a_taller_step_joins_them():
     # 0.2 m risers (the HM3D staircase's) against the paper's 0.15 m step: the storeys must stay apart
     # (the agent cannot climb); an embodiment that climbs 0.25 m crosses them.
@@ -38,18 +56,8 @@ def test_risers_above_the_step_height_separate_the_storeys_and_a_taller_step_joi
     dz = np.abs(np.diff(res.waypoints[1:-1, 2]))
     assert dz.max() <= 0.25 + 0.011 and dz.max() > 0.15  # it really climbs risers taller than 0.15
     # The oracle follower walks it up: feet end on the upper storey.
-    agent = Agent(CollisionWorld(m))
     start, goal = res.waypoints[1], res.waypoints[-2]
-    agent.reset(start, 0.0)
-    fol = OracleFollower(pl, kinematics=agent.kinematics)
-    fol.reset(start, goal)
-    hit, collisions, action = False, 0, None
-    for _ in range(400):
-        action = fol.act(agent.state, hit)
-        if action == Action.STOP:
-            break
-        hit = agent.step(action).collided
-        collisions += hit
+    action, collisions, _, agent = _episode(m, pl, start, goal, 400)
     assert action == Action.STOP and collisions == 0
     assert np.linalg.norm(agent.state.position[:2] - goal[:2]) <= 0.25
     assert agent.state.position[2] == pytest.approx(1.2, abs=0.05)
@@ -91,25 +99,14 @@ def test_building_code_stairs_need_a_step_height_of_one_riser():
     assert len(_tread_heights(m_low.map_points[low_lane, 2])) == 2
     dz = np.abs(np.diff(res.waypoints[1:-1, 2]))
     assert 0.15 < dz.max() <= 0.18 + 0.011  # one riser per graph edge, never two
-    agent = Agent(CollisionWorld(m), m.embodiment)
     start, goal = res.waypoints[1], res.waypoints[-2]
-    agent.reset(start, 0.0)
-    fol = OracleFollower(pl, kinematics=agent.kinematics)
-    fol.reset(start, goal)
-    hit, collisions, action, zs = False, 0, None, []
-    for _ in range(400):
-        action = fol.act(agent.state, hit)
-        if action == Action.STOP:
-            break
-        hit = agent.step(action).collided
-        collisions += hit
-        zs.append(agent.state.position[2])
+    action, collisions, zs, agent = _episode(m, pl, start, goal, 400)
     assert action == Action.STOP and collisions == 0
     assert agent.state.position[2] == pytest.approx(7 * 0.18, abs=0.05)
     # The feet went up tread by tread: every intermediate tread height was stood on.
-    stood = _tread_heights(np.array(zs), min_cells=1)
+    stood = _tread_heights(zs, min_cells=1)
     assert len(stood) == 8, stood
-    # The same body with a step of 0.17 m (below the riser, even with the 1 cm tolerance) stays down.
+    # A step of 0.165 m (0.175 m with the 1 cm height tolerance: still below the riser) stays down.
     _, _, res = _plan(w, Embodiment(max_step_height=0.165))
     assert not res.reachable
 
@@ -197,23 +194,12 @@ def test_hm3d_stairs_join_the_storeys_and_the_oracle_climbs_them(hm3d_scene_dir,
         assert res.reachable, res.reason
         dz = np.abs(np.diff(res.waypoints[1:-1, 2]))
         assert dz.max() <= emb.max_step_height + 0.011
-        agent = Agent(CollisionWorld(m), emb)
-        agent.reset(res.waypoints[1], 0.0)
-        fol = OracleFollower(pl, config=follower_cfg, kinematics=agent.kinematics)
-        fol.reset(res.waypoints[1], res.waypoints[-2])
-        hit, collisions, action, zs = False, 0, None, []
-        for _ in range(1500):
-            action = fol.act(agent.state, hit)
-            if action == Action.STOP:
-                break
-            step = agent.step(action)
-            hit = step.collided
-            collisions += hit
-            zs.append(agent.state.position[2])
+        action, collisions, zs, agent = _episode(
+            m, pl, res.waypoints[1], res.waypoints[-2], 1500, follower_cfg
+        )
         assert action == Action.STOP
         assert np.linalg.norm(agent.state.position[:2] - b[:2]) <= 0.25
         assert abs(agent.state.position[2] - b[2]) < 0.1  # arrived on the goal's storey
-        zs = np.array(zs)
         # Climbing happened through the intermediate tread heights, never by a jump.
         assert ((zs > lower + 0.3) & (zs < upper - 0.3)).sum() >= 5
         with capsys.disabled():
