@@ -413,10 +413,42 @@ def test_per_image_metrics_match_the_evaluation_definitions():
         depth_metrics(pred, gt)
 
 
+# --- residual heads ---------------------------------------------------------------------------
+def test_prior_base_ground_truth():
+    from image2sim.simulator.renderer.decoder import prior_base
+
+    cond, *_ = make_batch(b=1)
+    cond[:, 16:19] = torch.tensor([0.2, 0.0, 1.0]).view(1, 3, 1, 1)
+    cond[:, 19] = 4.0
+    cond[:, 20, 0, 0], cond[:, 20, 0, 1], cond[:, 20, 0, 2] = 1.0, 0.0, 0.5
+    logits, depth = prior_base(cond, depth_scale=10.0, depth_fill=0.3)
+    c = torch.sigmoid(logits)
+    assert torch.allclose(c[0, :, 0, 0], torch.tensor([0.2, 1e-3, 1 - 1e-3]), atol=1e-6)  # the prior
+    assert torch.allclose(c[0, :, 0, 1], torch.full((3,), 0.5), atol=1e-6)  # nothing projected: grey
+    assert torch.allclose(c[0, :, 0, 2], torch.tensor([0.35, 0.25, 0.75]), atol=1e-6)
+    assert torch.allclose(depth[0, 0, 0, :3], torch.tensor([0.4, 0.3, 0.35]), atol=1e-6)
+
+
+@pytest.mark.parametrize("steps", [1, 4])
+def test_untrained_residual_renderer_reproduces_splat_only_where_alpha_is_one(steps):
+    torch.manual_seed(0)
+    cond, *_ = make_batch(b=2, alpha=1.0)
+    model = PixelFlowRenderer(small_cfg()).eval()
+    splat = model.render(cond[:, :], steps=steps, noise=torch.randn(2, 4, H, W))
+    assert torch.allclose(splat.rgb, cond[:, 16:19].clamp(1e-3, 1 - 1e-3), atol=1e-5)
+    assert torch.allclose(splat.depth, cond[:, 19:20], atol=1e-5)
+    # The paper's absolute heads do not: they start from a random image.
+    absolute = PixelFlowRenderer(small_cfg(decoder={"residual_heads": False})).eval()
+    out = absolute.render(cond, steps=steps, noise=torch.randn(2, 4, H, W))
+    assert (out.rgb - cond[:, 16:19]).abs().mean() > 0.1
+
+
 # --- overfit (slow) -------------------------------------------------------------------------
 @pytest.mark.slow
-def test_tiny_model_overfits_one_target():
-    """The renderer fits one panorama (PSNR > 30 dB, one-step) from a half-empty splat."""
+@pytest.mark.parametrize("residual", [True, False])
+def test_tiny_model_overfits_one_target(residual):
+    """The renderer fits one panorama (PSNR > 30 dB, one-step) from a half-empty splat, with the
+    residual heads and with the paper's absolute heads."""
     torch.manual_seed(0)
     cfg = small_cfg(
         height=32,
@@ -426,6 +458,7 @@ def test_tiny_model_overfits_one_target():
             "bottleneck_dim": 32,
             "time_dim": 32,
             "blocks_per_level": [1, 1, 1, 1],
+            "residual_heads": residual,
         },
         aligner={"stem_widths": [8, 8, 16, 16], "token_dim": 32},
     )

@@ -85,7 +85,14 @@ class DecoderConfig:
     gate_bias: float = 2.0
     """Initial bias of the zero-initialised skip gate (sigmoid(2.0) = 0.88: trust the projection)."""
     depth_bias: float = 0.3
-    """Initial bias of the depth head (normalised units) so the ReLU starts in its active range."""
+    """Initial bias of the depth head (normalised units) so the ReLU starts in its active range;
+    with ``residual_heads`` the depth filled in where nothing was projected (alpha = 0)."""
+    residual_heads: bool = True
+    """Heads predict corrections around the splatted prior (a deliberate deviation from the
+    paper, see docs/renderer.md): RGB = sigmoid(logit(c0) + delta) with c0 = A * prior_rgb +
+    (1 - A) * 0.5, depth = ReLU(d0 + delta) with d0 = A * prior_depth + (1 - A) * depth_bias, both
+    heads zero-initialised so an untrained network returns the prior where alpha = 1. False: the
+    paper's absolute heads (sigmoid / ReLU of the head output)."""
 
 
 @dataclass
@@ -265,7 +272,7 @@ class RendererConfig:
 
 
 def tiny() -> RendererConfig:
-    """CPU-sized renderer at 128 x 256 (~0.65 M parameters), 3000-step curriculum."""
+    """CPU-sized renderer at 128 x 256 (~0.65 M parameters), 1500-step curriculum."""
     return RendererConfig(
         name="tiny",
         height=128,
@@ -280,9 +287,11 @@ def tiny() -> RendererConfig:
             heads=4,
             time_dim=64,
         ),
-        # The paper's 1:2:1 stage proportions, scaled to ~1 s/step on a 2-core CPU.
+        # The paper's 1:2:1 stage proportions in 1500 steps (`make train-sim-tiny`, issue budget
+        # 60 min on 2 cores): measured 1.4 s/step with one thread at load average 7 (~35 min);
+        # a busier shared machine is slower (reports/renderer_tiny.md).
         curriculum=CurriculumConfig(
-            stage2_start=750, stage3_start=2250, total_steps=3000, lr=1e-3, min_lr=1e-5
+            stage2_start=375, stage3_start=1125, total_steps=1500, lr=1e-3, min_lr=1e-5
         ),
     )
 
@@ -325,7 +334,9 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
             return tuple(_coerce(v, item, f"{where}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
             raise ValueError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=False)))
+        return tuple(
+            _coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=False))
+        )
     if annotation is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if annotation in (int, float, bool, str) and not isinstance(value, annotation):

@@ -7,7 +7,9 @@ Shape of the network (paper appendix, "Stage 3: Pixel Flow Rendering Decoder")::
     bottleneck: + angle positional encoding; N x [SemanticInjector(tokens) -> TransformerBlock
                 (AdaLN-Zero on DualTimeEmbedding(t, h = t - r))]
     decoder:    PixelShuffle x2 -> AlphaGatedSkip(e_k, alpha_k) -> PanoBlocks, k = 3..0
-    heads:      RGB (sigmoid), depth (ReLU, in state units = metres / depth_scale)
+    heads:      RGB (sigmoid), depth (ReLU, in state units = metres / depth_scale); with
+                ``residual_heads`` (default) both are corrections around the splatted prior,
+                see :func:`prior_base`
 
 All components are forward-mode-AD safe (see :mod:`image2sim.simulator.layers`).
 """
@@ -27,7 +29,7 @@ from image2sim.simulator.layers import (
     TransformerBlock,
     sincos_positional_encoding,
 )
-from image2sim.simulator.renderer.condition import ALPHA
+from image2sim.simulator.renderer.condition import ALPHA, DEPTH, RGB
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, STATE_CHANNELS, DecoderConfig
 from torch import nn
 
@@ -37,6 +39,7 @@ __all__ = [
     "SemanticInjector",
     "AlphaPyramid",
     "AlphaGatedSkip",
+    "prior_base",
     "DecoderOutput",
     "RenderingDecoder",
 ]
@@ -150,6 +153,22 @@ class AlphaGatedSkip(nn.Module):
         return torch.sigmoid(self.gate(torch.cat((dec, self.adapter(enc), alpha.to(dec.dtype)), dim=1)))
 
 
+def prior_base(
+    condition: torch.Tensor, depth_scale: float, depth_fill: float, eps: float = 1e-3
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """What the residual heads correct: RGB logits of ``c0 = A * prior + (1 - A) * 0.5`` (clamped
+    to ``[eps, 1 - eps]``) and the state depth ``A * prior / depth_scale + (1 - A) * depth_fill``.
+
+    Where alpha = 1 this is the splatted prior itself (splat-only), where alpha = 0 a neutral grey
+    at ``depth_fill``; the network only has to generate where the projection is missing or wrong.
+    Depends on the condition only (no z, r, t), so it adds nothing to the JVP tangent.
+    """
+    a = condition[:, ALPHA].clamp(0.0, 1.0)
+    c0 = (a * condition[:, RGB] + (1.0 - a) * 0.5).clamp(eps, 1.0 - eps)
+    d0 = a * condition[:, DEPTH] / depth_scale + (1.0 - a) * depth_fill
+    return torch.log(c0) - torch.log1p(-c0), d0
+
+
 @dataclass
 class DecoderOutput:
     """Prediction of the decoder."""
@@ -166,7 +185,12 @@ class RenderingDecoder(nn.Module):
     """UNet-style x-prediction network over ``[C_p, z_t]`` (see module docstring)."""
 
     def __init__(
-        self, cfg: DecoderConfig, token_dim: int | None, gated_skips: bool = True, panoramic: bool = True
+        self,
+        cfg: DecoderConfig,
+        token_dim: int | None,
+        gated_skips: bool = True,
+        panoramic: bool = True,
+        depth_scale: float = 10.0,
     ) -> None:
         super().__init__()
         self.cfg = cfg
@@ -212,8 +236,16 @@ class RenderingDecoder(nn.Module):
         self.out_norm = LayerNorm2d(w[0])
         self.rgb_head = PanoConv2d(w[0], 3, 3, panoramic=panoramic)
         self.depth_head = PanoConv2d(w[0], 1, 3, panoramic=panoramic)
+        self.residual = bool(cfg.residual_heads)
+        self.depth_fill = float(cfg.depth_bias)
+        self.depth_scale = float(depth_scale)
         nn.init.zeros_(self.rgb_head.bias)
-        nn.init.constant_(self.depth_head.bias, cfg.depth_bias)
+        if self.residual:  # corrections start at 0: the untrained network returns the prior
+            for head in (self.rgb_head, self.depth_head):
+                nn.init.zeros_(head.weight)
+                nn.init.zeros_(head.bias)
+        else:
+            nn.init.constant_(self.depth_head.bias, cfg.depth_bias)
 
     def forward(
         self,
@@ -255,5 +287,10 @@ class RenderingDecoder(nn.Module):
             features.append(x)
         x = self.out_norm(x)
         rgb_logits = self.rgb_head(x)
-        depth = F.relu(self.depth_head(x))
+        depth = self.depth_head(x)
+        if self.residual:
+            base_logits, base_depth = prior_base(condition, self.depth_scale, self.depth_fill)
+            rgb_logits = rgb_logits + base_logits
+            depth = depth + base_depth
+        depth = F.relu(depth)
         return DecoderOutput(torch.cat((torch.sigmoid(rgb_logits), depth), dim=1), features, rgb_logits)

@@ -49,7 +49,11 @@ class PixelFlowRenderer(nn.Module):
             None
             if ab.no_pixel_flow
             else RenderingDecoder(
-                cfg.decoder, token_dim, gated_skips=not ab.no_alpha_gate, panoramic=panoramic
+                cfg.decoder,
+                token_dim,
+                gated_skips=not ab.no_alpha_gate,
+                panoramic=panoramic,
+                depth_scale=cfg.meanflow.depth_scale,
             )
         )
 
