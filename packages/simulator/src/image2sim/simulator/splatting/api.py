@@ -139,8 +139,12 @@ def _check(name: str, t: torch.Tensor, shape: tuple, n: int | None) -> None:
         raise ValueError(f"splat: {name} has {t.shape[0]} rows but means has {n}")
 
 
-def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor:
-    return ~torch.isfinite(t.detach()).reshape(t.shape[0], -1).all(dim=1)
+def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor | None:
+    """Rows of ``t`` with a NaN/inf, or None when every value is finite (one fused reduction)."""
+    d = t.detach()
+    if bool(torch.isfinite(d).all()):
+        return None
+    return ~torch.isfinite(d).reshape(t.shape[0], -1).all(dim=1)
 
 
 def splat(
@@ -205,8 +209,8 @@ def splat(
         ("colors", colors),
         ("features", features),
     ):
-        rows = _nonfinite_rows(t) if n else bad
-        if rows.any():
+        rows = _nonfinite_rows(t) if n else None
+        if rows is not None and rows.any():
             if nonfinite == "raise":
                 first = int(torch.nonzero(rows)[0])
                 raise ValueError(
@@ -241,11 +245,29 @@ def splat(
         t.requires_grad for t in (means, scales, quats, opacities, colors, features, bg, cam_to_world)
     )
     images, alphas = [], []
+    finite_mask = ~bad if bad.any() else None
     for pose in poses:
-        project = project_gaussians
-        if name == "cpu" and not needs_grad:  # fused C++ projection for inference
-            from image2sim.simulator.splatting.backends.cpu_kernel import project
-        proj = project(
+        if name == "cpu" and not needs_grad:  # fused C++ project + sort + bin + rasterise
+            from image2sim.simulator.splatting.backends.cpu_kernel import render
+
+            image, alpha = render(
+                means,
+                scales,
+                quats,
+                opacities,
+                colors,
+                features,
+                camera,
+                pose,
+                bg_all,
+                near=near,
+                far=far,
+                finite_mask=finite_mask,
+            )
+            images.append(image)
+            alphas.append(alpha)
+            continue
+        proj = project_gaussians(
             means,
             scales,
             quats,
@@ -254,10 +276,15 @@ def splat(
             pose,
             near=near,
             far=far,
-            finite_mask=~bad if bad.any() else None,
+            finite_mask=finite_mask,
         )
-        idx = torch.nonzero(proj.valid).squeeze(1)
-        idx = idx[torch.argsort(proj.depths.detach()[idx], stable=True)]
+        if name == "cpu":  # stable radix sort in C++ (same order as the torch ops below)
+            from image2sim.simulator.splatting.backends.cpu_kernel import sort_valid
+
+            idx = sort_valid(proj.depths, proj.valid)
+        else:
+            idx = torch.nonzero(proj.valid).squeeze(1)
+            idx = idx[torch.argsort(proj.depths.detach()[idx], stable=True)]
         values = torch.cat((colors, proj.depths.unsqueeze(1), features), dim=1)[idx]
         kwargs = {"radii": proj.radii[idx]} if name in ("torch", "cpu") else {}
         image, alpha = raster(

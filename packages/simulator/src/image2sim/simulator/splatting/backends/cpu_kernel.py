@@ -1,24 +1,27 @@
 """Compiled CPU rasteriser: C++ (``csrc/splat_cpu.cpp``) JIT-built with torch's cpp_extension.
 
-Multi-threaded over tiles with OpenMP (thread count = ``torch.get_num_threads()``), hand-written
-backward for means2d, conics, opacities, values and background, exposed as a
-``torch.autograd.Function``. The build is automatic and cached under ``$TORCH_EXTENSIONS_DIR`` or
-``~/.cache/image2sim/torch_extensions`` (keyed by a hash of the source, so edits rebuild). If the
-build fails, :func:`available` is False and ``backend="auto"`` falls back to the torch backend
-with a warning.
+Multi-threaded over tiles with OpenMP (thread count = ``torch.get_num_threads()``), 16-lane
+vectorised pixel rows, hand-written backward for means2d, conics, opacities, values and
+background, exposed as a ``torch.autograd.Function``; :func:`render` is the fused inference path
+(projection, depth sort, binning and rasterisation in one C++ call). The build is automatic and
+cached under ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/image2sim/torch_extensions`` (keyed by a hash
+of the source, the torch version, the compiler flags and this CPU's instruction-set flags, since
+it is built with ``-march=native``; edits rebuild). If the build fails, :func:`available` is False
+and ``backend="auto"`` falls back to the torch backend with a warning.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import threading
 from pathlib import Path
 
 import torch
 from image2sim.simulator.splatting.backends.torch_tiles import TILE_SIZE
 
-__all__ = ["available", "load_error", "load", "rasterize", "bin_gaussians"]
+__all__ = ["available", "load_error", "load", "rasterize", "bin_gaussians", "sort_valid", "project", "render"]
 
 _SOURCE = Path(__file__).with_name("csrc") / "splat_cpu.cpp"
 _lock = threading.Lock()
@@ -26,10 +29,25 @@ _module = None
 _error: str | None = None
 
 
+_CFLAGS = ["-O3", "-march=native", "-fopenmp", "-fno-math-errno"]
+
+
+def _cpu_flags() -> bytes:
+    """The instruction-set flags of this CPU (part of the cache key: the build uses -march=native)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return line.encode()
+    except OSError:
+        pass
+    return platform.machine().encode() + platform.processor().encode()
+
+
 def _build_dir() -> Path:
     root = os.environ.get("TORCH_EXTENSIONS_DIR")
     base = Path(root) if root else Path.home() / ".cache" / "image2sim" / "torch_extensions"
-    digest = hashlib.sha256(_SOURCE.read_bytes() + torch.__version__.encode()).hexdigest()[:12]
+    key = _SOURCE.read_bytes() + torch.__version__.encode() + " ".join(_CFLAGS).encode() + _cpu_flags()
+    digest = hashlib.sha256(key).hexdigest()[:12]
     path = base / f"image2sim_splat_cpu_{digest}"
     path.mkdir(parents=True, exist_ok=True)
     return path
@@ -50,7 +68,7 @@ def load():
             _module = _load(
                 name=f"image2sim_splat_cpu_{build.name.rsplit('_', 1)[-1]}",
                 sources=[str(_SOURCE)],
-                extra_cflags=["-O3", "-fopenmp", "-fno-math-errno"],
+                extra_cflags=_CFLAGS,
                 extra_ldflags=["-fopenmp"],
                 build_directory=str(build),
                 verbose=False,
@@ -82,6 +100,11 @@ def load_error() -> str:
 def bin_gaussians(means2d, radii, height: int, width: int, wrap_width: float, tile: int = TILE_SIZE):
     """Per-tile index lists (offsets (n_tiles + 1,), ids (pairs,)), like the torch backend's."""
     return load().bin_gaussians(means2d.detach().cpu(), radii.detach().cpu(), height, width, wrap_width, tile)
+
+
+def sort_valid(depths: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Indices of the valid Gaussians sorted front to back (stable: ties keep input order)."""
+    return load().sort_valid(depths.detach().contiguous(), valid.contiguous())
 
 
 class _Rasterize(torch.autograd.Function):
@@ -172,11 +195,9 @@ def project(
     means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None, finite_mask=None
 ):
     """Inference-only fused projection (no autograd); same result as :func:`project_gaussians`."""
-    from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.splatting.project import ProjectedGaussians
 
-    equirect = isinstance(camera, EquirectCamera)
-    fx, fy, cx, cy = (0.0, 0.0, 0.0, 0.0) if equirect else (camera.fx, camera.fy, camera.cx, camera.cy)
+    equirect, fx, fy, cx, cy = _camera_args(camera)
     mask = torch.empty(0, dtype=torch.bool) if finite_mask is None else finite_mask.contiguous()
     uv, conic, cov, depth, radii, valid = load().project_forward(
         means.detach().contiguous(),
@@ -204,3 +225,56 @@ def project(
         valid=valid,
         wrap_width=float(camera.width) if equirect else 0.0,
     )
+
+
+def _camera_args(camera) -> tuple[bool, float, float, float, float]:
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+
+    if isinstance(camera, EquirectCamera):
+        return True, 0.0, 0.0, 0.0, 0.0
+    return False, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+
+
+def render(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    quats: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    features: torch.Tensor,
+    camera,
+    cam_to_world: torch.Tensor,
+    background: torch.Tensor,
+    *,
+    near: float = 0.05,
+    far=None,
+    finite_mask=None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inference-only fused render of one camera (no autograd): ``(image (4 + C, H, W), alpha)``.
+
+    ``background`` has 4 + C entries (rgb, depth, features). Same result as projecting with
+    :func:`project_gaussians`, sorting, and :func:`rasterize`.
+    """
+    equirect, fx, fy, cx, cy = _camera_args(camera)
+    mask = torch.empty(0, dtype=torch.bool) if finite_mask is None else finite_mask.contiguous()
+    image, alpha = load().render_forward(
+        means.detach().contiguous(),
+        scales.detach().contiguous(),
+        quats.detach().contiguous(),
+        opacities.detach().contiguous(),
+        colors.detach().contiguous(),
+        features.detach().contiguous(),
+        mask,
+        cam_to_world.detach().cpu(),
+        equirect,
+        fx,
+        fy,
+        cx,
+        cy,
+        int(camera.height),
+        int(camera.width),
+        float(near),
+        -1.0 if far is None else float(far),
+        background.detach().contiguous(),
+    )
+    return image, alpha

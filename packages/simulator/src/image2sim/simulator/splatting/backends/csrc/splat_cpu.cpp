@@ -1,18 +1,38 @@
-// Tile-parallel CPU rasteriser for depth-sorted screen Gaussians (forward and backward).
+// Tile-parallel CPU splatting kernel: fused inference path, forward and backward rasterisation.
 //
 // Contract identical to backends/reference.py: per pixel, front to back over the tile's list,
 // q = d^T conic d, skip q > 3.5^2, alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255,
 // w = alpha T, stop after the Gaussian that drops T below 1e-4. Outputs
 // image[k] = sum w v_k + (1 - sum w) bg_k and alpha = sum w.
-// Loops run Gaussian-outer / pixel-inner inside a tile (parameters are loaded once per tile and
-// the pixel loop is branch-light); transmittance and sums are accumulated in double.
+//
+// Layout and loops (see docs/renderer.md, "CPU kernel"):
+// * Tiles are 16 x 16 pixels; OpenMP threads take whole tiles (dynamic schedule).
+// * Inside a tile the loop is Gaussian-outer, row-middle, 16-lane pixel-inner: for one Gaussian and
+//   one pixel row, `row_alpha` evaluates all 16 pixels at once (branch-free, `omp simd`), then the
+//   transmittance update and every channel accumulation are 16-lane vector loops over a
+//   channel-major tile buffer acc[c][pixel]. Pixels that are finished (T < 1e-4) or outside the
+//   image carry T = 0 and therefore add exactly nothing; a tile stops once all its pixels are done.
+// * Compute type: float for float32 inputs (a Cephes-style vectorisable exp, ~1 ulp), double for
+//   float64 inputs (std::exp, so float64 gradients are exactly smooth for gradcheck).
+// * `row_alpha` is one out-of-line function shared by forward and backward so both make the same
+//   contribute / skip decisions bit for bit.
+// * The fused inference path (`render_forward`) projects, sorts by depth (LSD radix sort on the
+//   float bits, stable, so ties keep input order), bins into tiles (counting sort, keeps depth
+//   order), packs per-Gaussian records and values contiguously in depth order, and rasterises in
+//   one call: no per-frame Python or small torch ops.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <omp.h>
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <type_traits>
 #include <vector>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 namespace {
 
@@ -20,6 +40,8 @@ constexpr double kCutoff2 = 3.5 * 3.5;
 constexpr double kAlphaMax = 0.99;
 constexpr double kAlphaMin = 1.0 / 255.0;
 constexpr double kTMin = 1e-4;
+constexpr int kTile = 16;          // tile edge of the vectorised kernel
+constexpr int kP = kTile * kTile;  // pixels per tile (row stride kTile)
 
 struct Grid {
   int64_t H, W, tile, ntx, nty;
@@ -31,14 +53,12 @@ inline double wrap_dx(double dx, double wrap) {
   return dx - wrap * std::floor((dx + 0.5 * wrap) / wrap);
 }
 
-template <typename T>
 struct TileView {
-  // Pixel coordinates of a tile and the number of real (in-image) pixels.
-  int64_t x0, y0, w, h;
+  int64_t x0, y0, w, h;  // first pixel and the number of real (in-image) columns / rows
 };
 
-inline TileView<double> tile_view(const Grid& g, int64_t t) {
-  TileView<double> v;
+inline TileView tile_view(const Grid& g, int64_t t) {
+  TileView v;
   v.x0 = (t % g.ntx) * g.tile;
   v.y0 = (t / g.ntx) * g.tile;
   v.w = std::min(g.tile, g.W - v.x0);
@@ -46,226 +66,316 @@ inline TileView<double> tile_view(const Grid& g, int64_t t) {
   return v;
 }
 
-
-// Pixel window of one Gaussian's footprint box inside one tile: local columns [i0, i1), rows
-// [j0, j1) and the offsets (pixel centre - mean) of local pixel (0, 0). Offsets inside the
-// window never cross the panorama seam because the box half-width is < W/2 - tile there.
-struct Window {
-  int64_t i0, i1, j0, j1;
-  double dx0, dy0;
-};
-
-inline Window window(const Grid& g, const TileView<double>& tv, double mu, double mv, double ru, double rv) {
-  Window w;
-  w.dy0 = tv.y0 + 0.5 - mv;
-  w.j0 = std::max<int64_t>(0, (int64_t)std::ceil(-rv - w.dy0));
-  w.j1 = std::min<int64_t>(tv.h, (int64_t)std::floor(rv - w.dy0) + 1);
-  const double raw = tv.x0 + 0.5 - mu;
-  w.dx0 = wrap_dx(raw, g.wrap);
-  if (g.wrap > 0 && 2.0 * ru >= g.wrap - 2.0 * g.tile) {
-    // Near-full-width footprint: per-pixel wrapping, every column.
-    w.i0 = 0;
-    w.i1 = tv.w;
-    w.dx0 = std::nan("");
-    return w;
-  }
-  w.i0 = std::max<int64_t>(0, (int64_t)std::ceil(-ru - w.dx0));
-  w.i1 = std::min<int64_t>(tv.w, (int64_t)std::floor(ru - w.dx0) + 1);
-  return w;
-}
-
-inline double window_dx(const Grid& g, const TileView<double>& tv, const Window& w, double mu, int64_t i) {
-  if (std::isnan(w.dx0)) return wrap_dx(tv.x0 + i + 0.5 - mu, g.wrap);
-  return w.dx0 + i;
-}
-
-
-// Columns [i_lo, i_hi) of row offset dy whose pixels can satisfy q <= qlim: the chord of the
-// ellipse A dx^2 + 2 B dx dy + C dy^2 = qlim (A > 0), widened by a hair (the exact test follows).
-inline bool row_span(const Window& w, double A, double B, double C, double qlim, double dy, int64_t& i_lo,
-                     int64_t& i_hi) {
-  i_lo = w.i0;
-  i_hi = w.i1;
-  if (std::isnan(w.dx0)) return true;  // per-pixel wrapping: test every column
-  const double disc = B * B * dy * dy - A * (C * dy * dy - qlim);
-  if (disc < 0) return false;
-  const double sq = std::sqrt(disc), lo = (-B * dy - sq) / A, hi = (-B * dy + sq) / A;
-  const double pad = 1e-7 * (1.0 + std::abs(lo) + std::abs(hi));
-  i_lo = std::max<int64_t>(w.i0, (int64_t)std::ceil(lo - pad - w.dx0));
-  i_hi = std::min<int64_t>(w.i1, (int64_t)std::floor(hi + pad - w.dx0) + 1);
-  return i_lo < i_hi;
-}
-
 // Largest q at which alpha = o exp(-q/2) can still reach 1/255 (tiny margin: exact test follows).
 inline double q_limit(double o) {
   if (!(o >= kAlphaMin)) return -1.0;
-  return std::min(kCutoff2, 2.0 * std::log(o / kAlphaMin) + 1e-6);
+  return std::min(kCutoff2, 2.0 * std::log(o / kAlphaMin) + 1e-4);
 }
 
+// One depth-sorted screen Gaussian, packed for the rasteriser (one 64-byte cache line).
+struct alignas(64) Rec {
+  double mu, mv;       // mean (pixels)
+  double A, B, C;      // conic (inverse screen covariance)
+  double o;            // opacity
+  float ru, rv;        // footprint box half-extents (conservative: the exact q test decides)
+  float qlim;          // q_limit(o) (< 0: never contributes); a prefilter only
+};
+
+inline Rec make_rec(double mu, double mv, double ru, double rv, double A, double B, double C, double o) {
+  return Rec{mu, mv, A, B, C, o, static_cast<float>(ru), static_cast<float>(rv), static_cast<float>(q_limit(o))};
+}
+
+// 16-lane vector types (GCC/Clang vector extensions: AVX-512, 2 x AVX2 or 4 x SSE, whatever the
+// target has) for the compute type, and the matching lane-mask / integer type.
+template <typename real>
+struct Lanes;
+template <>
+struct Lanes<float> {
+  typedef float V __attribute__((vector_size(kTile * sizeof(float))));
+  typedef int32_t I __attribute__((vector_size(kTile * sizeof(int32_t))));
+  typedef int32_t lane_int;
+};
+template <>
+struct Lanes<double> {
+  typedef double V __attribute__((vector_size(kTile * sizeof(double))));
+  typedef int64_t I __attribute__((vector_size(kTile * sizeof(int64_t))));
+  typedef int64_t lane_int;
+};
+
+// Number of set lanes of a lane mask (lanes are 0 or -1).
+template <typename I>
+inline int count_lanes(const I& m) {
+  int n = 0;
+  for (int i = 0; i < kTile; ++i) n += m[i] != 0;
+  return n;
+}
+#if defined(__AVX512F__)
+template <>
+inline int count_lanes<Lanes<float>::I>(const Lanes<float>::I& m) {
+  __m512i v;
+  std::memcpy(&v, &m, sizeof(v));
+  return __builtin_popcount(static_cast<unsigned>(_mm512_test_epi32_mask(v, v)));
+}
+#endif
+
+template <typename V, typename T>
+inline V vload(const T* p) {
+  V v;
+  std::memcpy(&v, p, sizeof(V));
+  return v;
+}
+template <typename V, typename T>
+inline void vstore(T* p, const V& v) {
+  std::memcpy(p, &v, sizeof(V));
+}
+
+// exp(-q/2) for q >= 0 on 16 lanes. float: Cephes expf (range reduction by ln 2, degree-6
+// polynomial, about 1 ulp) in vector arithmetic; arguments below -30 (q > 60, far outside every
+// footprint, where q <= 12.25) are clamped so no lane makes a denormal (and NaN maps to -30).
+// double: std::exp per lane, exact, so float64 gradients are smooth for gradcheck.
+inline Lanes<float>::V exp_neg_half(Lanes<float>::V q) {
+  using V = Lanes<float>::V;
+  using I = Lanes<float>::I;
+  const V lo = V{} - 30.0f;
+  V x = -0.5f * q;
+  x = x > lo ? x : lo;
+  const V t = x * 1.44269504088896341f;
+  const V k = (t + 12582912.0f) - 12582912.0f;  // round to nearest (|t| < 2^22)
+  V r = x - k * 0.693359375f;
+  r = r - k * -2.12194440e-4f;
+  V p = V{} + 1.9875691500E-4f;
+  p = p * r + 1.3981999507E-3f;
+  p = p * r + 8.3334519073E-3f;
+  p = p * r + 4.1665795894E-2f;
+  p = p * r + 1.6666665459E-1f;
+  p = p * r + 5.0000001201E-1f;
+  p = p * r * r + r + 1.0f;
+  const I bits = (__builtin_convertvector(k, I) + 127) << 23;
+  V scale;
+  std::memcpy(&scale, &bits, sizeof(scale));
+  return p * scale;
+}
+inline Lanes<double>::V exp_neg_half(Lanes<double>::V q) {
+  Lanes<double>::V out;
+  for (int i = 0; i < kTile; ++i) out[i] = std::exp(-0.5 * q[i]);
+  return out;
+}
+
+// Alpha of one Gaussian at the 16 pixels of one tile row: a[i] = min(0.99, o g) where the
+// Gaussian contributes (q <= qlim and alpha >= 1/255), else exactly 0; g[i] = exp(-q/2).
+// dx0 = wrapped offset (pixel centre - mean) of lane 0; lane i is dx0 + i, re-wrapped once for
+// panoramas (dx0 is in [-W/2, W/2) and i < 16, real lanes < W). Out of line on purpose: forward
+// and backward call the same machine code, so their decisions agree bit for bit.
+template <typename real>
+__attribute__((noinline)) void row_alpha(real A, real B, real C, real o, real qlim, real dx0, real dy,
+                                         real wrap, typename Lanes<real>::V* a_out,
+                                         typename Lanes<real>::V* g_out) {
+  using V = typename Lanes<real>::V;
+  V lane;
+  for (int i = 0; i < kTile; ++i) lane[i] = real(i);
+  const V zero = V{};
+  V dx = dx0 + lane;
+  if (wrap > 0) dx = dx >= real(0.5) * wrap ? dx - wrap : dx;
+  const V q = (A * dx + real(2) * B * dy) * dx + C * dy * dy;
+  const V g = exp_neg_half(q);
+  const V og = o * g;
+  const V amax = zero + real(kAlphaMax);
+  const V a = og < amax ? og : amax;
+  *a_out = (q <= qlim) & (a >= real(kAlphaMin)) ? a : zero;
+  *g_out = g;
+}
+
+// Rows [j0, j1) of tile tv that the Gaussian's footprint box touches, and the lane-0 offsets.
+struct RowRange {
+  int64_t j0, j1;
+  double dx0, dy0;
+};
+
+inline RowRange row_range(const Grid& g, const TileView& tv, const Rec& r) {
+  RowRange rr;
+  rr.dy0 = tv.y0 + 0.5 - r.mv;
+  rr.j0 = std::max<int64_t>(0, (int64_t)std::ceil(-r.rv - rr.dy0));
+  rr.j1 = std::min<int64_t>(tv.h, (int64_t)std::floor(r.rv - rr.dy0) + 1);
+  rr.dx0 = wrap_dx(tv.x0 + 0.5 - r.mu, g.wrap);
+  return rr;
+}
+
+template <typename real>
+using compute_t = std::conditional_t<std::is_same_v<real, double>, double, float>;
+
 template <typename scalar_t>
-void forward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* conic, const scalar_t* opac, const scalar_t* vals,
-                  const scalar_t* bg, int64_t D, const int64_t* offs, const int64_t* ids, const Grid& g,
-                  scalar_t* out, scalar_t* alpha_out, double* t_final, int64_t* n_contrib) {
+void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int64_t D, const int64_t* offs,
+                  const int64_t* ids, const Grid& g, scalar_t* out, scalar_t* alpha_out, double* t_final,
+                  int64_t* n_contrib) {
+  using real = compute_t<scalar_t>;
   const int64_t n_tiles = g.ntx * g.nty;
   const int64_t HW = g.H * g.W;
+  const real wrap = static_cast<real>(g.wrap);
+  const real tmin = static_cast<real>(kTMin);
 #pragma omp parallel num_threads(at::get_num_threads())
   {
-    const int64_t P = g.tile * g.tile;
-    // Channel sums in scalar_t keep a float tile (256 x D) in L1; transmittance stays double.
-    std::vector<double> T(P), asum(P);
-    std::vector<scalar_t> acc(P * D);
-    std::vector<int64_t> last(P);
-    std::vector<char> done(P);
+    using V = typename Lanes<real>::V;
+    using I = typename Lanes<real>::I;
+    using lane_int = typename Lanes<real>::lane_int;
+    alignas(64) real T[kP], asum[kP];
+    alignas(64) lane_int last[kP];
+    std::vector<real> acc_buf(std::max<int64_t>(D, 1) * kP);
+    real* acc = acc_buf.data();
+    const V zero = V{};
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
-      const auto tv = tile_view(g, t);
-      const int64_t np = tv.w * tv.h;
-      std::fill(T.begin(), T.begin() + np, 1.0);
-      std::fill(acc.begin(), acc.begin() + np * D, scalar_t(0));
-      std::fill(asum.begin(), asum.begin() + np, 0.0);
-      std::fill(last.begin(), last.begin() + np, 0);
-      std::fill(done.begin(), done.begin() + np, 0);
-      int64_t n_done = 0;
+      const TileView tv = tile_view(g, t);
+      for (int p = 0; p < kP; ++p) {
+        T[p] = (p / kTile < tv.h && p % kTile < tv.w) ? real(1) : real(0);  // padding lanes: done
+        asum[p] = 0;
+        last[p] = 0;
+      }
+      std::fill(acc, acc + D * kP, real(0));
+      int64_t n_active = tv.w * tv.h;
       const int64_t begin = offs[t], end = offs[t + 1];
-      for (int64_t k = begin; k < end && n_done < np; ++k) {
+      for (int64_t k = begin; k < end && n_active > 0; ++k) {
         const int64_t gi = ids[k];
-        const double mu = mean[2 * gi], mv = mean[2 * gi + 1];
-        const double A = conic[3 * gi], B = conic[3 * gi + 1], C = conic[3 * gi + 2];
-        const double o = opac[gi];
+        if (k + 1 < end) {  // the next record and values are a cache miss away: fetch them now
+          __builtin_prefetch(recs + ids[k + 1]);
+          __builtin_prefetch(vals + ids[k + 1] * D);
+        }
+        const Rec& r = recs[gi];
+        if (r.qlim < 0) continue;
+        const RowRange rr = row_range(g, tv, r);
+        const lane_int rank1 = static_cast<lane_int>(k - begin + 1);
         const scalar_t* v = vals + gi * D;
-        const double qlim = q_limit(o);
-        if (qlim < 0) continue;
-        const Window win = window(g, tv, mu, mv, radii[2 * gi], radii[2 * gi + 1]);
-        for (int64_t j = win.j0; j < win.j1; ++j) {
-          const double dy = win.dy0 + j;
-          int64_t i_lo, i_hi;
-          if (!row_span(win, A, B, C, qlim, dy, i_lo, i_hi)) continue;
-          for (int64_t i = i_lo; i < i_hi; ++i) {
-            const int64_t p = j * tv.w + i;
-            if (done[p]) continue;
-            const double dx = window_dx(g, tv, win, mu, i);
-            const double q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy;
-            if (!(q <= qlim)) continue;
-            const double a = std::min(kAlphaMax, o * std::exp(-0.5 * q));
-            if (a < kAlphaMin) continue;
-            const double w = a * T[p];
-            const scalar_t ws = static_cast<scalar_t>(w);
-            scalar_t* ap = acc.data() + p * D;
-            for (int64_t c = 0; c < D; ++c) ap[c] += ws * v[c];
-            asum[p] += w;
-            T[p] *= (1.0 - a);
-            last[p] = k - begin + 1;
-            if (T[p] < kTMin) {
-              done[p] = 1;
-              ++n_done;
-            }
+        for (int64_t j = rr.j0; j < rr.j1; ++j) {
+          V a, gs;
+          row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, rr.dy0 + j, wrap, &a, &gs);
+          real* Tr = T + j * kTile;
+          const V t0 = vload<V>(Tr);
+          const V ai = t0 >= tmin ? a : zero;
+          const I hit = ai > zero;
+          if (count_lanes(hit) == 0) continue;
+          const V wi = ai * t0;
+          const V t1 = t0 * (real(1) - ai);
+          const I fin = (t0 >= tmin) & (t1 < tmin);
+          vstore(Tr, t1);
+          vstore(asum + j * kTile, vload<V>(asum + j * kTile) + wi);
+          lane_int* lr = last + j * kTile;
+          vstore(lr, hit ? (I{} + rank1) : vload<I>(lr));
+          n_active -= count_lanes(fin);
+          for (int64_t c = 0; c < D; ++c) {
+            real* ac = acc + c * kP + j * kTile;
+            vstore(ac, vload<V>(ac) + wi * static_cast<real>(v[c]));
           }
         }
       }
-      for (int64_t p = 0; p < np; ++p) {
-        const int64_t pix = (tv.y0 + p / tv.w) * g.W + tv.x0 + (p % tv.w);
-        const double rest = 1.0 - asum[p];
-        for (int64_t c = 0; c < D; ++c) out[c * HW + pix] = static_cast<scalar_t>(acc[p * D + c] + rest * bg[c]);
-        alpha_out[pix] = static_cast<scalar_t>(asum[p]);
-        t_final[pix] = T[p];
-        n_contrib[pix] = last[p];
+      // Output rows: channel-outer so every store run is one contiguous row of a plane.
+      for (int64_t j = 0; j < tv.h; ++j) {
+        const int64_t row = (tv.y0 + j) * g.W + tv.x0;
+        const real* sr = asum + j * kTile;
+        for (int64_t c = 0; c < D; ++c) {
+          const real bc = static_cast<real>(bg[c]);
+          const real* ac = acc + c * kP + j * kTile;
+          scalar_t* o = out + c * HW + row;
+          for (int64_t i = 0; i < tv.w; ++i) o[i] = static_cast<scalar_t>(ac[i] + (real(1) - sr[i]) * bc);
+        }
+        for (int64_t i = 0; i < tv.w; ++i) {
+          alpha_out[row + i] = static_cast<scalar_t>(sr[i]);
+          if (t_final) t_final[row + i] = static_cast<double>(T[j * kTile + i]);
+          if (n_contrib) n_contrib[row + i] = last[j * kTile + i];
+        }
       }
     }
   }
 }
 
 template <typename scalar_t>
-void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* conic, const scalar_t* opac, const scalar_t* vals,
-                   const scalar_t* bg, int64_t D, const int64_t* offs, const int64_t* ids, const Grid& g,
-                   const scalar_t* alpha_out, const double* t_final, const int64_t* n_contrib,
-                   const scalar_t* g_out, const scalar_t* g_alpha, scalar_t* d_mean, scalar_t* d_conic,
-                   scalar_t* d_opac, scalar_t* d_vals, double* d_bg_threads) {
+void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int64_t D, const int64_t* offs,
+                   const int64_t* ids, const Grid& g, const scalar_t* alpha_out, const double* t_final,
+                   const int64_t* n_contrib, const scalar_t* g_out, const scalar_t* g_alpha, scalar_t* d_mean,
+                   scalar_t* d_conic, scalar_t* d_opac, scalar_t* d_vals, double* d_bg_threads) {
+  using real = compute_t<scalar_t>;
   const int64_t n_tiles = g.ntx * g.nty;
   const int64_t HW = g.H * g.W;
+  const real wrap = static_cast<real>(g.wrap);
 #pragma omp parallel num_threads(at::get_num_threads())
   {
-    const int64_t P = g.tile * g.tile;
-    std::vector<double> T(P), Sa(P), Ga(P), dv(D);
-    std::vector<scalar_t> S(P * D), G(P * D);
-    std::vector<int64_t> last(P);
+    typename Lanes<real>::V a, gs;
+    std::vector<double> T(kP), Sa(kP), Ga(kP), dv(D);
+    std::vector<scalar_t> S(kP * D), G(kP * D);
+    std::vector<int64_t> last(kP);
     double* d_bg = d_bg_threads + omp_get_thread_num() * D;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
-      const auto tv = tile_view(g, t);
-      const int64_t np = tv.w * tv.h;
+      const TileView tv = tile_view(g, t);
       const int64_t begin = offs[t];
       int64_t max_last = 0;
-      for (int64_t p = 0; p < np; ++p) {
-        const int64_t pix = (tv.y0 + p / tv.w) * g.W + tv.x0 + (p % tv.w);
-        T[p] = t_final[pix];
-        last[p] = n_contrib[pix];
-        max_last = std::max(max_last, last[p]);
-        Sa[p] = 0.0;
-        double gbg = 0.0;
-        for (int64_t c = 0; c < D; ++c) {
-          const double gc = g_out[c * HW + pix];
-          G[p * D + c] = static_cast<scalar_t>(gc);
-          S[p * D + c] = scalar_t(0);
-          gbg += gc * bg[c];
-          d_bg[c] += gc * (1.0 - static_cast<double>(alpha_out[pix]));
+      std::fill(last.begin(), last.end(), 0);
+      for (int64_t j = 0; j < tv.h; ++j)
+        for (int64_t i = 0; i < tv.w; ++i) {
+          const int64_t p = j * kTile + i;
+          const int64_t pix = (tv.y0 + j) * g.W + tv.x0 + i;
+          T[p] = t_final[pix];
+          last[p] = n_contrib[pix];
+          max_last = std::max(max_last, last[p]);
+          Sa[p] = 0.0;
+          double gbg = 0.0;
+          for (int64_t c = 0; c < D; ++c) {
+            const double gc = g_out[c * HW + pix];
+            G[p * D + c] = static_cast<scalar_t>(gc);
+            S[p * D + c] = scalar_t(0);
+            gbg += gc * bg[c];
+            d_bg[c] += gc * (1.0 - static_cast<double>(alpha_out[pix]));
+          }
+          // image = sum w v + (1 - sum w) bg: the background enters like an alpha gradient.
+          Ga[p] = static_cast<double>(g_alpha[pix]) - gbg;
         }
-        // image = sum w v + (1 - sum w) bg: the background enters like an alpha gradient.
-        Ga[p] = static_cast<double>(g_alpha[pix]) - gbg;
-      }
       for (int64_t k = begin + max_last - 1; k >= begin; --k) {
         const int64_t gi = ids[k];
         const int64_t rank = k - begin;
-        const double mu = mean[2 * gi], mv = mean[2 * gi + 1];
-        const double A = conic[3 * gi], B = conic[3 * gi + 1], C = conic[3 * gi + 2];
-        const double o = opac[gi];
+        const Rec& r = recs[gi];
+        if (r.qlim < 0) continue;
         const scalar_t* v = vals + gi * D;
         double dmu = 0, dmv = 0, dA = 0, dB = 0, dC = 0, dop = 0;
         std::fill(dv.begin(), dv.end(), 0.0);
         bool touched = false;
-        const double qlim = q_limit(o);
-        if (qlim < 0) continue;
-        const Window win = window(g, tv, mu, mv, radii[2 * gi], radii[2 * gi + 1]);
-        for (int64_t j = win.j0; j < win.j1; ++j) {
-        const double dy = win.dy0 + j;
-        int64_t i_lo, i_hi;
-        if (!row_span(win, A, B, C, qlim, dy, i_lo, i_hi)) continue;
-        for (int64_t i = i_lo; i < i_hi; ++i) {
-          const int64_t p = j * tv.w + i;
-          if (rank >= last[p]) continue;
-          const double dx = window_dx(g, tv, win, mu, i);
-          const double q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy;
-          if (!(q <= qlim)) continue;
-          const double gauss = std::exp(-0.5 * q);
-          const double raw = o * gauss;
-          const double a = std::min(kAlphaMax, raw);
-          if (a < kAlphaMin) continue;
-          touched = true;
-          const double one_m = 1.0 - a;
-          T[p] /= one_m;  // transmittance in front of this Gaussian
-          const double w = a * T[p];
-          const scalar_t* gp = G.data() + p * D;
-          scalar_t* sp = S.data() + p * D;
-          double da = Ga[p] * (T[p] - Sa[p] / one_m);
-          const double tp = T[p], inv = 1.0 / one_m;
-          const scalar_t ws = static_cast<scalar_t>(w);
-          double dsum = 0.0;
-          for (int64_t c = 0; c < D; ++c) {
-            dv[c] += w * gp[c];
-            dsum += gp[c] * (tp * v[c] - sp[c] * inv);
-            sp[c] += ws * v[c];
+        const RowRange rr = row_range(g, tv, r);
+        for (int64_t j = rr.j0; j < rr.j1; ++j) {
+          const double dy = rr.dy0 + j;
+          row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, dy, wrap, &a, &gs);
+          for (int64_t i = 0; i < tv.w; ++i) {
+            if (!(a[i] > 0)) continue;
+            const int64_t p = j * kTile + i;
+            if (rank >= last[p]) continue;
+            double dx = rr.dx0 + i;
+            if (g.wrap > 0 && dx >= 0.5 * g.wrap) dx -= g.wrap;
+            const double gauss = static_cast<double>(gs[i]);
+            const double al = static_cast<double>(a[i]);
+            const bool clamped = !(static_cast<real>(r.o) * gs[i] < static_cast<real>(kAlphaMax));
+            touched = true;
+            const double one_m = 1.0 - al;
+            T[p] /= one_m;  // transmittance in front of this Gaussian
+            const double w = al * T[p];
+            const scalar_t* gp = G.data() + p * D;
+            scalar_t* sp = S.data() + p * D;
+            double da = Ga[p] * (T[p] - Sa[p] / one_m);
+            const double tp = T[p], inv = 1.0 / one_m;
+            const scalar_t ws = static_cast<scalar_t>(w);
+            double dsum = 0.0;
+            for (int64_t c = 0; c < D; ++c) {
+              dv[c] += w * gp[c];
+              dsum += gp[c] * (tp * v[c] - sp[c] * inv);
+              sp[c] += ws * v[c];
+            }
+            da += dsum;
+            Sa[p] += w;
+            if (clamped) continue;  // clamped alpha: no gradient to opacity or shape
+            dop += da * gauss;
+            const double dq = -0.5 * al * da;
+            dA += dq * dx * dx;
+            dB += dq * 2.0 * dx * dy;
+            dC += dq * dy * dy;
+            const double dqdx = 2.0 * (r.A * dx + r.B * dy), dqdy = 2.0 * (r.B * dx + r.C * dy);
+            dmu -= dq * dqdx;
+            dmv -= dq * dqdy;
           }
-          da += dsum;
-          Sa[p] += w;
-          if (raw > kAlphaMax) continue;  // clamped alpha: no gradient to opacity or shape
-          dop += da * gauss;
-          const double dq = -0.5 * a * da;
-          dA += dq * dx * dx;
-          dB += dq * 2.0 * dx * dy;
-          dC += dq * dy * dy;
-          const double dqdx = 2.0 * (A * dx + B * dy), dqdy = 2.0 * (B * dx + C * dy);
-          dmu -= dq * dqdx;
-          dmv -= dq * dqdy;
-        }
         }
         if (!touched) continue;
         // One atomic add per (tile, Gaussian) rather than per pixel.
@@ -290,6 +400,101 @@ void backward_impl(const scalar_t* mean, const scalar_t* radii, const scalar_t* 
   }
 }
 
+// Records for M sorted screen Gaussians given as separate arrays (training path).
+template <typename scalar_t>
+std::vector<Rec> make_records(const scalar_t* mean, const scalar_t* radii, const scalar_t* conic,
+                              const scalar_t* opac, int64_t M) {
+  std::vector<Rec> recs(M);
+  at::parallel_for(0, M, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      const double o = opac[i];
+      recs[i] = make_rec(mean[2 * i], mean[2 * i + 1], radii[2 * i], radii[2 * i + 1], conic[3 * i],
+                         conic[3 * i + 1], conic[3 * i + 2], o);
+    }
+  });
+  return recs;
+}
+
+// Per-tile lists of Gaussian indices 0..M-1 (input order kept inside every tile: counting sort).
+// u, v, ru, rv are read through get(i, &u, &v, &ru, &rv).
+template <typename Get>
+void bin_impl(int64_t M, const Grid& g, Get get, std::vector<int64_t>& off, std::vector<int64_t>& ids) {
+  const int64_t n_tiles = g.ntx * g.nty;
+  std::vector<int32_t> tx0(M), tx1(M), ty0(M), ty1(M);
+  off.assign(n_tiles + 1, 0);
+  const double tile = static_cast<double>(g.tile);
+  for (int64_t i = 0; i < M; ++i) {
+    double u, v, ru, rv;
+    get(i, u, v, ru, rv);
+    ty0[i] = (int32_t)std::clamp<double>(std::floor((v - rv) / tile), 0, g.nty - 1);
+    ty1[i] = (int32_t)std::clamp<double>(std::floor((v + rv) / tile), 0, g.nty - 1);
+    double a = std::floor((u - ru) / tile), b = std::floor((u + ru) / tile);
+    if (g.wrap > 0) {
+      if (b - a + 1 >= g.ntx) {
+        a = 0;
+        b = g.ntx - 1;
+      }
+    } else {
+      a = std::clamp<double>(a, 0, g.ntx - 1);
+      b = std::clamp<double>(b, 0, g.ntx - 1);
+    }
+    tx0[i] = (int32_t)a;
+    tx1[i] = (int32_t)b;
+    for (int64_t ty = ty0[i]; ty <= ty1[i]; ++ty)
+      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) {
+        const int64_t txw = ((tx % g.ntx) + g.ntx) % g.ntx;
+        ++off[ty * g.ntx + txw + 1];
+      }
+  }
+  for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
+  ids.resize(off[n_tiles]);
+  std::vector<int64_t> fill(off.begin(), off.end() - 1);
+  for (int64_t i = 0; i < M; ++i)
+    for (int64_t ty = ty0[i]; ty <= ty1[i]; ++ty)
+      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) {
+        const int64_t txw = ((tx % g.ntx) + g.ntx) % g.ntx;
+        ids[fill[ty * g.ntx + txw]++] = i;
+      }
+}
+
+// Indices of the valid entries sorted by depth, stable (ties keep input order): LSD radix sort on
+// the bit pattern of the (positive) depth in its own dtype, 8 bits per pass, constant digits skipped.
+template <typename scalar_t>
+std::vector<int64_t> sort_valid_by_depth(const scalar_t* depth, const bool* valid, int64_t N) {
+  using key_t = std::conditional_t<sizeof(scalar_t) == 4, uint32_t, uint64_t>;
+  std::vector<key_t> key, key2;
+  std::vector<int64_t> idx, idx2;
+  key.reserve(N);
+  idx.reserve(N);
+  for (int64_t i = 0; i < N; ++i) {
+    if (!valid[i]) continue;
+    scalar_t d = depth[i];
+    if (!(d > 0)) d = 0;  // valid depths are > 0 (positive floats order like their bits); +0 first
+    key_t k;
+    std::memcpy(&k, &d, sizeof(k));
+    key.push_back(k);
+    idx.push_back(i);
+  }
+  const int64_t M = static_cast<int64_t>(key.size());
+  key2.resize(M);
+  idx2.resize(M);
+  for (int shift = 0; shift < int(8 * sizeof(key_t)); shift += 8) {
+    int64_t count[257] = {0};
+    for (int64_t i = 0; i < M; ++i) ++count[((key[i] >> shift) & 0xFF) + 1];
+    bool constant = false;
+    for (int b = 1; b <= 256; ++b) constant = constant || count[b] == M;
+    if (constant) continue;
+    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+    for (int64_t i = 0; i < M; ++i) {
+      const int64_t dst = count[(key[i] >> shift) & 0xFF]++;
+      key2[dst] = key[i];
+      idx2[dst] = idx[i];
+    }
+    key.swap(key2);
+    idx.swap(idx2);
+  }
+  return idx;
+}
 
 // Fused inference-only projection (no autograd): the same math as project.py, in double, one
 // Gaussian per iteration, OpenMP over Gaussians. Used when no input needs a gradient; project.py
@@ -398,47 +603,27 @@ std::vector<torch::Tensor> bin_gaussians(torch::Tensor means2d, torch::Tensor ra
   const Grid g = make_grid(H, W, tile, wrap);
   auto m = means2d.to(torch::kFloat64).contiguous();
   auto r = radii.to(torch::kFloat64).contiguous();
-  const int64_t M = m.size(0);
   const double* mp = m.data_ptr<double>();
   const double* rp = r.data_ptr<double>();
-  std::vector<int64_t> tx0(M), tx1(M), ty0(M), ty1(M);
-  auto offsets = torch::zeros({g.ntx * g.nty + 1}, torch::kInt64);
-  int64_t* off = offsets.data_ptr<int64_t>();
-  for (int64_t i = 0; i < M; ++i) {
-    const double u = mp[2 * i], v = mp[2 * i + 1], ru = rp[2 * i], rv = rp[2 * i + 1];
-    ty0[i] = std::clamp<int64_t>((int64_t)std::floor((v - rv) / tile), 0, g.nty - 1);
-    ty1[i] = std::clamp<int64_t>((int64_t)std::floor((v + rv) / tile), 0, g.nty - 1);
-    double a = std::floor((u - ru) / tile), b = std::floor((u + ru) / tile);
-    if (wrap > 0) {
-      if (b - a + 1 >= g.ntx) { a = 0; b = g.ntx - 1; }
-    } else {
-      a = std::clamp<double>(a, 0, g.ntx - 1);
-      b = std::clamp<double>(b, 0, g.ntx - 1);
-    }
-    tx0[i] = (int64_t)a;
-    tx1[i] = (int64_t)b;
-    for (int64_t ty = ty0[i]; ty <= ty1[i]; ++ty)
-      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) {
-        const int64_t txw = ((tx % g.ntx) + g.ntx) % g.ntx;
-        ++off[ty * g.ntx + txw + 1];
-      }
-  }
-  for (int64_t t = 0; t < g.ntx * g.nty; ++t) off[t + 1] += off[t];
-  auto ids = torch::empty({off[g.ntx * g.nty]}, torch::kInt64);
-  int64_t* ip = ids.data_ptr<int64_t>();
-  std::vector<int64_t> fill(off, off + g.ntx * g.nty);
-  for (int64_t i = 0; i < M; ++i)
-    for (int64_t ty = ty0[i]; ty <= ty1[i]; ++ty)
-      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) {
-        const int64_t txw = ((tx % g.ntx) + g.ntx) % g.ntx;
-        ip[fill[ty * g.ntx + txw]++] = i;
-      }
-  return {offsets, ids};
+  std::vector<int64_t> off, ids;
+  bin_impl(m.size(0), g,
+           [&](int64_t i, double& u, double& v, double& ru, double& rv) {
+             u = mp[2 * i];
+             v = mp[2 * i + 1];
+             ru = rp[2 * i];
+             rv = rp[2 * i + 1];
+           },
+           off, ids);
+  auto offsets = torch::from_blob(off.data(), {(int64_t)off.size()}, torch::kInt64).clone();
+  auto id_t = torch::from_blob(ids.data(), {(int64_t)ids.size()}, torch::kInt64).clone();
+  return {offsets, id_t};
 }
 
-std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics, torch::Tensor opac,
-                                             torch::Tensor vals, torch::Tensor bg, torch::Tensor offsets,
-                                             torch::Tensor ids, int64_t H, int64_t W, double wrap, int64_t tile) {
+std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics,
+                                             torch::Tensor opac, torch::Tensor vals, torch::Tensor bg,
+                                             torch::Tensor offsets, torch::Tensor ids, int64_t H, int64_t W,
+                                             double wrap, int64_t tile) {
+  TORCH_CHECK(tile == kTile, "splat_cpu: the kernel's tile edge is ", kTile, ", got ", tile);
   const Grid g = make_grid(H, W, tile, wrap);
   const int64_t D = vals.size(1);
   auto opts = vals.options();
@@ -447,19 +632,23 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto t_final = torch::empty({H, W}, opts.dtype(torch::kFloat64));
   auto n_contrib = torch::empty({H, W}, opts.dtype(torch::kInt64));
   AT_DISPATCH_FLOATING_TYPES(vals.scalar_type(), "splat_cpu_forward", [&] {
-    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                           vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D, offsets.data_ptr<int64_t>(),
-                           ids.data_ptr<int64_t>(), g, out.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
-                           t_final.data_ptr<double>(), n_contrib.data_ptr<int64_t>());
+    const auto recs = make_records<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(),
+                                             conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+                                             means2d.size(0));
+    forward_impl<scalar_t>(recs.data(), vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D,
+                           offsets.data_ptr<int64_t>(), ids.data_ptr<int64_t>(), g, out.data_ptr<scalar_t>(),
+                           alpha.data_ptr<scalar_t>(), t_final.data_ptr<double>(), n_contrib.data_ptr<int64_t>());
   });
   return {out, alpha, t_final, n_contrib};
 }
 
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics, torch::Tensor opac,
-                                              torch::Tensor vals, torch::Tensor bg, torch::Tensor offsets,
-                                              torch::Tensor ids, int64_t H, int64_t W, double wrap, int64_t tile,
-                                              torch::Tensor alpha, torch::Tensor t_final, torch::Tensor n_contrib,
-                                              torch::Tensor g_out, torch::Tensor g_alpha) {
+std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics,
+                                              torch::Tensor opac, torch::Tensor vals, torch::Tensor bg,
+                                              torch::Tensor offsets, torch::Tensor ids, int64_t H, int64_t W,
+                                              double wrap, int64_t tile, torch::Tensor alpha,
+                                              torch::Tensor t_final, torch::Tensor n_contrib, torch::Tensor g_out,
+                                              torch::Tensor g_alpha) {
+  TORCH_CHECK(tile == kTile, "splat_cpu: the kernel's tile edge is ", kTile, ", got ", tile);
   const Grid g = make_grid(H, W, tile, wrap);
   const int64_t D = vals.size(1);
   auto d_mean = torch::zeros_like(means2d);
@@ -469,17 +658,30 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
   const int64_t nthreads = at::get_num_threads();
   auto d_bg_threads = torch::zeros({nthreads, D}, vals.options().dtype(torch::kFloat64));
   AT_DISPATCH_FLOATING_TYPES(vals.scalar_type(), "splat_cpu_backward", [&] {
-    backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                            vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D, offsets.data_ptr<int64_t>(),
-                            ids.data_ptr<int64_t>(), g, alpha.data_ptr<scalar_t>(), t_final.data_ptr<double>(),
-                            n_contrib.data_ptr<int64_t>(), g_out.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(),
-                            d_mean.data_ptr<scalar_t>(), d_conic.data_ptr<scalar_t>(), d_opac.data_ptr<scalar_t>(),
-                            d_vals.data_ptr<scalar_t>(), d_bg_threads.data_ptr<double>());
+    const auto recs = make_records<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(),
+                                             conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+                                             means2d.size(0));
+    backward_impl<scalar_t>(recs.data(), vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D,
+                            offsets.data_ptr<int64_t>(), ids.data_ptr<int64_t>(), g, alpha.data_ptr<scalar_t>(),
+                            t_final.data_ptr<double>(), n_contrib.data_ptr<int64_t>(), g_out.data_ptr<scalar_t>(),
+                            g_alpha.data_ptr<scalar_t>(), d_mean.data_ptr<scalar_t>(), d_conic.data_ptr<scalar_t>(),
+                            d_opac.data_ptr<scalar_t>(), d_vals.data_ptr<scalar_t>(), d_bg_threads.data_ptr<double>());
   });
   auto d_bg = d_bg_threads.sum(0).to(vals.scalar_type());
   return {d_mean, d_conic, d_opac, d_vals, d_bg};
 }
 
+// Valid indices (int64) sorted front to back by depth, ties by index (the training path's order).
+torch::Tensor sort_valid(torch::Tensor depth, torch::Tensor valid) {
+  auto d = depth.contiguous();
+  auto v = valid.to(torch::kBool).contiguous();
+  torch::Tensor res;
+  AT_DISPATCH_FLOATING_TYPES(d.scalar_type(), "splat_cpu_sort", [&] {
+    auto idx = sort_valid_by_depth<scalar_t>(d.data_ptr<scalar_t>(), v.data_ptr<bool>(), d.size(0));
+    res = torch::from_blob(idx.data(), {(int64_t)idx.size()}, torch::kInt64).clone();
+  });
+  return res;
+}
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
                                            torch::Tensor opac, torch::Tensor finite_mask, torch::Tensor c2w,
                                            bool equirect, double fx, double fy, double cx, double cy, int64_t H,
@@ -501,8 +703,75 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor sc
   return {uv, conic, cov, depth, radii, valid};
 }
 
+
+// Fused inference path for one camera: project, cull, depth-sort, bin, pack, rasterise.
+// values per Gaussian = (colour (3), depth (1), features (C)); bg has 4 + C entries.
+std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                          torch::Tensor opac, torch::Tensor colors, torch::Tensor feats,
+                                          torch::Tensor finite_mask, torch::Tensor c2w, bool equirect, double fx,
+                                          double fy, double cx, double cy, int64_t H, int64_t W, double near,
+                                          double far, torch::Tensor bg) {
+  auto proj = project_forward(means, scales, quats, opac, finite_mask, c2w, equirect, fx, fy, cx, cy, H, W,
+                              near, far);
+  const auto& uv = proj[0];
+  const auto& conic = proj[1];
+  const auto& depth = proj[3];
+  const auto& radii = proj[4];
+  const auto& valid = proj[5];
+  const Grid g = make_grid(H, W, kTile, equirect ? double(W) : 0.0);
+  auto col = colors.contiguous();
+  auto fea = feats.contiguous();
+  const int64_t C = fea.size(1), D = 4 + C;
+  auto opts = means.options();
+  auto out = torch::empty({D, H, W}, opts);
+  auto alpha = torch::empty({1, H, W}, opts);
+  auto bgc = bg.contiguous();
+  TORCH_CHECK(bgc.numel() == D, "splat_cpu: background needs ", D, " entries");
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splat_cpu_render", [&] {
+    const scalar_t* dp = depth.data_ptr<scalar_t>();
+    const auto order = sort_valid_by_depth<scalar_t>(dp, valid.data_ptr<bool>(), depth.size(0));
+    const int64_t M = static_cast<int64_t>(order.size());
+    std::vector<Rec> recs(M);
+    std::vector<scalar_t> vals(M * D);
+    const scalar_t* up = uv.data_ptr<scalar_t>();
+    const scalar_t* cp = conic.data_ptr<scalar_t>();
+    const scalar_t* rp = radii.data_ptr<scalar_t>();
+    const scalar_t* op = opac.data_ptr<scalar_t>();
+    const scalar_t* colp = col.data_ptr<scalar_t>();
+    const scalar_t* fp = fea.data_ptr<scalar_t>();
+    at::parallel_for(0, M, 4096, [&](int64_t b, int64_t e) {
+      for (int64_t k = b; k < e; ++k) {
+        const int64_t i = order[k];
+        const double o = op[i];
+        recs[k] = make_rec(up[2 * i], up[2 * i + 1], rp[2 * i], rp[2 * i + 1], cp[3 * i], cp[3 * i + 1],
+                           cp[3 * i + 2], o);
+        scalar_t* v = vals.data() + k * D;
+        v[0] = colp[3 * i];
+        v[1] = colp[3 * i + 1];
+        v[2] = colp[3 * i + 2];
+        v[3] = dp[i];
+        for (int64_t c = 0; c < C; ++c) v[4 + c] = fp[i * C + c];
+      }
+    });
+    std::vector<int64_t> off, ids;
+    bin_impl(M, g,
+             [&](int64_t k, double& u, double& v, double& ru, double& rv) {
+               u = recs[k].mu;
+               v = recs[k].mv;
+               ru = recs[k].ru;
+               rv = recs[k].rv;
+             },
+             off, ids);
+    forward_impl<scalar_t>(recs.data(), vals.data(), bgc.data_ptr<scalar_t>(), D, off.data(), ids.data(), g,
+                           out.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), nullptr, nullptr);
+  });
+  return {out, alpha};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward, "fused inference-only projection");
+  m.def("render_forward", &render_forward, "fused inference-only projection + sort + bin + rasterise");
+  m.def("sort_valid", &sort_valid, "valid indices sorted by depth (stable)");
   m.def("bin_gaussians", &bin_gaussians, "per-tile depth-ordered Gaussian lists");
   m.def("rasterize_forward", &rasterize_forward, "tile-parallel forward rasterisation");
   m.def("rasterize_backward", &rasterize_backward, "tile-parallel backward rasterisation");
