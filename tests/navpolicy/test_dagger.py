@@ -346,3 +346,137 @@ def test_rerun_in_the_same_folder_replaces_the_rounds(scene, tiny_cfg, tiny_poli
         )
     assert res.dataset_sizes == [1] and res.losses == [[]]
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
+
+
+# ------------------------------------------------------------------------------------------ resume
+
+
+class Crash(RuntimeError):
+    """Stands in for a killed process."""
+
+
+def _resume_cfg(tiny_cfg):
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.data.max_observations, cfg.data.max_action_labels = 4, 8
+    cfg.train.batch_size, cfg.train.warmup_steps, cfg.train.lr = 1, 1, 3e-3
+    cfg.train.checkpoint_every = 2
+    cfg.dagger = DaggerConfig(
+        rounds=2, episodes_per_round=3, train_steps_per_round=4, max_steps=10, model_probability=0.5
+    )
+    return cfg
+
+
+def _shard_content(root):
+    reader = ShardReader(root)
+    return [
+        (t.episode_id, t.actions, t.extra["oracle_labels"], t.frames.tobytes())
+        for t in (reader[i] for i in range(len(reader)))
+    ]
+
+
+def test_interrupted_dagger_resumes_with_the_same_data_and_losses(
+    scene, tiny_cfg, tiny_policy, tmp_path, monkeypatch
+):
+    """Killed once inside a round's training and once inside a collection phase, a rerun with the
+    same arguments ends with exactly the uninterrupted run's episodes, shards, losses and weights,
+    without collecting any episode twice."""
+    import image2sim.navpolicy.dagger as dagger_mod
+    from image2sim.navpolicy.dagger import STATE_FILE, DaggerScene
+    from image2sim.navpolicy.data import synthetic_trajectories
+    from image2sim.navpolicy.train import NavBCModule
+
+    sim, tasks = scene
+    cfg = _resume_cfg(tiny_cfg)
+    base = synthetic_trajectories(2, 6, 10, cfg.observation.height, cfg.observation.width, seed=0)
+    scenes = [DaggerScene(sim, tasks, "tiny-000")]
+
+    def run(folder, **kw):
+        return run_dagger(
+            cfg, scenes, folder, policy=copy.deepcopy(tiny_policy), base_trajectories=base, **kw
+        )
+
+    full = run(tmp_path / "full", export=False)
+
+    rollouts = []
+    real_rollout, real_step = dagger_mod.dagger_rollout, NavBCModule.training_step
+
+    def counting_rollout(*a, crash_at=None, **kw):
+        if crash_at is not None and len(rollouts) == crash_at:
+            raise Crash("killed during collection")
+        ep = real_rollout(*a, **kw)
+        rollouts.append(ep.trajectory.episode_id)
+        return ep
+
+    steps = []
+
+    def crashing_step(self, batch, batch_idx):
+        if len(steps) == 3:  # third step of round 0 (a checkpoint exists at step 2)
+            raise Crash("killed during training")
+        steps.append(batch_idx)
+        return real_step(self, batch, batch_idx)
+
+    split = tmp_path / "split"
+    monkeypatch.setattr(dagger_mod, "dagger_rollout", counting_rollout)
+    monkeypatch.setattr(NavBCModule, "training_step", crashing_step)
+    with pytest.raises(Crash, match="training"):
+        run(split, export=False)
+    assert json.loads((split / STATE_FILE).read_text())["phase"] == "train"
+    monkeypatch.setattr(NavBCModule, "training_step", real_step)
+    # Second life: finish round 0's training from its step-2 checkpoint, die after 1 of round 1's episodes.
+    monkeypatch.setattr(dagger_mod, "dagger_rollout", lambda *a, **kw: counting_rollout(*a, crash_at=4, **kw))
+    with pytest.raises(Crash, match="collection"):
+        run(split, export=False)
+    state = json.loads((split / STATE_FILE).read_text())
+    assert (state["round"], state["phase"]) == (1, "collect") and len(state["losses"][0]) == 4
+    assert (split / "round_01" / "episodes" / "e0000.json").is_file()
+    monkeypatch.setattr(dagger_mod, "dagger_rollout", counting_rollout)
+    resumed = run(split, export=True)
+
+    # Every episode collected exactly once, in the uninterrupted order.
+    assert rollouts == [e["episode_id"].split("-", 1)[1] for e in full.episodes]  # drop the round tag
+    assert resumed.episodes == full.episodes
+    assert (split / "episodes.jsonl").read_text() == (tmp_path / "full" / "episodes.jsonl").read_text()
+    assert resumed.dataset_sizes == full.dataset_sizes == [5, 8]
+    for r in range(2):
+        rel = f"round_{r:02d}/shard"
+        assert _shard_content(split / rel) == _shard_content(tmp_path / "full" / rel)
+    assert not (split / "round_01" / "episodes").exists()
+    # The same batches and losses, and the same final weights.
+    assert resumed.seen == full.seen
+    assert [len(x) for x in resumed.losses] == [4, 4]
+    np.testing.assert_allclose(np.array(resumed.losses), np.array(full.losses), rtol=1e-5, atol=1e-7)
+    from safetensors.torch import load_file
+
+    a = load_file(tmp_path / "full" / "checkpoints" / "round_01.safetensors")
+    b = load_file(split / "checkpoints" / "round_01.safetensors")
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
+    assert (resumed.export_dir / "model.safetensors").is_file()
+    # A finished run called again collects nothing more and reports the same result.
+    again = run(split, export=False)
+    assert again.losses == resumed.losses and len(rollouts) == 6
+
+
+def test_dagger_resume_refuses_other_arguments(scene, tiny_cfg, tiny_policy, tmp_path):
+    from image2sim.navpolicy.dagger import DaggerScene
+
+    sim, tasks = scene
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.dagger = DaggerConfig(rounds=1, episodes_per_round=1, train_steps_per_round=0, max_steps=4)
+    run_dagger(cfg, [DaggerScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False)
+    other = copy.deepcopy(cfg)
+    other.dagger.max_steps = 5
+    with pytest.raises(ValueError, match="dagger_state.json.*other arguments"):
+        run_dagger(
+            other, [DaggerScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False
+        )
+    res = run_dagger(
+        other,
+        [DaggerScene(sim, tasks)],
+        tmp_path,
+        policy=copy.deepcopy(tiny_policy),
+        export=False,
+        resume=False,
+    )
+    assert res.dataset_sizes == [1] and len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1

@@ -122,6 +122,10 @@ def train_cmd(
     scenes: Annotated[int, typer.Option(help="dagger: procedural scenes to roll out in.")] = 2,
     tasks_per_scene: Annotated[int, typer.Option(help="dagger: start/goal pairs per scene.")] = 16,
     scene_seed: Annotated[int, typer.Option(help="dagger: seed of the first procedural scene.")] = 100,
+    fresh: Annotated[
+        bool,
+        typer.Option(help="dagger: discard a run recorded in --out and start over (default: continue it)."),
+    ] = False,
 ) -> None:
     """Train the policy. Writes config.json, CSV/W&B logs, checkpoints and a merged export.
 
@@ -129,7 +133,9 @@ def train_cmd(
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
     """
     if stage == "dagger":
-        _train_dagger(config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed)
+        _train_dagger(
+            config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed, fresh
+        )
         return
     if stage != "bc":
         raise typer.BadParameter(f"unknown stage {stage!r}; use bc or dagger", param_hint="--stage")
@@ -167,7 +173,9 @@ def train_cmd(
     )
 
 
-def _train_dagger(config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed) -> None:
+def _train_dagger(
+    config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed, fresh=False
+) -> None:
     import torch
 
     overrides: dict = {}
@@ -196,7 +204,11 @@ def _train_dagger(config, shards, out, max_steps, threads, init, scenes, tasks_p
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
     sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed)
-    res = run_dagger(cfg, sc, out, base_trajectories=base)
+    try:
+        res = run_dagger(cfg, sc, out, base_trajectories=base, resume=not fresh)
+    except ValueError as exc:  # a recorded run with other arguments in --out
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     ends: dict[str, int] = {}
     for e in res.episodes:
         ends[e["end"]] = ends.get(e["end"], 0) + 1

@@ -15,11 +15,18 @@ current policy at ``p_r`` (``constant``/``linear``/``exponential`` schedule betw
 writes them as a shard under ``round_rr/shard``), then trains ``train_steps_per_round`` steps on
 everything aggregated so far. Episodes end on STOP, on the step cap (``max_steps``) or when the
 simulator's stuck detector fires (``stuck``); every episode is logged to ``episodes.jsonl``.
+
+A run is resumable: every collected episode is saved as soon as it ends, ``dagger_state.json``
+records the round, phase, task cursor, shards, logs, losses and RNG states, each round's training
+writes Lightning checkpoints (model + optimizer + scheduler) every ``train.checkpoint_every`` steps,
+and the weights after each round go to ``checkpoints/round_rr.safetensors``. Running again with the
+same arguments continues without re-collecting or losing an episode (see :func:`run_dagger`).
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import shutil
@@ -402,6 +409,98 @@ def _append_jsonl(path: Path, rec: dict) -> None:
         fh.flush()
 
 
+STATE_FILE = "dagger_state.json"
+STATE_VERSION = 1
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def run_fingerprint(cfg: NavPolicyConfig, scenes: Sequence[DaggerScene], base_trajectories) -> str:
+    """Hash of what defines a DAgger run (config, scenes' tasks, the BC data's episodes): a resumed
+    run must present the same, or its state is not reused."""
+    h = hashlib.sha256(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode())
+    for s in scenes:
+        for t in s.tasks:
+            rec = [s.name, t.episode_id, [float(v) for v in t.start], float(t.heading)]
+            rec += [[float(v) for v in t.goal], t.instruction]
+            h.update(json.dumps(rec).encode())
+    h.update(json.dumps([[t.episode_id, len(t.actions)] for t in base_trajectories]).encode())
+    return h.hexdigest()
+
+
+def rng_states() -> dict:
+    """Python, NumPy (legacy global) and torch CPU generator states as JSON-safe data."""
+    import random
+
+    import torch
+
+    py = random.getstate()
+    name, keys, pos, has_gauss, gauss = np.random.get_state()
+    return {
+        "python": [py[0], list(py[1]), py[2]],
+        "numpy": [name, keys.tolist(), int(pos), int(has_gauss), float(gauss)],
+        "torch": torch.get_rng_state().tolist(),
+    }
+
+
+def set_rng_states(states: dict) -> None:
+    """Restore what :func:`rng_states` captured."""
+    import random
+
+    import torch
+
+    py = states["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+    name, keys, pos, has_gauss, gauss = states["numpy"]
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, gauss))
+    torch.set_rng_state(torch.tensor(states["torch"], dtype=torch.uint8))
+
+
+def _read_shard(root: Path) -> list[Trajectory]:
+    from image2sim.navpolicy.data import ShardReader
+
+    reader = ShardReader(root)
+    return [reader[i] for i in range(len(reader))]
+
+
+def _load_state(path: Path, fingerprint: str) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: unreadable DAgger state ({exc}); remove it or start fresh") from exc
+    if state.get("version") != STATE_VERSION:
+        raise ValueError(f"{path}: DAgger state version {state.get('version')} is not {STATE_VERSION}")
+    if state.get("fingerprint") != fingerprint:
+        raise ValueError(
+            f"{path}: written by a DAgger run with other arguments (config, scenes, tasks or BC data); "
+            "resume with the same arguments, use another output folder, or start fresh (--fresh)"
+        )
+    return state
+
+
+def _pending_episodes(folder: Path) -> tuple[list[Trajectory], list[dict]]:
+    """The episodes of an interrupted collection phase: ``eNNN/`` shards whose ``eNNN.json`` log
+    exists (written last), contiguous from 0; anything after the first gap is removed."""
+    trajs, logs = [], []
+    e = 0
+    while (folder / f"e{e:04d}.json").is_file() and (folder / f"e{e:04d}" / "manifest.json").is_file():
+        logs.append(json.loads((folder / f"e{e:04d}.json").read_text()))
+        trajs.extend(_read_shard(folder / f"e{e:04d}"))
+        e += 1
+    if folder.is_dir():
+        for p in folder.iterdir():
+            stem = p.name.split(".")[0]
+            if not (stem.startswith("e") and stem[1:].isdigit() and int(stem[1:]) < e):
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+    return trajs, logs
+
+
 def run_dagger(
     cfg: NavPolicyConfig,
     scenes: Sequence[DaggerScene],
@@ -409,82 +508,142 @@ def run_dagger(
     policy=None,
     base_trajectories: Sequence[Trajectory] = (),
     export: bool = True,
+    resume: bool = True,
 ) -> DaggerResult:
     """Online DAgger: per round, collect ``episodes_per_round`` mixed rollouts with the current
     policy, add them to the aggregated dataset, train on it; finally export the merged weights.
 
+    Resumable: ``dagger_state.json`` (written atomically after every episode phase and round)
+    holds the round, the phase (collect / train), the task cursor, the finished rounds' shards,
+    episode logs, losses and the RNG states; ``checkpoints/round_rr.safetensors`` the weights after
+    round ``r``; a round's training writes Lightning checkpoints (model + optimizer + scheduler +
+    loss history) every ``train.checkpoint_every`` steps; each collected episode is saved at once
+    (``round_rr/episodes/eNNN``). Calling again with the same arguments continues where the
+    previous call stopped, without re-collecting or losing an episode; a completed run returns its
+    recorded result (and exports again).
+
     Args:
         cfg: run config (``cfg.dagger`` for the loop, ``cfg.train`` for the optimiser settings).
         scenes: where episodes come from (tasks are drawn round-robin over scenes, shuffled by seed).
-        out_dir: run folder: ``episodes.jsonl``, ``round_rr/shard`` (collected data), ``round_rr/train``;
-            an earlier run's rounds and log there are replaced.
-        policy: the policy to improve (e.g. the BC export); default a fresh one from ``cfg``.
+        out_dir: run folder: ``episodes.jsonl``, ``round_rr/shard`` (collected data), ``round_rr/train``,
+            ``checkpoints/``, ``dagger_state.json``, ``summary.json``, ``export/``.
+        policy: the policy to improve (e.g. the BC export); default a fresh one from ``cfg``. On a
+            resume pass the same starting policy: the saved weights replace it.
         base_trajectories: trajectories the aggregated dataset starts with (BC data).
+        resume: continue the run recorded in ``out_dir`` (its arguments must match, else
+            ``ValueError``); False discards it and starts over.
     """
     from image2sim.navpolicy.agent import Image2NavAgent
     from image2sim.navpolicy.data import InMemoryNavDataset, ShardWriter
     from image2sim.navpolicy.model import build_policy, export_policy
     from image2sim.navpolicy.train import train_bc
+    from image2sim.simulator.config import save_config
     from rich.progress import Progress
+    from safetensors.torch import load_model, save_model
 
     dc = cfg.dagger
     if not scenes or not any(s.tasks for s in scenes):
         raise ValueError("run_dagger: no scenes with tasks")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    from image2sim.simulator.config import save_config
-
+    state_path, log_path = out / STATE_FILE, out / "episodes.jsonl"
+    fingerprint = run_fingerprint(cfg, scenes, base_trajectories)
+    state = _load_state(state_path, fingerprint) if resume else None
+    if state is None:  # a fresh run: clear what an earlier run left in this folder
+        state_path.unlink(missing_ok=True)
+        log_path.unlink(missing_ok=True)
+        for stale in [*out.glob("round_*"), out / "checkpoints"]:
+            if stale.is_dir():
+                shutil.rmtree(stale)
+        state = {
+            "version": STATE_VERSION,
+            "fingerprint": fingerprint,
+            "round": 0,
+            "phase": "collect",
+            "next_task": 0,
+            "weights": None,
+            "shards": [],
+            "episodes": [],
+            "dataset_sizes": [],
+            "losses": [],
+            "seen": [],
+        }
+    else:
+        set_rng_states(state["rng"])
     save_config(cfg, out / "config.yaml")
-    log_path = out / "episodes.jsonl"
-    # A run starts from scratch (no resume): clear what an earlier run left in this folder.
-    log_path.unlink(missing_ok=True)
-    for stale in out.glob("round_*"):
-        shutil.rmtree(stale)
     policy = policy or build_policy(cfg, seed=cfg.train.seed)
+    if state["weights"]:
+        load_model(policy.model, str(out / state["weights"]))
+
+    def commit() -> None:
+        state["rng"] = rng_states()
+        _atomic_write_text(state_path, json.dumps(state))
+
     pool = [(s, t) for s in scenes for t in s.tasks]
     order = np.random.default_rng([dc.seed, 1]).permutation(len(pool))
     aggregated = list(base_trajectories)
-    logs, sizes, losses, seen = [], [], [], []
-    k = 0
-    for r in range(dc.rounds):
+    for rel in state["shards"]:
+        aggregated.extend(_read_shard(out / rel))
+    while state["round"] < dc.rounds:
+        r = state["round"]
+        rdir = out / f"round_{r:02d}"
         p = mixing_probability(dc, r)
-        policy.model.eval()
-        agent = Image2NavAgent(policy, cfg.agent, cfg.system_prompt)
-        collected = []
-        # One progress display per collection phase: Lightning shows its own bar while training.
-        with Progress(transient=True) as progress:
-            bar = progress.add_task(f"DAgger round {r} rollouts (p={p:.2f})", total=dc.episodes_per_round)
-            for e in range(dc.episodes_per_round):
-                scene, task = pool[order[k % len(pool)]]
-                k += 1
-                mixer = ChunkMixer(p, dc.chunk_min, dc.chunk_max, np.random.default_rng([dc.seed, r, e]))
-                ep = dagger_rollout(
-                    scene.sim,
-                    task,
-                    agent,
-                    mixer,
-                    cfg.observation,
-                    dc.max_steps,
-                    dc.stop_on_stuck,
-                    seed=e,
-                    override_model_stop=dc.override_model_stop,
+        if state["phase"] == "collect":
+            pending = rdir / "episodes"
+            collected, logs = _pending_episodes(pending)
+            # The log is a view of the saved episodes: rebuild it (drops lines of unsaved ones).
+            _atomic_write_text(log_path, "".join(json.dumps(x) + "\n" for x in state["episodes"] + logs))
+            policy.model.eval()
+            agent = Image2NavAgent(policy, cfg.agent, cfg.system_prompt)
+            # One progress display per collection phase: Lightning shows its own bar while training.
+            with Progress(transient=True) as progress:
+                bar = progress.add_task(
+                    f"DAgger round {r} rollouts (p={p:.2f})", total=dc.episodes_per_round, completed=len(logs)
                 )
-                ep.trajectory.episode_id = f"r{r:02d}-{task.episode_id}"
-                rec = {"round": r, "model_probability": p, **ep.log()}
-                _append_jsonl(log_path, rec)
-                logs.append(rec)
-                collected.append(ep.trajectory)
-                progress.advance(bar)
-        with ShardWriter(out / f"round_{r:02d}" / "shard", {**cfg.observation.__dict__}) as w:
-            for t in collected:
-                w.add(t)
-        aggregated.extend(collected)
-        sizes.append(len(aggregated))
+                for e in range(len(logs), dc.episodes_per_round):
+                    scene, task = pool[order[(state["next_task"] + e) % len(pool)]]
+                    mixer = ChunkMixer(p, dc.chunk_min, dc.chunk_max, np.random.default_rng([dc.seed, r, e]))
+                    ep = dagger_rollout(
+                        scene.sim,
+                        task,
+                        agent,
+                        mixer,
+                        cfg.observation,
+                        dc.max_steps,
+                        dc.stop_on_stuck,
+                        seed=e,
+                        override_model_stop=dc.override_model_stop,
+                    )
+                    ep.trajectory.episode_id = f"r{r:02d}-{task.episode_id}"
+                    rec = {"round": r, "model_probability": p, **ep.log()}
+                    with ShardWriter(pending / f"e{e:04d}", {**cfg.observation.__dict__}) as w:
+                        w.add(ep.trajectory)
+                    _atomic_write_text(pending / f"e{e:04d}.json", json.dumps(rec))  # episode saved
+                    _append_jsonl(log_path, rec)
+                    collected.append(ep.trajectory)
+                    logs.append(rec)
+                    progress.advance(bar)
+            shard = rdir / "shard"
+            if shard.exists():  # a half-written shard of an interrupted merge
+                shutil.rmtree(shard)
+            with ShardWriter(shard, {**cfg.observation.__dict__}) as w:
+                for t in collected:
+                    w.add(t)
+            # Train on what the shard holds, so a resumed run sees exactly the same data.
+            aggregated.extend(_read_shard(shard))
+            state["shards"].append(str(shard.relative_to(out)))
+            state["episodes"].extend(logs)
+            state["dataset_sizes"].append(len(aggregated))
+            state["next_task"] += dc.episodes_per_round
+            state["phase"] = "train"
+            commit()
+            shutil.rmtree(pending, ignore_errors=True)
+        shutil.rmtree(rdir / "episodes", ignore_errors=True)  # merged into the shard already
         if dc.train_steps_per_round > 0:
             rc = copy.deepcopy(cfg)
             rc.train.max_steps = dc.train_steps_per_round
             rc.train.seed = cfg.train.seed + r
-            rc.train.checkpoint_every = max(rc.train.checkpoint_every, dc.train_steps_per_round)
+            rc.train.checkpoint_every = max(1, min(rc.train.checkpoint_every, dc.train_steps_per_round))
             ds = InMemoryNavDataset(
                 aggregated,
                 cfg.data.max_observations,
@@ -492,18 +651,29 @@ def run_dagger(
                 cfg.data.jitter,
                 rc.train.seed,
             )
-            res = train_bc(rc, out / f"round_{r:02d}" / "train", dataset=ds, export=False, policy=policy)
-            losses.append(list(res.module.losses))
-            seen.append([i for batch in res.module.seen for i in batch])
+            tdir = rdir / "train"
+            last = tdir / "checkpoints" / "last.ckpt"
+            res = train_bc(
+                rc, tdir, dataset=ds, export=False, policy=policy, resume="last" if last.exists() else None
+            )
+            state["losses"].append(list(res.module.losses))
+            state["seen"].append([i for batch in res.module.seen for i in batch])
+            weights = out / "checkpoints" / f"round_{r:02d}.safetensors"
+            weights.parent.mkdir(parents=True, exist_ok=True)
+            tmp = weights.with_name(f".{weights.name}.tmp")
+            save_model(policy.model, str(tmp))
+            tmp.replace(weights)
+            state["weights"] = str(weights.relative_to(out))
         else:
-            losses.append([])
-            seen.append([])
+            state["losses"].append([])
+            state["seen"].append([])
+        state["round"], state["phase"] = r + 1, "collect"
+        commit()
     export_dir = export_policy(policy, out / "export") if export else None
-    summary = {"dataset_sizes": sizes, "losses": losses, "episodes": len(logs)}
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2))
-    tmp.replace(out / "summary.json")
-    return DaggerResult(out, logs, sizes, losses, export_dir, seen)
+    sizes, losses = state["dataset_sizes"], state["losses"]
+    summary = {"dataset_sizes": sizes, "losses": losses, "episodes": len(state["episodes"])}
+    _atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
+    return DaggerResult(out, list(state["episodes"]), sizes, losses, export_dir, state["seen"])
 
 
 def procedural_scenes(

@@ -174,8 +174,10 @@ class NavBCModule(L.LightningModule):
             PromptBuilder(policy.tokenizer, policy.codec, cfg.system_prompt), policy.image_processor
         )
         self.seen: list[list[str]] = []
-        """Episode ids per training batch (lets tests check the data order across resumes)."""
+        """Episode ids per training batch (lets tests check the data order across resumes); restored
+        from the checkpoint on a resume, so it covers the whole run."""
         self.losses: list[float] = []
+        """Training loss per step, whole run (restored from the checkpoint on a resume)."""
 
     def train_dataloader(self):
         tc = self.cfg.train
@@ -216,6 +218,16 @@ class NavBCModule(L.LightningModule):
         self.log("train/loss", out.loss, prog_bar=True, batch_size=bsz)
         self.log("train/action_acc", action_accuracy(out.logits.detach(), batch["labels"]), batch_size=bsz)
         return out.loss
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # The loss and batch history travel with the weights: a resumed run reports the whole run.
+        checkpoint["image2nav_history"] = {"losses": list(self.losses), "seen": [list(b) for b in self.seen]}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        hist = checkpoint.get("image2nav_history")
+        if hist is not None:
+            self.losses = [float(v) for v in hist["losses"]]
+            self.seen = [list(b) for b in hist["seen"]]
 
     def configure_optimizers(self):
         tc = self.cfg.train
