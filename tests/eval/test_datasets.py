@@ -20,6 +20,7 @@ from image2sim.eval.datasets import (
     EpisodeFileError,
     habitat_heading,
     habitat_quaternion_to_world,
+    habitat_rotation_for_heading,
     habitat_to_world,
     load_image2sim_episodes,
     load_r2r_ce,
@@ -60,26 +61,42 @@ def _r2r_episode(eid: int, **over: Any) -> dict[str, Any]:
     return ep
 
 
-VOCAB = {"word_list": ["<PAD>", "<UNK>", "and", "the", "past", "walk", "stop", "sofa", ".", "walk"],
-         "word2idx_dict": {}, "itos": [], "stoi": {}, "num_vocab": 10, "UNK_INDEX": 1, "PAD_INDEX": 0}
+VOCAB = {
+    "word_list": ["<PAD>", "<UNK>", "and", "the", "past", "walk", "stop", "sofa", ".", "walk"],
+    "word2idx_dict": {},
+    "itos": [],
+    "stoi": {},
+    "num_vocab": 10,
+    "UNK_INDEX": 1,
+    "PAD_INDEX": 0,
+}
 
 
 def _gt(eids: list[int]) -> dict[str, Any]:
-    return {str(e): {"locations": [[1.0, 0.17, -2.0], [1.0, 0.17, -2.25], [1.25, 0.17, -2.5]],
-                     "forward_steps": 2, "actions": [1, 3, 1, 0]} for e in eids}
+    return {
+        str(e): {
+            "locations": [[1.0, 0.17, -2.0], [1.0, 0.17, -2.25], [1.25, 0.17, -2.5]],
+            "forward_steps": 2,
+            "actions": [1, 3, 1, 0],
+        }
+        for e in eids
+    }
 
 
 @pytest.fixture
 def r2r_root(tmp_path: Path) -> Path:
     root = tmp_path / "R2R_VLNCE_v1-3_preprocessed"
-    _write(root / "val_seen" / "val_seen.json.gz",
-           {"episodes": [_r2r_episode(1), _r2r_episode(2)], "instruction_vocab": VOCAB})
+    _write(
+        root / "val_seen" / "val_seen.json.gz",
+        {"episodes": [_r2r_episode(1), _r2r_episode(2)], "instruction_vocab": VOCAB},
+    )
     _write(root / "val_seen" / "val_seen_gt.json.gz", _gt([1, 2]))
     _write(root / "test" / "test.json.gz", {"episodes": [_r2r_episode(7)], "instruction_vocab": VOCAB})
     return root
 
 
 # ---------------------------------------------------------------------------------------------- frames
+
 
 def test_habitat_to_world_worked_example() -> None:
     np.testing.assert_array_equal(habitat_to_world([1.0, 2.0, 3.0]), [1.0, -3.0, 2.0])
@@ -104,6 +121,16 @@ def test_quaternion_conversion_is_conjugation(q: np.ndarray) -> None:
     np.testing.assert_allclose(r_w, HABITAT_TO_WORLD @ r_h @ HABITAT_TO_WORLD.T, atol=1e-12)
 
 
+@given(st.floats(-math.pi, math.pi))
+def test_habitat_rotation_for_heading_inverts_habitat_heading(heading: float) -> None:
+    q = habitat_rotation_for_heading(heading)
+    assert np.linalg.norm(q) == pytest.approx(1.0)
+    h = habitat_heading(q)
+    assert math.cos(h - heading) == pytest.approx(1.0, abs=1e-12)
+    # Worked example: heading +90 deg (our +Y) is Habitat's identity (looking along its -Z).
+    np.testing.assert_allclose(habitat_rotation_for_heading(math.pi / 2), [0.0, 0.0, 0.0, 1.0])
+
+
 @pytest.mark.parametrize("theta", [0.0, 0.5, -2.0, math.pi / 2, math.pi])
 def test_heading_of_habitat_yaw(theta: float) -> None:
     # Identity: the agent looks along Habitat -Z = our +Y -> heading +90 deg; a CCW yaw adds to it.
@@ -116,6 +143,7 @@ def test_heading_of_habitat_yaw(theta: float) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- R2R / REVERIE
+
 
 def test_load_r2r_ce(r2r_root: Path) -> None:
     ds = load_r2r_ce(r2r_root, "val_seen")
@@ -152,13 +180,19 @@ def test_reverie_ce_needs_no_vocab(tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------------------------------------- RxR
 
+
 def _rxr_episode(eid: int, language: str) -> dict[str, Any]:
     ep = _r2r_episode(eid)
     ep["instruction"] = {
-        "instruction_id": str(100 + eid), "instruction_text": "Go left.", "language": language,
-        "annotator_id": "7", "edit_distance": 0.07,
-        "timed_instruction": [{"word": "Go", "start_time": 0.5, "end_time": 0.8},
-                              {"word": "left.", "start_time": math.nan, "end_time": math.nan}],
+        "instruction_id": str(100 + eid),
+        "instruction_text": "Go left.",
+        "language": language,
+        "annotator_id": "7",
+        "edit_distance": 0.07,
+        "timed_instruction": [
+            {"word": "Go", "start_time": 0.5, "end_time": 0.8},
+            {"word": "left.", "start_time": math.nan, "end_time": math.nan},
+        ],
         "instruction_tokens": ["Go", "left", "."],
     }
     return ep
@@ -166,8 +200,10 @@ def _rxr_episode(eid: int, language: str) -> dict[str, Any]:
 
 def test_load_rxr_ce_roles_and_languages(tmp_path: Path) -> None:
     root = tmp_path / "RxR_VLNCE_v0"
-    _write(root / "val_unseen" / "val_unseen_guide.json.gz",
-           {"episodes": [_rxr_episode(1, "en-US"), _rxr_episode(2, "hi-IN")]})
+    _write(
+        root / "val_unseen" / "val_unseen_guide.json.gz",
+        {"episodes": [_rxr_episode(1, "en-US"), _rxr_episode(2, "hi-IN")]},
+    )
     _write(root / "val_unseen" / "val_unseen_guide_gt.json.gz", _gt([1, 2]))
     _write(root / "val_unseen" / "val_unseen_follower.json.gz", {"episodes": [_rxr_episode(3, "en-IN")]})
     _write(root / "val_unseen" / "val_unseen_follower_gt.json.gz", _gt([3]))
@@ -186,6 +222,7 @@ def test_load_rxr_ce_roles_and_languages(tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------------------------------------- malformed
 
+
 def _r2r_with(tmp_path: Path, episodes: list[Any], gt: Any = None) -> Path:
     root = tmp_path / "bad"
     _write(root / "s" / "s.json.gz", {"episodes": episodes, "instruction_vocab": VOCAB})
@@ -203,14 +240,20 @@ def _r2r_with(tmp_path: Path, episodes: list[Any], gt: Any = None) -> Path:
         (lambda e: e.update(start_position=[1, 2]), r"episode 5: field 'start_position': expected a list"),
         (lambda e: e.update(start_rotation=[0, 0, 0, 2]), r"episode 5: field 'start_rotation': .*norm"),
         (lambda e: e["goals"][0].pop("position"), r"episode 5: field 'goals\[0\].position': missing"),
-        (lambda e: e["instruction"].pop("instruction_text"),
-         r"episode 5: field 'instruction.instruction_text': missing"),
-        (lambda e: e.update(reference_path=[[0, 0, 0], [1, "x", 0]]),
-         r"episode 5: field 'reference_path\[1\]'"),
+        (
+            lambda e: e["instruction"].pop("instruction_text"),
+            r"episode 5: field 'instruction.instruction_text': missing",
+        ),
+        (
+            lambda e: e.update(reference_path=[[0, 0, 0], [1, "x", 0]]),
+            r"episode 5: field 'reference_path\[1\]'",
+        ),
         (lambda e: e.update(info={"geodesic_distance": -1}), r"episode 5: field 'info.geodesic_distance'"),
         (lambda e: e.update(episode_id=True), r"field 'episode_id': expected a number, got a bool"),
-        (lambda e: e["instruction"].update(instruction_tokens=[1, 2.5]),
-         r"episode 5: field 'instruction.instruction_tokens'"),
+        (
+            lambda e: e["instruction"].update(instruction_tokens=[1, 2.5]),
+            r"episode 5: field 'instruction.instruction_tokens'",
+        ),
     ],
 )
 def test_malformed_episode_names_file_episode_and_field(tmp_path: Path, mutate: Any, message: str) -> None:

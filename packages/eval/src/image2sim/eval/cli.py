@@ -145,6 +145,13 @@ def nav_cmd(
     seed: Annotated[int, typer.Option(help="Run seed (episode seeds derive from it).")] = 0,
     workers: Annotated[int, typer.Option(help="Scene-level processes.")] = 1,
     max_episodes: Annotated[int, typer.Option(help="At most this many episodes per scene (0: all).")] = 0,
+    backend: Annotated[
+        str,
+        typer.Option(
+            help="neural (scene folders with navmap/navgraph) or habitat (habitat-sim on "
+            "<scenes>/<episode scene_id>; needs habitat-sim and --episodes)."
+        ),
+    ] = "neural",
     out: Annotated[Path, typer.Option(help="Run folder (per-scene JSONL logs; resumable).")] = Path(
         "runs/eval_nav"
     ),
@@ -168,6 +175,8 @@ def nav_cmd(
     )
 
     proto = _protocol(protocol)
+    if backend == "habitat" and episodes is None:
+        raise typer.BadParameter("--backend habitat needs --episodes (point goals are sampled on our graphs)")
     if episodes is not None:
         from image2sim.eval.datasets import load_image2sim_episodes
 
@@ -196,6 +205,7 @@ def nav_cmd(
             seed=seed,
             workers=workers,
             max_episodes_per_scene=max_episodes or None,
+            backend=backend,
         )
         results = run_nav_results(eps, scenes, proto, cfg, out)
         report = aggregate(results)
@@ -219,6 +229,7 @@ def nav_cmd(
             "seed": seed,
             "max_episodes": max_episodes,
             "scenes": str(scenes),
+            "backend": backend,
         }
         run_dir = log_metrics_wandb(json.loads(metrics.read_text()), "nav", stage="eval_nav", config=command)
         typer.echo(f"W&B run: {run_dir}")

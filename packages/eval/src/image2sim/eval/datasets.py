@@ -70,22 +70,26 @@ def quat_multiply_wxyz(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of (w, x, y, z) quaternions."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.array([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def quat_to_matrix_wxyz(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit (w, x, y, z) quaternion."""
     w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _unit_quat(q: Any, where: str) -> np.ndarray:
@@ -109,6 +113,16 @@ def habitat_quaternion_to_world(q_xyzw: Any) -> np.ndarray:
     qc_inv = qc * np.array([1.0, -1.0, -1.0, -1.0])
     out = quat_multiply_wxyz(quat_multiply_wxyz(qc, np.array([w, x, y, z])), qc_inv)
     return out if out[0] >= 0 else -out  # canonical sign
+
+
+def habitat_rotation_for_heading(heading: float) -> np.ndarray:
+    """The upright Habitat agent rotation ``[x, y, z, w]`` whose :func:`habitat_heading` is ``heading``.
+
+    Habitat's identity agent looks along its -Z, our +Y (heading +90°), so the rotation is a yaw of
+    ``heading - 90°`` about Habitat's +Y.
+    """
+    half = (float(heading) - math.pi / 2.0) / 2.0
+    return np.array([0.0, math.sin(half), 0.0, math.cos(half)])
 
 
 def habitat_heading(q_xyzw: Any) -> float:
@@ -411,8 +425,9 @@ def _parse_gt(doc: Any, path: Path, frame: Frame) -> dict[str, tuple[np.ndarray,
         ctx = _Ctx(path, eid)
         locs = ctx.path_points(ctx.get(entry, "locations", list), "locations")
         actions = entry.get("actions")
-        if actions is not None and not (isinstance(actions, list) and all(
-                isinstance(a, int) and not isinstance(a, bool) for a in actions)):
+        if actions is not None and not (
+            isinstance(actions, list) and all(isinstance(a, int) and not isinstance(a, bool) for a in actions)
+        ):
             raise ctx.fail("actions", "expected a list of integer action ids")
         out[str(eid)] = (_to_world_points(locs, frame), None if actions is None else tuple(actions))
     return out
@@ -459,8 +474,13 @@ def _with_gt(ep: NavEpisode, locs: np.ndarray, actions: tuple[int, ...] | None) 
     return NavEpisode(**fields)
 
 
-def _dataset(name: str, split: str, episodes: Sequence[NavEpisode], vocab: tuple[str, ...] | None,
-             sources: Iterable[Path]) -> EpisodeDataset:
+def _dataset(
+    name: str,
+    split: str,
+    episodes: Sequence[NavEpisode],
+    vocab: tuple[str, ...] | None,
+    sources: Iterable[Path],
+) -> EpisodeDataset:
     by_id: dict[str, NavEpisode] = {}
     for ep in episodes:
         if ep.episode_id in by_id:
@@ -524,8 +544,9 @@ def load_rxr_ce(
     return _dataset("rxr-ce", split, episodes, None, sources)
 
 
-def load_image2sim_episodes(path: str | Path, gt_path: str | Path | None = None,
-                            split: str = "custom") -> EpisodeDataset:
+def load_image2sim_episodes(
+    path: str | Path, gt_path: str | Path | None = None, split: str = "custom"
+) -> EpisodeDataset:
     """Episodes written by the data engine (VLN-CE schema; ``frame``/``quaternion_order`` honoured)."""
     episodes, vocab = load_episode_file(path, gt_path)
     return _dataset("image2sim", split, episodes, vocab, [Path(path)])

@@ -35,7 +35,13 @@ from typing import Any
 from typing import Protocol as TypingProtocol
 
 import numpy as np
-from image2sim.eval.datasets import NavEpisode
+from image2sim.eval.datasets import (
+    NavEpisode,
+    habitat_heading,
+    habitat_rotation_for_heading,
+    habitat_to_world,
+    world_to_habitat,
+)
 from image2sim.eval.metrics.nav import (
     DEFAULT_MEASURES,
     AgentState,
@@ -240,24 +246,144 @@ class NeuralSimBackend:
         return self.sim.agents[0].state
 
 
-class HabitatBackend:
-    """habitat-sim as a backend, for users who have it (no Linux wheel on PyPI; never a hard dependency).
+def import_habitat_sim() -> Any:
+    """``habitat_sim``, or :class:`BackendUnavailable` saying how to get it."""
+    try:
+        import habitat_sim
+    except ImportError as exc:
+        raise BackendUnavailable(
+            "the Habitat backend needs habitat-sim (conda install habitat-sim -c aihabitat); "
+            "use the NeuralSimulator backend (--backend neural) otherwise"
+        ) from exc
+    return habitat_sim
 
-    Only the import guard and the frame conversion are provided here: habitat-sim is not installable
-    on the machines this project is developed on, so an untested loop is deliberately not shipped.
+
+def _quat_xyzw(q: Any) -> np.ndarray:
+    """Habitat rotation (a numpy-quaternion ``quaternion`` or ``[x, y, z, w]`` coefficients)."""
+    if all(hasattr(q, k) for k in ("x", "y", "z", "w")):
+        return np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    return np.asarray(q, dtype=np.float64).reshape(4)
+
+
+class HabitatBackend:
+    """habitat-sim as a runner backend, for users who have it (no Linux wheel on PyPI; never a hard
+    dependency, imported only when this class is instantiated).
+
+    One ``habitat_sim.Simulator`` per scene file, configured from the protocol: agent height and
+    radius, sliding, the discrete action space (``move_forward`` by ``forward_step_m``,
+    ``turn_left`` / ``turn_right`` by ``turn_angle_deg``) and one RGB sensor ``"rgb"`` at the
+    protocol's camera (pinhole: resolution and HFOV; equirect: ``EquirectangularSensorSpec``) at the
+    agent's height. Episodes are in our Z-up world and are converted to Habitat's Y-up frame
+    (:func:`~image2sim.eval.datasets.world_to_habitat`; the start rotation is the upright one of the
+    episode's heading); positions and headings come back the same way. The geodesic distance is the
+    pathfinder's shortest path length (``habitat_sim.ShortestPath``); inf with a reason when none.
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        try:
-            import habitat_sim  # noqa: F401
-        except ImportError as exc:
-            raise BackendUnavailable(
-                "the Habitat backend needs habitat-sim (conda install habitat-sim -c aihabitat); "
-                "use the NeuralSimulator backend (--backend neural) otherwise"
-            ) from exc
-        raise NotImplementedError(
-            "HabitatBackend: habitat-sim was found, but the Habitat episode loop is not implemented yet"
+    ACTIONS = {
+        int(Action.MOVE_FORWARD): "move_forward",
+        int(Action.TURN_LEFT): "turn_left",
+        int(Action.TURN_RIGHT): "turn_right",
+    }
+    """Our action ids -> habitat-sim action names (STOP ends the episode in the runner)."""
+
+    def __init__(self, scene: str | Path, protocol: Protocol, gpu_device_id: int = 0) -> None:
+        hs = import_habitat_sim()
+        self.hs, self.protocol, self.name = hs, protocol, Path(scene).stem
+        if not Path(scene).is_file():
+            raise RunnerError(f"Habitat scene file {scene} not found")
+        self.sim = hs.Simulator(self.configuration(hs, scene, protocol, gpu_device_id))
+        if not self.sim.pathfinder.is_loaded:
+            raise RunnerError(f"{scene}: habitat-sim loaded no navmesh (geodesic distances need one)")
+        self.agent = self.sim.initialize_agent(0)
+        self.goal_habitat: np.ndarray | None = None
+        self._last: tuple[np.ndarray, float, str] | None = None
+
+    @staticmethod
+    def configuration(hs: Any, scene: str | Path, protocol: Protocol, gpu_device_id: int = 0) -> Any:
+        """The ``habitat_sim.Configuration`` implementing ``protocol`` for one scene."""
+        sim_cfg = hs.SimulatorConfiguration()
+        sim_cfg.scene_id = str(scene)
+        sim_cfg.gpu_device_id = int(gpu_device_id)
+        sim_cfg.allow_sliding = bool(protocol.allow_sliding)
+        cam = protocol.camera
+        if cam.kind == "pinhole":
+            sensor = hs.CameraSensorSpec()
+            sensor.hfov = float(cam.hfov_deg)
+        else:
+            sensor = hs.EquirectangularSensorSpec()
+        sensor.uuid = "rgb"
+        sensor.sensor_type = hs.SensorType.COLOR
+        sensor.resolution = [int(cam.height), int(cam.width)]
+        sensor.position = [0.0, float(protocol.agent_height_m), 0.0]
+        agent_cfg = hs.agent.AgentConfiguration()
+        agent_cfg.height = float(protocol.agent_height_m)
+        agent_cfg.radius = float(protocol.agent_radius_m)
+        agent_cfg.sensor_specifications = [sensor]
+        amounts = {
+            "move_forward": float(protocol.forward_step_m),
+            "turn_left": float(protocol.turn_angle_deg),
+            "turn_right": float(protocol.turn_angle_deg),
+        }
+        agent_cfg.action_space = {
+            name: hs.agent.ActionSpec(name, hs.agent.ActuationSpec(amount=amount))
+            for name, amount in amounts.items()
+        }
+        return hs.Configuration(sim_cfg, [agent_cfg])
+
+    def geodesic_distance(self, position_habitat: np.ndarray) -> tuple[float, str]:
+        """Pathfinder shortest-path length from a Habitat-frame position to the goal, and a reason if inf."""
+        path = self.hs.ShortestPath()
+        path.requested_start = np.asarray(position_habitat, dtype=np.float32)
+        path.requested_end = np.asarray(self.goal_habitat, dtype=np.float32)
+        found = bool(self.sim.pathfinder.find_path(path))
+        d = float(path.geodesic_distance)
+        if not found or not math.isfinite(d):
+            where = np.round(habitat_to_world_point(position_habitat), 3).tolist()
+            return float("inf"), f"habitat's pathfinder found no path from world {where} to the goal"
+        return d, ""
+
+    def _obs(self, observations: Mapping[str, Any] | None, collided: bool) -> StepObservation:
+        state = self.agent.get_state()
+        pos_h = np.asarray(state.position, dtype=np.float64).reshape(3)
+        if self._last is None or not np.array_equal(pos_h, self._last[0]):
+            self._last = (pos_h, *self.geodesic_distance(pos_h))
+        rgb = None
+        if observations is not None:
+            rgb = np.ascontiguousarray(np.asarray(observations["rgb"])[..., :3], dtype=np.uint8)
+        return StepObservation(
+            position=habitat_to_world_point(pos_h),
+            heading=habitat_heading(_quat_xyzw(state.rotation)),
+            distance_to_goal=self._last[1],
+            distance_reason=self._last[2],
+            collided=collided,
+            rgb=rgb,
         )
+
+    def reset(self, episode: NavEpisode, observe: bool = False) -> StepObservation:
+        self.goal_habitat = world_to_habitat(episode.goal_position)
+        state = self.hs.AgentState()
+        state.position = world_to_habitat(episode.start_position)
+        # From the heading (the start_rotation of Habitat-file and of our own episodes differ in
+        # which body axis looks forward; the heading is the same quantity in both).
+        state.rotation = habitat_rotation_for_heading(episode.start_heading)  # [x, y, z, w]
+        self.agent.set_state(state)
+        self._last = None
+        return self._obs(self.sim.get_sensor_observations() if observe else None, False)
+
+    def step(self, action: int, observe: bool = False) -> StepObservation:
+        name = self.ACTIONS.get(int(action))
+        if name is None:
+            raise RunnerError(f"{self.name}: action {action!r} is not a movement (STOP ends the episode)")
+        observations = self.sim.step(name)
+        return self._obs(observations if observe else None, bool(observations.get("collided", False)))
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+def habitat_to_world_point(p: Any) -> np.ndarray:
+    """One Habitat-frame point as a (3,) world point (:func:`~image2sim.eval.datasets.habitat_to_world`)."""
+    return habitat_to_world(np.asarray(p, dtype=np.float64).reshape(3))
 
 
 def load_scene_backend(scene_dir: str | Path, protocol: Protocol, render: bool = False) -> NeuralSimBackend:
@@ -528,10 +654,15 @@ class RunConfig:
     """Scene-level processes (1 = in this process)."""
     max_episodes_per_scene: int | None = None
     """Evaluate at most this many episodes per scene (file order), None = all."""
+    backend: str = "neural"
+    """``neural``: scene folders ``<scenes_root>/<scene name>`` with navmap.npz + navgraph.npz;
+    ``habitat``: habitat-sim on the scene files ``<scenes_root>/<episode scene_id>``."""
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
             raise RunnerError(f"RunConfig.agent: unknown agent {self.agent!r}; known: {sorted(AGENTS)}")
+        if self.backend not in ("neural", "habitat"):
+            raise RunnerError(f"RunConfig.backend: expected 'neural' or 'habitat', got {self.backend!r}")
         if int(self.workers) < 1:
             raise RunnerError(f"RunConfig.workers must be >= 1, got {self.workers}")
         if self.max_episodes_per_scene is not None and int(self.max_episodes_per_scene) < 1:
@@ -596,6 +727,13 @@ def _scene_task(task: dict) -> tuple[str, int]:
         torch.set_num_threads(1)  # one process per core; never changes the caller's setting in-process
     protocol = Protocol.from_dict(task["protocol"])
     config = RunConfig(**task["config"])
+    if config.backend == "habitat":
+        backend = HabitatBackend(task["scene_dir"], protocol)
+        try:
+            n = run_scene(backend, task["episodes"], protocol, config, task["log"])
+        finally:
+            backend.close()
+        return task["scene"], n
     render = AGENTS[config.agent] is Image2NavAdapter
     backend = load_scene_backend(task["scene_dir"], protocol, render=render)
     n = run_scene(backend, task["episodes"], protocol, config, task["log"])
@@ -644,11 +782,12 @@ def run_nav_results(
     groups = _group_by_scene(episodes, config.max_episodes_per_scene)
     if not groups:
         raise RunnerError("no episodes to evaluate")
-    for name in groups:
-        if not (scenes_root / name).is_dir():
-            raise RunnerError(
-                f"scene {name!r}: folder {scenes_root / name} not found (episodes reference it)"
-            )
+    scene_paths = {name: scenes_root / name for name in groups}
+    if config.backend == "habitat":  # habitat-sim loads the scene file the episodes name
+        scene_paths = {name: scenes_root / eps[0].scene_id for name, eps in groups.items()}
+    for name, path in scene_paths.items():
+        if not (path.is_file() if config.backend == "habitat" else path.is_dir()):
+            raise RunnerError(f"scene {name!r}: {path} not found (episodes reference it)")
     manifest = {
         "config": asdict(config),
         "seed_rule": "episode_seed = crc32(f'{seed}:{episode_id}') & 0x7fffffff",
@@ -659,7 +798,7 @@ def run_nav_results(
     tasks = [
         {
             "scene": name,
-            "scene_dir": str(scenes_root / name),
+            "scene_dir": str(scene_paths[name]),
             "episodes": eps,
             "protocol": protocol.to_dict(),
             "config": asdict(config),
