@@ -140,9 +140,13 @@ def _check(name: str, t: torch.Tensor, shape: tuple, n: int | None) -> None:
 
 
 def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor | None:
-    """Rows of ``t`` with a NaN/inf, or None when every value is finite (one fused reduction)."""
+    """Rows of ``t`` with a NaN/inf, or None when every value is finite.
+
+    Fast path: a sum is finite only if every term is (NaN and inf propagate), so one reduction
+    clears the common case; a non-finite sum (a bad value, or an overflow) takes the exact test.
+    """
     d = t.detach()
-    if bool(torch.isfinite(d).all()):
+    if d.numel() == 0 or bool(torch.isfinite(d.sum())):
         return None
     return ~torch.isfinite(d).reshape(t.shape[0], -1).all(dim=1)
 
@@ -302,7 +306,8 @@ def splat(
             image = image + 0.0 * values.sum()
         images.append(image)
         alphas.append(alpha)
-    image = torch.stack(images)
-    return SplatOutput(
-        rgb=image[:, :3], depth=image[:, 3:4], alpha=torch.stack(alphas), features=image[:, 4:], backend=name
-    )
+    if len(images) == 1:  # no copy for a single camera
+        image, alpha = images[0].unsqueeze(0), alphas[0].unsqueeze(0)
+    else:
+        image, alpha = torch.stack(images), torch.stack(alphas)
+    return SplatOutput(rgb=image[:, :3], depth=image[:, 3:4], alpha=alpha, features=image[:, 4:], backend=name)
