@@ -269,3 +269,53 @@ def test_run_render_bench_on_splatted_gaussians(tiny_capture, tmp_path):
     assert doc["protocol"]["condition_source"].startswith("gaussians")
     assert doc["protocol"]["held_out_views"] == 1 and set(doc["methods"]) == {"splat_only", "flow_1step"}
     assert doc["methods"]["splat_only"]["n_views"] == 1 and doc["methods"]["splat_only"]["psnr"] > 10
+
+
+@pytest.fixture(scope="module")
+def middle_capture(tmp_path_factory):
+    """The tiny procedural scene captured at the `middle` noise tier (noisy RGB and depth, jittered poses)."""
+    from dataclasses import replace as dc_replace
+
+    from image2sim.dataengine.procedural import generate_scene, preset, write_scene
+
+    out = tmp_path_factory.mktemp("captures_middle") / "scene_000"
+    write_scene(generate_scene(dc_replace(preset("tiny"), noise="middle"), seed=0), out)
+    return out
+
+
+def test_exact_targets_reproduce_a_noise_free_capture(tiny_capture, tmp_path):
+    from image2sim.eval.render_bench import exact_targets
+    from image2sim.simulator.io.registry import open_capture
+    from image2sim.simulator.renderer.data import load_capture_targets
+
+    capture = open_capture(tiny_capture)
+    exact = exact_targets(tiny_capture, [capture[i].cam_to_world for i in range(len(capture))], 32, 64)
+    frames = load_capture_targets(tiny_capture, 32, 64)
+    assert len(exact) == len(frames) == 4
+    for (rgb, depth), (rgb_c, depth_c) in zip(exact, frames, strict=True):
+        assert torch.equal(rgb, rgb_c)
+        assert torch.allclose(depth, depth_c, atol=1e-3, rtol=0)  # frames store depth in millimetres
+    assert exact_targets(tmp_path, [np.eye(4)], 32, 64) is None  # not a procedural capture
+
+
+def test_middle_tier_views_are_scored_against_exact_ground_truth_not_the_noisy_capture(middle_capture):
+    from image2sim.eval.render_bench import exact_targets, splat_samples
+    from image2sim.simulator.io.registry import open_capture
+    from image2sim.simulator.renderer.data import load_capture_targets
+
+    auto = splat_samples([middle_capture], 32, 64, holdout_every=4)
+    captured = splat_samples([middle_capture], 32, 64, holdout_every=4, target="capture")
+    assert [s["index"] for s in auto] == [s["index"] for s in captured] == [3]
+    assert auto[0]["target_kind"] == "exact" and captured[0]["target_kind"] == "capture"
+    frame_rgb, frame_depth = load_capture_targets(middle_capture, 32, 64)[3]
+    assert torch.equal(captured[0]["target_rgb"], frame_rgb)
+    # The exact target is the noise-free rendering at the queried (stored) pose ...
+    pose = open_capture(middle_capture)[3].cam_to_world
+    ((rgb, depth),) = exact_targets(middle_capture, [pose], 32, 64)
+    assert torch.equal(auto[0]["target_rgb"], rgb) and torch.equal(auto[0]["target_depth"], depth)
+    # ... which differs from the noisy captured frame (RGB noise; depth noise and holes).
+    assert (auto[0]["target_rgb"] - frame_rgb).abs().max() > 0
+    assert (depth > 0).float().mean() >= (frame_depth > 0).float().mean()
+    assert not torch.equal(depth, frame_depth)
+    with pytest.raises(RenderBenchError, match="target"):
+        RenderBenchConfig(condition_source="gaussians", data=["x"], target="noisy")

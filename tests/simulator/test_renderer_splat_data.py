@@ -193,3 +193,47 @@ def test_config_errors(box_capture):
         )
     with pytest.raises(sd.SplatDataError, match="at least one capture"):
         sd.SplatConditionDataset([], H, W)
+
+
+@pytest.mark.slow
+def test_renderer_eval_scores_splatted_conditions_like_eval_render(box_capture, tmp_path):
+    """`sim renderer-eval` (default) runs the render benchmark on Gaussian-splat conditions, not on
+    synthetic degradations: its numbers are those of `eval render --condition-source gaussians`."""
+    pytest.importorskip("image2sim.eval.render_bench")
+    import json
+
+    from image2sim.eval.render_bench import RenderBenchConfig, run_render_bench
+    from image2sim.simulator.cli import sim_app
+    from image2sim.simulator.renderer.model import PixelFlowRenderer, save_renderer
+    from typer.testing import CliRunner
+
+    from .test_meanflow import small_cfg
+
+    torch.manual_seed(0)
+    cfg = small_cfg(height=H, width=W)
+    weights = tmp_path / "r.safetensors"
+    save_renderer(PixelFlowRenderer(cfg), weights)
+    args = ["renderer-eval", str(weights), "--data", str(box_capture), "--holdout-every", "4", "--steps", "1"]
+    result = CliRunner().invoke(sim_app, [*args, "--report", str(tmp_path / "rep")])
+    assert result.exit_code == 0, result.output
+    doc = json.loads((tmp_path / "rep.json").read_text())
+    assert doc["protocol"]["condition_source"].startswith("gaussians")
+    assert doc["protocol"]["held_out_views"] == 1  # frame 3; frames 0-2 build the Gaussians
+    assert set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert (tmp_path / "rep.md").read_text().startswith("# Renderer evaluation")
+    import yaml
+    from image2sim.simulator.renderer.config import config_to_dict
+
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(yaml.safe_dump(config_to_dict(cfg)))
+    bench = RenderBenchConfig(
+        renderer_config=str(cfg_file),
+        checkpoint=str(weights),
+        data=[str(box_capture)],
+        holdout_every=4,
+        steps=[1],
+        condition_source="gaussians",
+    )
+    ref = run_render_bench(bench, tmp_path / "ref.json", show_progress=False)
+    for m in ("splat_only", "flow_1step"):
+        assert doc["methods"][m]["psnr"] == pytest.approx(ref["methods"][m]["psnr"], abs=1e-9)

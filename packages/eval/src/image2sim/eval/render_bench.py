@@ -13,6 +13,11 @@ Every view is scored with :func:`image2sim.eval.render_scores.score_views` (PSNR
 LPIPS when weights are configured else n/a, depth AbsRel / RMSE / δ<1.25); frame rate comes from
 :func:`image2sim.eval.metrics.timing.measure_fps` (median over timed runs **after** warm-up).
 
+Pinhole-input variant (``input_views="pinhole6"``, the paper's Table 1 pinhole rows): each input
+panorama is replaced by its six 90° cubemap faces (:func:`pinhole_faces`, pinhole frames with z-depth
+and their own poses) before the Gaussians are built; the held-out panorama targets, conditions and
+metrics stay the same.
+
 The data path (targets, split, degradations, checkpoint format) is the renderer's own
 (:mod:`image2sim.simulator.renderer`), reused rather than re-implemented, so ``sim renderer-eval``
 and this benchmark evaluate the same views. Until cached splats of Gaussian scenes are wired in, the
@@ -28,6 +33,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from image2sim.eval.metrics.lpips import LPIPS
 from image2sim.eval.metrics.timing import hardware_string, measure_fps
@@ -47,6 +53,8 @@ __all__ = [
     "render_markdown",
     "splat_condition",
     "splat_samples",
+    "exact_targets",
+    "pinhole_faces",
     "run_render_bench",
 ]
 
@@ -62,6 +70,9 @@ NOISE_TIERS: Mapping[str, Mapping[str, Any]] = {
     "high": {"rgb_noise": 0.10, "depth_noise": 0.05, "hole_fraction": (0.35, 0.65)},
 }
 """DegradeConfig overrides per noise tier."""
+
+INPUT_VIEWS = ("pano", "pinhole6")
+"""What the Gaussians are built from: the panoramas, or six 90° pinhole (cubemap) views of each."""
 
 ABLATIONS = ("no_semantic", "no_alpha_gate", "no_distill")
 """Table-4 switches that need their own trained checkpoint."""
@@ -105,6 +116,15 @@ class RenderBenchConfig:
     procedural ``--noise none/middle/high`` captures); empty = ``data`` as one tier ``capture``."""
     gaussian_config: str = "tiny"
     """``gaussians`` source: Gaussian scene preset or YAML/JSON."""
+    target: str = "auto"
+    """``gaussians`` source: what a view is scored against. ``exact``: the noise-free rendering of a
+    procedural capture's scene at the queried pose (exact ground truth; needs image2sim-dataengine);
+    ``capture``: the held-out captured frame (sensor noise, depth holes); ``auto``: exact for
+    procedural captures, the captured frame otherwise."""
+    input_views: str = "pano"
+    """``gaussians`` source: the input captures as ``pano`` (the training panoramas) or ``pinhole6``
+    (six 90° cubemap-face pinhole views cut from each training panorama, the paper's pinhole-input
+    variant); targets are the held-out panoramas either way."""
     lpips_weights: str | None = None
     """LPIPS weight file (safetensors); None = LPIPS reported as n/a."""
     warmup: int = 2
@@ -121,9 +141,20 @@ class RenderBenchConfig:
             raise RenderBenchError(f"holdout_every must be >= 1, got {self.holdout_every}")
         if not self.steps or any(int(s) < 1 for s in self.steps):
             raise RenderBenchError(f"steps must be positive integers, got {self.steps}")
+        if self.target not in ("auto", "exact", "capture"):
+            raise RenderBenchError(f"target must be 'auto', 'exact' or 'capture', got {self.target!r}")
         if self.condition_source not in ("degraded", "gaussians"):
             raise RenderBenchError(
                 f"condition_source must be 'degraded' or 'gaussians', got {self.condition_source!r}"
+            )
+        if self.input_views not in INPUT_VIEWS:
+            raise RenderBenchError(
+                f"input_views must be one of {list(INPUT_VIEWS)}, got {self.input_views!r}"
+            )
+        if self.input_views != "pano" and self.condition_source != "gaussians":
+            raise RenderBenchError(
+                f"input_views {self.input_views!r} needs condition_source 'gaussians' (degraded conditions "
+                "are made from the targets, not from input views)"
             )
         if self.condition_source == "gaussians":
             if not (self.tier_data or self.data):
@@ -159,6 +190,11 @@ def load_renderer(cfg: Any, checkpoint: str | Path | None):
         path = Path(checkpoint)
         if not path.is_file():
             raise RenderBenchError(f"checkpoint {path}: file not found")
+        if path.suffix == ".safetensors":  # weights of `save_renderer` (config in the metadata)
+            from image2sim.simulator.renderer.model import load_renderer as load_weights
+
+            model.load_state_dict(load_weights(path).state_dict())
+            return model.eval()
         state = torch.load(path, map_location="cpu", weights_only=True)
         if "state_dict" not in state:
             raise RenderBenchError(f"checkpoint {path}: no 'state_dict' (not a `sim train` checkpoint)")
@@ -213,6 +249,121 @@ def splat_condition(scene_gaussians: Any, camera: Any, cam_to_world: Any) -> tor
     return gaussians_condition(scene_gaussians, camera, cam_to_world)
 
 
+PROCEDURAL_GENERATOR = "image2sim.dataengine.procedural"
+"""``metadata.generator`` of procedural captures (their scene can be re-rendered exactly)."""
+
+
+def exact_targets(
+    capture_path: str | Path, poses: Sequence[Any], height: int, width: int
+) -> list[tuple[torch.Tensor, torch.Tensor]] | None:
+    """Noise-free ``(rgb (3, H, W), depth (1, H, W))`` of a procedural capture's scene at ``poses``
+    (camera-to-world), resized like the capture's frames; None when the capture is not procedural.
+
+    The scene is regenerated from the manifest's seed and config (deterministic), then rendered
+    without any noise tier: exact colour and depth at exactly the queried pose, which is what a
+    simulator asked for that pose should produce. Needs ``image2sim-dataengine``.
+    """
+    import json
+
+    from image2sim.simulator.renderer.data import resize_target
+
+    manifest = Path(capture_path) / "manifest.json"
+    if not manifest.is_file():
+        return None
+    meta = json.loads(manifest.read_text()).get("metadata") or {}
+    if meta.get("generator") != PROCEDURAL_GENERATOR:
+        return None
+    try:
+        from image2sim.dataengine.procedural.capture import make_camera
+        from image2sim.dataengine.procedural.config import synth_config_from_dict
+        from image2sim.dataengine.procedural.render import render
+        from image2sim.dataengine.procedural.scene import generate_scene
+    except ImportError as err:
+        raise RenderBenchError(
+            f"{manifest}: exact targets of a procedural capture need image2sim-dataengine ({err})"
+        ) from err
+    if "config" not in meta or "seed" not in meta:
+        raise RenderBenchError(f"{manifest}: procedural metadata lacks 'config' or 'seed'")
+    cfg = synth_config_from_dict(meta["config"])
+    scene = generate_scene(cfg, int(meta["seed"]))
+    camera = make_camera(cfg)
+    out = []
+    for pose in poses:
+        frame = render(scene, camera, np.asarray(pose, dtype=np.float64))
+        out.append(resize_target(frame["rgb"], frame["depth"], height, width))
+    return out
+
+
+def pinhole_faces(frame: Any, face_size: int) -> list[Any]:
+    """Six 90° pinhole frames (cubemap faces, :data:`CUBEMAP_FACES` order) of one panorama frame.
+
+    Colour is sampled bilinearly; depth with nearest neighbours (no mixing across depth edges, 0 =
+    invalid stays 0) and converted from the panorama's range to the pinhole's z-depth (range times
+    the cosine to the optical axis). Face ``k`` has pose ``cam_to_world · R_k`` with ``R_k`` the
+    face's :func:`view_rotation` (its right, down, forward axes in the panorama camera frame), and
+    camera ``PinholeCamera.from_fov(90, 90, F, F)``, whose rays match the faces' sampling rays.
+    """
+    from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+    from image2sim.simulator.geometry.reproject import (
+        CUBEMAP_FACES,
+        equirect_to_cubemap,
+        perspective_directions,
+        view_rotation,
+    )
+    from image2sim.simulator.io.records import Frame
+
+    if not isinstance(frame.camera, EquirectCamera):
+        raise RenderBenchError(f"frame {frame.frame_id!r}: pinhole faces need a panorama, got {frame.camera}")
+    f = int(face_size)
+    rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb)).permute(2, 0, 1)[None].float()
+    depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32))[None, None]
+    rgb_faces = equirect_to_cubemap(rgb, f)[0]  # (6, 3, F, F)
+    range_faces = equirect_to_cubemap(depth, f, mode="nearest")[0, :, 0]  # (6, F, F)
+    cos_axis = perspective_directions(90.0, 90.0, f, f, dtype=torch.float32)[..., 2]  # (F, F)
+    camera = PinholeCamera.from_fov(90.0, 90.0, f, f)
+    pose = np.asarray(frame.cam_to_world, dtype=np.float64)
+    out = []
+    for k, (name, yaw, pitch) in enumerate(CUBEMAP_FACES):
+        rot = view_rotation(
+            torch.tensor(math.radians(yaw), dtype=torch.float64),
+            torch.tensor(math.radians(pitch), dtype=torch.float64),
+        ).numpy()
+        face_pose = pose.copy()
+        face_pose[:3, :3] = pose[:3, :3] @ rot
+        out.append(
+            Frame(
+                rgb=rgb_faces[k].round().clamp(0, 255).to(torch.uint8).permute(1, 2, 0).numpy(),
+                depth=(range_faces[k] * cos_axis).numpy().astype(np.float32),
+                camera=camera,
+                cam_to_world=face_pose,
+                frame_id=f"{frame.frame_id}_{name}",
+            )
+        )
+    return out
+
+
+def _pinhole_input_scene(path: str | Path, frames: Sequence[int], gcfg: Any) -> Any:
+    """Identity Gaussians of the cubemap faces of ``frames`` of a panorama capture.
+
+    Faces are written as a temporary canonical capture (the scene builder reads captures) at the
+    panoramas' equatorial angular resolution: face side = half the encoder height (pixels per
+    degree of a ``H x 2H`` panorama), rounded to the encoder's multiple of 16.
+    """
+    import tempfile
+
+    from image2sim.simulator.gaussians import build_scene
+    from image2sim.simulator.io.canonical import write_capture
+    from image2sim.simulator.io.registry import open_capture
+
+    face = max(16, int(round(gcfg.encoder.height / 2 / 16)) * 16)
+    fcfg = replace(gcfg, encoder=replace(gcfg.encoder, height=face, width=face))
+    capture = open_capture(path)
+    with tempfile.TemporaryDirectory(prefix="pinhole6-") as tmp:
+        faces = [fv for i in frames for fv in pinhole_faces(capture[i], face)]
+        cube = write_capture(Path(tmp) / "faces", faces, scene_id=f"{capture.scene_id}-pinhole6")
+        return build_scene(cube, fcfg, encoder="identity")
+
+
 def splat_samples(
     captures: Sequence[str | Path],
     height: int,
@@ -221,13 +372,20 @@ def splat_samples(
     gaussian_config: str = "tiny",
     max_views: int | None = None,
     start_index: int = 0,
+    target: str = "auto",
+    input_views: str = "pano",
 ) -> list[dict]:
     """Held-out views of ``captures`` with conditions splatted from Gaussians of the other frames.
 
     Frame ``k`` (counted over the captures in order, from ``start_index``) is held out when
     ``k % holdout_every == holdout_every - 1``: the split of ``sim train`` / ``sim renderer-eval``.
     Each capture's Gaussians are built (identity encoder) from its own non-held-out frames only.
+    Targets follow ``target`` (see :attr:`RenderBenchConfig.target`); each sample records its
+    ``target_kind`` (``exact`` or ``capture``). With ``input_views="pinhole6"`` the Gaussians are
+    built from six 90° pinhole views of each training panorama instead (:func:`pinhole_faces`).
     """
+    if input_views not in INPUT_VIEWS:
+        raise RenderBenchError(f"input_views must be one of {list(INPUT_VIEWS)}, got {input_views!r}")
     from image2sim.simulator.gaussians import build_scene
     from image2sim.simulator.gaussians.config import load_gaussian_config
     from image2sim.simulator.geometry.cameras import EquirectCamera
@@ -247,18 +405,26 @@ def splat_samples(
             continue
         if not train:
             raise RenderBenchError(f"{path}: every frame is held out; no frames left to build Gaussians from")
-        scene = build_scene(path, gcfg, encoder="identity", frames=train)
+        if input_views == "pinhole6":
+            scene = _pinhole_input_scene(path, train, gcfg)
+        else:
+            scene = build_scene(path, gcfg, encoder="identity", frames=train)
         capture = open_capture(path)
+        exact = None
+        if target != "capture":
+            exact = exact_targets(path, [capture[i].cam_to_world for i in held], height, width)
+            if exact is None and target == "exact":
+                raise RenderBenchError(f"{path}: target 'exact' needs a procedural capture")
         # Splatting is part of every method's frame time: time it once per capture (median after
         # warm-up) so the reported FPS is end to end (splat + network), not the network alone.
         pose0 = capture[held[0]].cam_to_world
         splat_timing = measure_fps(
             lambda g=scene.gaussians, p=pose0: splat_condition(g, camera, p), warmup=1, runs=3
         )
-        for i in held:
+        for j, i in enumerate(held):
             if max_views is not None and len(samples) >= max_views:
                 return samples
-            rgb, depth = targets[i]
+            rgb, depth = targets[i] if exact is None else exact[j]
             cond = splat_condition(scene.gaussians, camera, capture[i].cam_to_world)
             samples.append(
                 {
@@ -267,6 +433,7 @@ def splat_samples(
                     "target_depth": depth,
                     "index": base + i,
                     "condition_seconds": 1.0 / splat_timing.fps,
+                    "target_kind": "capture" if exact is None else "exact",
                 }
             )
     return samples
@@ -391,7 +558,14 @@ def run_render_bench(
         tier_data = bench.tier_data or {"capture": list(bench.data)}
         samples = {
             t: splat_samples(
-                paths, cfg.height, cfg.width, bench.holdout_every, bench.gaussian_config, bench.max_views
+                paths,
+                cfg.height,
+                cfg.width,
+                bench.holdout_every,
+                bench.gaussian_config,
+                bench.max_views,
+                target=bench.target,
+                input_views=bench.input_views,
             )
             for t, paths in tier_data.items()
         }
@@ -401,9 +575,17 @@ def run_render_bench(
                 f"tier(s) {empty}: no held-out views (holdout_every={bench.holdout_every})"
             )
         held_views = sum(len(v) for v in samples.values())
-        tiers_doc: dict[str, Any] = {t: {"captures": list(p)} for t, p in tier_data.items()}
+        tiers_doc: dict[str, Any] = {
+            t: {"captures": list(p), "targets": sorted({s["target_kind"] for s in samples[t]})}
+            for t, p in tier_data.items()
+        }
+        inputs = (
+            "the training panoramas"
+            if bench.input_views == "pano"
+            else "six 90° pinhole views (cubemap faces) of each training panorama"
+        )
         source = (
-            f"gaussians: identity Gaussian scenes ({bench.gaussian_config}) of the training frames, "
+            f"gaussians: identity Gaussian scenes ({bench.gaussian_config}) of {inputs}, "
             "splatted at the held-out poses"
         )
     else:
@@ -440,6 +622,7 @@ def run_render_bench(
             "data": list(bench.data)
             or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
             "holdout_every": bench.holdout_every,
+            "input_views": bench.input_views,
             "held_out_views": held_views,
             "tiers": tiers_doc,
             "condition_source": source,
@@ -514,4 +697,13 @@ def render_markdown(doc: Mapping[str, Any]) -> str:
                 + (f"; {fps['scope']}" if fps.get("scope") else "")
             )
         notes.append(f"conditions: {proto.get('condition_source')}")
+        kinds = sorted({k for t in (proto.get("tiers") or {}).values() for k in t.get("targets", [])})
+        if kinds:
+            notes.append(
+                "targets: "
+                + ", ".join(
+                    {"exact": "exact noise-free GT at the queried pose", "capture": "captured frames"}[k]
+                    for k in kinds
+                )
+            )
     return "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes if n) + "\n"

@@ -114,7 +114,7 @@ def train_command(
 
 
 def eval_command(
-    checkpoint: Path = typer.Argument(..., help="Lightning checkpoint of the renderer."),
+    checkpoint: Path = typer.Argument(..., help="Lightning checkpoint (or .safetensors) of the renderer."),
     data: list[Path] = typer.Option([], help="Capture directories (the held-out split is evaluated)."),
     holdout_every: int = typer.Option(8, help="Same split as training."),
     max_frames: int = typer.Option(-1, help="At most this many frames per capture (-1: all)."),
@@ -123,17 +123,73 @@ def eval_command(
         Path("reports/renderer_eval"), help="Report path stem (.json and .md written)."
     ),
     threads: int = typer.Option(1, help="torch threads."),
+    condition_source: str = typer.Option(
+        "splat",
+        help="splat: identity Gaussians of the training frames splatted at the held-out poses, scored "
+        "against exact GT for procedural captures (the conditions of `eval render "
+        "--condition-source gaussians`, needs image2sim-eval); degraded: synthetic degradations.",
+    ),
+    gaussian_config: str = typer.Option("tiny", help="splat: Gaussian preset/YAML of the conditions."),
 ) -> None:
     """PSNR / SSIM / depth AbsRel / FPS of splat-only vs 1..N-step rendering on held-out views."""
+    import torch
+    from image2sim.simulator.renderer.model import load_renderer
+
+    if condition_source not in ("splat", "degraded"):
+        raise typer.BadParameter(f"--condition-source must be splat or degraded, got {condition_source!r}")
+    torch.set_num_threads(threads)
+    model = load_renderer(checkpoint)  # the config travels with the weights
+    if condition_source == "splat":
+        if not data:
+            raise typer.BadParameter("--condition-source splat needs --data captures")
+        _eval_splat(
+            model, checkpoint, data, holdout_every, max_frames, steps, report, threads, gaussian_config
+        )
+    else:
+        _eval_degraded(model, checkpoint, data, holdout_every, max_frames, steps, report, threads)
+
+
+def _eval_splat(model, checkpoint, data, holdout_every, max_frames, steps, report, threads, gaussian_config):
+    """``renderer-eval`` on splatted conditions: the evaluation harness's render benchmark itself."""
+    import tempfile
+
+    import yaml
+    from image2sim.simulator.renderer.config import config_to_dict
+
+    try:
+        from image2sim.eval.render_bench import RenderBenchConfig, render_markdown, run_render_bench
+    except ImportError as err:  # the eval package is optional for the simulator
+        raise typer.BadParameter(f"--condition-source splat needs image2sim-eval installed ({err})") from err
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg_file = Path(tmp) / "renderer.yaml"  # the checkpoint's own config, for the benchmark
+        cfg_file.write_text(yaml.safe_dump(config_to_dict(model.cfg)))
+        bench = RenderBenchConfig(
+            renderer_config=str(cfg_file),
+            checkpoint=str(checkpoint),
+            data=[str(d) for d in data],
+            holdout_every=holdout_every,
+            max_frames=None if max_frames < 0 else max_frames,
+            steps=list(steps),
+            condition_source="gaussians",
+            gaussian_config=gaussian_config,
+            threads=threads,
+        )
+        doc = run_render_bench(bench, report.with_suffix(".json"))
+    text = f"# Renderer evaluation ({model.cfg.name}, checkpoint `{checkpoint}`)\n\n" + render_markdown(doc)
+    tmp_md = report.with_suffix(".md.tmp")
+    tmp_md.write_text(text)
+    os.replace(tmp_md, report.with_suffix(".md"))
+    typer.echo(text)
+
+
+def _eval_degraded(model, checkpoint, data, holdout_every, max_frames, steps, report, threads) -> None:
+    """``renderer-eval`` on the renderer's synthetic degradations of the held-out targets."""
     import time
 
     import torch
     from image2sim.simulator.renderer.data import DegradedPanoramaDataset
     from image2sim.simulator.renderer.metrics import abs_rel, psnr_per_image, ssim_per_image
-    from image2sim.simulator.renderer.model import load_renderer
 
-    torch.set_num_threads(threads)
-    model = load_renderer(checkpoint)  # the config travels with the weights
     cfg = model.cfg
     targets = _targets(data, cfg.height, cfg.width, None if max_frames < 0 else max_frames)
     _, held = _split(targets, holdout_every)

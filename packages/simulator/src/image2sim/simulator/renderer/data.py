@@ -34,6 +34,7 @@ __all__ = [
     "DegradedPanoramaDataset",
     "ConditionDataset",
     "StepSampler",
+    "resize_target",
     "load_capture_targets",
 ]
 
@@ -171,6 +172,22 @@ class StepSampler(Sampler[int]):
             yield self.index_at(pos)
 
 
+def resize_target(
+    rgb: np.ndarray, depth: np.ndarray, height: int, width: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """uint8 ``(h, w, 3)`` colour and metric ``(h, w)`` depth -> area-resized ``(3, H, W)`` in [0, 1]
+    and ``(1, H, W)`` metres. Depth is averaged over valid source pixels only (an invalid 0 never
+    drags a mean down); a pixel that is mostly invalid stays 0."""
+    rgb_t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float()[None] / 255.0
+    depth_t = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None, None]
+    rgb_s = F.adaptive_avg_pool2d(rgb_t, (height, width))
+    valid = (depth_t > 0).float()
+    num = F.adaptive_avg_pool2d(depth_t * valid, (height, width))
+    den = F.adaptive_avg_pool2d(valid, (height, width))
+    depth_s = torch.where(den > 0.5, num / den.clamp_min(1e-6), torch.zeros_like(num))
+    return rgb_s[0].contiguous(), depth_s[0].contiguous()
+
+
 def load_capture_targets(
     path, height: int, width: int, max_frames: int | None = None
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -184,16 +201,9 @@ def load_capture_targets(
     out = []
     for i in range(n):
         frame = capture[i]
-        rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb)).permute(2, 0, 1).float()[None] / 255.0
-        depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32))[None, None]
         if frame.camera.model != "equirect":
             raise ValueError(f"{path}: frame {i} is {frame.camera.model}; the renderer trains on panoramas")
-        rgb_s = F.adaptive_avg_pool2d(rgb, (height, width))
-        valid = (depth > 0).float()
-        num = F.adaptive_avg_pool2d(depth * valid, (height, width))
-        den = F.adaptive_avg_pool2d(valid, (height, width))
-        depth_s = torch.where(den > 0.5, num / den.clamp_min(1e-6), torch.zeros_like(num))
-        out.append((rgb_s[0].contiguous(), depth_s[0].contiguous()))
+        out.append(resize_target(frame.rgb, frame.depth, height, width))
     if not out:
         raise ValueError(f"{path}: capture has no frames")
     return out
