@@ -264,6 +264,13 @@ def render_cmd(
         list[str], typer.Option(help="gaussians: TIER=CAPTURE (repeatable), captures at that noise tier.")
     ] = [],  # noqa: B006
     gaussian_config: Annotated[str, typer.Option(help="gaussians: Gaussian scene preset or file.")] = "tiny",
+    input_views: Annotated[
+        str,
+        typer.Option(
+            help="gaussians: build the Gaussians from the training panoramas (pano) or from six 90° "
+            "pinhole views cut from each (pinhole6, the paper's pinhole-input variant)."
+        ),
+    ] = "pano",
     target: Annotated[
         str,
         typer.Option(
@@ -301,6 +308,7 @@ def render_cmd(
         condition_source=condition_source,
         tier_data=tiers_data,
         gaussian_config=gaussian_config,
+        input_views=input_views,
         target=target,
         renderer_config=config,
         checkpoint=str(checkpoint) if checkpoint else None,
