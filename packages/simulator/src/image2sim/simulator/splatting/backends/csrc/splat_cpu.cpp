@@ -298,7 +298,8 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
 #pragma omp parallel num_threads(at::get_num_threads())
   {
     typename Lanes<real>::V a, gs;
-    std::vector<double> T(kP), Sa(kP), Ga(kP), dv(D);
+    std::vector<double> T(kP), Sa(kP), Ga(kP);
+    std::vector<real> dv(D);
     std::vector<scalar_t> S(kP * D), G(kP * D);
     std::vector<int64_t> last(kP);
     double* d_bg = d_bg_threads + omp_get_thread_num() * D;
@@ -308,25 +309,33 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
       const int64_t begin = offs[t];
       int64_t max_last = 0;
       std::fill(last.begin(), last.end(), 0);
-      for (int64_t j = 0; j < tv.h; ++j)
+      std::fill(S.begin(), S.end(), scalar_t(0));
+      for (int64_t j = 0; j < tv.h; ++j) {
+        const int64_t row = (tv.y0 + j) * g.W + tv.x0;
         for (int64_t i = 0; i < tv.w; ++i) {
           const int64_t p = j * kTile + i;
-          const int64_t pix = (tv.y0 + j) * g.W + tv.x0 + i;
-          T[p] = t_final[pix];
-          last[p] = n_contrib[pix];
+          T[p] = t_final[row + i];
+          last[p] = n_contrib[row + i];
           max_last = std::max(max_last, last[p]);
           Sa[p] = 0.0;
-          double gbg = 0.0;
-          for (int64_t c = 0; c < D; ++c) {
-            const double gc = g_out[c * HW + pix];
-            G[p * D + c] = static_cast<scalar_t>(gc);
-            S[p * D + c] = scalar_t(0);
-            gbg += gc * bg[c];
-            d_bg[c] += gc * (1.0 - static_cast<double>(alpha_out[pix]));
-          }
           // image = sum w v + (1 - sum w) bg: the background enters like an alpha gradient.
-          Ga[p] = static_cast<double>(g_alpha[pix]) - gbg;
+          Ga[p] = static_cast<double>(g_alpha[row + i]);
         }
+        // channel-outer: each read run is one contiguous row of a gradient plane
+        for (int64_t c = 0; c < D; ++c) {
+          const scalar_t* gr = g_out + c * HW + row;
+          const double bc = static_cast<double>(bg[c]);
+          double dbg = 0.0;
+          for (int64_t i = 0; i < tv.w; ++i) {
+            const int64_t p = j * kTile + i;
+            const double gc = static_cast<double>(gr[i]);
+            G[p * D + c] = gr[i];
+            Ga[p] -= gc * bc;
+            dbg += gc * (1.0 - static_cast<double>(alpha_out[row + i]));
+          }
+          d_bg[c] += dbg;
+        }
+      }
       for (int64_t k = begin + max_last - 1; k >= begin; --k) {
         const int64_t gi = ids[k];
         const int64_t rank = k - begin;
@@ -334,7 +343,7 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
         if (r.qlim < 0) continue;
         const scalar_t* v = vals + gi * D;
         double dmu = 0, dmv = 0, dA = 0, dB = 0, dC = 0, dop = 0;
-        std::fill(dv.begin(), dv.end(), 0.0);
+        std::fill(dv.begin(), dv.end(), real(0));
         bool touched = false;
         const RowRange rr = row_range(g, tv, r);
         for (int64_t j = rr.j0; j < rr.j1; ++j) {
@@ -356,15 +365,19 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
             const scalar_t* gp = G.data() + p * D;
             scalar_t* sp = S.data() + p * D;
             double da = Ga[p] * (T[p] - Sa[p] / one_m);
-            const double tp = T[p], inv = 1.0 / one_m;
-            const scalar_t ws = static_cast<scalar_t>(w);
-            double dsum = 0.0;
+            // Channel loop in the compute type (float for float32 inputs) so it vectorises.
+            const real tp = static_cast<real>(T[p]), inv = static_cast<real>(1.0 / one_m);
+            const real ws = static_cast<real>(w);
+            real dsum = 0;
+            real* dvp = dv.data();
+#pragma omp simd reduction(+ : dsum)
             for (int64_t c = 0; c < D; ++c) {
-              dv[c] += w * gp[c];
-              dsum += gp[c] * (tp * v[c] - sp[c] * inv);
-              sp[c] += ws * v[c];
+              const real gc = static_cast<real>(gp[c]), vc = static_cast<real>(v[c]);
+              dvp[c] += ws * gc;
+              dsum += gc * (tp * vc - static_cast<real>(sp[c]) * inv);
+              sp[c] = static_cast<scalar_t>(static_cast<real>(sp[c]) + ws * vc);
             }
-            da += dsum;
+            da += static_cast<double>(dsum);
             Sa[p] += w;
             if (clamped) continue;  // clamped alpha: no gradient to opacity or shape
             dop += da * gauss;
