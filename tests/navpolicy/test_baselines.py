@@ -117,3 +117,35 @@ def test_forward_turn_turns_after_every_collision_in_the_simulator(act_runs):
         assert turn_starts == (acts[i - 1] == F and col[i - 1]), f"step {i}"
     # Turns never collide; only forward steps do.
     assert all(acts[i] == F for i in range(len(acts)) if col[i])
+
+
+def test_compare_counts_an_unreachable_end_as_a_named_failure(tiny_cfg, monkeypatch):
+    """An episode the runner refuses because the agent ended where the goal is unreachable on the
+    graph is a failure (success 0, SPL 0) that the summary names, not a crash and not a drop."""
+    import image2sim.eval.runner as runner
+    from image2sim.navpolicy.act import compare_agents
+
+    real = runner.run_episode
+
+    def flaky(backend, agent, ep, proto, seed):
+        res = real(backend, agent, ep, proto, seed)
+        if ep.episode_id.endswith("0001"):
+            raise runner.RunnerError(
+                f"episode {ep.episode_id}: the agent ends at world position [0, 0, 0] ..."
+            )
+        return res
+
+    clean = compare_agents(tiny_cfg, ["oracle"], [1000], episodes_per_scene=3, max_steps=150)["oracle"]
+    assert clean["sr"] == 1.0 and "unreachable_end_episodes" not in clean
+    monkeypatch.setattr(runner, "run_episode", flaky)
+    s = compare_agents(tiny_cfg, ["oracle"], [1000], episodes_per_scene=3, max_steps=150)["oracle"]
+    assert s["unreachable_end_episodes"] == ["procedural-tiny-1000-0001"]
+    assert s["n_episodes"] == 3 and s["sr"] == pytest.approx(2 / 3) and s["ne_off_graph_episodes"] == 1
+    assert 0 < s["spl"] < clean["spl"]
+
+    def broken(*a, **kw):
+        raise runner.RunnerError("episode x: agent returned action 9")
+
+    monkeypatch.setattr(runner, "run_episode", broken)
+    with pytest.raises(runner.RunnerError, match="action 9"):
+        compare_agents(tiny_cfg, ["oracle"], [1000], episodes_per_scene=1, max_steps=10)

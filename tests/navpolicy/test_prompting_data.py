@@ -122,6 +122,32 @@ def test_make_sample_pairs_observations_with_next_two_actions():
     assert next_actions([1, 2, 3], 2, 3) == (3, int(Action.STOP), int(Action.STOP))
 
 
+def test_observation_stride_matches_the_streaming_agents_view():
+    """With stride 2 a short trajectory is observed every two actions, as the agent observes it:
+    steps 0, 2, 4, ..., ``Executed:`` lists of two, targets the next two actions."""
+    rng = np.random.default_rng(1)
+    T = 15
+    acts = [int(a) for a in rng.integers(1, 4, size=T - 1)] + [0]
+    frames = rng.integers(0, 255, size=(T, 4, 4, 3), dtype=np.uint8)
+    traj = Trajectory("i", acts, frames, list(range(T)))
+    s = make_sample(traj, 16, 32, rng, stride=2)
+    assert s.steps == list(range(0, T, 2))
+    assert all(s.executed[j] == tuple(acts[2 * j - 2 : 2 * j]) for j in range(1, len(s.steps)))
+    assert s.targets[-1] == (0, 0) and s.targets[0] == (acts[0], acts[1])
+    # Long trajectories: uniform over the even steps only, always starting at step 0.
+    long = Trajectory(
+        "i", [1] * 99 + [0], rng.integers(0, 255, (100, 4, 4, 3), dtype=np.uint8), list(range(100))
+    )
+    for seed in range(5):
+        st2 = make_sample(long, 8, 16, np.random.default_rng(seed), stride=2).steps
+        assert len(st2) == 8 and st2[0] == 0 and all(t % 2 == 0 for t in st2)
+    # Frame steps that are not every step: the stride applies to steps, not frame indices.
+    sparse = Trajectory("i", [1] * 9 + [0], frames[:4], [0, 3, 6, 8])
+    assert make_sample(sparse, 8, 16, stride=2).steps == [0, 6, 8]
+    with pytest.raises(ValueError, match="stride"):
+        make_sample(traj, stride=0)
+
+
 def test_collator_masks_everything_but_action_tokens(tiny_policy, builder):
     trajs = synthetic_trajectories(3, min_len=5, max_len=70, seed=1)
     samples = [make_sample(t, 32, 64, np.random.default_rng(i)) for i, t in enumerate(trajs)]

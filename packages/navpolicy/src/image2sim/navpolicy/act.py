@@ -175,7 +175,14 @@ def compare_agents(
 ) -> dict:
     """SR / SPL (with the runner's 95 % intervals) of each agent on the same held-out procedural
     episodes (scenes ``scene_seeds``), through :func:`image2sim.eval.runner.run_episode`."""
-    from image2sim.eval.runner import NeuralSimBackend, embodiment_for, episode_seed, nav_summary, run_episode
+    from image2sim.eval.runner import (
+        NeuralSimBackend,
+        RunnerError,
+        embodiment_for,
+        episode_seed,
+        nav_summary,
+        run_episode,
+    )
     from image2sim.navpolicy.dagger import procedural_simulator
     from rich.progress import Progress
 
@@ -190,36 +197,49 @@ def compare_agents(
         bar = progress.add_task("episodes", total=len(agents) * sum(len(e) for _, e in built))
         for name in agents:
             agent = make_agent(cfg, name)
-            results = []
+            results, metrics, unreachable = [], [], []
             for backend, episodes in built:
                 for ep in episodes:
-                    results.append(
-                        run_episode(backend, agent, ep, proto, episode_seed(seed, ep.episode_id))[0]
-                    )
+                    try:
+                        res = run_episode(backend, agent, ep, proto, episode_seed(seed, ep.episode_id))[0]
+                        results.append(res)
+                        metrics.append(dict(res.metrics))
+                    except RunnerError as exc:
+                        # The agent ended where the goal is unreachable on the navigation graph (a
+                        # pocket the kinematics reach but the graph does not connect): a failure,
+                        # counted and named rather than dropped.
+                        if " ends at " not in str(exc):
+                            raise
+                        unreachable.append(ep.episode_id)
+                        metrics.append({"success": 0.0, "spl": 0.0, "distance_to_goal": float("inf")})
                     progress.advance(bar)
             try:
+                if unreachable:
+                    raise ValueError(f"{len(unreachable)} episode(s) ended off the goal's graph component")
                 out[name] = nav_summary(results)
             except ValueError as exc:
-                out[name] = _sr_spl_only(results, str(exc))
+                out[name] = _sr_spl_only(metrics, str(exc))
+                if unreachable:
+                    out[name]["unreachable_end_episodes"] = unreachable
     return out
 
 
-def _sr_spl_only(results, why: str) -> dict:
+def _sr_spl_only(results: list[dict], why: str) -> dict:
     """SR/SPL with the runner's intervals when the full summary refuses a non-finite metric (an
     episode ended off the navigation graph: its distance to the goal is inf, but success = 0 and
     SPL = 0 are well defined); ``ne`` is then the mean over finite episodes and says how many."""
     from image2sim.eval.runner import bootstrap_ci, wilson_interval
 
-    sr = [float(r.metrics["success"]) for r in results]
-    spl = [float(r.metrics["spl"]) for r in results]
-    ne = [float(r.metrics["distance_to_goal"]) for r in results]
+    sr = [float(r["success"]) for r in results]
+    spl = [float(r["spl"]) for r in results]
+    ne = [float(r["distance_to_goal"]) for r in results]
     finite = [v for v in ne if np.isfinite(v)]
     return {
         "sr": float(np.mean(sr)),
         "spl": float(np.mean(spl)),
         "ne": float(np.mean(finite)) if finite else float("nan"),
         "ne_off_graph_episodes": len(ne) - len(finite),
-        "steps": float(np.mean([float(r.metrics["steps"]) for r in results])),
+        "steps": float(np.mean([float(r["steps"]) for r in results if "steps" in r] or [float("nan")])),
         "n_episodes": len(results),
         "sr_ci": list(wilson_interval(sum(sr), len(sr))),
         "spl_ci": list(bootstrap_ci(spl)),

@@ -82,7 +82,12 @@ def inspect_cmd(
 
     cfg = _config(config)
     pol = build_policy(cfg, seed=0)
-    sample = make_sample(ShardReader(shard)[index], cfg.data.max_observations, cfg.data.max_action_labels)
+    sample = make_sample(
+        ShardReader(shard)[index],
+        cfg.data.max_observations,
+        cfg.data.max_action_labels,
+        stride=cfg.data.observation_stride,
+    )
     batch = NavCollator(PromptBuilder(pol.tokenizer, pol.codec, cfg.system_prompt), pol.image_processor)(
         [sample]
     )

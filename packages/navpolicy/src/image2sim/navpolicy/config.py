@@ -121,6 +121,9 @@ class DataConfig:
     """Action labels per sample (paper: 64 = two per observation)."""
     jitter: bool = True
     """Stratified random sampling inside each uniform bin (False: bin centres, deterministic)."""
+    observation_stride: int = 1
+    """Sample observations only at steps that are multiples of this; 2 matches the streaming agent,
+    which observes once per two actions (stride 1 shows every step of short trajectories)."""
     num_workers: int = 0
     """DataLoader worker processes."""
 
@@ -252,6 +255,8 @@ class NavPolicyConfig:
             raise ConfigError("model.tiny.num_position_embeddings must be a perfect square")
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
+        if self.data.observation_stride < 1:
+            raise ConfigError(f"data.observation_stride must be >= 1, got {self.data.observation_stride}")
         if self.observation.camera not in ("pinhole", "equirect"):
             raise ConfigError(
                 f"observation.camera must be pinhole or equirect, not {self.observation.camera!r}"

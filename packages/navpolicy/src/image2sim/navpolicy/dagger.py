@@ -419,10 +419,19 @@ def _atomic_write_text(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def run_fingerprint(cfg: NavPolicyConfig, scenes: Sequence[DaggerScene], base_trajectories) -> str:
-    """Hash of what defines a DAgger run (config, scenes' tasks, the BC data's episodes): a resumed
-    run must present the same, or its state is not reused."""
+def run_fingerprint(
+    cfg: NavPolicyConfig, scenes: Sequence[DaggerScene], base_trajectories, model=None
+) -> str:
+    """Hash of what defines a DAgger run (config, scenes' tasks, the BC data's episodes and the
+    starting weights of ``model``): a resumed run must present the same, or its state is not reused
+    (e.g. a retrained BC export at the same path starts a new DAgger run)."""
     h = hashlib.sha256(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode())
+    if model is not None:
+        import torch
+
+        for name, t in sorted(model.state_dict().items()):
+            h.update(name.encode())
+            h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
     for s in scenes:
         for t in s.tasks:
             rec = [s.name, t.episode_id, [float(v) for v in t.start], float(t.heading)]
@@ -478,7 +487,8 @@ def _load_state(path: Path, fingerprint: str) -> dict | None:
         raise ValueError(f"{path}: DAgger state version {state.get('version')} is not {STATE_VERSION}")
     if state.get("fingerprint") != fingerprint:
         raise ValueError(
-            f"{path}: written by a DAgger run with other arguments (config, scenes, tasks or BC data); "
+            f"{path}: written by a DAgger run with other arguments (config, scenes, tasks, BC data or "
+            "starting weights); "
             "resume with the same arguments, use another output folder, or start fresh (--fresh)"
         )
     return state
@@ -547,7 +557,8 @@ def run_dagger(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     state_path, log_path = out / STATE_FILE, out / "episodes.jsonl"
-    fingerprint = run_fingerprint(cfg, scenes, base_trajectories)
+    policy = policy or build_policy(cfg, seed=cfg.train.seed)
+    fingerprint = run_fingerprint(cfg, scenes, base_trajectories, policy.model)
     state = _load_state(state_path, fingerprint) if resume else None
     if state is None:  # a fresh run: clear what an earlier run left in this folder
         state_path.unlink(missing_ok=True)
@@ -571,7 +582,6 @@ def run_dagger(
     else:
         set_rng_states(state["rng"])
     save_config(cfg, out / "config.yaml")
-    policy = policy or build_policy(cfg, seed=cfg.train.seed)
     if state["weights"]:
         load_model(policy.model, str(out / state["weights"]))
 
@@ -650,6 +660,7 @@ def run_dagger(
                 cfg.data.max_action_labels,
                 cfg.data.jitter,
                 rc.train.seed,
+                cfg.data.observation_stride,
             )
             tdir = rdir / "train"
             last = tdir / "checkpoints" / "last.ckpt"

@@ -140,12 +140,22 @@ def make_sample(
     max_observations: int = 32,
     max_action_labels: int = 64,
     rng: np.random.Generator | None = None,
+    stride: int = 1,
 ) -> NavSample:
-    """Sample observations uniformly along ``traj`` and pair each with its next two actions."""
+    """Sample observations uniformly along ``traj`` and pair each with its next two actions.
+
+    ``stride``: only frames at steps that are multiples of it are candidates. With
+    ``stride = ACTIONS_PER_STEP`` (2) a sample looks like what the streaming agent sees at inference
+    (an observation every two actions, ``Executed:`` lists of two), also on short trajectories where
+    stride 1 would show every step.
+    """
     n_obs = min(max_observations, max_action_labels // ACTIONS_PER_STEP)
     if n_obs < 1:
         raise ValueError(f"max_action_labels={max_action_labels} leaves room for no observation")
-    idx = uniform_indices(len(traj.frame_steps), n_obs, rng)
+    if stride < 1:
+        raise ValueError(f"observation stride must be >= 1, got {stride}")
+    cand = [i for i, s in enumerate(traj.frame_steps) if int(s) % stride == 0] or [0]
+    idx = [cand[i] for i in uniform_indices(len(cand), n_obs, rng)]
     steps = [int(traj.frame_steps[i]) for i in idx]
     executed, prev = [], None
     for s in steps:
@@ -315,7 +325,9 @@ class NavShardDataset(torch.utils.data.Dataset):
         max_action_labels: int = 64,
         jitter: bool = True,
         seed: int = 0,
+        stride: int = 1,
     ) -> None:
+        self.stride = stride
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s) for s in shards]
@@ -335,7 +347,9 @@ class NavShardDataset(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> NavSample:
         r, j = self.index[i]
         rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
-        return make_sample(self.readers[r][j], self.max_observations, self.max_action_labels, rng)
+        return make_sample(
+            self.readers[r][j], self.max_observations, self.max_action_labels, rng, self.stride
+        )
 
 
 class InMemoryNavDataset(torch.utils.data.Dataset):
@@ -348,7 +362,9 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
         max_action_labels: int = 64,
         jitter: bool = True,
         seed: int = 0,
+        stride: int = 1,
     ) -> None:
+        self.stride = stride
         self.trajectories = list(trajectories)
         self.max_observations, self.max_action_labels = max_observations, max_action_labels
         self.jitter, self.seed, self.epoch = jitter, seed, 0
@@ -361,7 +377,9 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> NavSample:
         rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
-        return make_sample(self.trajectories[i], self.max_observations, self.max_action_labels, rng)
+        return make_sample(
+            self.trajectories[i], self.max_observations, self.max_action_labels, rng, self.stride
+        )
 
 
 # -------------------------------------------------------------------------------------------- collator

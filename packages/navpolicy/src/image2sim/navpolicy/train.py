@@ -67,7 +67,8 @@ class PositionDataset(torch.utils.data.Dataset):
         else:
             traj = self.base.trajectories[i]
         rng = np.random.default_rng([self.seed, epoch, i]) if self.base.jitter else None
-        sample = make_sample(traj, self.base.max_observations, self.base.max_action_labels, rng)
+        stride = getattr(self.base, "stride", 1)
+        sample = make_sample(traj, self.base.max_observations, self.base.max_action_labels, rng, stride)
         sample.episode_id = sample.episode_id or f"#{i}"
         return sample
 
@@ -188,6 +189,7 @@ class NavBCModule(L.LightningModule):
                 self.cfg.data.max_action_labels,
                 self.cfg.data.jitter,
                 tc.seed,
+                self.cfg.data.observation_stride,
             )
         per_step = tc.batch_size * tc.accumulate_grad_batches
         start = self.trainer.global_step * per_step
