@@ -5,6 +5,7 @@ from __future__ import annotations
 import gzip
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -267,3 +268,9 @@ def test_ray_executor_matches_local(scenes_root, full_run, tmp_path):
     a = _read(out_ref / "train" / "train.json.gz")["episodes"]
     b = _read(tmp_path / "ray" / "train" / "train.json.gz")["episodes"]
     assert a == b
+    # Each task ran in a worker pinned to one thread (no oversubscription), and reports its timings.
+    tasks = summary["tasks"]
+    assert sorted(tasks) == ["scene_000", "scene_001"]
+    for t in tasks.values():
+        assert t["torch_threads"] == 1 and t["omp_num_threads"] == "1"
+        assert 0 < t["cpu_s"] and 0 < t["wall_s"] and t["pid"] != os.getpid()

@@ -9,12 +9,18 @@
   * the final episode files are rebuilt from the finished scenes' ``episodes.json`` in sorted scene
     order, so a killed-and-restarted run yields the same files with no duplicates and nothing lost.
 
-Ray: local by default (``ray.init(num_cpus=workers)``); ``address`` joins an existing cluster.
+Ray: local by default (``ray.init(num_cpus=workers)``); ``address`` joins an existing cluster. Each
+task runs in a worker whose runtime environment pins the BLAS/OpenMP pools to one thread
+(:data:`WORKER_ENV`) and which sets torch to one thread, so ``workers`` tasks use ``workers`` cores
+and do not oversubscribe them. At most ``workers`` tasks are in flight at once on a local Ray (so the
+same Ray instance can run a 1-worker and a 2-worker pass); on a cluster every task is submitted.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,6 +31,14 @@ from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig
 __all__ = ["find_scenes", "pending_scenes", "run_engine", "merge_outputs", "RunError"]
 
 RUN_FILE = "run.json"
+
+WORKER_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+}
+"""Environment of the Ray workers: one thread per BLAS/OpenMP pool (one task = one core)."""
 
 
 class RunError(RuntimeError):
@@ -87,25 +101,42 @@ def _run_ray(
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
         started = True
     try:
-        task = ray.remote(num_cpus=1, max_retries=0)(_scene_task)
-        refs = {task.remote(str(s), str(out_dir), cfg): s for s in todo}
-        pending = list(refs)
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+        task = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": dict(WORKER_ENV)})(_scene_task)
+        queue = list(todo)
+        cap = len(queue) if address else max(1, int(workers))
+        refs: dict = {}
+        while queue or refs:
+            while queue and len(refs) < cap:
+                s = queue.pop(0)
+                refs[task.remote(str(s), str(out_dir), cfg)] = s
+            done, _ = ray.wait(list(refs), num_returns=1)
             for ref in done:
                 try:
                     summary, err = ray.get(ref)
                 except Exception as exc:  # noqa: BLE001 - e.g. the worker process died: report, go on
                     summary, err = None, f"{type(exc).__name__}: {exc}"
-                on_done(refs[ref], summary, err)
+                on_done(refs.pop(ref), summary, err)
     finally:
         if started:
             ray.shutdown()
 
 
 def _scene_task(scene: str, out_dir: str, cfg: dict):
+    """One scene in a Ray worker: torch at one thread; the summary gains the task's wall/CPU seconds."""
+    import torch
+
+    torch.set_num_threads(1)
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
-        return process_scene(scene, out_dir, cfg), None
+        summary = process_scene(scene, out_dir, cfg)
+        summary["task"] = {
+            "pid": os.getpid(),
+            "wall_s": time.perf_counter() - t0,
+            "cpu_s": time.process_time() - c0,
+            "torch_threads": torch.get_num_threads(),
+            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        }
+        return summary, None
     except Exception as err:  # noqa: BLE001 - reported, not raised: other scenes go on
         return None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}"
 
@@ -123,6 +154,7 @@ def run_engine(
     """Process every unfinished scene, then rebuild the merged outputs. Returns the run summary.
 
     ``limit`` processes at most that many pending scenes (used to simulate interruptions in tests).
+    ``tasks`` in the result maps each scene run through Ray to its worker pid, wall and CPU seconds.
     """
     if executor not in ("local", "ray"):
         raise RunError(f"executor must be local or ray, got {executor!r}")
@@ -135,6 +167,7 @@ def run_engine(
     if limit is not None:
         todo = todo[:limit]
     failures: dict[str, str] = {}
+    tasks: dict[str, dict] = {}
     fail_path = out_dir / "failures.json"
     bar = task_id = None
     if progress and todo:
@@ -145,6 +178,8 @@ def run_engine(
         task_id = bar.add_task(f"scenes ({skipped} already done)", total=len(todo))
 
     def on_done(scene: Path, summary, err) -> None:
+        if summary is not None and "task" in summary:
+            tasks[scene.name] = summary["task"]
         if err is not None:
             failures[scene.name] = err
             atomic_write_bytes(fail_path, json.dumps(failures, indent=1).encode())
@@ -165,6 +200,7 @@ def run_engine(
         "skipped": skipped,
         "processed": len(todo) - len(failures),
         "failed": failures,
+        "tasks": tasks,
         **merged,
     }
 
