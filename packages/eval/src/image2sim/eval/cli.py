@@ -66,12 +66,32 @@ def report_cmd(
     out_dir: Annotated[
         Path | None, typer.Option(help="Write nav.md, render.md and render_speed.png here.")
     ] = None,
+    figure_scene: Annotated[
+        Path | None,
+        typer.Option(
+            help="Scene folder (navmap.npz): also write demo_figure.png to --out-dir (rendered panorama, "
+            "its splat prior, a top-down episode map); needs --figure-capture and --figure-episodes."
+        ),
+    ] = None,
+    figure_capture: Annotated[Path | None, typer.Option(help="figure: the scene's capture folder.")] = None,
+    figure_episodes: Annotated[
+        Path | None, typer.Option(help="figure: episode file or `episodes` output folder (train split).")
+    ] = None,
+    figure_checkpoint: Annotated[
+        Path | None, typer.Option(help="figure: renderer checkpoint (omit: untrained model).")
+    ] = None,
+    renderer_config: Annotated[str, typer.Option(help="figure: renderer preset or YAML.")] = "tiny",
+    gaussian_config: Annotated[str, typer.Option(help="figure: Gaussian scene preset or file.")] = "tiny",
+    holdout_every: Annotated[int, typer.Option(help="figure: every n-th frame is held out.")] = 8,
 ) -> None:
-    """Tables laid out like the paper's Table 2 (navigation) and Table 1 (rendering), and the speed plot."""
+    """Tables laid out like the paper's Table 2 (navigation) and Table 1 (rendering), the speed plot,
+    and optionally the demo figure."""
     from image2sim.eval.report import nav_table_markdown, read_aggregate
 
-    if not aggregates and nav is None and render is None:
-        raise typer.BadParameter("give aggregate.json files, --nav and/or --render")
+    if not aggregates and nav is None and render is None and figure_scene is None:
+        raise typer.BadParameter("give aggregate.json files, --nav, --render and/or --figure-scene")
+    if figure_scene is not None and (out_dir is None or figure_capture is None or figure_episodes is None):
+        raise typer.BadParameter("--figure-scene needs --out-dir, --figure-capture and --figure-episodes")
     if aggregates:
         table = nav_table_markdown([read_aggregate(p) for p in aggregates])
         typer.echo(table)
@@ -96,6 +116,20 @@ def report_cmd(
             written = _write_text(out_dir / "render.md", "# Rendering (Table 1 layout)\n\n" + text)
             typer.echo(f"wrote {written}")
             typer.echo(f"wrote {plot_speed_vs_error(doc, out_dir / 'render_speed.png')}")
+    if figure_scene is not None:
+        from image2sim.eval.figure import demo_figure_from_outputs
+
+        shown = demo_figure_from_outputs(
+            figure_scene,
+            figure_capture,
+            figure_episodes,
+            out_dir / "demo_figure.png",
+            renderer_config=renderer_config,
+            checkpoint=figure_checkpoint,
+            gaussian_config=gaussian_config,
+            holdout_every=holdout_every,
+        )
+        typer.echo(f"wrote {out_dir / 'demo_figure.png'} ({json.dumps(shown)})")
 
 
 def _write_text(path: Path, text: str) -> Path:

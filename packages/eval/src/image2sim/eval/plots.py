@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SpeedPoint", "plot_speed_vs_error", "speed_points"]
+__all__ = ["SpeedPoint", "plot_speed_vs_error", "save_figure_atomic", "speed_points"]
 
 _FLOW = re.compile(r"^flow_(\d+)step$")
 
@@ -99,6 +99,14 @@ def plot_speed_vs_error(
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
+    try:
+        return save_figure_atomic(fig, out_png)
+    finally:
+        plt.close(fig)
+
+
+def save_figure_atomic(fig: Any, out_png: str | Path) -> Path:
+    """Save a matplotlib figure as PNG via a temporary file and a rename (never a half-written PNG)."""
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".png", dir=out.parent)
@@ -107,6 +115,5 @@ def plot_speed_vs_error(
         fig.savefig(tmp, format="png")
         os.replace(tmp, out)
     finally:
-        plt.close(fig)
         Path(tmp).unlink(missing_ok=True)
     return out
