@@ -614,3 +614,18 @@ def test_inference_and_training_paths_agree():
     trained = splat(*[t.clone().requires_grad_() for t in scene], EQ, _yaw_pose(10.0), backend="cpu")
     for name, t in planes(fused).items():
         torch.testing.assert_close(t, planes(trained)[name].detach(), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_depth_sort_is_stable_and_matches_torch(dtype):
+    if "cpu" not in BACKENDS:
+        pytest.skip("compiled kernel unavailable on this machine")
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    g = torch.Generator().manual_seed(3)
+    depths = (torch.randint(1, 40, (3000,), generator=g).to(dtype) * 0.125).contiguous()  # many ties
+    depths[::7] = torch.rand(depths[::7].shape, generator=g).to(dtype) * 1e4
+    valid = torch.rand(3000, generator=g) > 0.2
+    want = torch.nonzero(valid).squeeze(1)
+    want = want[torch.argsort(depths[want], stable=True)]
+    assert torch.equal(cpu_kernel.sort_valid(depths, valid), want)

@@ -27,7 +27,6 @@ Semantics (shared exactly by every backend; the dense reference in
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -35,9 +34,17 @@ import torch
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting.backends import reference as _reference
 from image2sim.simulator.splatting.backends import torch_tiles as _torch_tiles
+from image2sim.simulator.splatting.dispatch import (
+    Backend,
+    device_type,
+    register_backend,
+    registered_backends,
+)
+from image2sim.simulator.splatting.dispatch import get_backend as _get_backend
+from image2sim.simulator.splatting.dispatch import resolve_backend as _resolve
 from image2sim.simulator.splatting.project import project_gaussians
 
-__all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend", "BACKENDS"]
+__all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend"]
 
 
 @dataclass
@@ -74,51 +81,82 @@ def _cpu_kernel_rasterize(*args, **kwargs):
     return cpu_kernel.rasterize(*args, **kwargs)
 
 
-BACKENDS: dict[str, RasterizeFn] = {
-    "reference": _reference.rasterize,
-    "torch": _torch_tiles.rasterize,
-    "cpu": _cpu_kernel_rasterize,
-}
-"""Rasterisers by name. A GPU kernel registers here (and in :func:`resolve_backend`)."""
-_ALIASES = {"torch_tiles": "torch", "dense": "reference", "cpp": "cpu", "cpu_kernel": "cpu"}
-
-
-def available_backends() -> list[str]:
-    """Backends usable on this machine (the compiled CPU kernel only if it builds/loads)."""
+def _cpu_kernel_available() -> bool:
     from image2sim.simulator.splatting.backends import cpu_kernel
 
-    names = ["reference", "torch"]
-    if cpu_kernel.available():
-        names.append("cpu")
-    return names
+    return cpu_kernel.available()
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
-    """Map a requested backend (or ``"auto"``) to a concrete name for ``device``.
+def _cpu_kernel_error() -> str:
+    from image2sim.simulator.splatting.backends import cpu_kernel
 
-    ``auto``: the compiled kernel on CPU, falling back (with a warning) to ``torch`` if it cannot
-    be built; ``torch`` on other devices until a device kernel is registered.
+    return f"compiled CPU kernel: {cpu_kernel.load_error()}"
+
+
+def _register_builtin_backends() -> None:
+    """The built-in dispatch rule (see :mod:`.dispatch`): cpu > torch on CPU; gsplat > torch for
+    pinhole cameras on CUDA; torch everywhere else; the dense reference only by name."""
+    from image2sim.simulator.splatting.backends import gsplat_adapter
+
+    everything = (EquirectCamera, PinholeCamera)
+    builtins = [
+        (Backend("reference", "rasterizer", _reference.rasterize, None, everything), ("dense",)),
+        (
+            Backend("torch", "rasterizer", _torch_tiles.rasterize, None, everything, auto_priority=0),
+            ("torch_tiles",),
+        ),
+        (
+            Backend(
+                "cpu",
+                "rasterizer",
+                _cpu_kernel_rasterize,
+                frozenset({"cpu"}),
+                everything,
+                available=_cpu_kernel_available,
+                unavailable_reason=_cpu_kernel_error,
+                auto_priority=100,
+                warn_on_fallback=True,
+            ),
+            ("cpp", "cpu_kernel"),
+        ),
+        (
+            Backend(
+                "gsplat",
+                "renderer",
+                gsplat_adapter.render,
+                frozenset({"cuda"}),
+                (PinholeCamera,),
+                available=gsplat_adapter.available,
+                unavailable_reason=gsplat_adapter.unavailable_reason,
+                auto_priority=100,
+            ),
+            (),
+        ),
+    ]
+    for backend, aliases in builtins:
+        register_backend(backend, aliases=aliases, replace=True)
+
+
+_register_builtin_backends()
+
+
+def available_backends(device: torch.device | str = "cpu") -> list[str]:
+    """Backends usable for tensors on ``device`` on this machine (default CPU; the compiled CPU
+    kernel only if it builds/loads, gsplat only on CUDA and only if it imports)."""
+    dev = device_type(torch.device(device))
+    return [
+        b.name for b in registered_backends() if (b.devices is None or dev in b.devices) and b.available()
+    ]
+
+
+def resolve_backend(backend: str, device: torch.device, camera: object | None = None) -> str:
+    """Map a requested backend (or ``"auto"``) to a registered name for ``device`` and ``camera``.
+
+    See :func:`image2sim.simulator.splatting.dispatch.resolve_backend`: on CPU the compiled kernel
+    (falling back with a warning to ``torch`` if it cannot be built); on CUDA gsplat for pinhole
+    cameras when importable, else ``torch``.
     """
-    name = _ALIASES.get(backend, backend)
-    if name == "auto":
-        if device.type != "cpu":
-            return "torch"
-        from image2sim.simulator.splatting.backends import cpu_kernel
-
-        if cpu_kernel.available():
-            return "cpu"
-        warnings.warn(
-            f"splat: compiled CPU kernel unavailable ({cpu_kernel.load_error()}); using the slower "
-            "'torch' backend",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        return "torch"
-    if name not in BACKENDS:
-        raise ValueError(f"splat: unknown backend {backend!r}; choose from auto, {', '.join(BACKENDS)}")
-    if name == "cpu" and device.type != "cpu":
-        raise ValueError(f"splat: backend 'cpu' needs CPU tensors, got device {device}")
-    return name
+    return _resolve(backend, device, camera)
 
 
 def _check(name: str, t: torch.Tensor, shape: tuple, n: int | None) -> None:
@@ -242,9 +280,25 @@ def splat(
     c = features.shape[1]
     bg_all = torch.cat((bg, torch.zeros(1 + c, dtype=dtype, device=device)))
 
-    name = resolve_backend(backend, device)
-    raster = BACKENDS[name]
+    name = resolve_backend(backend, device, camera)
+    entry = _get_backend(name)
     poses = cam_to_world.unsqueeze(0) if cam_to_world.dim() == 2 else cam_to_world
+    if entry.kind == "renderer":  # does projection and rasterisation itself (e.g. gsplat on CUDA)
+        rgb, depth, alpha, feats = entry.fn(
+            means,
+            scales,
+            quats,
+            opacities,
+            colors,
+            features,
+            camera,
+            poses,
+            near=near,
+            far=far,
+            background=bg,
+        )
+        return SplatOutput(rgb=rgb, depth=depth, alpha=alpha, features=feats, backend=name)
+    raster = entry.fn
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means, scales, quats, opacities, colors, features, bg, cam_to_world)
     )
@@ -310,4 +364,6 @@ def splat(
         image, alpha = images[0].unsqueeze(0), alphas[0].unsqueeze(0)
     else:
         image, alpha = torch.stack(images), torch.stack(alphas)
-    return SplatOutput(rgb=image[:, :3], depth=image[:, 3:4], alpha=alpha, features=image[:, 4:], backend=name)
+    return SplatOutput(
+        rgb=image[:, :3], depth=image[:, 3:4], alpha=alpha, features=image[:, 4:], backend=name
+    )
