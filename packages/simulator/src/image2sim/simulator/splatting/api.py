@@ -27,9 +27,11 @@ Semantics (shared exactly by every backend; the dense reference in
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting.backends import reference as _reference
@@ -182,9 +184,19 @@ def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor | None:
 
     Fast path: a sum is finite only if every term is (NaN and inf propagate), so one reduction
     clears the common case; a non-finite sum (a bad value, or an overflow) takes the exact test.
+    CPU float32/float64 tensors are summed by numpy, single-threaded: a parallel torch reduction
+    here would leave torch's OpenMP workers spinning while the compiled kernel runs next, which on
+    a shared machine doubled the CPU time per frame.
     """
     d = t.detach()
-    if d.numel() == 0 or bool(torch.isfinite(d.sum())):
+    if d.numel() == 0:
+        return None
+    if d.device.type == "cpu" and d.dtype in (torch.float32, torch.float64):
+        with np.errstate(all="ignore"):  # overflow / inf - inf only send us to the exact test
+            total = float(np.sum(d.numpy()))
+    else:
+        total = float(d.sum())
+    if math.isfinite(total):
         return None
     return ~torch.isfinite(d).reshape(t.shape[0], -1).all(dim=1)
 
@@ -242,7 +254,7 @@ def splat(
     if nonfinite not in ("raise", "cull"):
         raise ValueError(f"splat: nonfinite must be 'raise' or 'cull', got {nonfinite!r}")
 
-    bad = torch.zeros(n, dtype=torch.bool, device=device)
+    bad: torch.Tensor | None = None  # rows with a non-finite value (None: every row is finite)
     for name, t in (
         ("means", means),
         ("scales", scales),
@@ -259,8 +271,8 @@ def splat(
                     f"splat: {name} has non-finite values (NaN/inf) in {int(rows.sum())} of {n} Gaussians "
                     f"(first at index {first}); pass nonfinite='cull' to drop them"
                 )
-            bad = bad | rows
-    if bad.any():  # replace culled rows by finite stand-ins so no NaN reaches any gradient
+            bad = rows if bad is None else bad | rows
+    if bad is not None:  # replace culled rows by finite stand-ins so no NaN reaches any gradient
         keep = ~bad
         means = torch.where(keep[:, None], means, torch.zeros_like(means))
         scales = torch.where(keep[:, None], scales, torch.ones_like(scales))
@@ -303,7 +315,7 @@ def splat(
         t.requires_grad for t in (means, scales, quats, opacities, colors, features, bg, cam_to_world)
     )
     images, alphas = [], []
-    finite_mask = ~bad if bad.any() else None
+    finite_mask = ~bad if bad is not None else None
     for pose in poses:
         if name == "cpu" and not needs_grad:  # fused C++ project + sort + bin + rasterise
             from image2sim.simulator.splatting.backends.cpu_kernel import render

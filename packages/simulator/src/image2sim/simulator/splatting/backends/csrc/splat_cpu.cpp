@@ -6,7 +6,8 @@
 // image[k] = sum w v_k + (1 - sum w) bg_k and alpha = sum w.
 //
 // Layout and loops (see docs/renderer.md, "CPU kernel"):
-// * Tiles are 16 x 16 pixels; OpenMP threads take whole tiles (dynamic schedule).
+// * Tiles are 16 x 16 pixels; worker threads (std::thread, joined per call: no spinning OpenMP
+//   team) take whole tiles (dynamic schedule through an atomic counter).
 // * Inside a tile the loop is Gaussian-outer, row-middle, 16-lane pixel-inner: for one Gaussian and
 //   one pixel row, `row_alpha` evaluates all 16 pixels at once (branch-free, `omp simd`), then the
 //   transmittance update and every channel accumulation are 16-lane vector loops over a
@@ -22,12 +23,13 @@
 //   one call: no per-frame Python or small torch ops.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
-#include <omp.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <thread>
 #include <type_traits>
 #include <vector>
 #if defined(__AVX512F__)
@@ -203,6 +205,38 @@ inline RowRange row_range(const Grid& g, const TileView& tv, const Rec& r) {
 template <typename real>
 using compute_t = std::conditional_t<std::is_same_v<real, double>, double, float>;
 
+// Threads: plain std::thread workers joined per call (no OpenMP). An OpenMP team spins at its
+// barriers and between regions; on a shared, oversubscribed machine that spinning doubled the CPU
+// time per frame. Blocking joins cost ~50 us per call and never spin. Thread count =
+// torch.get_num_threads().
+inline int num_workers(int64_t work_items) {
+  return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), work_items)));
+}
+
+template <typename F>
+void run_workers(int n, const F& body) {  // body(worker index)
+  if (n <= 1) {
+    body(0);
+    return;
+  }
+  std::vector<std::thread> pool;
+  pool.reserve(n - 1);
+  for (int w = 1; w < n; ++w) pool.emplace_back([&body, w] { body(w); });
+  body(0);
+  for (auto& th : pool) th.join();
+}
+
+// Static split of [0, n) into contiguous chunks of at least `grain`, one per worker.
+template <typename F>
+void parallel_range(int64_t n, int64_t grain, const F& fn) {  // fn(begin, end)
+  const int workers = num_workers((n + grain - 1) / std::max<int64_t>(grain, 1));
+  const int64_t chunk = (n + workers - 1) / std::max(workers, 1);
+  run_workers(workers, [&](int w) {
+    const int64_t b = w * chunk, e = std::min<int64_t>(n, b + chunk);
+    if (b < e) fn(b, e);
+  });
+}
+
 template <typename scalar_t>
 void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int64_t D, const int64_t* offs,
                   const int64_t* ids, const Grid& g, scalar_t* out, scalar_t* alpha_out, double* t_final,
@@ -212,8 +246,8 @@ void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int
   const int64_t HW = g.H * g.W;
   const real wrap = static_cast<real>(g.wrap);
   const real tmin = static_cast<real>(kTMin);
-#pragma omp parallel num_threads(at::get_num_threads())
-  {
+  std::atomic<int64_t> next_tile{0};  // dynamic schedule: workers take the next tile
+  run_workers(num_workers(n_tiles), [&](int) {
     using V = typename Lanes<real>::V;
     using I = typename Lanes<real>::I;
     using lane_int = typename Lanes<real>::lane_int;
@@ -222,8 +256,7 @@ void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int
     std::vector<real> acc_buf(std::max<int64_t>(D, 1) * kP);
     real* acc = acc_buf.data();
     const V zero = V{};
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < n_tiles; ++t) {
+    for (int64_t t = next_tile++; t < n_tiles; t = next_tile++) {
       const TileView tv = tile_view(g, t);
       for (int p = 0; p < kP; ++p) {
         T[p] = (p / kTile < tv.h && p % kTile < tv.w) ? real(1) : real(0);  // padding lanes: done
@@ -283,7 +316,7 @@ void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int
         }
       }
     }
-  }
+  });
 }
 
 template <typename scalar_t>
@@ -295,16 +328,15 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
   const int64_t n_tiles = g.ntx * g.nty;
   const int64_t HW = g.H * g.W;
   const real wrap = static_cast<real>(g.wrap);
-#pragma omp parallel num_threads(at::get_num_threads())
-  {
+  std::atomic<int64_t> next_tile{0};
+  run_workers(num_workers(n_tiles), [&](int worker) {
     typename Lanes<real>::V a, gs;
     std::vector<double> T(kP), Sa(kP), Ga(kP);
     std::vector<real> dv(D);
     std::vector<scalar_t> S(kP * D), G(kP * D);
     std::vector<int64_t> last(kP);
-    double* d_bg = d_bg_threads + omp_get_thread_num() * D;
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < n_tiles; ++t) {
+    double* d_bg = d_bg_threads + worker * D;
+    for (int64_t t = next_tile++; t < n_tiles; t = next_tile++) {
       const TileView tv = tile_view(g, t);
       const int64_t begin = offs[t];
       int64_t max_last = 0;
@@ -410,7 +442,7 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
         }
       }
     }
-  }
+  });
 }
 
 // Records for M sorted screen Gaussians given as separate arrays (training path).
@@ -418,7 +450,7 @@ template <typename scalar_t>
 std::vector<Rec> make_records(const scalar_t* mean, const scalar_t* radii, const scalar_t* conic,
                               const scalar_t* opac, int64_t M) {
   std::vector<Rec> recs(M);
-  at::parallel_for(0, M, 4096, [&](int64_t b, int64_t e) {
+  parallel_range(M, 4096, [&](int64_t b, int64_t e) {
     for (int64_t i = b; i < e; ++i) {
       const double o = opac[i];
       recs[i] = make_rec(mean[2 * i], mean[2 * i + 1], radii[2 * i], radii[2 * i + 1], conic[3 * i],
@@ -526,7 +558,7 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
   const double kPi = 3.14159265358979323846;
   const double R[3][3] = {{c2w[0], c2w[1], c2w[2]}, {c2w[4], c2w[5], c2w[6]}, {c2w[8], c2w[9], c2w[10]}};
   const double t[3] = {c2w[3], c2w[7], c2w[11]};
-  at::parallel_for(0, N, 2048, [&](int64_t begin, int64_t end) {
+  parallel_range(N, 2048, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) {
       const double m[3] = {(double)means[3 * i] - t[0], (double)means[3 * i + 1] - t[1], (double)means[3 * i + 2] - t[2]};
       double p[3];
@@ -752,7 +784,7 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor sca
     const scalar_t* op = opac.data_ptr<scalar_t>();
     const scalar_t* colp = col.data_ptr<scalar_t>();
     const scalar_t* fp = fea.data_ptr<scalar_t>();
-    at::parallel_for(0, M, 4096, [&](int64_t b, int64_t e) {
+    parallel_range(M, 4096, [&](int64_t b, int64_t e) {
       for (int64_t k = b; k < e; ++k) {
         const int64_t i = order[k];
         const double o = op[i];
