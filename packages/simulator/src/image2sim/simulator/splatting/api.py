@@ -296,19 +296,8 @@ def splat(
     entry = _get_backend(name)
     poses = cam_to_world.unsqueeze(0) if cam_to_world.dim() == 2 else cam_to_world
     if entry.kind == "renderer":  # does projection and rasterisation itself (e.g. gsplat on CUDA)
-        rgb, depth, alpha, feats = entry.fn(
-            means,
-            scales,
-            quats,
-            opacities,
-            colors,
-            features,
-            camera,
-            poses,
-            near=near,
-            far=far,
-            background=bg,
-        )
+        gaussians = (means, scales, quats, opacities, colors, features)
+        rgb, depth, alpha, feats = entry.fn(*gaussians, camera, poses, near=near, far=far, background=bg)
         return SplatOutput(rgb=rgb, depth=depth, alpha=alpha, features=feats, backend=name)
     raster = entry.fn
     needs_grad = torch.is_grad_enabled() and any(
@@ -320,19 +309,9 @@ def splat(
         if name == "cpu" and not needs_grad:  # fused C++ project + sort + bin + rasterise
             from image2sim.simulator.splatting.backends.cpu_kernel import render
 
+            gaussians = (means, scales, quats, opacities, colors, features)
             image, alpha = render(
-                means,
-                scales,
-                quats,
-                opacities,
-                colors,
-                features,
-                camera,
-                pose,
-                bg_all,
-                near=near,
-                far=far,
-                finite_mask=finite_mask,
+                *gaussians, camera, pose, bg_all, near=near, far=far, finite_mask=finite_mask
             )
             images.append(image)
             alphas.append(alpha)

@@ -191,19 +191,20 @@ def rasterize(
     )
 
 
-def project(
-    means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None, finite_mask=None
-):
-    """Inference-only fused projection (no autograd); same result as :func:`project_gaussians`."""
-    from image2sim.simulator.splatting.project import ProjectedGaussians
+def _dense(*tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    return tuple(t.detach().contiguous() for t in tensors)
 
-    equirect, fx, fy, cx, cy = _camera_args(camera)
+
+def _camera_tail(camera, cam_to_world, near, far, finite_mask) -> tuple:
+    """The kernel's (finite mask, pose, equirect, fx, fy, cx, cy, H, W, near, far) arguments."""
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+
+    equirect = isinstance(camera, EquirectCamera)
+    fx, fy, cx, cy = (0.0,) * 4 if equirect else (camera.fx, camera.fy, camera.cx, camera.cy)
     mask = torch.empty(0, dtype=torch.bool) if finite_mask is None else finite_mask.contiguous()
-    uv, conic, cov, depth, radii, valid = load().project_forward(
-        means.detach().contiguous(),
-        scales.detach().contiguous(),
-        quats.detach().contiguous(),
-        opacities.detach().contiguous(),
+    far_arg = -1.0 if far is None else float(far)
+    h, w = int(camera.height), int(camera.width)
+    return (
         mask,
         cam_to_world.detach().cpu(),
         equirect,
@@ -211,10 +212,22 @@ def project(
         float(fy),
         float(cx),
         float(cy),
-        int(camera.height),
-        int(camera.width),
+        h,
+        w,
         float(near),
-        -1.0 if far is None else float(far),
+        far_arg,
+    )
+
+
+def project(
+    means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None, finite_mask=None
+):
+    """Inference-only fused projection (no autograd); same result as :func:`project_gaussians`."""
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.splatting.project import ProjectedGaussians
+
+    uv, conic, cov, depth, radii, valid = load().project_forward(
+        *_dense(means, scales, quats, opacities), *_camera_tail(camera, cam_to_world, near, far, finite_mask)
     )
     return ProjectedGaussians(
         means2d=uv,
@@ -223,16 +236,8 @@ def project(
         depths=depth,
         radii=radii,
         valid=valid,
-        wrap_width=float(camera.width) if equirect else 0.0,
+        wrap_width=float(camera.width) if isinstance(camera, EquirectCamera) else 0.0,
     )
-
-
-def _camera_args(camera) -> tuple[bool, float, float, float, float]:
-    from image2sim.simulator.geometry.cameras import EquirectCamera
-
-    if isinstance(camera, EquirectCamera):
-        return True, 0.0, 0.0, 0.0, 0.0
-    return False, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
 
 
 def render(
@@ -255,26 +260,9 @@ def render(
     ``background`` has 4 + C entries (rgb, depth, features). Same result as projecting with
     :func:`project_gaussians`, sorting, and :func:`rasterize`.
     """
-    equirect, fx, fy, cx, cy = _camera_args(camera)
-    mask = torch.empty(0, dtype=torch.bool) if finite_mask is None else finite_mask.contiguous()
     image, alpha = load().render_forward(
-        means.detach().contiguous(),
-        scales.detach().contiguous(),
-        quats.detach().contiguous(),
-        opacities.detach().contiguous(),
-        colors.detach().contiguous(),
-        features.detach().contiguous(),
-        mask,
-        cam_to_world.detach().cpu(),
-        equirect,
-        fx,
-        fy,
-        cx,
-        cy,
-        int(camera.height),
-        int(camera.width),
-        float(near),
-        -1.0 if far is None else float(far),
+        *_dense(means, scales, quats, opacities, colors, features),
+        *_camera_tail(camera, cam_to_world, near, far, finite_mask),
         background.detach().contiguous(),
     )
     return image, alpha
