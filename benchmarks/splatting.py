@@ -107,7 +107,7 @@ _MEM_CHILD = r"""
 import json, sys, torch
 from pathlib import Path
 sys.path.insert(0, sys.argv[1])
-from splat import room_scene, upright_pose
+from splatting import room_scene, upright_pose
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.splatting import splat
 
