@@ -61,11 +61,11 @@ train-nav-tiny: setup  ## Image2Nav on CPU: data-engine episodes on procedural s
 	$(VENV)/bin/image2sim nav train --stage bc --config configs/navpolicy/tiny-dagger.yaml $(NAV_SHARDS) \
 	  --out $(NAV_TINY)/bc --threads 1
 	$(VENV)/bin/image2sim nav train --stage dagger --config configs/navpolicy/tiny-dagger.yaml $(NAV_SHARDS) \
-	  --init $(NAV_TINY)/bc/export --out $(NAV_TINY)/dagger --scenes 2 --tasks-per-scene 24 --threads 1
+	  --init $(NAV_TINY)/bc/export --out $(NAV_TINY)/dagger --scenes 8 --tasks-per-scene 40 --threads 1
 	$(VENV)/bin/image2sim nav compare --config configs/navpolicy/tiny-dagger.yaml --model $(NAV_TINY)/bc/export \
-	  --agents image2nav --out $(NAV_TINY)/compare-bc.json
+	  --agents image2nav --episodes-per-scene 30 --out $(NAV_TINY)/compare-bc.json
 	$(VENV)/bin/image2sim nav compare --config configs/navpolicy/tiny-dagger.yaml --model $(NAV_TINY)/dagger/export \
-	  --out $(NAV_TINY)/compare.json
+	  --episodes-per-scene 30 --out $(NAV_TINY)/compare.json
 	$(VENV)/bin/image2sim nav act --config configs/navpolicy/tiny-dagger.yaml --model $(NAV_TINY)/dagger/export \
 	  --out $(NAV_TINY)/act
 
