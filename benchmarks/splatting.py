@@ -156,6 +156,25 @@ def peak_memory(n: int, h: int, w: int) -> dict:
     return data
 
 
+READING = [
+    "How to read this (the machine is a shared 2-core VM; other jobs ran throughout, see the load",
+    "averages):",
+    "",
+    "* Wall clock is what a user of this machine saw at that moment; with a load average well above 2",
+    "  the two worker threads rarely get both cores, so wall figures understate the kernel.",
+    "* CPU time / threads is the wall time the same work needs when its threads are not preempted;",
+    "  it is the figure to compare with the 20 frames/s target on an idle 2-core CPU, but it is a",
+    "  projection, not a measurement of an idle machine.",
+    "* forward+backward (training path) runs torch autograd ops for the projection around the",
+    "  kernel; torch's OpenMP workers spin between those ops, so under load its CPU time at 2",
+    "  threads is inflated and noisy. The single-thread table below has no such spinning.",
+    "* The torch backend is inflated the same way at 2 threads (compare its 2-thread CPU ms with",
+    "  the single-thread table), so the 2-thread ratios overstate the gain; the single-thread",
+    "  ratio is the conservative one and is listed as its own target row.",
+    "",
+]
+
+
 def _targets_markdown(t: dict) -> list[str]:
     if "wall_fps" not in t:
         return []
@@ -173,6 +192,11 @@ def _targets_markdown(t: dict) -> list[str]:
         lines.append(
             f"| >= {t['speedup_target']:.0f}x the torch backend | {t['speedup_wall']:.1f}x: "
             f"{yes[t['speedup_met_wall']]} | {t['speedup_cpu_time']:.1f}x: {yes[t['speedup_met_cpu_time']]} |"
+        )
+    if "speedup_single_thread_cpu_time" in t:
+        lines.append(
+            f"| >= {t['speedup_target']:.0f}x the torch backend, one thread each (no spinning) | – | "
+            f"{t['speedup_single_thread_cpu_time']:.1f}x: {yes[t['speedup_met_single_thread']]} |"
         )
     if "forward_backward_speedup_wall" in t:
         lines.append(
@@ -193,7 +217,10 @@ def render_markdown(report: dict) -> str:
         "ms/frame is wall clock (median); CPU ms is the process CPU time per frame (all threads), which",
         "is far less sensitive to the other jobs on this machine.",
         "",
+        f"Runs: {report.get('note', '')}.",
+        "",
         *_targets_markdown(report.get("targets", {})),
+        *READING,
         "| group | N | camera | HxW | backend | pass | runs | ms/frame (median) | frames/s | CPU ms "
         "| vs torch | vs dense |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -317,6 +344,16 @@ def target_verdict(rows: list[dict], threads: int) -> dict:
             out["forward_backward_speedup_wall"] = t["ms"] / c["ms"]
             out["forward_backward_speedup_cpu_time"] = t["cpu_ms"] / c["cpu_ms"]
     return out
+
+
+def add_single_thread_verdict(targets: dict, single: list[dict]) -> dict:
+    """The speed-up target judged on the single-thread CPU times (no OpenMP spinning on either side)."""
+    rows = {(r["n"], r["backend"], r["pass"]): r for r in single}
+    cpu, tor = rows.get((100_000, "cpu", "forward")), rows.get((100_000, "torch", "forward"))
+    if cpu is not None and tor is not None:
+        targets["speedup_single_thread_cpu_time"] = tor["cpu_ms"] / cpu["cpu_ms"]
+        targets["speedup_met_single_thread"] = targets["speedup_single_thread_cpu_time"] >= 30.0
+    return targets
 
 
 def memory_rows() -> list[dict]:
@@ -478,6 +515,7 @@ def main() -> None:
         "memory": memory,
         "single_thread": [] if args.quick else single_thread_rows(args.repeats, args.torch_repeats),
     }
+    add_single_thread_verdict(report["targets"], report["single_thread"])
     meta = {k: v for k, v in report.items() if k != "cases"}
     write_report("splatting", rows, meta, markdown=render_markdown(report), rows_key="cases")
     print(render_markdown(report))
