@@ -29,6 +29,7 @@ from image2sim.eval.runner import (
     embodiment_for,
     episode_seed,
     make_agent,
+    nav_markdown,
     nav_summary,
     run_episode,
     run_nav,
@@ -149,6 +150,38 @@ def test_an_episode_ending_where_the_distance_is_undefined_raises_with_the_reaso
     agent = make_agent(AgentSpec("forward", {"forward_steps": 1}))
     with pytest.raises(RunnerError, match=rf"episode {ep.episode_id}: the agent ends .*node 7 is cut off"):
         run_episode(_EndsOffGraphBackend(), agent, ep, PROTO, 0)
+
+
+class _EndsApproximatelyBackend(_EndsOffGraphBackend):
+    """Ends where the graph does not reach the goal but the planner could estimate the distance."""
+
+    def __init__(self, start_approx: bool = False):
+        self.start_approx = start_approx
+
+    def reset(self, episode, observe=False):
+        return StepObservation(np.zeros(3), 0.0, 4.0, distance_approximate=self.start_approx)
+
+    def step(self, action, observe=False):
+        return StepObservation(
+            np.array([0.25, 0.0, 0.0]),
+            0.0,
+            3.8,
+            distance_reason="approximate: cut off",
+            distance_approximate=True,
+        )
+
+
+def test_an_estimated_final_distance_counts_and_is_flagged_but_an_estimated_start_is_an_error(scene):
+    ep = scene[2][1]
+    agent = make_agent(AgentSpec("forward", {"forward_steps": 1}))
+    result, _ = run_episode(_EndsApproximatelyBackend(), agent, ep, PROTO, 0)
+    assert result.metrics["ne_approximate"] == 1.0
+    assert result.metrics["distance_to_goal"] == pytest.approx(3.8)
+    summary = nav_summary([result])
+    assert summary["ne_approximate"] == 1.0 and summary["ne"] == pytest.approx(3.8)
+    assert "planner's estimate" in nav_markdown({"agents": {"forward": summary}})
+    with pytest.raises(RunnerError, match=rf"episode {ep.episode_id}: the start is not connected"):
+        run_episode(_EndsApproximatelyBackend(start_approx=True), agent, ep, PROTO, 0)
 
 
 def test_habitat_backend_is_import_guarded(monkeypatch):

@@ -111,3 +111,28 @@ def test_position_in_a_disconnected_component_gives_inf_with_a_reason():
     off_map_goal = pl.distance_field(np.array([50.0, 0.0, 0.0]))
     d, reason = off_map_goal.query(left[0])
     assert d == math.inf and "goal" in reason and "off the navigable map" in reason
+
+
+def test_approximate_distance_of_a_cut_off_position_is_nearest_connected_node_plus_offset():
+    g0 = graph("box")
+    centre = int(np.argmax(g0.clearance))
+    g, pocket = cut_pocket(g0, centre, 0.6)
+    pl = Planner(g)
+    outside = np.flatnonzero(g.components != g.components[centre])
+    goal = g.nodes[outside[0]]
+    field = pl.distance_field(goal)
+    p = g.nodes[centre]
+    assert field.query(p)[0] == math.inf
+    d, reason = field.approximate(p)
+    # Brute-force reference over the goal-connected nodes.
+    off = np.linalg.norm(g.nodes[outside, :2] - p[:2], axis=1)
+    nearest = outside[np.argmin(off)]
+    geo, why = pl.geodesic_distance(g.nodes[nearest], goal)
+    assert not why and off.min() > field.reach_radius
+    assert abs(d - (geo + off.min())) < 1e-9
+    assert reason.startswith("approximate:") and f"node {nearest}" in reason
+    # Never for a goal off the map, a non-finite position, or another storey.
+    assert pl.distance_field(np.array([50.0, 0.0, 0.0])).approximate(p)[0] == math.inf
+    assert field.approximate(np.array([np.nan, 0.0, 0.0]))[0] == math.inf
+    d, reason = field.approximate(p + np.array([0.0, 0.0, 5.0]))
+    assert d == math.inf and "vertically" in reason

@@ -117,7 +117,10 @@ class StepObservation:
     distance_to_goal: float
     """Geodesic distance to the goal in metres (inf when off the graph / unreachable)."""
     distance_reason: str = ""
-    """Why ``distance_to_goal`` is inf ("" when it is finite)."""
+    """Why ``distance_to_goal`` is inf or approximate ("" when it is an exact graph distance)."""
+    distance_approximate: bool = False
+    """``distance_to_goal`` is the planner's upper-bound estimate for a position the navigation graph
+    does not connect to the goal (see ``DistanceField.approximate``), not a graph distance."""
     collided: bool = False
     """The last action hit an obstacle."""
     rgb: np.ndarray | None = None
@@ -186,7 +189,7 @@ class NeuralSimBackend:
         self.name = name
         self.field = None
         self._last_pos: np.ndarray | None = None
-        self._last_dist, self._last_reason = float("inf"), ""
+        self._last_dist, self._last_reason, self._last_approx = float("inf"), "", False
         cam = protocol.camera
         self._camera = None
         if sim.render_fn is not None:
@@ -217,11 +220,18 @@ class NeuralSimBackend:
         if self._last_pos is None or not np.array_equal(pos_map, self._last_pos):
             self._last_pos = np.array(pos_map, dtype=np.float64)
             self._last_dist, self._last_reason = self.field.query(pos_map)
+            self._last_approx = False
+            if not math.isfinite(self._last_dist) and self.field.goal_node >= 0:
+                # The agent walked here from a connected start, so the goal is reachable even though
+                # the conservative graph does not connect this spot: estimate instead of aborting.
+                self._last_dist, self._last_reason = self.field.approximate(pos_map)
+                self._last_approx = math.isfinite(self._last_dist)
         return StepObservation(
             position=np.asarray(self.sim.navmap.to_world(pos_map), dtype=np.float64).reshape(3),
             heading=float(info["heading"][0]),
             distance_to_goal=self._last_dist,
             distance_reason=self._last_reason,
+            distance_approximate=self._last_approx,
             collided=collided,
             rgb=rgb,
         )
@@ -231,7 +241,7 @@ class NeuralSimBackend:
         goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
         self.goal_map = goal
         self.field = self.sim.planner.distance_field(goal)
-        self._last_pos, self._last_dist, self._last_reason = None, float("inf"), ""
+        self._last_pos, self._last_dist, self._last_reason, self._last_approx = None, float("inf"), "", False
         _, info = self.sim.reset(
             start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False
         )
@@ -611,6 +621,11 @@ def run_episode(
     wants = (lambda: getattr(agent, "wants_image", True)) if agent.needs_images else (lambda: False)
     obs = backend.reset(episode, observe=bool(agent.needs_images))
     _require_finite_distance(obs, episode, "starts")
+    if obs.distance_approximate:
+        raise RunnerError(
+            f"episode {episode.episode_id}: the start is not connected to the goal on the navigation graph "
+            f"({obs.distance_reason}); fix the episode or the scene's navigation graph"
+        )
     agent.reset(episode, backend, seed)
     ms.reset(episode.metric_spec(), AgentState(obs.position, obs.distance_to_goal))
     actions: list[int] = []
@@ -625,7 +640,10 @@ def run_episode(
         obs = backend.step(a, observe=bool(agent.needs_images and wants()))
         ms.update(a, AgentState(obs.position, obs.distance_to_goal))
     _require_finite_distance(obs, episode, "ends")
-    return EpisodeResult(episode.episode_id, ms.values(), protocol), actions
+    values = dict(ms.values())
+    # Recorded per episode (0/1) so the share of estimated final distances is reported, never hidden.
+    values["ne_approximate"] = float(obs.distance_approximate)
+    return EpisodeResult(episode.episode_id, values, protocol), actions
 
 
 def _require_finite_distance(obs: StepObservation, episode: NavEpisode, when: str) -> None:
@@ -949,6 +967,7 @@ def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str,
         "path_length": mean("path_length"),
         "steps": mean("steps"),
         "n_episodes": report.num_episodes,
+        "ne_approximate": mean("ne_approximate"),
         "sr_ci": list(wilson_interval(sum(sr_vals), len(sr_vals))),
         "spl_ci": list(bootstrap_ci(spl_vals, seed=ci_seed)),
         "ci_method": {"sr_ci": "wilson 95%", "spl_ci": "percentile bootstrap 95%, 2000 resamples"},
@@ -997,6 +1016,13 @@ def nav_markdown(doc: Mapping[str, Any]) -> str:
         )
     proto = doc.get("protocol") or {}
     text = "\n".join(lines) + "\n"
+    approx = {n: a["ne_approximate"] for n, a in agents.items() if a.get("ne_approximate")}
+    if approx:
+        shares = ", ".join(f"{n} {100 * v:.1f}%" for n, v in approx.items())
+        text += (
+            f"\nEpisodes ending where the navigation graph does not reach the goal ({shares}) use the "
+            "planner's estimate (nearest goal-connected node + straight offset) for NE and success.\n"
+        )
     if proto:
         from image2sim.eval.report import describe_protocol
 

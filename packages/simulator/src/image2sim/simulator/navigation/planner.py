@@ -126,6 +126,36 @@ class DistanceField:
             f"{self.goal_node}, and no node connected to the goal lies within {self.reach_radius:.3f} m"
         )
 
+    def approximate(self, point: np.ndarray) -> tuple[float, str]:
+        """An upper-bound estimate for a position :meth:`query` cannot place: the nearest
+        goal-connected node on the same storey (within a body height vertically), at any horizontal
+        distance, plus the straight horizontal offset to it.
+
+        For evaluation only: an agent whose kinematics squeezed it somewhere the conservative graph
+        does not connect (a gap narrower than the graph's clearance, a pocket behind furniture) did
+        get there from a connected start, so the goal is reachable; the estimate lets its episode
+        count instead of aborting the run. Returns (inf, reason) when nothing is connected to the goal.
+        """
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        if not np.isfinite(p).all():
+            return float("inf"), f"position {p.tolist()} is not finite"
+        if self.goal_node < 0:
+            return float("inf"), self.reason
+        ids = np.flatnonzero(np.isfinite(self.node_distance))
+        same_storey = np.abs(self.graph.nodes[ids, 2] - p[2]) <= self.graph.embodiment.height
+        if not same_storey.any():
+            return float("inf"), (
+                f"position {np.round(p, 3).tolist()}: no goal-connected node within a body height vertically"
+            )
+        ids = ids[same_storey]
+        offsets = np.linalg.norm(self.graph.nodes[ids, :2] - p[:2], axis=1)
+        best = int(np.argmin(offsets))
+        node = int(ids[best])
+        return float(self.node_distance[node] + offsets[best] + self.goal_offset), (
+            f"approximate: position {np.round(p, 3).tolist()} is not connected to the goal on the graph; "
+            f"nearest goal-connected node {node} is {offsets[best]:.3f} m away horizontally"
+        )
+
     def __call__(self, point: np.ndarray) -> float:
         """Scalar distance of one position (fast path for per-step evaluation)."""
         return float(self.distance(np.asarray(point, dtype=np.float64).reshape(3)))
