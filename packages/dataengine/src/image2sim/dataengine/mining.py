@@ -17,8 +17,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,6 +24,7 @@ from typing import Protocol
 
 import numpy as np
 from image2sim.simulator.config import config_from_dict
+from image2sim.simulator.io.atomic import write_text_atomic
 
 __all__ = [
     "Detection",
@@ -496,7 +495,7 @@ def save_objects(path: str | Path, objects: Sequence[SceneObject], meta: dict | 
         **(meta or {}),
         "objects": [asdict(o) for o in objects],
     }
-    _atomic_write_text(path, json.dumps(doc, indent=1))
+    write_text_atomic(path, json.dumps(doc, indent=1))
     return path
 
 
@@ -516,18 +515,3 @@ def load_objects(path: str | Path) -> list[SceneObject]:
         except TypeError as err:
             raise ValueError(f"{path}: objects[{i}]: {err}") from None
     return out
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-__all__ += ["attach_gt_metadata", "DEFAULT_VOCABULARY", "DEFAULT_SMALL"]

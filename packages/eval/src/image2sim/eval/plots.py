@@ -8,9 +8,7 @@ the pixel-flow step counts joined by a line and labelled, and writes the PNG ato
 from __future__ import annotations
 
 import math
-import os
 import re
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -107,13 +105,8 @@ def plot_speed_vs_error(
 
 def save_figure_atomic(fig: Any, out_png: str | Path) -> Path:
     """Save a matplotlib figure as PNG via a temporary file and a rename (never a half-written PNG)."""
-    out = Path(out_png)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".png", dir=out.parent)
-    os.close(fd)
-    try:
+    from image2sim.simulator.io.atomic import atomic_path
+
+    with atomic_path(out_png) as tmp:
         fig.savefig(tmp, format="png")
-        os.replace(tmp, out)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
-    return out
+    return Path(out_png)

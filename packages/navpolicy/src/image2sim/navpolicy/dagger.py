@@ -39,6 +39,7 @@ import numpy as np
 from image2sim.navpolicy.config import DaggerConfig, NavPolicyConfig, ObservationConfig
 from image2sim.navpolicy.data import Trajectory
 from image2sim.simulator.conventions import Action
+from image2sim.simulator.io.atomic import write_text_atomic
 
 MODEL, ORACLE = "model", "oracle"
 
@@ -413,12 +414,6 @@ STATE_FILE = "dagger_state.json"
 STATE_VERSION = 1
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def run_fingerprint(
     cfg: NavPolicyConfig, scenes: Sequence[DaggerScene], base_trajectories, model=None
 ) -> str:
@@ -587,7 +582,7 @@ def run_dagger(
 
     def commit() -> None:
         state["rng"] = rng_states()
-        _atomic_write_text(state_path, json.dumps(state))
+        write_text_atomic(state_path, json.dumps(state))
 
     pool = [(s, t) for s in scenes for t in s.tasks]
     order = np.random.default_rng([dc.seed, 1]).permutation(len(pool))
@@ -602,7 +597,7 @@ def run_dagger(
             pending = rdir / "episodes"
             collected, logs = _pending_episodes(pending)
             # The log is a view of the saved episodes: rebuild it (drops lines of unsaved ones).
-            _atomic_write_text(log_path, "".join(json.dumps(x) + "\n" for x in state["episodes"] + logs))
+            write_text_atomic(log_path, "".join(json.dumps(x) + "\n" for x in state["episodes"] + logs))
             policy.model.eval()
             agent = Image2NavAgent(policy, cfg.agent, cfg.system_prompt)
             # One progress display per collection phase: Lightning shows its own bar while training.
@@ -628,7 +623,7 @@ def run_dagger(
                     rec = {"round": r, "model_probability": p, **ep.log()}
                     with ShardWriter(pending / f"e{e:04d}", {**cfg.observation.__dict__}) as w:
                         w.add(ep.trajectory)
-                    _atomic_write_text(pending / f"e{e:04d}.json", json.dumps(rec))  # episode saved
+                    write_text_atomic(pending / f"e{e:04d}.json", json.dumps(rec))  # episode saved
                     _append_jsonl(log_path, rec)
                     collected.append(ep.trajectory)
                     logs.append(rec)
@@ -683,7 +678,7 @@ def run_dagger(
     export_dir = export_policy(policy, out / "export") if export else None
     sizes, losses = state["dataset_sizes"], state["losses"]
     summary = {"dataset_sizes": sizes, "losses": losses, "episodes": len(state["episodes"])}
-    _atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     return DaggerResult(out, list(state["episodes"]), sizes, losses, export_dir, state["seen"])
 
 

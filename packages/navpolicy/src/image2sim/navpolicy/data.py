@@ -20,8 +20,6 @@ only the frames it will ever sample). Every file is written to a temp name and r
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +30,7 @@ from image2sim.navpolicy.actions import ACTIONS_PER_STEP
 from image2sim.navpolicy.model import MERGE_SIZE
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder, Turn
 from image2sim.simulator.conventions import Action
+from image2sim.simulator.io.atomic import write_bytes_atomic
 
 SHARD_FORMAT = "image2sim-navshard"
 SHARD_VERSION = 1
@@ -187,18 +186,6 @@ def oracle_targets(traj: Trajectory, step: int) -> tuple[int, ...]:
 # ----------------------------------------------------------------------------------------------- shards
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 class ShardWriter:
     """Writes trajectories into a shard folder; use as a context manager.
 
@@ -223,7 +210,7 @@ class ShardWriter:
 
         buf = io.BytesIO()
         (np.savez_compressed if self.compress else np.savez)(buf, rgb=np.ascontiguousarray(traj.frames))
-        _atomic_write_bytes(self.root / rel, buf.getvalue())
+        write_bytes_atomic(self.root / rel, buf.getvalue())
         rec = {
             "episode_id": traj.episode_id,
             "scene_id": traj.scene_id,
@@ -236,7 +223,7 @@ class ShardWriter:
         self._lines.append(json.dumps(rec))
 
     def close(self) -> Path:
-        _atomic_write_bytes(self.root / "trajectories.jsonl", ("\n".join(self._lines) + "\n").encode())
+        write_bytes_atomic(self.root / "trajectories.jsonl", ("\n".join(self._lines) + "\n").encode())
         manifest = {
             "format": SHARD_FORMAT,
             "version": SHARD_VERSION,
@@ -244,7 +231,7 @@ class ShardWriter:
             "action_ids": {a.name: int(a) for a in Action},
             "observation": self.observation,
         }
-        _atomic_write_bytes(self.root / "manifest.json", json.dumps(manifest, indent=2).encode())
+        write_bytes_atomic(self.root / "manifest.json", json.dumps(manifest, indent=2).encode())
         return self.root
 
     def __enter__(self) -> ShardWriter:

@@ -3,7 +3,9 @@
 Every file the repository writes for later stages (configs, manifests, maps, episodes, reports,
 checkpoints) goes through here, so an interrupted job never leaves a torn file behind: readers see
 either the old file or the complete new one. The temp file lives in the same folder because
-``os.replace`` is atomic only within one filesystem; it is removed when the write fails.
+``os.replace`` is atomic only within one filesystem; it is removed when the write fails. There is no
+fsync: the guarantee is against killed jobs (the case resumable stages meet), not power loss, and
+shard writers create thousands of small files.
 """
 
 from __future__ import annotations
@@ -61,8 +63,6 @@ def atomic_open(
     with atomic_path(path) as tmp:
         with open(tmp, mode, encoding=None if "b" in mode else encoding) as handle:
             yield handle
-            handle.flush()
-            os.fsync(handle.fileno())  # the rename must not overtake the data on a crash
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:

@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from image2sim.simulator.io.atomic import atomic_open
 from image2sim.simulator.navigation.embodiment import Embodiment, GraphConfig
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
 from scipy import sparse
@@ -258,24 +258,16 @@ class NavGraph:
             "config": self.config.to_dict(),
             "voxel_size": self.voxel_size,
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(
-                    fh,
-                    meta_json=np.array(json.dumps(meta)),
-                    nodes=self.nodes,
-                    clearance=self.clearance,
-                    level=self.level,
-                    edges=self.edges.astype(np.int32),
-                    lengths=self.lengths,
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_open(path, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                meta_json=np.array(json.dumps(meta)),
+                nodes=self.nodes,
+                clearance=self.clearance,
+                level=self.level,
+                edges=self.edges.astype(np.int32),
+                lengths=self.lengths,
+            )
         return path
 
     @classmethod
