@@ -288,8 +288,8 @@ def tiny() -> RendererConfig:
             time_dim=64,
         ),
         # The paper's 1:2:1 stage proportions in 1500 steps (`make train-sim-tiny`, issue budget
-        # 60 min on 2 cores): measured 1.4 s/step with one thread at load average 7 (~35 min);
-        # a busier shared machine is slower (reports/renderer_tiny.md).
+        # 60 min on 2 cores): measured 28 min with one thread on a shared 2-core machine
+        # (reports/renderer_tiny.md); a busier machine is slower.
         curriculum=CurriculumConfig(
             stage2_start=375, stage3_start=1125, total_steps=1500, lr=1e-3, min_lr=1e-5
         ),
