@@ -507,7 +507,28 @@ def test_save_and_load_renderer_round_trip(tmp_path):
     noise = torch.randn(2, 4, H, W)
     assert torch.equal(model.render(cond, noise=noise).rgb, loaded.render(cond, noise=noise).rgb)
     (tmp_path / "bad.safetensors").write_bytes(b"not a file")
-    with pytest.raises(Exception):
+    with pytest.raises(Exception):  # noqa: B017 - safetensors' own error type is not public API
         load_renderer(tmp_path / "bad.safetensors")
     with pytest.raises(FileNotFoundError):
         load_renderer(tmp_path / "none.safetensors")
+
+
+def test_a_renderer_saved_before_residual_heads_existed_loads_with_the_plain_heads(tmp_path):
+    import json
+
+    from image2sim.simulator.renderer.model import load_renderer, save_renderer
+    from safetensors.torch import load_file
+
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg(decoder={"residual_heads": False})).eval()
+    save_renderer(model, tmp_path / "new.safetensors")
+    # The same file as an older version wrote it: no residual_heads key in the saved config.
+    with open(tmp_path / "new.safetensors", "rb") as fh:
+        header = json.loads(fh.read(int.from_bytes(fh.read(8), "little")))
+    config = json.loads(header["__metadata__"]["config"])
+    del config["decoder"]["residual_heads"]
+    meta = {"format": "image2sim-renderer-v1", "config": json.dumps(config)}
+    save_file(load_file(tmp_path / "new.safetensors"), str(tmp_path / "old.safetensors"), metadata=meta)
+    old = load_renderer(tmp_path / "old.safetensors")
+    assert old.cfg.decoder.residual_heads is False and old.cfg == model.cfg
+    assert load_renderer(tmp_path / "new.safetensors").cfg == model.cfg

@@ -230,22 +230,28 @@ def save_renderer(model: PixelFlowRenderer, path) -> None:
     """Inference weights as one ``.safetensors`` file; the resolved config rides in its metadata
     (JSON), so :func:`load_renderer` needs nothing else. Written atomically (temp + rename)."""
     import json
-    import os
     from dataclasses import asdict
-    from pathlib import Path
 
+    from image2sim.simulator.io.atomic import atomic_path
     from safetensors.torch import save_file
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    tmp = path.with_name(f".{path.name}.tmp")
-    save_file(
-        tensors,
-        str(tmp),
-        metadata={"format": "image2sim-renderer-v1", "config": json.dumps(asdict(model.cfg))},
-    )
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        save_file(
+            tensors,
+            str(tmp),
+            metadata={"format": "image2sim-renderer-v1", "config": json.dumps(asdict(model.cfg))},
+        )
+
+
+def _saved_config(data: dict) -> dict:
+    """A saved renderer config as it was trained: files written before ``decoder.residual_heads``
+    existed trained the paper's plain heads, so a missing key means False (the new default is True)."""
+    data = dict(data)
+    decoder = dict(data.get("decoder") or {})
+    decoder.setdefault("residual_heads", False)
+    data["decoder"] = decoder
+    return data
 
 
 def load_renderer(path, map_location: str = "cpu") -> PixelFlowRenderer:
@@ -269,12 +275,12 @@ def load_renderer(path, map_location: str = "cpu") -> PixelFlowRenderer:
             raise ValueError(
                 f"{path}: not an image2sim renderer file (metadata format {meta.get('format')!r})"
             )
-        cfg = renderer_config_from_dict(json.loads(meta["config"]))
+        cfg = renderer_config_from_dict(_saved_config(json.loads(meta["config"])))
         state = load_file(str(path), device=map_location)
     else:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
         try:
-            cfg = renderer_config_from_dict(ckpt["hyper_parameters"]["config"])
+            cfg = renderer_config_from_dict(_saved_config(ckpt["hyper_parameters"]["config"]))
         except KeyError as exc:
             raise ValueError(f"{path}: checkpoint has no renderer config in hyper_parameters") from exc
         state = {k[len("renderer.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("renderer.")}
