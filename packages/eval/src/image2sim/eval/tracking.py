@@ -14,10 +14,11 @@ from __future__ import annotations
 import math
 import os
 import struct
-import subprocess
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+from image2sim.simulator.tracking import git_commit, run_metadata
 
 __all__ = ["flatten_metrics", "git_commit", "log_metrics_wandb", "read_offline_run", "run_metadata"]
 
@@ -45,59 +46,6 @@ def flatten_metrics(doc: Mapping[str, Any], kind: str) -> dict[str, float]:
                 out[f"{kind}/{name}/{key}_low"] = float(value[0])
                 out[f"{kind}/{name}/{key}_high"] = float(value[1])
     return out
-
-
-def git_commit(cwd: str | Path | None = None) -> str | None:
-    """The current git commit (short), or None outside a repository."""
-    try:
-        res = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=cwd,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=False,
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return res.stdout.strip() or None
-
-
-def run_metadata(
-    stage: str | None = None,
-    profile: str | None = None,
-    config: Mapping[str, Any] | None = None,
-    params_file: str | Path = "params.yaml",
-) -> dict[str, Any]:
-    """Run metadata: git commit, DVC stage, params profile and the resolved configuration.
-
-    The commit is that of the repository holding ``params_file`` (DVC runs stages at its root),
-    else that of the checkout this module is installed from. The stage defaults to ``$DVC_STAGE``;
-    the profile to ``$IMAGE2SIM_PROFILE``, else the ``profile`` key of ``params_file``.
-    ``resolved_config`` holds ``command`` (the command's own settings) and ``params`` (the stage's
-    section of ``params_file``, when the file has one).
-    """
-    stage = stage or os.environ.get("DVC_STAGE")
-    params: Mapping[str, Any] = {}
-    path = Path(params_file)
-    if path.is_file():
-        import yaml
-
-        loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
-        if loaded is not None and not isinstance(loaded, Mapping):
-            raise ValueError(f"{path}: expected a mapping of stage sections, got {type(loaded).__name__}")
-        params = loaded or {}
-    section = params.get(stage) if stage else None
-    return {
-        # The commit of the project the params file belongs to, else of this code's checkout.
-        "git_commit": git_commit(path.resolve().parent) or git_commit(Path(__file__).resolve().parent),
-        "dvc_stage": stage,
-        "params_profile": profile or os.environ.get("IMAGE2SIM_PROFILE") or params.get("profile"),
-        "resolved_config": {
-            "command": dict(config or {}),
-            "params": dict(section) if isinstance(section, Mapping) else None,
-        },
-    }
 
 
 def log_metrics_wandb(

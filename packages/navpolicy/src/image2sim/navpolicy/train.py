@@ -299,10 +299,9 @@ def train_bc(
     module = NavBCModule(policy, cfg, dataset)
     loggers = [CSVLogger(str(out), name="logs")]  # version_N per (re)start: resumes never overwrite
     if tc.wandb:
-        from lightning.pytorch.loggers import WandbLogger
+        from image2sim.simulator.tracking import wandb_logger
 
-        os.environ.setdefault("WANDB_MODE", "offline")
-        loggers.append(WandbLogger(project=tc.wandb_project, save_dir=str(out), config=cfg.to_dict()))
+        loggers.append(wandb_logger(out, tc.wandb_project, cfg.to_dict()))
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"),
         every_n_train_steps=tc.checkpoint_every,

@@ -11,7 +11,6 @@ resumed from ``last.ckpt`` continues exactly where it stopped.
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -253,10 +252,9 @@ def train_stage1(
     data = GeometryDataModule(scenes, cfg)
     loggers = [CSVLogger(str(out), name="logs")]
     if cfg.train.wandb:
-        from lightning.pytorch.loggers import WandbLogger
+        from image2sim.simulator.tracking import wandb_logger
 
-        os.environ.setdefault("WANDB_MODE", "offline")
-        loggers.append(WandbLogger(save_dir=str(out), project="image2sim-geometry", offline=True))
+        loggers.append(wandb_logger(out, "image2sim-geometry", config_to_dict(cfg)))
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"),
         every_n_train_steps=max(1, cfg.train.checkpoint_every),

@@ -285,10 +285,9 @@ def fit(
     module = RendererModule(cfg, seed=seed, grid_every=grid_every)
     data = RendererDataModule(dataset, cfg.curriculum.batch_size, cfg.curriculum.total_steps, seed)
     if logger == "wandb":
-        from lightning.pytorch.loggers import WandbLogger
+        from image2sim.simulator.tracking import wandb_logger
 
-        os.environ.setdefault("WANDB_MODE", "offline")
-        log = WandbLogger(save_dir=str(out), project="image2sim-renderer", offline=True)
+        log = wandb_logger(out, "image2sim-renderer", dataclasses.asdict(cfg))
     else:
         from lightning.pytorch.loggers import CSVLogger
 
