@@ -90,7 +90,13 @@ def test_clearance_shortcut_keeps_exactly_the_fully_marched_edges():
     pairs = pairs[np.random.default_rng(11).random(len(pairs)) < 0.2]
     bin_keys, masks = m.blocked_stack()
     full = ray_march_free(
-        g.nodes[pairs[:, 0]], g.nodes[pairs[:, 1]], masks, bin_keys, m.origin, m.voxel_size, g.config.march_step
+        g.nodes[pairs[:, 0]],
+        g.nodes[pairs[:, 1]],
+        masks,
+        bin_keys,
+        m.origin,
+        m.voxel_size,
+        g.config.march_step,
     )
 
     def keys(e):

@@ -77,7 +77,8 @@ def alignment_loss(tokens: torch.Tensor, target: torch.Tensor, panoramic: bool =
     """
     if tokens.shape[:2] != target.shape[:2]:
         raise ValueError(
-            f"alignment_loss: tokens {tuple(tokens.shape)} and target {tuple(target.shape)} differ in batch/channels"
+            f"alignment_loss: tokens {tuple(tokens.shape)} and target {tuple(target.shape)} "
+            "differ in batch/channels"
         )
     if tokens.shape[-2:] != target.shape[-2:]:
         tokens = _resize_tokens(tokens, target.shape[-2:], panoramic)

@@ -11,10 +11,10 @@ splat of the identity Gaussians of the capture's OTHER training frames at its po
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import typer
+from image2sim.simulator.io.atomic import write_text_atomic
 
 __all__ = ["train_command", "eval_command"]
 
@@ -176,9 +176,7 @@ def _eval_splat(model, checkpoint, data, holdout_every, max_frames, steps, repor
         )
         doc = run_render_bench(bench, report.with_suffix(".json"))
     text = f"# Renderer evaluation ({model.cfg.name}, checkpoint `{checkpoint}`)\n\n" + render_markdown(doc)
-    tmp_md = report.with_suffix(".md.tmp")
-    tmp_md.write_text(text)
-    os.replace(tmp_md, report.with_suffix(".md"))
+    write_text_atomic(report.with_suffix(".md"), text)
     typer.echo(text)
 
 
@@ -203,9 +201,9 @@ def _eval_degraded(model, checkpoint, data, holdout_every, max_frames, steps, re
         cond, rgb, depth = s["condition"][None], s["target_rgb"][None], s["target_depth"][None]
         pose = torch.eye(4, dtype=torch.float64)
         pose[0, 3] = float(i)
-        cases = {"splat-only": lambda: (cond[:, 16:19], cond[:, 19:20])}
+        cases = {"splat-only": lambda cond=cond: (cond[:, 16:19], cond[:, 19:20])}
         for n in steps:
-            cases[f"{n}-step"] = lambda n=n: (lambda o: (o.rgb, o.depth))(
+            cases[f"{n}-step"] = lambda n=n, cond=cond, pose=pose: (lambda o: (o.rgb, o.depth))(
                 model.render(cond, steps=n, poses=[pose])
             )
         for name, fn in cases.items():
@@ -235,9 +233,7 @@ def _eval_degraded(model, checkpoint, data, holdout_every, max_frames, steps, re
         "results": summary,
     }
     report.parent.mkdir(parents=True, exist_ok=True)
-    tmp = report.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, report.with_suffix(".json"))
+    write_text_atomic(report.with_suffix(".json"), json.dumps(result, indent=2))
     lines = [
         f"# Renderer evaluation ({cfg.name}, {len(ds)} held-out views)",
         "",
@@ -250,7 +246,5 @@ def _eval_degraded(model, checkpoint, data, holdout_every, max_frames, steps, re
         lines.append(
             f"| {name} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['depth_absrel']:.4f} | {m['fps']:.2f} |"
         )
-    tmp = report.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, report.with_suffix(".md"))
+    write_text_atomic(report.with_suffix(".md"), "\n".join(lines) + "\n")
     typer.echo("\n".join(lines))

@@ -90,7 +90,8 @@ def distillation_loss(
     widths are comparable; the teacher features are constants. Computed in float32."""
     if not (len(student) == len(teacher) == len(weights)):
         raise ValueError(
-            f"distillation_loss: {len(student)} student, {len(teacher)} teacher levels, {len(weights)} weights"
+            f"distillation_loss: {len(student)} student, {len(teacher)} teacher levels, "
+            f"{len(weights)} weights"
         )
     w = normalised_level_weights(weights)
     total = student[0].new_zeros((), dtype=torch.float32)

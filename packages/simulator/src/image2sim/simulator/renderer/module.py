@@ -20,6 +20,7 @@ import math
 
 import lightning as L
 import torch
+from image2sim.simulator.io.atomic import atomic_path, write_json_atomic
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.config import RendererConfig
 from image2sim.simulator.renderer.distill import EMATeacher
@@ -208,9 +209,8 @@ class RendererModule(L.LightningModule):
 
             out = Path(logger.log_dir) / "grids"
             out.mkdir(parents=True, exist_ok=True)
-            tmp = out / f".step_{step:07d}.png.tmp"
-            Image.fromarray(image).save(tmp, format="PNG")
-            tmp.replace(out / f"step_{step:07d}.png")
+            with atomic_path(out / f"step_{step:07d}.png") as tmp:
+                Image.fromarray(image).save(tmp, format="PNG")
 
 
 class RendererDataModule(L.LightningDataModule):
@@ -269,17 +269,13 @@ def fit(
 ) -> RendererModule:
     """Train (or resume) the renderer; checkpoints and logs under ``out_dir``."""
     import dataclasses
-    import json
-    import os
     from pathlib import Path
 
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / ".config.json.tmp"
-    tmp.write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
-    os.replace(tmp, out / "config.json")
+    write_json_atomic(out / "config.json", dataclasses.asdict(cfg))
     steps = max_steps if max_steps is not None else cfg.curriculum.total_steps
     L.seed_everything(seed, workers=True, verbose=False)
     module = RendererModule(cfg, seed=seed, grid_every=grid_every)

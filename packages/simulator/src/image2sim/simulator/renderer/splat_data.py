@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -281,14 +280,14 @@ def capture_conditions(
         conds.append(gaussians_condition(g, camera, poses[t]))
     cond = torch.stack(conds).contiguous()
     if cache_file is not None:
-        cache_file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache_file.with_name(f".{cache_file.name}.tmp-{os.getpid()}")
-        save_file(
-            {"conditions": cond},
-            str(tmp),
-            metadata={"capture": str(capture_path), "targets": json.dumps(train)},
-        )
-        os.replace(tmp, cache_file)
+        from image2sim.simulator.io.atomic import atomic_path
+
+        with atomic_path(cache_file) as tmp:
+            save_file(
+                {"conditions": cond},
+                str(tmp),
+                metadata={"capture": str(capture_path), "targets": json.dumps(train)},
+            )
     return cond, False
 
 
