@@ -66,15 +66,19 @@ class DistanceField:
         plus two cells (an agent stopped against a wall is within it of a node it can stand on)."""
         return float(self.graph.embodiment.radius + 2.0 * self.graph.voxel_size)
 
+    def _reachable(self) -> tuple[np.ndarray, cKDTree | None]:
+        """Ids of the nodes with a finite distance to the goal and a 2D KD-tree over them (cached)."""
+        if "reach" not in self._cache:
+            ids = np.flatnonzero(np.isfinite(self.node_distance))
+            self._cache["reach"] = (ids, cKDTree(self.graph.nodes[ids, :2]) if len(ids) else None)
+        return self._cache["reach"]
+
     def _snap_reachable(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest node with a finite distance to the goal within :attr:`reach_radius` horizontally
         and a body height vertically -> (node ids (N,), horizontal offsets (N,)); -1 / inf if none."""
         idx = np.full(len(p), -1, np.int64)
         off = np.full(len(p), np.inf)
-        if "reach" not in self._cache:
-            ids = np.flatnonzero(np.isfinite(self.node_distance))
-            self._cache["reach"] = (ids, cKDTree(self.graph.nodes[ids, :2]) if len(ids) else None)
-        ids, tree = self._cache["reach"]
+        ids, tree = self._reachable()
         if tree is None:
             return idx, off
         for k, cand in enumerate(tree.query_ball_point(p[:, :2], self.reach_radius)):
@@ -141,7 +145,7 @@ class DistanceField:
             return float("inf"), f"position {p.tolist()} is not finite"
         if self.goal_node < 0:
             return float("inf"), self.reason
-        ids = np.flatnonzero(np.isfinite(self.node_distance))
+        ids, _ = self._reachable()
         same_storey = np.abs(self.graph.nodes[ids, 2] - p[2]) <= self.graph.embodiment.height
         if not same_storey.any():
             return float("inf"), (
