@@ -25,8 +25,9 @@ import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from image2sim.dataengine.episodes import atomic_write_bytes, write_episode_files
+from image2sim.dataengine.episodes import write_episode_files
 from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig, process_scene
+from image2sim.simulator.io.atomic import write_bytes_atomic
 
 __all__ = ["find_scenes", "pending_scenes", "run_engine", "merge_outputs", "RunError"]
 
@@ -77,7 +78,7 @@ def _check_run_manifest(out_dir: Path, config: EngineConfig) -> None:
                 "use a new --out folder or the same arguments"
             )
     else:
-        atomic_write_bytes(path, json.dumps({"config": cfg}, indent=1).encode())
+        write_bytes_atomic(path, json.dumps({"config": cfg}, indent=1).encode())
 
 
 def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable) -> None:
@@ -182,7 +183,7 @@ def run_engine(
             tasks[scene.name] = summary["task"]
         if err is not None:
             failures[scene.name] = err
-            atomic_write_bytes(fail_path, json.dumps(failures, indent=1).encode())
+            write_bytes_atomic(fail_path, json.dumps(failures, indent=1).encode())
         if bar is not None:
             bar.advance(task_id)
 
@@ -220,7 +221,7 @@ def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -
         if (folder / "shard" / "manifest.json").is_file():
             shards.append(str((folder / "shard").resolve()))
     main, gt_path = write_episode_files(out_dir, split, episodes, gt)
-    atomic_write_bytes(out_dir / "shards.json", json.dumps({"shards": shards}, indent=1).encode())
+    write_bytes_atomic(out_dir / "shards.json", json.dumps({"shards": shards}, indent=1).encode())
     return {
         "episodes": len(episodes),
         "scenes_done": len(done),

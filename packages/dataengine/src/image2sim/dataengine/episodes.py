@@ -26,7 +26,7 @@ import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from image2sim.simulator.io.atomic import write_bytes_atomic as atomic_write_bytes
+from image2sim.simulator.io.atomic import write_bytes_atomic
 
 __all__ = [
     "FRAME",
@@ -37,7 +37,6 @@ __all__ = [
     "episode_record",
     "write_episode_files",
     "validate_episode_doc",
-    "atomic_write_bytes",
     "EpisodeSchemaError",
 ]
 
@@ -128,8 +127,8 @@ def write_episode_files(
     validate_episode_doc(doc, gt)
     d = Path(out_dir) / split
     main, gt_path = d / f"{split}.json.gz", d / f"{split}_gt.json.gz"
-    atomic_write_bytes(gt_path, _gz(gt))
-    atomic_write_bytes(main, _gz(doc))
+    write_bytes_atomic(gt_path, _gz(gt))
+    write_bytes_atomic(main, _gz(doc))
     return main, gt_path
 
 

@@ -26,11 +26,12 @@ from pathlib import Path
 
 import numpy as np
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps
-from image2sim.dataengine.episodes import atomic_write_bytes, episode_record
+from image2sim.dataengine.episodes import episode_record
 from image2sim.dataengine.mining import MiningConfig
 from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
 from image2sim.dataengine.trajectories import SamplingConfig, episode_capacity, sample_plans
 from image2sim.simulator.config import config_from_dict
+from image2sim.simulator.io.atomic import write_bytes_atomic
 
 __all__ = [
     "EngineConfig",
@@ -464,8 +465,8 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         "render": render_mode,
         "seconds": time.perf_counter() - t0,
     }
-    atomic_write_bytes(out / EPISODES_FILE, json.dumps({"episodes": episodes, "gt": gt}).encode())
-    atomic_write_bytes(out / DONE_FILE, json.dumps(summary, indent=1).encode())
+    write_bytes_atomic(out / EPISODES_FILE, json.dumps({"episodes": episodes, "gt": gt}).encode())
+    write_bytes_atomic(out / DONE_FILE, json.dumps(summary, indent=1).encode())
     return summary
 
 

@@ -17,8 +17,8 @@ import uuid
 from pathlib import Path
 
 import numpy as np
-from image2sim.dataengine.episodes import atomic_write_bytes
 from image2sim.simulator.conventions import Action
+from image2sim.simulator.io.atomic import write_bytes_atomic
 
 __all__ = ["SHARD_FORMAT", "SHARD_VERSION", "SceneShardWriter"]
 
@@ -61,7 +61,7 @@ class SceneShardWriter:
         rel = f"frames/{len(self.lines):06d}.npz"
         buf = io.BytesIO()
         np.savez_compressed(buf, rgb=np.ascontiguousarray(f))
-        atomic_write_bytes(self.tmp / rel, buf.getvalue())
+        write_bytes_atomic(self.tmp / rel, buf.getvalue())
         self.lines.append(
             json.dumps(
                 {

@@ -9,7 +9,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from image2sim.dataengine.episodes import atomic_write_bytes
+from image2sim.simulator.io.atomic import write_bytes_atomic
 
 __all__ = ["episode_stats", "write_stats"]
 
@@ -75,7 +75,7 @@ def write_stats(episode_file: str | Path, out_dir: str | Path, gt_file: str | Pa
     stats = episode_stats(doc["episodes"], gt)
     stats["source"] = str(episode_file)
     out = Path(out_dir)
-    atomic_write_bytes(out / "stats.json", json.dumps(stats, indent=1).encode())
+    write_bytes_atomic(out / "stats.json", json.dumps(stats, indent=1).encode())
     _plot(stats, out / "stats.png")
     return stats
 
@@ -129,4 +129,4 @@ def _plot(stats: dict, path: Path) -> None:
     ok, buf = cv2.imencode(".png", img)
     if not ok:
         raise ValueError(f"{path}: cannot encode the statistics figure")
-    atomic_write_bytes(path, buf.tobytes())
+    write_bytes_atomic(path, buf.tobytes())
