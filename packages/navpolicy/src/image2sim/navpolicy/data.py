@@ -121,10 +121,11 @@ def uniform_indices(n: int, k: int, rng: np.random.Generator | None = None) -> l
         return list(range(n))
     if rng is None:
         return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
-    edges = np.linspace(0, n, k + 1)
     out = [0]
     for i in range(1, k):
-        lo, hi = int(np.ceil(edges[i])), int(np.ceil(edges[i + 1]))
+        # Bin i is [i*n/k, (i+1)*n/k); its integers start at ceil(i*n/k). Integer arithmetic: a float
+        # edge such as 63.0000000001 would move an index into the next bin.
+        lo, hi = -(-i * n // k), -(-(i + 1) * n // k)
         out.append(int(rng.integers(lo, max(lo + 1, hi))))
     return out
 
