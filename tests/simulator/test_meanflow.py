@@ -223,7 +223,7 @@ def _losses_and_grads(model, teacher, cond, rgb, depth, noise, r, t, autocast=Fa
     model.zero_grad(set_to_none=True)
     with mf.maybe_autocast(autocast):
         out = model.losses(cond, rgb, depth, noise, r, t, teacher=teacher)
-        total = out["flow"] + out["rec"] + out["distill"] + out["align"]
+        total = out["flow"] + out["rec"] + out["distill"] + out["align"] + out["pixel"]
     total.backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
     return out, total, grads
@@ -262,9 +262,14 @@ def test_loss_and_grads_finite_on_degenerate_conditions(stability_model, case):
         model, teacher.module, cond, rgb, depth, noise, r, t, autocast=case == "bf16"
     )
     assert torch.isfinite(total) and all(torch.isfinite(g).all() for g in grads)
+    pred_rgb = out["x_one_step"][:, :3]
     if case == "depth0":  # no valid depth: only RGB enters the reconstruction term
-        pred_rgb = out["x_one_step"][:, :3]
         assert torch.allclose(out["rec"], (pred_rgb - rgb).abs().mean(), atol=1e-6)
+    # pixel term = mse / sg(mse + c) per sample: in (0, 1), and mse/(mse+c) in value
+    mse = (pred_rgb.float() - rgb.float()).pow(2).flatten(1).mean(1)
+    c = model.cfg.loss.pixel_norm_c
+    tol = 1e-2 if case == "bf16" else 1e-5
+    assert torch.allclose(out["pixel"], (mse / (mse + c)).mean(), atol=tol)
 
 
 def test_nan_and_inf_in_splat_outputs_are_sanitised():

@@ -73,6 +73,7 @@ def test_stage_schedule_and_weights():
         and (w1["perc"], w2["perc"], w3["perc"]) == (1.0, 2.0, 4.0)
     )
     assert w1["rec"] == w1["align"] == 0.1
+    assert w1["pixel"] == w3["pixel"] == cfg.loss.lambda_pixel
     assert stage_weights(2, cfg, perceptual_available=False)["perc"] == 0.0
     nod = renderer_config_from_dict({**{"ablation": {"no_distill": True}}}, preset="tiny")
     assert stage_weights(2, nod)["distill"] == 0.0

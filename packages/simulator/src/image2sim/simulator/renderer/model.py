@@ -153,10 +153,11 @@ class PixelFlowRenderer(nn.Module):
     ) -> dict[str, torch.Tensor]:
         """Unweighted loss terms for one batch: ``flow`` (adaptively normalised, includes the
         saturation penalty), ``flow_raw`` (per-batch mean of W ||V - v||^2, for logging), ``rec``,
-        ``align``, ``distill``, ``perc`` (zeros when not applicable) and the one-step prediction
+        ``align``, ``distill``, ``pixel`` (adaptively normalised one-step RGB MSE), ``perc``
+        (zeros when not applicable) and the one-step prediction
         ``x_one_step`` (detached, for PSNR/logging).
 
-        The flow term uses one JVP at (z_t, r, t); rec / perc / distill use the one-step rendering
+        The flow term uses one JVP at (z_t, r, t); rec / pixel / perc / distill use the one-step rendering
         path x_theta(z_src, 0, 1) so they supervise exactly what :meth:`render` produces.
         """
         self._check_condition(condition)
@@ -212,6 +213,9 @@ class PixelFlowRenderer(nn.Module):
             distill = distillation_loss(
                 out.features, t_out.features, cfg.distill.level_weights, cfg.distill.beta
             )
+        pixel = mf.adaptive_normalise(
+            (rgb.float() - target_rgb.float()).pow(2).flatten(1).mean(1), cfg.loss.pixel_norm_c
+        ).mean()
         perc = zero
         if perceptual is not None:
             perc = perceptual(rgb.float(), target_rgb.float()).mean()
@@ -221,6 +225,7 @@ class PixelFlowRenderer(nn.Module):
             "rec": rec,
             "align": align,
             "distill": distill,
+            "pixel": pixel,
             "perc": perc,
             "x_one_step": out.x.detach(),
         }

@@ -65,6 +65,7 @@ def stage_weights(stage: int, cfg: RendererConfig, perceptual_available: bool = 
         "align": 0.0 if ab.no_semantic else lo.lambda_align,
         "flow": lo.lambda_flow,
         "distill": 0.0 if ab.no_distill else c.lambda_distill[stage - 1],
+        "pixel": lo.lambda_pixel,
         "perc": c.lambda_perc[stage - 1] if perceptual_available else 0.0,
     }
 
@@ -154,7 +155,8 @@ class RendererModule(L.LightningModule):
             spatial_focus=stage >= 2,
         )
         total = sum(weights[k] * out[k] for k in weights)
-        log = {f"train/{k}": out[k].detach() for k in ("flow", "flow_raw", "rec", "align", "distill", "perc")}
+        terms = ("flow", "flow_raw", "rec", "align", "distill", "pixel", "perc")
+        log = {f"train/{k}": out[k].detach() for k in terms}
         log["train/loss"] = total.detach()
         log["train/stage"] = float(stage)
         log["train/psnr_one_step"] = psnr(out["x_one_step"][:, :3], rgb)
