@@ -267,6 +267,7 @@ def test_run_render_bench_on_splatted_gaussians(tiny_capture, tmp_path):
     )
     doc = run_render_bench(bench, tmp_path / "render.json", show_progress=False)
     assert doc["protocol"]["condition_source"].startswith("gaussians")
+    assert doc["protocol"]["data"] == [str(tiny_capture)]  # the tier captures, not a placeholder
     assert doc["protocol"]["held_out_views"] == 1 and set(doc["methods"]) == {"splat_only", "flow_1step"}
     assert doc["methods"]["splat_only"]["n_views"] == 1 and doc["methods"]["splat_only"]["psnr"] > 10
 

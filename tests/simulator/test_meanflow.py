@@ -10,6 +10,7 @@ from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.condition import build_condition
 from image2sim.simulator.renderer.config import renderer_config_from_dict
 from image2sim.simulator.renderer.distill import EMATeacher
+from image2sim.simulator.renderer.losses import relative_depth_error
 from image2sim.simulator.renderer.model import PixelFlowRenderer
 
 H, W = 16, 32  # smallest panorama the H/16 bottleneck allows: keeps the JVP tests fast
@@ -232,7 +233,7 @@ def _losses_and_grads(model, teacher, cond, rgb, depth, noise, r, t, autocast=Fa
 @pytest.fixture(scope="module")
 def stability_model():
     torch.manual_seed(0)
-    model = PixelFlowRenderer(small_cfg())
+    model = PixelFlowRenderer(small_cfg(loss={"pixel_depth_weight": 1.0}))
     teacher = EMATeacher(model)
     return model, teacher
 
@@ -265,11 +266,23 @@ def test_loss_and_grads_finite_on_degenerate_conditions(stability_model, case):
     pred_rgb = out["x_one_step"][:, :3]
     if case == "depth0":  # no valid depth: only RGB enters the reconstruction term
         assert torch.allclose(out["rec"], (pred_rgb - rgb).abs().mean(), atol=1e-6)
-    # pixel term = mse / sg(mse + c) per sample: in (0, 1), and mse/(mse+c) in value
-    mse = (pred_rgb.float() - rgb.float()).pow(2).flatten(1).mean(1)
+    # pixel term = e / sg(e + c) per sample for the RGB MSE and the depth's relative error
     c = model.cfg.loss.pixel_norm_c
-    tol = 1e-2 if case == "bf16" else 1e-5
-    assert torch.allclose(out["pixel"], (mse / (mse + c)).mean(), atol=tol)
+    mse = (pred_rgb.float() - rgb.float()).pow(2).flatten(1).mean(1)
+    pred_depth = out["x_one_step"][:, 3:] * model.cfg.meanflow.depth_scale
+    rel = relative_depth_error(pred_depth, depth)
+    if case == "depth0":
+        assert torch.equal(rel, torch.zeros_like(rel))
+    expected = (mse / (mse + c)).mean() + (rel / (rel + c)).mean()
+    assert torch.allclose(out["pixel"], expected, atol=1e-2 if case == "bf16" else 1e-5)
+
+
+def test_relative_depth_error_matches_its_formula_and_skips_invalid_pixels():
+    target = torch.tensor([[[[2.0, 4.0], [0.0, float("nan")]]], [[[0.0, 0.0], [0.0, 0.0]]]])
+    pred = torch.tensor([[[[3.0, 4.0], [7.0, 7.0]]], [[[1.0, 1.0], [1.0, 1.0]]]])
+    err = relative_depth_error(pred, target)
+    assert torch.allclose(err, torch.tensor([(0.5**2 + 0.0) / 2, 0.0]))
+    assert torch.equal(relative_depth_error(target.nan_to_num(1.0), target.nan_to_num(1.0)), torch.zeros(2))
 
 
 def test_nan_and_inf_in_splat_outputs_are_sanitised():

@@ -620,6 +620,7 @@ def run_render_bench(
             "checkpoint": bench.checkpoint,
             "trained": bench.checkpoint is not None,
             "data": list(bench.data)
+            or sorted({c for tier in tiers_doc.values() for c in tier.get("captures", [])})
             or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
             "holdout_every": bench.holdout_every,
             "input_views": bench.input_views,

@@ -148,6 +148,10 @@ class LossConfig:
     weights exist (every CPU run here) the L1 reconstruction at lambda_rec 0.1 alone leaves the
     one-step output at the blurred prior (measured in reports/renderer_tiny.md); the tiny preset
     sets this term instead."""
+    pixel_depth_weight: float = 0.0
+    """Weight, inside the pixel term, of the one-step depth's squared relative error over valid
+    pixels (normalised the same way): keeps the depth head at least as good as the prior while
+    the RGB is sharpened."""
     pixel_norm_c: float = 1e-4
     """c of the pixel term's normalisation mse / sg(mse + c) (a 22 dB image has mse ~ 6e-3)."""
 

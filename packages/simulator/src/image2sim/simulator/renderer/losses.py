@@ -1,6 +1,7 @@
 """Renderer losses other than the flow and distillation terms.
 
 * :func:`reconstruction_loss`  L1 on RGB plus L1 on valid (> 0) depth
+* :func:`relative_depth_error` per-image mean squared relative depth error over valid pixels
 * :func:`saturation_penalty`   squared excess of a colour estimate outside [0, 1]
 * :class:`LPIPS`               LPIPS (VGG16 + learned linear heads), re-exported from
                                :mod:`image2sim.simulator.metrics.lpips`; weights are read from a
@@ -19,6 +20,7 @@ from image2sim.simulator.metrics.lpips import load_lpips_or_none as load_lpips
 
 __all__ = [
     "reconstruction_loss",
+    "relative_depth_error",
     "saturation_penalty",
     "LPIPS",
     "load_lpips",
@@ -42,6 +44,15 @@ def reconstruction_loss(
     diff = (pred_depth.float() - torch.where(valid, target_depth, 0).float()).abs() * valid
     depth = diff.sum() / valid.sum().clamp_min(1)
     return rgb_weight * rgb + depth_weight * depth
+
+
+def relative_depth_error(pred_depth: torch.Tensor, target_depth: torch.Tensor) -> torch.Tensor:
+    """Per image ``(B,)``: mean over valid target pixels (> 0, finite) of ``((pred - target) /
+    target)^2`` (the squared counterpart of AbsRel); an image without valid depth gives 0."""
+    valid = (target_depth > 0) & torch.isfinite(target_depth)
+    ref = torch.where(valid, target_depth, torch.ones_like(target_depth)).float()
+    err = ((pred_depth.float() - ref) / ref).pow(2) * valid
+    return err.flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
 
 
 def saturation_penalty(x: torch.Tensor, low: float = 0.0, high: float = 1.0) -> torch.Tensor:

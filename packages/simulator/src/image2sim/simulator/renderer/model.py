@@ -18,7 +18,7 @@ from image2sim.simulator.renderer.condition import from_state, prior_state, to_s
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, STATE_CHANNELS, RendererConfig
 from image2sim.simulator.renderer.decoder import DecoderOutput, RenderingDecoder
 from image2sim.simulator.renderer.distill import distillation_loss
-from image2sim.simulator.renderer.losses import reconstruction_loss, saturation_penalty
+from image2sim.simulator.renderer.losses import reconstruction_loss, relative_depth_error, saturation_penalty
 from torch import nn
 
 __all__ = ["RenderOutput", "PixelFlowRenderer", "save_renderer", "load_renderer"]
@@ -216,6 +216,10 @@ class PixelFlowRenderer(nn.Module):
         pixel = mf.adaptive_normalise(
             (rgb.float() - target_rgb.float()).pow(2).flatten(1).mean(1), cfg.loss.pixel_norm_c
         ).mean()
+        if cfg.loss.pixel_depth_weight > 0:
+            pixel = pixel + cfg.loss.pixel_depth_weight * mf.adaptive_normalise(
+                relative_depth_error(depth, target_depth), cfg.loss.pixel_norm_c
+            ).mean()
         perc = zero
         if perceptual is not None:
             perc = perceptual(rgb.float(), target_rgb.float()).mean()
