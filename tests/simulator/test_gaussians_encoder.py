@@ -255,3 +255,65 @@ def test_encoder_checkpoint_round_trip(tmp_path):
     )
     with pytest.raises(Exception, match="do not match|size mismatch"):
         load_encoder(path)
+
+
+def _floor_frame(cam, height=1.5, x=0.0):
+    """A camera ``height`` above an infinite floor (world z = 0) at world x = ``x``, looking along
+    world +X, with the floor's exact range as depth and a wall-like 3 m range elsewhere."""
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    pose[0, 3], pose[2, 3] = x, height
+    down = -(torch.einsum("ij,jhw->ihw", pose[:3, :3].float(), cam.ray_map()))[2]
+    depth = torch.where(down > 0.2, height / down.clamp_min(1e-6), torch.full_like(down, 3.0))[None, None]
+    return FrameInputs(torch.rand(1, 3, cam.height, cam.width), depth, cam, pose), down
+
+
+def test_identity_disc_gaussians_lie_flat_on_the_floor():
+    cam = EquirectCamera(32, 64)
+    frame, down = _floor_frame(cam)
+    cfg = _small(h=32, w=64)
+    sphere = identity_gaussians(frame, cfg)
+    disc_cfg = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, identity_shape="disc"))
+    disc = identity_gaussians(frame, disc_cfg)
+    torch.testing.assert_close(disc.means, sphere.means)
+    inner = (down > 0.55).reshape(-1)
+    assert inner.sum() > 200
+    z_axes = quat_to_matrix(disc.quats[inner])[..., 2]
+    torch.testing.assert_close(z_axes, torch.tensor([0.0, 0.0, 1.0]).expand_as(z_axes), atol=1e-4, rtol=0)
+    s = sphere.scales[:, 0]
+    torch.testing.assert_close(disc.scales[:, :2], torch.stack((s, s), -1))
+    thin = (s * disc_cfg.encoder.disc_thickness).clamp_min(cfg.encoder.scale_min)
+    torch.testing.assert_close(disc.scales[:, 2], thin)
+    with pytest.raises(ConfigError, match="identity_shape"):
+        gaussian_config_from_dict({"encoder": {"identity_shape": "cube"}})
+    with pytest.raises(ConfigError, match="disc_thickness"):
+        gaussian_config_from_dict({"encoder": {"disc_thickness": 0.0}})
+
+
+def test_disc_gaussians_splat_the_floor_at_a_novel_pose_with_less_depth_bias():
+    """Ground truth: the floor's exact range seen from a camera 0.5 m further along +X. Isotropic
+    Gaussians of nearer floor points cover farther floor pixels at grazing angles (splatted range
+    too short); discs lying in the floor do so less (measured mean |relative error| 3.9 % vs 5.4 %;
+    what remains comes from compositing by centre range, not from the shape)."""
+    from image2sim.simulator.splatting import splat
+
+    cam = EquirectCamera(64, 128)
+    source, _ = _floor_frame(cam)
+    target, down = _floor_frame(cam, x=0.5)
+    cfg = _small(h=64, w=128)
+    floor = (down > 0.3) & (down < 0.9)  # grazing to steep views of the floor, away from the horizon
+    errors = {}
+    for shape in ("sphere", "disc"):
+        c = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, identity_shape=shape))
+        g = identity_gaussians(source, c)
+        keep = g.means[:, 2].abs() < 1e-3  # floor Gaussians only (the 3 m "walls" are not a surface)
+        out = splat(
+            g.means[keep], g.scales[keep], g.quats[keep], g.opacities[keep], g.colors[keep], None,
+            cam, target.cam_to_world,
+        )
+        depth = out.depth[0, 0] / out.alpha[0, 0].clamp_min(1e-6)
+        ok = floor & (out.alpha[0, 0] > 0.9)
+        assert ok.sum() > 0.9 * floor.sum()
+        errors[shape] = ((depth - target.depth[0, 0]) / target.depth[0, 0])[ok]
+    assert errors["sphere"].median() < -0.005  # the isotropic bias this option exists to remove
+    assert errors["disc"].abs().mean() < 0.8 * errors["sphere"].abs().mean()

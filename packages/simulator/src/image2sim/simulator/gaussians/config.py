@@ -89,6 +89,14 @@ class EncoderConfig:
     """Initial standard deviation as a multiple of the pixel footprint (the identity baseline's value)."""
     opacity_init: float = 0.95
     """Initial opacity of every Gaussian (the opacity head's bias)."""
+    identity_shape: Literal["sphere", "disc"] = "sphere"
+    """Shape of the ``identity`` encoder's Gaussians: ``sphere`` (isotropic, std scale_init x
+    footprint) or ``disc`` (same std in the surface plane, ``disc_thickness`` times it along the
+    ``point_normals`` normal). Discs stop near surface points from covering farther ones at
+    grazing angles: held-out splats +0.74 dB (procedural middle) / +0.99 dB (HM3D sample), depth
+    AbsRel 0.082 -> 0.059 / 0.153 -> 0.112 (reports/renderer_tiny.md)."""
+    disc_thickness: float = 0.1
+    """Std along the normal of a ``disc`` Gaussian, as a fraction of its in-plane std."""
 
 
 @dataclass
@@ -195,6 +203,10 @@ class GaussianConfig:
             raise ConfigError(f"encoder.kernel_size must be odd and positive, got {e.kernel_size}")
         if not 0 < e.scale_min < e.scale_max:
             raise ConfigError(f"encoder needs 0 < scale_min < scale_max, got {e.scale_min}, {e.scale_max}")
+        if e.identity_shape not in ("sphere", "disc"):
+            raise ConfigError(f"encoder.identity_shape must be 'sphere' or 'disc', got {e.identity_shape!r}")
+        if not 0 < e.disc_thickness <= 1:
+            raise ConfigError(f"encoder.disc_thickness must lie in (0, 1], got {e.disc_thickness}")
         if not 0 < e.opacity_init < 1 or e.scale_init <= 0 or e.depth_scale <= 0:
             raise ConfigError(
                 "encoder.opacity_init must lie in (0, 1); scale_init and depth_scale must be > 0"

@@ -81,23 +81,43 @@ def _flatten(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
 
 
+def _surface_frames(depth: torch.Tensor, camera: Camera, cam_to_world: torch.Tensor) -> torch.Tensor:
+    """World rotations (B, H*W, 3, 3) whose local z is the ``point_normals`` surface normal (minus
+    the viewing ray where the normal is unknown); ``cam_to_world`` is (4, 4) or (B, 4, 4)."""
+    B = depth.shape[0]
+    normals = point_normals(depth, camera)
+    rays = camera.ray_map(depth.dtype, depth.device).expand(B, -1, -1, -1)
+    normals = torch.where(normals.abs().sum(dim=1, keepdim=True) == 0, -rays, normals)
+    R_base = normal_frame(normals.permute(0, 2, 3, 1).reshape(B, -1, 3))
+    R_pose = cam_to_world[..., :3, :3].to(depth.dtype)
+    return (R_pose[:, None] if R_pose.ndim == 3 else R_pose) @ R_base
+
+
 def identity_gaussians(frame: FrameInputs, cfg: GaussianConfig) -> GaussianSet:
-    """The non-learned baseline: one isotropic Gaussian per valid pixel, no features.
+    """The non-learned baseline: one Gaussian per valid pixel, no features.
 
     Colour = pixel colour, std = ``encoder.scale_init`` x pixel footprint (clamped to the scale
-    bounds), opacity 1, identity rotation, mean = depth back-projected into the world.
+    bounds), opacity 1, mean = depth back-projected into the world. ``encoder.identity_shape``
+    ``sphere``: isotropic, identity rotation; ``disc``: that std in the surface plane and
+    ``disc_thickness`` times it along the surface normal.
     """
-    depth, camera = frame.depth, frame.camera
+    depth, camera, e = frame.depth, frame.camera, cfg.encoder
     valid = valid_pixels(depth, cfg.fusion)[:, 0].reshape(-1)
     pts = world_points(depth.double(), camera, frame.cam_to_world).reshape(-1, 3).to(depth.dtype)[valid]
     foot = pixel_footprint(depth, camera).reshape(-1)[valid]
-    sigma = (foot * cfg.encoder.scale_init).clamp(cfg.encoder.scale_min, cfg.encoder.scale_max)
+    sigma = (foot * e.scale_init).clamp(e.scale_min, e.scale_max)
     n = pts.shape[0]
-    quats = torch.zeros(n, 4, dtype=depth.dtype, device=depth.device)
-    quats[:, 0] = 1.0
+    if e.identity_shape == "disc":
+        quats = matrix_to_quat(_surface_frames(depth, camera, frame.cam_to_world).reshape(-1, 3, 3)[valid])
+        thin = (sigma * e.disc_thickness).clamp_min(e.scale_min)
+        scales = torch.stack((sigma, sigma, thin), dim=-1)
+    else:
+        quats = torch.zeros(n, 4, dtype=depth.dtype, device=depth.device)
+        quats[:, 0] = 1.0
+        scales = sigma[:, None].expand(n, 3).contiguous()
     return GaussianSet(
         means=pts,
-        scales=sigma[:, None].expand(n, 3).contiguous(),
+        scales=scales,
         quats=quats,
         opacities=torch.ones(n, dtype=depth.dtype, device=depth.device),
         colors=_flatten(frame.rgb)[valid].clamp(0, 1),
@@ -259,14 +279,8 @@ def pixel_maps_to_gaussians(
     foot = pixel_footprint(depth, camera).reshape(B, -1)
     scales = bounded_scales(_flatten(maps["scale"]).reshape(B, -1, 3), foot[..., None], e)
     opac = torch.sigmoid(maps["opacity"]).reshape(B, -1)
-    # Base rotation: local z along the metric surface normal (camera frame), -ray where unknown.
-    normals = point_normals(depth, camera)
-    rays = camera.ray_map(dtype, depth.device).expand(B, -1, -1, -1)
-    unknown = normals.abs().sum(dim=1, keepdim=True) == 0
-    normals = torch.where(unknown, -rays, normals)
-    R_base = normal_frame(normals.permute(0, 2, 3, 1).reshape(B, -1, 3))
-    R_world = poses[:, None, :3, :3].to(dtype) @ R_base
-    q_base = matrix_to_quat(R_world)
+    # Base rotation: local z along the metric surface normal, -ray where unknown.
+    q_base = matrix_to_quat(_surface_frames(depth, camera, poses).expand(B, -1, -1, -1))
     residual = _flatten(maps["rotation"]).reshape(B, -1, 4)
     q_res = normalize_quat(residual + residual.new_tensor([1.0, 0.0, 0.0, 0.0]))
     quats = normalize_quat(quat_multiply(q_base, q_res))
