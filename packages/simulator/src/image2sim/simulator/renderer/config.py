@@ -150,8 +150,8 @@ class LossConfig:
     sets this term instead."""
     pixel_depth_weight: float = 0.0
     """Weight, inside the pixel term, of the one-step depth's squared relative error over valid
-    pixels (normalised the same way): keeps the depth head at least as good as the prior while
-    the RGB is sharpened."""
+    pixels (normalised the same way). It trades RGB gain for depth: at 1.0, after 400 tiny steps,
+    depth AbsRel 0.056 instead of 0.091 but +0.11 instead of +1.42 dB over splat-only."""
     pixel_norm_c: float = 1e-4
     """c of the pixel term's normalisation mse / sg(mse + c) (a 22 dB image has mse ~ 6e-3)."""
 
