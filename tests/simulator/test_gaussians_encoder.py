@@ -64,7 +64,9 @@ def test_tiny_shapes_ranges_and_identity_initialisation(camera):
         (gs,) = enc([frame])
     assert len(gs) == 32 * 64
     _check_ranges(gs, cfg)
-    ident = identity_gaussians(frame, cfg)
+    # The learned heads start isotropic: the identity baseline's ``sphere`` shape.
+    sphere = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, identity_shape="sphere"))
+    ident = identity_gaussians(frame, sphere)
     torch.testing.assert_close(gs.means, ident.means)
     torch.testing.assert_close(gs.colors, ident.colors)
     # Zero-initialised heads: scales start at the identity baseline's, opacity at opacity_init.

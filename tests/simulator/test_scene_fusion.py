@@ -230,9 +230,17 @@ def test_identity_gaussians_lie_on_the_depth_rays():
         :3, 3
     ]
     torch.testing.assert_close(g.means.double(), expect, atol=1e-5, rtol=0)
-    torch.testing.assert_close(g.scales[:, 0], g.scales[:, 2])
-    torch.testing.assert_close(g.scales[:, 0], (g.footprints * cfg.encoder.scale_init).clamp(0.002, 0.5))
-    assert torch.all(g.opacities == 1) and torch.all(g.quats[:, 0] == 1)
+    sigma = (g.footprints * cfg.encoder.scale_init).clamp(0.002, 0.5)
+    # Default shape "disc": the footprint std in the surface plane, a fraction of it along the normal.
+    torch.testing.assert_close(g.scales[:, :2], torch.stack((sigma, sigma), -1))
+    torch.testing.assert_close(g.scales[:, 2], (sigma * cfg.encoder.disc_thickness).clamp_min(0.002))
+    torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(len(g)))
+    assert torch.all(g.opacities == 1)
+    sphere = identity_gaussians(
+        frame, dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, identity_shape="sphere"))
+    )
+    torch.testing.assert_close(sphere.scales, sigma[:, None].expand(-1, 3))
+    assert torch.all(sphere.quats[:, 0] == 1)
     # Room walls: every point within the box.
     assert float(g.means[:, 2].min()) > -1e-4 and float(g.means[:, 2].max()) < 2.5 + 1e-4
 
