@@ -13,7 +13,8 @@ composed with a learned residual that starts at identity; scales start at ``scal
 footprint (the identity baseline) and stay inside [scale_min, scale_max]; colours are the input
 pixels; means are unprojected deterministically from depth and moved to the world with the pose.
 
-``identity`` (no weights): pixel colours, isotropic scales = scale_init x footprint, opacity 1.
+``identity`` (no weights): pixel colours, opacity 1, std = scale_init x footprint; by default a disc in
+the surface plane (the learned path's base rotation), or an isotropic sphere (``identity_shape``).
 """
 
 from __future__ import annotations
@@ -280,7 +281,7 @@ def pixel_maps_to_gaussians(
     scales = bounded_scales(_flatten(maps["scale"]).reshape(B, -1, 3), foot[..., None], e)
     opac = torch.sigmoid(maps["opacity"]).reshape(B, -1)
     # Base rotation: local z along the metric surface normal, -ray where unknown.
-    q_base = matrix_to_quat(_surface_frames(depth, camera, poses).expand(B, -1, -1, -1))
+    q_base = matrix_to_quat(_surface_frames(depth, camera, poses))
     residual = _flatten(maps["rotation"]).reshape(B, -1, 4)
     q_res = normalize_quat(residual + residual.new_tensor([1.0, 0.0, 0.0, 0.0]))
     quats = normalize_quat(quat_multiply(q_base, q_res))
