@@ -187,6 +187,43 @@ def test_oracle_only_rollout_reaches_the_goal(scene, tiny_cfg):
         assert ep.trajectory.actions == [lab[0] for lab in ep.labels]
 
 
+def _magenta(frames: np.ndarray) -> np.ndarray:
+    """Per frame: does it hold goal-marker pixels (saturated red + blue, no green)?"""
+    f = frames.astype(np.int32)
+    return ((f[..., 0] > 100) & (f[..., 2] > 100) & (f[..., 1] < 20)).any(axis=(1, 2))
+
+
+def test_goal_marker_is_seen_on_the_way_and_named_in_the_instruction(scene, tiny_cfg):
+    """With ``task.goal_marker`` the rollout's frames show the pillar (the oracle turns towards it)
+    while the same scene without the marker has no such pixels; the runner's backend places it at
+    the evaluation episode's goal."""
+    from image2sim.eval.runner import NeuralSimBackend, embodiment_for
+    from image2sim.navpolicy.act import act_protocol, task_episodes
+    from image2sim.navpolicy.dagger import procedural_scenes
+    from image2sim.simulator.markers import GoalMarker
+
+    assert goal_instruction(np.zeros(3), 0.0, np.array([2.0, 0.0, 0.0]), "magenta pillar") == (
+        "Go to the magenta pillar 2.0 m ahead and 0.0 m to the left, then stop next to it."
+    )
+    (marked,) = procedural_scenes(1, 2, seed=0, min_distance=1.2, goal_marker=GoalMarker())
+    plain_sim, plain_tasks = scene
+    assert all("magenta pillar" in t.instruction for t in marked.tasks)
+    mixer = ChunkMixer(0.0, 4, 32, np.random.default_rng(0))
+    ep = dagger_rollout(marked.sim, marked.tasks[0], None, mixer, tiny_cfg.observation)
+    seen = _magenta(ep.trajectory.frames)
+    assert ep.end == "stop" and seen.mean() > 0.5
+    mixer = ChunkMixer(0.0, 4, 32, np.random.default_rng(0))
+    plain = dagger_rollout(plain_sim, plain_tasks[0], None, mixer, tiny_cfg.observation)
+    assert not _magenta(plain.trajectory.frames).any()
+
+    proto = act_protocol(tiny_cfg, 50, 0.5)
+    backend = NeuralSimBackend(marked.sim, proto, "marked")
+    assert embodiment_for(proto) is not None
+    (episode,) = task_episodes(marked.sim, 1, 0, "marked", marker_name="magenta pillar")
+    backend.reset(episode, observe=True)
+    np.testing.assert_allclose(marked.sim.render_fn.goal, episode.goal_position)
+
+
 class _StuckAfter:
     """Proxy simulator whose stuck detector 'fires' after ``k`` steps."""
 

@@ -241,6 +241,7 @@ class NeuralSimBackend:
         goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
         self.goal_map = goal
         self.field = self.sim.planner.distance_field(goal)
+        self.sim.set_goal(np.asarray(episode.goal_position, dtype=np.float64).reshape(3))
         self._last_pos, self._last_dist, self._last_reason, self._last_approx = None, float("inf"), "", False
         _, info = self.sim.reset(
             start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False

@@ -48,14 +48,17 @@ def make_agent(cfg: NavPolicyConfig, name: str):
     return make_baseline(name)
 
 
-def task_episodes(sim, n: int, seed: int, scene_id: str, min_distance: float = 1.5):
+def task_episodes(
+    sim, n: int, seed: int, scene_id: str, min_distance: float = 1.5, marker_name: str | None = None
+):
     """Runner episodes from :func:`image2sim.navpolicy.dagger.sample_tasks` (same instructions as
-    DAgger's rollouts: the goal relative to the start pose)."""
+    DAgger's rollouts: the goal relative to the start pose, naming the goal marker if there is one)."""
     from image2sim.eval.datasets import Instruction, NavEpisode
     from image2sim.navpolicy.dagger import sample_tasks
 
     out = []
-    for t in sample_tasks(sim, n, np.random.default_rng([seed, 2]), min_distance, scene_id):
+    rng = np.random.default_rng([seed, 2])
+    for t in sample_tasks(sim, n, rng, min_distance, scene_id, marker_name=marker_name):
         path = sim.planner.shortest_path(t.start, t.goal)
         h = t.heading
         out.append(
@@ -119,9 +122,10 @@ def run_act(
     from PIL import Image
 
     proto = act_protocol(cfg, max_steps, success_distance)
-    sim = procedural_simulator(scene_seed, "tiny", embodiment_for(proto))
+    marker = cfg.task.active_marker()
+    sim = procedural_simulator(scene_seed, "tiny", embodiment_for(proto), goal_marker=marker)
     scene_id = f"procedural-tiny-{scene_seed:03d}"
-    episodes = task_episodes(sim, episode_index + 1, scene_seed, scene_id)
+    episodes = task_episodes(sim, episode_index + 1, scene_seed, scene_id, marker_name=marker and marker.name)
     ep = episodes[episode_index]
 
     class Recording(NeuralSimBackend):
@@ -188,10 +192,12 @@ def compare_agents(
 
     proto = act_protocol(cfg, max_steps, success_distance)
     built = []
+    marker = cfg.task.active_marker()
     for s in scene_seeds:
-        sim = procedural_simulator(s, "tiny", embodiment_for(proto))
+        sim = procedural_simulator(s, "tiny", embodiment_for(proto), goal_marker=marker)
         name = f"procedural-tiny-{s:03d}"
-        built.append((NeuralSimBackend(sim, proto, name), task_episodes(sim, episodes_per_scene, s, name)))
+        eps = task_episodes(sim, episodes_per_scene, s, name, marker_name=marker and marker.name)
+        built.append((NeuralSimBackend(sim, proto, name), eps))
     out = {}
     with Progress(transient=True) as progress:
         bar = progress.add_task("episodes", total=len(agents) * sum(len(e) for _, e in built))

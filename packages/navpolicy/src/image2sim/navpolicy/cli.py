@@ -208,7 +208,7 @@ def _train_dagger(
         except ShardError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
-    sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed)
+    sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed, goal_marker=cfg.task.active_marker())
     try:
         res = run_dagger(cfg, sc, out, base_trajectories=base, resume=not fresh)
     except ValueError as exc:  # a recorded run with other arguments in --out

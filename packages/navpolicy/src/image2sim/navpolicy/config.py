@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from image2sim.simulator.config import ConfigError  # one error type repository-wide
+from image2sim.simulator.markers import GoalMarker
 
 
 @dataclass
@@ -222,6 +223,21 @@ class DaggerConfig:
 
 
 @dataclass
+class TaskConfig:
+    """The procedural point-goal tasks of DAgger rollouts and of ``nav compare`` / ``nav act``."""
+
+    goal_marker: bool = False
+    """Stand a visible pillar on the goal and name it in the instruction (visual homing). Off: the
+    goal is given only as metres relative to the start pose and must be tracked by path integration."""
+    marker: GoalMarker = field(default_factory=GoalMarker)
+    """The pillar's shape, colour and name (used when ``goal_marker`` is on)."""
+
+    def active_marker(self) -> GoalMarker | None:
+        """The marker when ``goal_marker`` is on, else ``None``."""
+        return self.marker if self.goal_marker else None
+
+
+@dataclass
 class NavPolicyConfig:
     """Everything an Image2Nav run needs; saved beside every run's outputs."""
 
@@ -239,6 +255,8 @@ class NavPolicyConfig:
     """Inference."""
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     """Online DAgger (stage 2)."""
+    task: TaskConfig = field(default_factory=TaskConfig)
+    """Procedural point-goal tasks (DAgger and the comparison against baselines)."""
     system_prompt: str = (
         "You are a navigation agent in an indoor environment. Follow the instruction. "
         "Actions: STOP, FORWARD (move 0.25 m), LEFT (turn 15 degrees), RIGHT (turn 15 degrees). "

@@ -245,6 +245,7 @@ def dagger_rollout(
     observe = observe or (lambda s: render_observation(s, obs))
     labeler = OracleLabeler(sim, task.goal, follower_config)
     _, info = sim.reset(np.asarray(task.start, float)[None], np.array([task.heading]), observe=False)
+    sim.set_goal(sim.navmap.to_world(np.asarray(task.goal, float).reshape(3)))
     if controller is not None:
         controller.reset(task.instruction, seed=seed)
     frames, actions, labels, who = [], [], [], []
@@ -308,13 +309,18 @@ def dagger_rollout(
 # ------------------------------------------------------------------------------------------ tasks
 
 
-def goal_instruction(start: np.ndarray, heading: float, goal: np.ndarray) -> str:
-    """An egocentric point-goal instruction (the goal relative to the start pose, metres)."""
+def goal_instruction(
+    start: np.ndarray, heading: float, goal: np.ndarray, marker_name: str | None = None
+) -> str:
+    """An egocentric point-goal instruction (the goal relative to the start pose, metres); with
+    ``marker_name`` the goal is also named as the visible marker standing on it."""
     d = np.asarray(goal, float)[:2] - np.asarray(start, float)[:2]
     c, s = math.cos(heading), math.sin(heading)
     ahead, left = c * d[0] + s * d[1], -s * d[0] + c * d[1]
     fb = f"{abs(ahead):.1f} m {'ahead' if ahead >= 0 else 'behind you'}"
     lr = f"{abs(left):.1f} m to the {'left' if left >= 0 else 'right'}"
+    if marker_name:
+        return f"Go to the {marker_name} {fb} and {lr}, then stop next to it."
     return f"Go to the point {fb} and {lr}, then stop."
 
 
@@ -325,9 +331,11 @@ def sample_tasks(
     min_distance: float = 1.0,
     scene_id: str = "scene",
     max_tries: int = 5000,
+    marker_name: str | None = None,
 ) -> list[NavTask]:
     """``n`` start/goal pairs on graph nodes of one component, at least ``min_distance`` apart
-    (geodesic), with uniform start headings; raises ``ValueError`` if too few are found."""
+    (geodesic), with uniform start headings; raises ``ValueError`` if too few are found.
+    ``marker_name``: the goal carries a visible marker of that name (see :func:`goal_instruction`)."""
     nodes = np.asarray(sim.graph.nodes, dtype=np.float64)
     out: list[NavTask] = []
     for _ in range(max_tries):
@@ -344,7 +352,7 @@ def sample_tasks(
                 nodes[i],
                 h,
                 nodes[j],
-                goal_instruction(nodes[i], h, nodes[j]),
+                goal_instruction(nodes[i], h, nodes[j], marker_name),
                 scene_id,
             )
         )
@@ -355,10 +363,12 @@ def sample_tasks(
     return out
 
 
-def procedural_simulator(seed: int = 0, preset: str = "tiny", embodiment=None):
+def procedural_simulator(seed: int = 0, preset: str = "tiny", embodiment=None, goal_marker=None):
     """A :class:`NeuralSimulator` on a procedural scene of the data engine (exact renderer).
 
     The embedded default data source: no files needed. Imports :mod:`image2sim.dataengine` lazily.
+    ``goal_marker`` (a :class:`~image2sim.simulator.markers.GoalMarker`) draws it at the goal given
+    to ``sim.set_goal``.
     """
     from image2sim.dataengine.procedural import capture_frames, generate_scene
     from image2sim.dataengine.procedural import preset as synth_preset
@@ -374,6 +384,10 @@ def procedural_simulator(seed: int = 0, preset: str = "tiny", embodiment=None):
         out = render(scene, camera, np.asarray(pose))
         return {"rgb": out["rgb"].astype(np.float32) / 255.0, "depth": out["depth"]}
 
+    if goal_marker is not None:
+        from image2sim.simulator.markers import MarkedRenderFn
+
+        return NeuralSimulator(navmap, NavGraph.build(navmap), MarkedRenderFn(render_fn, goal_marker))
     return NeuralSimulator(navmap, NavGraph.build(navmap), render_fn)
 
 
@@ -683,13 +697,21 @@ def run_dagger(
 
 
 def procedural_scenes(
-    n_scenes: int, tasks_per_scene: int, seed: int = 0, preset: str = "tiny", min_distance: float = 1.0
+    n_scenes: int,
+    tasks_per_scene: int,
+    seed: int = 0,
+    preset: str = "tiny",
+    min_distance: float = 1.0,
+    goal_marker=None,
 ) -> list[DaggerScene]:
-    """``n_scenes`` procedural scenes (seeds ``seed..seed+n-1``) with sampled point-goal tasks."""
+    """``n_scenes`` procedural scenes (seeds ``seed..seed+n-1``) with sampled point-goal tasks
+    (with a visible ``goal_marker`` at each goal when given)."""
     out = []
+    name_of_marker = goal_marker.name if goal_marker is not None else None
     for i in range(n_scenes):
-        sim = procedural_simulator(seed + i, preset)
+        sim = procedural_simulator(seed + i, preset, goal_marker=goal_marker)
         name = f"procedural-{preset}-{seed + i:03d}"
-        tasks = sample_tasks(sim, tasks_per_scene, np.random.default_rng([seed, i]), min_distance, name)
+        rng = np.random.default_rng([seed, i])
+        tasks = sample_tasks(sim, tasks_per_scene, rng, min_distance, name, marker_name=name_of_marker)
         out.append(DaggerScene(sim, tasks, name))
     return out

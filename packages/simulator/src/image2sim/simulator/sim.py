@@ -356,6 +356,14 @@ class NeuralSimulator:
             self._planner = Planner(self.graph)
         return self._planner
 
+    def set_goal(self, goal_world: np.ndarray | None) -> None:
+        """Tell a goal-aware render function (one with ``set_goal``, e.g.
+        :class:`~image2sim.simulator.markers.MarkedRenderFn`) the episode's world-frame goal; a no-op
+        for other render functions, so task code can always call it."""
+        setter = getattr(self.render_fn, "set_goal", None)
+        if setter is not None:
+            setter(goal_world)
+
     # --- agents ---------------------------------------------------------------------------
     def reset(self, positions: np.ndarray, headings: np.ndarray | None = None, observe: bool = True):
         """Place one agent per row of ``positions`` (B, 3); returns ``(observations, info)``."""
