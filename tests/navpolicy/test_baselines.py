@@ -105,6 +105,12 @@ def test_nav_act_writes_topdown_png_frames_and_metrics(act_runs):
         assert rec["frames"] == 1 + sum(a != S for a in rec["actions"])
         assert np.asarray(Image.open(frames[0])).shape == (64, 64, 3)
         assert json.loads((root / name / "episode.json").read_text())["actions"] == rec["actions"]
+        # the strip: min(8, frames) tiles of 128 px (64 px frames scaled 2x) with 4 px gaps,
+        # the first tile equal to the first frame
+        strip = np.asarray(Image.open(rec["strip"]))
+        k = min(8, rec["frames"])
+        assert strip.shape == (128, k * 128 + (k - 1) * 4, 3)
+        np.testing.assert_array_equal(strip[::2, :128:2], np.asarray(Image.open(frames[0])))
 
 
 def test_forward_turn_turns_after_every_collision_in_the_simulator(act_runs):

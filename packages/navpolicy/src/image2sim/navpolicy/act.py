@@ -105,6 +105,26 @@ def topdown_png(sim, positions: np.ndarray, goal: np.ndarray, radius: float, pat
     return path
 
 
+def frame_strip(frames: list[np.ndarray], path: Path, n: int = 8, size: int = 128) -> Path:
+    """``n`` frames evenly spaced over the episode (first and last included), side by side, each
+    scaled to ``size`` pixels high (nearest neighbour: the policy's pixels as it saw them)."""
+    from PIL import Image
+
+    if not frames:
+        raise ValueError("frame_strip: no frames")
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
+    tiles = []
+    for i in idx:
+        f = Image.fromarray(frames[i])
+        tiles.append(np.asarray(f.resize((max(1, f.width * size // f.height), size), Image.NEAREST)))
+    gap = np.full((size, 4, 3), 255, np.uint8)
+    row = np.concatenate([x for t in tiles for x in (t, gap)][:-1], axis=1)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    Image.fromarray(row).save(tmp)
+    tmp.replace(path)
+    return path
+
+
 def run_act(
     cfg: NavPolicyConfig,
     agent_name: str,
@@ -116,7 +136,8 @@ def run_act(
     seed: int = 0,
 ) -> dict:
     """Run ``agent_name`` on episode ``episode_index`` of procedural scene ``scene_seed``; writes
-    ``topdown.png``, ``frames/NNNN.png`` and ``episode.json`` under ``out``; returns the record."""
+    ``topdown.png``, ``frames/NNNN.png``, ``strip.png`` (8 frames along the episode) and
+    ``episode.json`` under ``out``; returns the record."""
     from image2sim.eval.runner import NeuralSimBackend, embodiment_for, run_episode
     from image2sim.navpolicy.dagger import procedural_simulator
     from PIL import Image
@@ -160,6 +181,7 @@ def run_act(
         "collided": backend.collided[1:],
         "metrics": dict(m),
         "topdown": str(png),
+        "strip": str(frame_strip(backend.frames, outp / "strip.png")),
         "frames": len(backend.frames),
     }
     tmp = outp / "episode.json.tmp"
