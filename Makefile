@@ -49,8 +49,10 @@ bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
 
 RENDERER_DATA ?= $(wildcard ../shared/data/hm3d_360/00000-kfPV7w3FaU5)
+# Real captures train with the depth part of the pixel term (configs/renderer/tiny_real.yaml): see its header.
+RENDERER_CONFIG ?= $(if $(RENDERER_DATA),configs/renderer/tiny_real.yaml,tiny)
 train-sim-tiny: setup  ## train the tiny pixel-flow renderer on CPU (HM3D sample if present, else procedural rooms)
-	$(VENV)/bin/image2sim sim train --config tiny --out outputs/renderer-tiny $(addprefix --data ,$(RENDERER_DATA))
+	$(VENV)/bin/image2sim sim train --config $(RENDERER_CONFIG) --out outputs/renderer-tiny $(addprefix --data ,$(RENDERER_DATA))
 
 NAV_TINY ?= outputs/nav-tiny
 NAV_SHARDS = $$(for d in $(NAV_TINY)/engine/scenes/*/shard; do printf -- '--shard %s ' $$d; done)

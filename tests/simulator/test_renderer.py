@@ -260,6 +260,21 @@ def test_configs_presets_round_trip_and_reject_unknown_keys(tmp_path):
         load_renderer_config(tmp_path / "missing.yaml")
 
 
+def test_repository_renderer_configs_load():
+    """Every YAML in configs/renderer resolves over its preset; tiny_real adds only the depth term."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "configs" / "renderer"
+    files = sorted(root.glob("*.yaml"))
+    assert len(files) >= 5
+    for f in files:
+        load_renderer_config(f)
+    real = load_renderer_config(root / "tiny_real.yaml")
+    assert real.loss.pixel_depth_weight == 1.0
+    real.loss.pixel_depth_weight = tiny().loss.pixel_depth_weight
+    assert real == tiny()
+
+
 def test_every_config_field_has_a_docstring():
     import ast
     import inspect
