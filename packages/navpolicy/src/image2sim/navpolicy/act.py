@@ -97,11 +97,12 @@ def topdown_png(sim, positions: np.ndarray, goal: np.ndarray, radius: float, pat
     ax.set_title(title, fontsize=9)
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
+    from image2sim.simulator.io.atomic import atomic_path
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
-    tmp.replace(path)
     return path
 
 
@@ -119,9 +120,10 @@ def frame_strip(frames: list[np.ndarray], path: Path, n: int = 8, size: int = 12
         tiles.append(np.asarray(f.resize((max(1, f.width * size // f.height), size), Image.NEAREST)))
     gap = np.full((size, 4, 3), 255, np.uint8)
     row = np.concatenate([x for t in tiles for x in (t, gap)][:-1], axis=1)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    Image.fromarray(row).save(tmp)
-    tmp.replace(path)
+    from image2sim.simulator.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(row).save(tmp)
     return path
 
 
@@ -184,9 +186,9 @@ def run_act(
         "strip": str(frame_strip(backend.frames, outp / "strip.png")),
         "frames": len(backend.frames),
     }
-    tmp = outp / "episode.json.tmp"
-    tmp.write_text(json.dumps(rec, indent=2, default=float))
-    tmp.replace(outp / "episode.json")
+    from image2sim.simulator.io.atomic import write_text_atomic
+
+    write_text_atomic(outp / "episode.json", json.dumps(rec, indent=2, default=float))
     return rec
 
 
