@@ -255,6 +255,24 @@ def test_splat_samples_hold_out_the_renderer_split_and_splat_the_other_frames(ti
         RenderBenchConfig(tier_data={"none": ["x"]})
 
 
+def test_splat_samples_with_sparse_sources_splat_only_every_nth_training_frame(tiny_capture):
+    from image2sim.eval.render_bench import splat_condition, splat_samples
+    from image2sim.simulator.gaussians import build_scene
+    from image2sim.simulator.gaussians.config import load_gaussian_config
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.io.registry import open_capture
+
+    sparse = splat_samples([tiny_capture], 32, 64, holdout_every=4, source_every=2)
+    dense = splat_samples([tiny_capture], 32, 64, holdout_every=4)
+    assert [s["index"] for s in sparse] == [3]  # the same held-out view
+    g = build_scene(tiny_capture, load_gaussian_config("tiny"), encoder="identity", frames=[0, 2]).gaussians
+    pose = open_capture(tiny_capture)[3].cam_to_world
+    torch.testing.assert_close(sparse[0]["condition"], splat_condition(g, EquirectCamera(32, 64), pose))
+    assert not torch.equal(sparse[0]["condition"], dense[0]["condition"])
+    with pytest.raises(RenderBenchError, match="source_every"):
+        RenderBenchConfig(source_every=0)
+
+
 @pytest.mark.slow
 def test_run_render_bench_on_splatted_gaussians(tiny_capture, tmp_path):
     bench = RenderBenchConfig(

@@ -180,6 +180,30 @@ def test_degraded_mix_and_neighbours(box_capture):
     assert sd._sources_for(0, [0, 1, 2, 3], poses, 0) == [1, 2, 3]
 
 
+def test_sparse_sources_build_every_target_from_every_nth_training_frame(box_capture):
+    from image2sim.simulator.gaussians import build_scene
+
+    assert sd.source_frames([0, 1, 3, 4, 5], 2) == [0, 3, 5]
+    assert sd.source_frames([0, 1, 3], 1) == [0, 1, 3]
+    with pytest.raises(sd.SplatDataError, match="source_every"):
+        sd.source_frames([0, 1], 0)
+    cfg = sd.SplatDataConfig(holdout_every=0, fuse_every=1, source_every=2)
+    ds = sd.SplatConditionDataset([box_capture], H, W, cfg, gaussian_config=_gcfg())
+    assert len(ds) == 4  # every training frame stays a target; only frames 0 and 2 are sources
+    centres = [(0, 0, 0), (0.4, 0.1, 0), (-0.3, 0.3, 0.1), (0.2, -0.4, 0)]
+    for target, sources in ((1, [0, 2]), (3, [0, 2]), (0, [2]), (2, [0])):
+        g = build_scene(box_capture, _gcfg(), frames=sources, fuse_every=1).gaussians
+        direct = sd.gaussians_condition(g, EquirectCamera(H, W), _pose(np.array(centres[target])))
+        torch.testing.assert_close(ds[target]["condition"], direct, atol=1e-5, rtol=0)
+    # Fewer sources than the leave-target-out construction needs is an error naming the setting.
+    with pytest.raises(sd.SplatDataError, match="source_every=4"):
+        sd.SplatConditionDataset(
+            [box_capture], H, W, dataclasses.replace(cfg, source_every=4), gaussian_config=_gcfg()
+        )
+    with pytest.raises(sd.SplatDataError, match="source_every"):
+        sd.SplatDataConfig(source_every=0).validate()
+
+
 def test_config_errors(box_capture):
     with pytest.raises(sd.SplatDataError, match="unknown key"):
         sd.splat_data_config_from_dict({"holdout": 3})

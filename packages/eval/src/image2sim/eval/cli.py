@@ -298,6 +298,10 @@ def render_cmd(
         list[str], typer.Option(help="gaussians: TIER=CAPTURE (repeatable), captures at that noise tier.")
     ] = [],  # noqa: B006
     gaussian_config: Annotated[str, typer.Option(help="gaussians: Gaussian scene preset or file.")] = "tiny",
+    source_every: Annotated[
+        int,
+        typer.Option(help="gaussians: only every n-th training frame builds the Gaussians (see sim train)."),
+    ] = 1,
     input_views: Annotated[
         str,
         typer.Option(
@@ -342,6 +346,7 @@ def render_cmd(
         condition_source=condition_source,
         tier_data=tiers_data,
         gaussian_config=gaussian_config,
+        source_every=source_every,
         input_views=input_views,
         target=target,
         renderer_config=config,

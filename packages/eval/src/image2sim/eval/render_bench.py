@@ -116,6 +116,9 @@ class RenderBenchConfig:
     procedural ``--noise none/middle/high`` captures); empty = ``data`` as one tier ``capture``."""
     gaussian_config: str = "tiny"
     """``gaussians`` source: Gaussian scene preset or YAML/JSON."""
+    source_every: int = 1
+    """``gaussians`` source: only every n-th training frame builds the Gaussians (1: all, a dense
+    capture; n > 1: a sparse capture with holes). Same rule as ``sim train --source-every``."""
     target: str = "auto"
     """``gaussians`` source: what a view is scored against. ``exact``: the noise-free rendering of a
     procedural capture's scene at the queried pose (exact ground truth; needs image2sim-dataengine);
@@ -139,6 +142,8 @@ class RenderBenchConfig:
     def __post_init__(self) -> None:
         if self.holdout_every < 1:
             raise RenderBenchError(f"holdout_every must be >= 1, got {self.holdout_every}")
+        if self.source_every < 1:
+            raise RenderBenchError(f"source_every must be >= 1, got {self.source_every}")
         if not self.steps or any(int(s) < 1 for s in self.steps):
             raise RenderBenchError(f"steps must be positive integers, got {self.steps}")
         if self.target not in ("auto", "exact", "capture"):
@@ -374,6 +379,7 @@ def splat_samples(
     start_index: int = 0,
     target: str = "auto",
     input_views: str = "pano",
+    source_every: int = 1,
 ) -> list[dict]:
     """Held-out views of ``captures`` with conditions splatted from Gaussians of the other frames.
 
@@ -383,6 +389,7 @@ def splat_samples(
     Targets follow ``target`` (see :attr:`RenderBenchConfig.target`); each sample records its
     ``target_kind`` (``exact`` or ``capture``). With ``input_views="pinhole6"`` the Gaussians are
     built from six 90° pinhole views of each training panorama instead (:func:`pinhole_faces`).
+    With ``source_every = n > 1`` only every n-th training frame builds them (a sparse capture).
     """
     if input_views not in INPUT_VIEWS:
         raise RenderBenchError(f"input_views must be one of {list(INPUT_VIEWS)}, got {input_views!r}")
@@ -391,7 +398,7 @@ def splat_samples(
     from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.io.registry import open_capture
     from image2sim.simulator.renderer.data import load_capture_targets
-    from image2sim.simulator.renderer.splat_data import holdout_split
+    from image2sim.simulator.renderer.splat_data import holdout_split, source_frames
 
     gcfg = load_gaussian_config(gaussian_config)
     camera = EquirectCamera(height, width)
@@ -405,6 +412,7 @@ def splat_samples(
             continue
         if not train:
             raise RenderBenchError(f"{path}: every frame is held out; no frames left to build Gaussians from")
+        train = source_frames(train, source_every)
         if input_views == "pinhole6":
             scene = _pinhole_input_scene(path, train, gcfg)
         else:
@@ -566,6 +574,7 @@ def run_render_bench(
                 bench.max_views,
                 target=bench.target,
                 input_views=bench.input_views,
+                source_every=bench.source_every,
             )
             for t, paths in tier_data.items()
         }
@@ -584,6 +593,8 @@ def run_render_bench(
             if bench.input_views == "pano"
             else "six 90° pinhole views (cubemap faces) of each training panorama"
         )
+        if bench.source_every > 1:
+            inputs = f"every {bench.source_every}th of {inputs} (a sparse capture)"
         source = (
             f"gaussians: identity Gaussian scenes ({bench.gaussian_config}) of {inputs}, "
             "splatted at the held-out poses"
@@ -623,6 +634,7 @@ def run_render_bench(
             or sorted({c for tier in tiers_doc.values() for c in tier.get("captures", [])})
             or ["procedural box-room panoramas (renderer.data.smooth_test_panorama)"],
             "holdout_every": bench.holdout_every,
+            "source_every": bench.source_every,
             "input_views": bench.input_views,
             "held_out_views": held_views,
             "tiers": tiers_doc,

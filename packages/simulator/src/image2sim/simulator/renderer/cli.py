@@ -46,6 +46,9 @@ def train_command(
     max_steps: int = typer.Option(-1, help="Stop after this many steps (-1: the config's total_steps)."),
     max_frames: int = typer.Option(-1, help="Use at most this many frames per capture (-1: all)."),
     holdout_every: int = typer.Option(8, help="Every n-th frame is held out from training (0: none)."),
+    source_every: int = typer.Option(
+        1, help="With splat: only every n-th training frame is a source (1: dense; >1: a sparse capture)."
+    ),
     resume: str = typer.Option("", help="Checkpoint to resume from ('last' = out/checkpoints/last.ckpt)."),
     seed: int = typer.Option(0, help="Seed of data order, degradations, (r, t) and noise."),
     threads: int = typer.Option(1, help="torch threads (1 is fastest on a shared 2-core machine)."),
@@ -83,6 +86,7 @@ def train_command(
         scfg = SplatDataConfig(
             gaussian_config=gaussian_config,
             holdout_every=holdout_every,
+            source_every=source_every,
             degraded_fraction=degraded_fraction,
             cache_dir=str(splat_cache),
             max_frames=None if max_frames < 0 else max_frames,

@@ -42,6 +42,7 @@ __all__ = [
     "SplatDataError",
     "splat_data_config_from_dict",
     "holdout_split",
+    "source_frames",
     "gaussians_condition",
     "encode_capture",
     "leave_one_out_gaussians",
@@ -68,7 +69,12 @@ class SplatDataConfig:
     """Every n-th frame (counted over all captures in order) is held out: never a target, never a
     source (0: none held out). Same split as ``sim train --holdout-every`` and ``eval render``."""
     neighbours: int = 0
-    """Sources per target: 0 = all other training frames of the capture; k > 0 = the k nearest."""
+    """Sources per target: 0 = all other source frames of the capture; k > 0 = the k nearest."""
+    source_every: int = 1
+    """Only every n-th training frame is a source (its Gaussians enter the scenes); every training
+    frame is still a target. 1 = a dense capture (all training frames are sources); n > 1 = a sparse
+    capture with holes and disocclusions, the regime the renderer is for. Same rule as
+    ``eval render --source-every`` (:func:`source_frames`)."""
     fuse_every: int = 8
     """Frames fused per pass when building a target's scene (1 = frame by frame)."""
     degraded_fraction: float = 0.0
@@ -85,6 +91,8 @@ class SplatDataConfig:
             raise SplatDataError(f"holdout_every must be >= 0, got {self.holdout_every}")
         if self.neighbours < 0:
             raise SplatDataError(f"neighbours must be >= 0, got {self.neighbours}")
+        if self.source_every < 1:
+            raise SplatDataError(f"source_every must be >= 1, got {self.source_every}")
         if self.fuse_every < 1:
             raise SplatDataError(f"fuse_every must be >= 1, got {self.fuse_every}")
         if not 0.0 <= self.degraded_fraction < 1.0:
@@ -119,6 +127,14 @@ def holdout_split(
         out.append((held, [i for i in range(n) if i not in hs]))
         k += n
     return out
+
+
+def source_frames(train: Sequence[int], source_every: int) -> list[int]:
+    """The training frames whose Gaussians build the scenes: every ``source_every``-th of ``train``
+    (in order, from the first). One rule for training conditions and evaluation."""
+    if source_every < 1:
+        raise SplatDataError(f"source_every must be >= 1, got {source_every}")
+    return [int(i) for i in list(train)[::source_every]]
 
 
 def gaussians_condition(gaussians: Any, camera: Any, cam_to_world: Any) -> torch.Tensor:
@@ -179,9 +195,9 @@ def leave_one_out_gaussians(
 
 
 def _sources_for(
-    target: int, train: Sequence[int], poses: dict[int, np.ndarray], neighbours: int
+    target: int, sources: Sequence[int], poses: dict[int, np.ndarray], neighbours: int
 ) -> list[int]:
-    others = [i for i in train if i != target]
+    others = [i for i in sources if i != target]
     if neighbours <= 0 or neighbours >= len(others):
         return others
     centres = np.stack([np.asarray(poses[i])[:3, 3] for i in others])
@@ -247,7 +263,13 @@ def capture_conditions(
             f"{capture_path}: {len(train)} training frame(s); leave-target-out needs at least 2"
         )
     poses = {i: np.asarray(capture[i].cam_to_world, dtype=np.float64) for i in train}
-    sources = [_sources_for(t, train, poses, cfg.neighbours) for t in train]
+    candidates = source_frames(train, cfg.source_every)
+    if len(candidates) < 2:
+        raise SplatDataError(
+            f"{capture_path}: {len(candidates)} source frame(s) with source_every={cfg.source_every}; "
+            "leave-target-out needs at least 2"
+        )
+    sources = [_sources_for(t, candidates, poses, cfg.neighbours) for t in train]
     cache_file = None
     if cfg.cache_dir is not None:
         key = conditions_cache_key(
@@ -267,7 +289,7 @@ def capture_conditions(
             if cond.shape != (len(train), 24, height, width):
                 raise SplatDataError(f"{cache_file}: cached conditions have shape {tuple(cond.shape)}")
             return cond, True
-    sets = encode_capture(capture, train, gcfg)
+    sets = encode_capture(capture, candidates, gcfg)
     camera = EquirectCamera(height, width)
     it = list(zip(train, sources, strict=True))
     if progress:
