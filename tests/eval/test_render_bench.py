@@ -210,7 +210,7 @@ def test_cli_render_then_report(tmp_path):
     )
     assert res.exit_code == 0, res.output
     doc = json.loads(out.read_text())
-    assert set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert set(doc["methods"]) == {"splat_only", "splat_fill", "flow_1step"}
     assert doc["protocol"]["not_evaluated"] == ["flow_2step", "flow_4step", "flow_8step"]
     assert (tmp_path / "speed.png").stat().st_size > 0
     res = CliRunner().invoke(app, ["report", "--render", str(out), "--out-dir", str(tmp_path / "rep")])
@@ -286,7 +286,8 @@ def test_run_render_bench_on_splatted_gaussians(tiny_capture, tmp_path):
     doc = run_render_bench(bench, tmp_path / "render.json", show_progress=False)
     assert doc["protocol"]["condition_source"].startswith("gaussians")
     assert doc["protocol"]["data"] == [str(tiny_capture)]  # the tier captures, not a placeholder
-    assert doc["protocol"]["held_out_views"] == 1 and set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert doc["protocol"]["held_out_views"] == 1
+    assert set(doc["methods"]) == {"splat_only", "splat_fill", "flow_1step"}
     assert doc["methods"]["splat_only"]["n_views"] == 1 and doc["methods"]["splat_only"]["psnr"] > 10
 
 

@@ -243,7 +243,7 @@ def test_renderer_eval_scores_splatted_conditions_like_eval_render(box_capture, 
     doc = json.loads((tmp_path / "rep.json").read_text())
     assert doc["protocol"]["condition_source"].startswith("gaussians")
     assert doc["protocol"]["held_out_views"] == 1  # frame 3; frames 0-2 build the Gaussians
-    assert set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert set(doc["methods"]) == {"splat_only", "splat_fill", "flow_1step"}
     assert (tmp_path / "rep.md").read_text().startswith("# Renderer evaluation")
     import yaml
     from image2sim.simulator.renderer.config import config_to_dict

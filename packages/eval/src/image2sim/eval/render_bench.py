@@ -5,6 +5,9 @@ Held-out target panoramas (every ``holdout_every``-th frame of each capture, the
 tiers (none / middle / high) and rendered by each method:
 
 * ``splat_only``: the projected RGB-D prior, no network (the renderer's ``no_pixel_flow`` switch);
+* ``splat_fill``: the same prior with its holes filled by normalised convolution
+  (:func:`~image2sim.simulator.renderer.holefill.fill_holes`), a non-learned reference, so a
+  renderer's gain over interpolation shows, not only its gain over empty holes;
 * ``flow_{n}step``: the pixel-flow renderer sampled in ``n`` network evaluations;
 * ablations: further checkpoints trained with a Table-4 switch (``no_semantic``, ``no_alpha_gate``,
   ``no_distill``), scored at one step as ``ablation_<switch>``.
@@ -221,8 +224,15 @@ def _methods(cfg: Any, bench: RenderBenchConfig) -> dict[str, MethodFn]:
 
         return fn
 
+    def splat_fill(cond: torch.Tensor, poses: torch.Tensor):
+        from image2sim.simulator.renderer.condition import ALPHA, DEPTH, RGB
+        from image2sim.simulator.renderer.holefill import fill_holes
+
+        filled = fill_holes(torch.cat([cond[:, RGB], cond[:, DEPTH]], 1), cond[:, ALPHA])
+        return filled[:, :3].clamp(0, 1), filled[:, 3:].clamp_min(0)
+
     splat = load_renderer(replace(cfg, ablation=replace(cfg.ablation, no_pixel_flow=True)), None)
-    methods: dict[str, MethodFn] = {"splat_only": as_fn(splat, 1)}
+    methods: dict[str, MethodFn] = {"splat_only": as_fn(splat, 1), "splat_fill": splat_fill}
     flow = load_renderer(cfg, bench.checkpoint)
     for n in sorted({int(s) for s in bench.steps}):
         methods[f"flow_{n}step"] = as_fn(flow, n)

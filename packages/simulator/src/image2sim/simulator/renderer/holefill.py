@@ -1,0 +1,70 @@
+"""A non-learned reference for the renderer: fill the splat's holes by normalised convolution.
+
+Where alpha < 1, the splatted prior is blended with the alpha-weighted average of its surroundings,
+taken at the finest level of a 2x average-pooling pyramid that has any coverage there (Knutsson and
+Westin's normalised convolution, multi-scale). Covered pixels (alpha = 1) are returned unchanged.
+
+Why it exists: "splat-only" leaves holes empty, so a renderer can beat it by painting holes any
+plausible colour. ``eval render`` reports this baseline next to splat-only (method ``splat_fill``),
+so the pixel-flow renderer's gain over *interpolation* is visible too, not only its gain over
+empty holes. It is a pure function with no weights and no state.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["fill_holes"]
+
+_EPS = 1e-6
+
+
+def _upsample(x: torch.Tensor, factor: int, size: tuple[int, int], panoramic: bool) -> torch.Tensor:
+    """Bilinear upsampling by ``factor`` to ``size``; panoramas wrap around in longitude."""
+    if not panoramic:
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    pad = torch.cat([x[..., -1:], x, x[..., :1]], dim=-1)  # one coarse column across the seam
+    up = F.interpolate(pad, scale_factor=factor, mode="bilinear", align_corners=False)
+    return up[..., factor : factor + size[1]]
+
+
+def fill_holes(
+    image: torch.Tensor, alpha: torch.Tensor, panoramic: bool = True, levels: int | None = None
+) -> torch.Tensor:
+    """Fill ``image`` ``(B, C, H, W)`` (unpremultiplied) where ``alpha`` ``(B, 1, H, W)`` < 1.
+
+    A pixel's own value keeps weight ``alpha``; the remaining ``1 - alpha`` comes from the finest
+    pyramid level whose pooled alpha there is > 0 (coarser levels fill what finer ones cannot).
+    Pixels that no level reaches (alpha = 0 over the whole image) keep their value. ``levels``
+    bounds the pyramid depth (None: until a side is odd or 1).
+    """
+    if image.dim() != 4 or alpha.dim() != 4 or alpha.shape[1] != 1 or alpha.shape[0] != image.shape[0]:
+        raise ValueError(
+            f"fill_holes: need image (B, C, H, W) and alpha (B, 1, H, W), got "
+            f"{tuple(image.shape)} and {tuple(alpha.shape)}"
+        )
+    if alpha.shape[-2:] != image.shape[-2:]:
+        raise ValueError(f"fill_holes: alpha {tuple(alpha.shape)} does not match image {tuple(image.shape)}")
+    size = (image.shape[-2], image.shape[-1])
+    a = torch.nan_to_num(alpha.float(), nan=0.0).clamp(0.0, 1.0)
+    x = torch.nan_to_num(image.float(), nan=0.0, posinf=0.0, neginf=0.0)
+    out, weight = x * a, a.clone()
+    num, den = x * a, a
+    level, factor = 0, 1
+    while num.shape[-2] % 2 == 0 and num.shape[-1] % 2 == 0 and min(num.shape[-2:]) > 1:
+        if levels is not None and level >= levels:
+            break
+        num, den = F.avg_pool2d(num, 2), F.avg_pool2d(den, 2)
+        level, factor = level + 1, factor * 2
+        # Upsample numerator and denominator, then divide: empty coarse cells must not pull
+        # the interpolated mean towards zero.
+        up_den = _upsample(den, factor, size, panoramic)
+        mean = _upsample(num, factor, size, panoramic) / up_den.clamp_min(_EPS)
+        reach = (up_den > _EPS).float()
+        take = (1.0 - weight).clamp_min(0.0) * reach
+        out, weight = out + take * mean, weight + take
+        if bool((weight >= 1.0 - 1e-6).all()):
+            break
+    filled = out / weight.clamp_min(_EPS)
+    return torch.where(weight > _EPS, filled, x).to(image.dtype)
