@@ -458,6 +458,25 @@ def test_untrained_residual_renderer_reproduces_splat_only_where_alpha_is_one(st
     assert (out.rgb - cond[:, 16:19]).abs().mean() > 0.1
 
 
+def test_untrained_renderer_with_interpolated_prior_equals_the_hole_filling_baseline():
+    from image2sim.simulator.renderer.holefill import fill_holes
+
+    torch.manual_seed(0)
+    cond, *_ = make_batch(b=2, alpha=1.0)
+    cond[:, 20, 4:9, 10:20] = 0.0  # a hole, and a half-covered band next to it
+    cond[:, 20, 9:11, 10:20] = 0.5
+    cond[:, 16:20, 4:9, 10:20] = 0.0
+    model = PixelFlowRenderer(small_cfg(decoder={"prior_fill": "interpolate"})).eval()
+    out = model.render(cond, steps=1, noise=torch.randn(2, 4, H, W))
+    alpha = cond[:, 20:21]
+    assert torch.allclose(out.rgb, fill_holes(cond[:, 16:19], alpha).clamp(1e-3, 1 - 1e-3), atol=1e-5)
+    assert torch.allclose(out.depth, fill_holes(cond[:, 19:20], alpha), atol=1e-4)
+    grey = PixelFlowRenderer(small_cfg()).eval().render(cond, steps=1, noise=torch.randn(2, 4, H, W))
+    assert torch.allclose(grey.rgb[..., 4:9, 10:20], torch.tensor(0.5))  # the default fills with grey
+    with pytest.raises(ValueError, match="prior_fill"):
+        PixelFlowRenderer(small_cfg(decoder={"prior_fill": "blur"}))
+
+
 # --- overfit (slow) -------------------------------------------------------------------------
 @pytest.mark.slow
 @pytest.mark.parametrize("residual", [True, False])

@@ -93,6 +93,11 @@ class DecoderConfig:
     (1 - A) * 0.5, depth = ReLU(d0 + delta) with d0 = A * prior_depth + (1 - A) * depth_bias, both
     heads zero-initialised so an untrained network returns the prior where alpha = 1. False: the
     paper's absolute heads (sigmoid / ReLU of the head output)."""
+    prior_fill: Literal["grey", "interpolate"] = "grey"
+    """What the residual heads start from where alpha < 1: ``grey`` (0.5 and ``depth_bias``) or
+    ``interpolate``, the prior's holes filled from their surroundings by normalised convolution
+    (``renderer.holefill.fill_holes``, the benchmark's ``splat_fill``), so an untrained renderer
+    equals that non-learned baseline and the network learns only what interpolation misses."""
 
 
 @dataclass
@@ -252,6 +257,10 @@ class RendererConfig:
             raise ValueError(f"aligner.stem_widths needs 4 stride-2 stages, got {self.aligner.stem_widths}")
         if self.decoder.bottleneck_dim % self.decoder.heads:
             raise ValueError("decoder.bottleneck_dim must be divisible by decoder.heads")
+        if self.decoder.prior_fill not in ("grey", "interpolate"):
+            raise ValueError(
+                f"decoder.prior_fill must be 'grey' or 'interpolate', got {self.decoder.prior_fill!r}"
+            )
         if self.aligner.token_dim % self.aligner.heads:
             raise ValueError("aligner.token_dim must be divisible by aligner.heads")
         if self.decoder.bottleneck_dim % 4 or self.aligner.token_dim % 4 or self.decoder.time_dim % 2:

@@ -154,18 +154,33 @@ class AlphaGatedSkip(nn.Module):
 
 
 def prior_base(
-    condition: torch.Tensor, depth_scale: float, depth_fill: float, eps: float = 1e-3
+    condition: torch.Tensor,
+    depth_scale: float,
+    depth_fill: float,
+    eps: float = 1e-3,
+    fill: str = "grey",
+    panoramic: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """What the residual heads correct: RGB logits of ``c0 = A * prior + (1 - A) * 0.5`` (clamped
     to ``[eps, 1 - eps]``) and the state depth ``A * prior / depth_scale + (1 - A) * depth_fill``.
 
     Where alpha = 1 this is the splatted prior itself (splat-only), where alpha = 0 a neutral grey
     at ``depth_fill``; the network only has to generate where the projection is missing or wrong.
-    Depends on the condition only (no z, r, t), so it adds nothing to the JVP tangent.
+    With ``fill="interpolate"`` the (1 - A) part is the prior's surroundings instead
+    (:func:`~image2sim.simulator.renderer.holefill.fill_holes`; grey / ``depth_fill`` only where
+    nothing at all was projected). Depends on the condition only (no z, r, t), so it adds nothing
+    to the JVP tangent.
     """
     a = condition[:, ALPHA].clamp(0.0, 1.0)
-    c0 = (a * condition[:, RGB] + (1.0 - a) * 0.5).clamp(eps, 1.0 - eps)
-    d0 = a * condition[:, DEPTH] / depth_scale + (1.0 - a) * depth_fill
+    if fill == "interpolate":
+        from image2sim.simulator.renderer.holefill import fill_holes
+
+        rgb = fill_holes(condition[:, RGB], condition[:, ALPHA], panoramic, default=0.5)
+        d0 = fill_holes(condition[:, DEPTH] / depth_scale, condition[:, ALPHA], panoramic, default=depth_fill)
+        c0 = rgb.clamp(eps, 1.0 - eps)
+    else:
+        c0 = (a * condition[:, RGB] + (1.0 - a) * 0.5).clamp(eps, 1.0 - eps)
+        d0 = a * condition[:, DEPTH] / depth_scale + (1.0 - a) * depth_fill
     return torch.log(c0) - torch.log1p(-c0), d0
 
 
@@ -238,6 +253,7 @@ class RenderingDecoder(nn.Module):
         self.depth_head = PanoConv2d(w[0], 1, 3, panoramic=panoramic)
         self.residual = bool(cfg.residual_heads)
         self.depth_fill = float(cfg.depth_bias)
+        self.prior_fill = str(cfg.prior_fill)
         self.depth_scale = float(depth_scale)
         nn.init.zeros_(self.rgb_head.bias)
         if self.residual:  # corrections start at 0: the untrained network returns the prior
@@ -289,7 +305,9 @@ class RenderingDecoder(nn.Module):
         rgb_logits = self.rgb_head(x)
         depth = self.depth_head(x)
         if self.residual:
-            base_logits, base_depth = prior_base(condition, self.depth_scale, self.depth_fill)
+            base_logits, base_depth = prior_base(
+                condition, self.depth_scale, self.depth_fill, fill=self.prior_fill, panoramic=self.panoramic
+            )
             rgb_logits = rgb_logits + base_logits
             depth = depth + base_depth
         depth = F.relu(depth)

@@ -30,14 +30,19 @@ def _upsample(x: torch.Tensor, factor: int, size: tuple[int, int], panoramic: bo
 
 
 def fill_holes(
-    image: torch.Tensor, alpha: torch.Tensor, panoramic: bool = True, levels: int | None = None
+    image: torch.Tensor,
+    alpha: torch.Tensor,
+    panoramic: bool = True,
+    levels: int | None = None,
+    default: float | None = None,
 ) -> torch.Tensor:
     """Fill ``image`` ``(B, C, H, W)`` (unpremultiplied) where ``alpha`` ``(B, 1, H, W)`` < 1.
 
     A pixel's own value keeps weight ``alpha``; the remaining ``1 - alpha`` comes from the finest
     pyramid level whose pooled alpha there is > 0 (coarser levels fill what finer ones cannot).
-    Pixels that no level reaches (alpha = 0 over the whole image) keep their value. ``levels``
-    bounds the pyramid depth (None: until a side is odd or 1).
+    Pixels that no level reaches (alpha = 0 over the whole image) keep their value, or become
+    ``default`` when it is given. ``levels`` bounds the pyramid depth (None: until a side is odd
+    or 1).
     """
     if image.dim() != 4 or alpha.dim() != 4 or alpha.shape[1] != 1 or alpha.shape[0] != image.shape[0]:
         raise ValueError(
@@ -67,4 +72,5 @@ def fill_holes(
         if bool((weight >= 1.0 - 1e-6).all()):
             break
     filled = out / weight.clamp_min(_EPS)
-    return torch.where(weight > _EPS, filled, x).to(image.dtype)
+    rest = x if default is None else torch.full_like(x, float(default))
+    return torch.where(weight > _EPS, filled, rest).to(image.dtype)
