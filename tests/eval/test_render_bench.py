@@ -69,6 +69,10 @@ def test_scores_match_a_slow_reference_and_tiers_order_the_error(held):
         assert cell.metrics["psnr"].mean == pytest.approx(np.mean([r[0] for r in refs]), rel=1e-4)
         assert cell.metrics["abs_rel"].mean == pytest.approx(np.mean([r[1] for r in refs]), rel=1e-4)
         assert cell.metrics["lpips"].mean is None  # no weights configured: n/a, never 0
+        # Per-view PSNRs are kept (named tier/index) and match the reference one by one.
+        per_view = method_record(cells["splat_only"])["tiers"][tier]["psnr_per_view"]
+        assert list(per_view) == [f"{tier}/{s['index']}" for s in ss]
+        assert list(per_view.values()) == pytest.approx([r[0] for r in refs], rel=1e-4)
     # More noise and larger holes in the high tier -> a worse splat prior.
     assert cells["splat_only"]["high"].metrics["psnr"].mean < cells["splat_only"]["none"].metrics["psnr"].mean
 
@@ -85,6 +89,7 @@ def test_a_perfect_method_scores_infinite_psnr_and_zero_depth_error(held):
     rec = method_record(cells["perfect"])
     assert rec["psnr"] is None  # +inf is not a finite headline number: reported as null
     assert cells["perfect"]["none"].metrics["psnr"].mean == math.inf
+    assert set(rec["tiers"]["none"]["psnr_per_view"].values()) == {None}  # infinite per view: null
     assert rec["ssim"] == pytest.approx(1.0) and rec["depth_absrel"] == 0.0 and rec["depth_delta1"] == 1.0
 
 

@@ -110,7 +110,7 @@ def test_cli_render_with_pinhole_inputs(procedural, tmp_path):
     assert doc["protocol"]["input_views"] == "pinhole6"
     assert "six 90° pinhole views" in doc["protocol"]["condition_source"]
     assert doc["protocol"]["held_out_views"] == 1
-    assert set(doc["methods"]) == {"splat_only", "flow_1step"}
+    assert set(doc["methods"]) == {"splat_only", "splat_fill", "flow_1step"}
     assert doc["methods"]["splat_only"]["n_views"] == 1 and doc["methods"]["splat_only"]["psnr"] > 10
     assert "six 90° pinhole views" in render_markdown(doc)
     # The API gives the same document fields.

@@ -543,6 +543,7 @@ def method_record(cells: Mapping[str, RenderCell]) -> dict[str, Any]:
             "depth_absrel": c.metrics["abs_rel"].mean if "abs_rel" in c.metrics else None,
             "fps": c.fps,
             "n_views": c.num_views,
+            "psnr_per_view": dict(c.psnr_per_view),
         }
         for tier, c in cells.items()
     }

@@ -9,6 +9,7 @@ results. The rendering benchmark runner feeds these; tables are built by
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -67,6 +68,8 @@ class RenderCell:
     """Frames per second from :func:`image2sim.eval.metrics.timing.measure_fps`, if measured."""
     hardware: str | None = field(default=None)
     """Hardware string of the FPS measurement."""
+    psnr_per_view: dict[str, float | None] = field(default_factory=dict)
+    """View name -> its PSNR (None where infinite), so reports can show medians and outliers."""
 
 
 def summarize_views(
@@ -76,4 +79,8 @@ def summarize_views(
 ) -> RenderCell:
     """Average per-view records (PSNR may be +inf for a perfect view; NaN is an error naming the view)."""
     metrics = summarize_records(records, allow_inf={"psnr"}, kind="view")
-    return RenderCell(metrics, len(records), fps, hardware)
+    per_view = {}
+    for name, m in records:
+        v = m.get("psnr")
+        per_view[name] = float(v) if v is not None and math.isfinite(v) else None
+    return RenderCell(metrics, len(records), fps, hardware, per_view)
