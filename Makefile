@@ -51,8 +51,13 @@ bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports
 RENDERER_DATA ?= $(wildcard ../shared/data/hm3d_360/00000-kfPV7w3FaU5)
 # Real captures train with the depth part of the pixel term (configs/renderer/tiny_real.yaml): see its header.
 RENDERER_CONFIG ?= $(if $(RENDERER_DATA),configs/renderer/tiny_real.yaml,tiny)
+# The HM3D sample is a dense capture (76 training panoramas, almost no holes); training on its sparse
+# version (every 4th training frame builds the Gaussians) teaches the renderer to fill holes and scores
+# as well on the dense protocol (reports/renderer_tiny.md). 1 = dense.
+RENDERER_SOURCE_EVERY ?= $(if $(RENDERER_DATA),4,1)
 train-sim-tiny: setup  ## train the tiny pixel-flow renderer on CPU (HM3D sample if present, else procedural rooms)
-	$(VENV)/bin/image2sim sim train --config $(RENDERER_CONFIG) --out outputs/renderer-tiny $(addprefix --data ,$(RENDERER_DATA))
+	$(VENV)/bin/image2sim sim train --config $(RENDERER_CONFIG) --out outputs/renderer-tiny \
+	  --source-every $(RENDERER_SOURCE_EVERY) $(addprefix --data ,$(RENDERER_DATA))
 
 NAV_TINY ?= outputs/nav-tiny
 NAV_SHARDS = $$(for d in $(NAV_TINY)/engine/scenes/*/shard; do printf -- '--shard %s ' $$d; done)
