@@ -225,11 +225,10 @@ def _methods(cfg: Any, bench: RenderBenchConfig) -> dict[str, MethodFn]:
         return fn
 
     def splat_fill(cond: torch.Tensor, poses: torch.Tensor):
-        from image2sim.simulator.renderer.condition import ALPHA, DEPTH, RGB
-        from image2sim.simulator.renderer.holefill import fill_holes
+        from image2sim.simulator.renderer.holefill import fill_condition
 
-        filled = fill_holes(torch.cat([cond[:, RGB], cond[:, DEPTH]], 1), cond[:, ALPHA])
-        return filled[:, :3].clamp(0, 1), filled[:, 3:].clamp_min(0)
+        rgb, depth = fill_condition(cond)
+        return rgb.clamp(0, 1), depth.clamp_min(0)
 
     splat = load_renderer(replace(cfg, ablation=replace(cfg.ablation, no_pixel_flow=True)), None)
     methods: dict[str, MethodFn] = {"splat_only": as_fn(splat, 1), "splat_fill": splat_fill}
@@ -422,11 +421,11 @@ def splat_samples(
             continue
         if not train:
             raise RenderBenchError(f"{path}: every frame is held out; no frames left to build Gaussians from")
-        train = source_frames(train, source_every)
+        sources = source_frames(train, source_every)
         if input_views == "pinhole6":
-            scene = _pinhole_input_scene(path, train, gcfg)
+            scene = _pinhole_input_scene(path, sources, gcfg)
         else:
-            scene = build_scene(path, gcfg, encoder="identity", frames=train)
+            scene = build_scene(path, gcfg, encoder="identity", frames=sources)
         capture = open_capture(path)
         exact = None
         if target != "capture":

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from image2sim.navpolicy.config import NavPolicyConfig
+from image2sim.simulator.io.atomic import atomic_path, write_text_atomic
 
 
 def act_protocol(cfg: NavPolicyConfig, max_steps: int, success_distance: float):
@@ -97,8 +98,6 @@ def topdown_png(sim, positions: np.ndarray, goal: np.ndarray, radius: float, pat
     ax.set_title(title, fontsize=9)
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
-    from image2sim.simulator.io.atomic import atomic_path
-
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
@@ -120,8 +119,6 @@ def frame_strip(frames: list[np.ndarray], path: Path, n: int = 8, size: int = 12
         tiles.append(np.asarray(f.resize((max(1, f.width * size // f.height), size), Image.NEAREST)))
     gap = np.full((size, 4, 3), 255, np.uint8)
     row = np.concatenate([x for t in tiles for x in (t, gap)][:-1], axis=1)
-    from image2sim.simulator.io.atomic import atomic_path
-
     with atomic_path(path) as tmp:
         Image.fromarray(row).save(tmp)
     return path
@@ -186,8 +183,6 @@ def run_act(
         "strip": str(frame_strip(backend.frames, outp / "strip.png")),
         "frames": len(backend.frames),
     }
-    from image2sim.simulator.io.atomic import write_text_atomic
-
     write_text_atomic(outp / "episode.json", json.dumps(rec, indent=2, default=float))
     return rec
 

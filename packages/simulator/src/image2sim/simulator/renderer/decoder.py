@@ -171,16 +171,15 @@ def prior_base(
     nothing at all was projected). Depends on the condition only (no z, r, t), so it adds nothing
     to the JVP tangent.
     """
-    a = condition[:, ALPHA].clamp(0.0, 1.0)
     if fill == "interpolate":
-        from image2sim.simulator.renderer.holefill import fill_holes
+        from image2sim.simulator.renderer.holefill import fill_condition
 
-        rgb = fill_holes(condition[:, RGB], condition[:, ALPHA], panoramic, default=0.5)
-        d0 = fill_holes(condition[:, DEPTH] / depth_scale, condition[:, ALPHA], panoramic, default=depth_fill)
-        c0 = rgb.clamp(eps, 1.0 - eps)
+        c0, d0 = fill_condition(condition, depth_scale, panoramic, depth_default=depth_fill)
     else:
-        c0 = (a * condition[:, RGB] + (1.0 - a) * 0.5).clamp(eps, 1.0 - eps)
+        a = condition[:, ALPHA].clamp(0.0, 1.0)
+        c0 = a * condition[:, RGB] + (1.0 - a) * 0.5
         d0 = a * condition[:, DEPTH] / depth_scale + (1.0 - a) * depth_fill
+    c0 = c0.clamp(eps, 1.0 - eps)
     return torch.log(c0) - torch.log1p(-c0), d0
 
 

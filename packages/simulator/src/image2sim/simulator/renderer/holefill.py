@@ -12,10 +12,12 @@ empty holes. It is a pure function with no weights and no state.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 
-__all__ = ["fill_holes"]
+__all__ = ["fill_holes", "fill_condition"]
 
 _EPS = 1e-6
 
@@ -34,15 +36,15 @@ def fill_holes(
     alpha: torch.Tensor,
     panoramic: bool = True,
     levels: int | None = None,
-    default: float | None = None,
+    default: float | Sequence[float] | None = None,
 ) -> torch.Tensor:
     """Fill ``image`` ``(B, C, H, W)`` (unpremultiplied) where ``alpha`` ``(B, 1, H, W)`` < 1.
 
     A pixel's own value keeps weight ``alpha``; the remaining ``1 - alpha`` comes from the finest
     pyramid level whose pooled alpha there is > 0 (coarser levels fill what finer ones cannot).
     Pixels that no level reaches (alpha = 0 over the whole image) keep their value, or become
-    ``default`` when it is given. ``levels`` bounds the pyramid depth (None: until a side is odd
-    or 1).
+    ``default`` when it is given (one value, or one per channel). ``levels`` bounds the pyramid
+    depth (None: until a side is odd or 1).
     """
     if image.dim() != 4 or alpha.dim() != 4 or alpha.shape[1] != 1 or alpha.shape[0] != image.shape[0]:
         raise ValueError(
@@ -54,14 +56,15 @@ def fill_holes(
     size = (image.shape[-2], image.shape[-1])
     a = torch.nan_to_num(alpha.float(), nan=0.0).clamp(0.0, 1.0)
     x = torch.nan_to_num(image.float(), nan=0.0, posinf=0.0, neginf=0.0)
-    out, weight = x * a, a.clone()
-    num, den = x * a, a
-    level, factor = 0, 1
+    out = num = x * a
+    weight = den = a
+    level = 0
     while num.shape[-2] % 2 == 0 and num.shape[-1] % 2 == 0 and min(num.shape[-2:]) > 1:
         if levels is not None and level >= levels:
             break
         num, den = F.avg_pool2d(num, 2), F.avg_pool2d(den, 2)
-        level, factor = level + 1, factor * 2
+        level += 1
+        factor = 2**level
         # Upsample numerator and denominator, then divide: empty coarse cells must not pull
         # the interpolated mean towards zero.
         up_den = _upsample(den, factor, size, panoramic)
@@ -72,5 +75,22 @@ def fill_holes(
         if bool((weight >= 1.0 - 1e-6).all()):
             break
     filled = out / weight.clamp_min(_EPS)
-    rest = x if default is None else torch.full_like(x, float(default))
+    if default is None:
+        rest = x
+    else:
+        rest = torch.as_tensor(default, dtype=x.dtype, device=x.device).reshape(1, -1, 1, 1).expand_as(x)
     return torch.where(weight > _EPS, filled, rest).to(image.dtype)
+
+
+def fill_condition(
+    condition: torch.Tensor, depth_scale: float = 1.0, panoramic: bool = True, depth_default: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The RGB ``(B, 3, H, W)`` and range / ``depth_scale`` ``(B, 1, H, W)`` of a condition C_p with
+    their holes filled by :func:`fill_holes` in one pass (one pyramid for all four channels).
+    Where nothing at all was projected: grey and ``depth_default``. Used by the benchmark's
+    ``splat_fill`` method and by the renderer's ``prior_fill="interpolate"`` residual base."""
+    from image2sim.simulator.renderer.condition import ALPHA, DEPTH, RGB
+
+    state = torch.cat((condition[:, RGB], condition[:, DEPTH] / depth_scale), dim=1)
+    filled = fill_holes(state, condition[:, ALPHA], panoramic, default=(0.5, 0.5, 0.5, depth_default))
+    return filled[:, :3], filled[:, 3:]
