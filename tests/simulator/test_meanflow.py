@@ -120,9 +120,10 @@ def test_total_derivative_matches_central_differences_analytic():
     assert torch.allclose(dudt, fd, atol=1e-7, rtol=1e-6)
 
 
-def test_total_derivative_through_the_decoder_matches_finite_differences():
+@pytest.mark.parametrize("depth_head", ["relu", "log"])
+def test_total_derivative_through_the_decoder_matches_finite_differences(depth_head):
     torch.manual_seed(0)
-    model = PixelFlowRenderer(small_cfg()).double()
+    model = PixelFlowRenderer(small_cfg(decoder={"depth_head": depth_head})).double()
     for p in model.parameters():  # move zero-initialised layers off zero so every path is active
         p.data.add_(0.05 * torch.randn_like(p))
     cond, rgb, depth, noise = make_batch(dtype=torch.float64)
@@ -230,10 +231,11 @@ def _losses_and_grads(model, teacher, cond, rgb, depth, noise, r, t, autocast=Fa
     return out, total, grads
 
 
-@pytest.fixture(scope="module")
-def stability_model():
+@pytest.fixture(scope="module", params=["relu", "log"])
+def stability_model(request):
     torch.manual_seed(0)
-    model = PixelFlowRenderer(small_cfg(loss={"pixel_depth_weight": 1.0}))
+    cfg = small_cfg(loss={"pixel_depth_weight": 1.0}, decoder={"depth_head": request.param})
+    model = PixelFlowRenderer(cfg)
     teacher = EMATeacher(model)
     return model, teacher
 

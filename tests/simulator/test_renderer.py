@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from image2sim.simulator.renderer.config import (
     tiny,
 )
 from image2sim.simulator.renderer.decoder import (
+    LOG_DEPTH_RANGE,
     AlphaGatedSkip,
     AlphaPyramid,
     DualTimeEmbedding,
@@ -444,11 +446,12 @@ def test_prior_base_ground_truth():
     assert torch.allclose(depth[0, 0, 0, :3], torch.tensor([0.4, 0.3, 0.35]), atol=1e-6)
 
 
+@pytest.mark.parametrize("depth_head", ["relu", "log"])
 @pytest.mark.parametrize("steps", [1, 4])
-def test_untrained_residual_renderer_reproduces_splat_only_where_alpha_is_one(steps):
+def test_untrained_residual_renderer_reproduces_splat_only_where_alpha_is_one(steps, depth_head):
     torch.manual_seed(0)
     cond, *_ = make_batch(b=2, alpha=1.0)
-    model = PixelFlowRenderer(small_cfg()).eval()
+    model = PixelFlowRenderer(small_cfg(decoder={"depth_head": depth_head})).eval()
     splat = model.render(cond[:, :], steps=steps, noise=torch.randn(2, 4, H, W))
     assert torch.allclose(splat.rgb, cond[:, 16:19].clamp(1e-3, 1 - 1e-3), atol=1e-5)
     assert torch.allclose(splat.depth, cond[:, 19:20], atol=1e-5)
@@ -475,6 +478,32 @@ def test_untrained_renderer_with_interpolated_prior_equals_the_hole_filling_base
     assert torch.allclose(grey.rgb[..., 4:9, 10:20], torch.tensor(0.5))  # the default fills with grey
     with pytest.raises(ValueError, match="prior_fill"):
         PixelFlowRenderer(small_cfg(decoder={"prior_fill": "blur"}))
+
+
+def test_log_depth_head_is_a_bounded_multiplicative_correction_of_the_prior():
+    torch.manual_seed(0)
+    cond, *_ = make_batch(b=1, alpha=1.0)
+    cond[:, 20, :, :4] = 0.0  # nothing projected there: the base is depth_bias
+    cond[:, 19, :, 4:8] = 0.0  # covered but at range 0: floored, not log(0)
+    model = PixelFlowRenderer(small_cfg(decoder={"depth_head": "log"})).eval()
+    head = model.decoder.depth_head
+    with torch.no_grad():
+        out = model.render(cond, steps=1, noise=torch.zeros(1, 4, H, W))
+        bias = model.cfg.decoder.depth_bias * model.cfg.meanflow.depth_scale
+        assert torch.allclose(out.depth[..., :4], torch.tensor(bias), rtol=1e-5)
+        assert (out.depth[..., 4:8] > 0).all() and torch.isfinite(out.depth).all()
+        head.bias.fill_(math.log(2.0))  # delta = log 2 doubles every range, holes included
+        doubled = model.render(cond, steps=1, noise=torch.zeros(1, 4, H, W))
+        assert torch.allclose(doubled.depth[..., 8:], 2.0 * cond[:, 19:20, :, 8:], rtol=1e-5)
+        assert torch.allclose(doubled.depth[..., :4], torch.tensor(2.0 * bias), rtol=1e-5)
+        head.bias.fill_(1e4)  # a runaway head is clamped, never inf
+        far = model.render(cond, steps=1, noise=torch.zeros(1, 4, H, W)).depth
+        scale = model.cfg.meanflow.depth_scale
+        assert torch.allclose(far, torch.tensor(LOG_DEPTH_RANGE[1] * scale), rtol=1e-5)
+    with pytest.raises(ValueError, match="depth_head"):
+        PixelFlowRenderer(small_cfg(decoder={"depth_head": "softplus"}))
+    with pytest.raises(ValueError, match="depth_bias"):
+        PixelFlowRenderer(small_cfg(decoder={"depth_head": "log", "depth_bias": 0.0}))
 
 
 # --- overfit (slow) -------------------------------------------------------------------------

@@ -93,6 +93,11 @@ class DecoderConfig:
     (1 - A) * 0.5, depth = ReLU(d0 + delta) with d0 = A * prior_depth + (1 - A) * depth_bias, both
     heads zero-initialised so an untrained network returns the prior where alpha = 1. False: the
     paper's absolute heads (sigmoid / ReLU of the head output)."""
+    depth_head: Literal["relu", "log"] = "relu"
+    """Output of the depth head. ``relu``: the issue's ReLU of (base + delta), additive in metres.
+    ``log``: exp(log(base) + delta), a multiplicative correction of the prior's range. It is
+    positive by construction (no dead ReLU) and its gradient is in relative depth error, the
+    quantity AbsRel measures; real captures span 0.3-10 m in one panorama (docs/renderer.md)."""
     prior_fill: Literal["grey", "interpolate"] = "grey"
     """What the residual heads start from where alpha < 1: ``grey`` (0.5 and ``depth_bias``) or
     ``interpolate``, the prior's holes filled from their surroundings by normalised convolution
@@ -257,6 +262,13 @@ class RendererConfig:
             raise ValueError(f"aligner.stem_widths needs 4 stride-2 stages, got {self.aligner.stem_widths}")
         if self.decoder.bottleneck_dim % self.decoder.heads:
             raise ValueError("decoder.bottleneck_dim must be divisible by decoder.heads")
+        if self.decoder.depth_head not in ("relu", "log"):
+            raise ValueError(f"decoder.depth_head must be 'relu' or 'log', got {self.decoder.depth_head!r}")
+        if self.decoder.depth_head == "log" and self.decoder.depth_bias <= 0:
+            raise ValueError(
+                "decoder.depth_head 'log' needs depth_bias > 0 (the range of empty pixels), "
+                f"got {self.decoder.depth_bias}"
+            )
         if self.decoder.prior_fill not in ("grey", "interpolate"):
             raise ValueError(
                 f"decoder.prior_fill must be 'grey' or 'interpolate', got {self.decoder.prior_fill!r}"

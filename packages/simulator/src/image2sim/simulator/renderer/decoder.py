@@ -7,9 +7,9 @@ Shape of the network (paper appendix, "Stage 3: Pixel Flow Rendering Decoder")::
     bottleneck: + angle positional encoding; N x [SemanticInjector(tokens) -> TransformerBlock
                 (AdaLN-Zero on DualTimeEmbedding(t, h = t - r))]
     decoder:    PixelShuffle x2 -> AlphaGatedSkip(e_k, alpha_k) -> PanoBlocks, k = 3..0
-    heads:      RGB (sigmoid), depth (ReLU, in state units = metres / depth_scale); with
-                ``residual_heads`` (default) both are corrections around the splatted prior,
-                see :func:`prior_base`
+    heads:      RGB (sigmoid), depth (ReLU, or exp with ``depth_head="log"``; in state units =
+                metres / depth_scale); with ``residual_heads`` (default) both are corrections
+                around the splatted prior, see :func:`prior_base`
 
 All components are forward-mode-AD safe (see :mod:`image2sim.simulator.layers`).
 """
@@ -42,7 +42,12 @@ __all__ = [
     "prior_base",
     "DecoderOutput",
     "RenderingDecoder",
+    "LOG_DEPTH_RANGE",
 ]
+
+LOG_DEPTH_RANGE = (1e-6, 1e2)
+"""State-depth bounds of the ``log`` depth head (10 µm to 1 km at depth_scale 10): the base is floored
+at the lower one before the log, and the log-depth is clamped to both so exp cannot overflow."""
 
 
 def timestep_embedding(
@@ -253,6 +258,7 @@ class RenderingDecoder(nn.Module):
         self.residual = bool(cfg.residual_heads)
         self.depth_fill = float(cfg.depth_bias)
         self.prior_fill = str(cfg.prior_fill)
+        self.log_depth = cfg.depth_head == "log"
         self.depth_scale = float(depth_scale)
         nn.init.zeros_(self.rgb_head.bias)
         if self.residual:  # corrections start at 0: the untrained network returns the prior
@@ -260,7 +266,8 @@ class RenderingDecoder(nn.Module):
                 nn.init.zeros_(head.weight)
                 nn.init.zeros_(head.bias)
         else:
-            nn.init.constant_(self.depth_head.bias, cfg.depth_bias)
+            bias = math.log(cfg.depth_bias) if self.log_depth else cfg.depth_bias
+            nn.init.constant_(self.depth_head.bias, bias)
 
     def forward(
         self,
@@ -308,6 +315,12 @@ class RenderingDecoder(nn.Module):
                 condition, self.depth_scale, self.depth_fill, fill=self.prior_fill, panoramic=self.panoramic
             )
             rgb_logits = rgb_logits + base_logits
-            depth = depth + base_depth
-        depth = F.relu(depth)
+            if self.log_depth:
+                depth = depth + torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
+            else:
+                depth = depth + base_depth
+        if self.log_depth:
+            depth = torch.exp(depth.clamp(math.log(LOG_DEPTH_RANGE[0]), math.log(LOG_DEPTH_RANGE[1])))
+        else:
+            depth = F.relu(depth)
         return DecoderOutput(torch.cat((torch.sigmoid(rgb_logits), depth), dim=1), features, rgb_logits)
