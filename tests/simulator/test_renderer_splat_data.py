@@ -261,3 +261,70 @@ def test_renderer_eval_scores_splatted_conditions_like_eval_render(box_capture, 
     ref = run_render_bench(bench, tmp_path / "ref.json", show_progress=False)
     for m in ("splat_only", "flow_1step"):
         assert doc["methods"][m]["psnr"] == pytest.approx(ref["methods"][m]["psnr"], abs=1e-9)
+
+
+def test_training_record_is_found_from_a_checkpoint_and_names_every_protocol_difference(tmp_path):
+    gcfg = _gcfg()
+    cfg = sd.SplatDataConfig(source_every=2, holdout_every=4)
+    record = sd.training_record(["cap/a"], cfg, gcfg)
+    sd.write_training_record(tmp_path / "run", record)
+    (tmp_path / "run" / "checkpoints").mkdir()
+    for ckpt in ("run/checkpoints/last.ckpt", "run/weights.safetensors"):
+        assert sd.find_training_record(tmp_path / ckpt) == record
+    assert sd.find_training_record(tmp_path / "elsewhere" / "x.ckpt") is None
+    assert sd.protocol_mismatches(record, gcfg, source_every=2, holdout_every=4) == []
+    sharp = dataclasses.replace(gcfg, encoder=dataclasses.replace(gcfg.encoder, scale_init=0.3))
+    lines = sd.protocol_mismatches(record, sharp, source_every=1, holdout_every=4)
+    assert len(lines) == 2
+    assert lines[0].startswith("gaussians.encoder.scale_init: trained") and "0.3" in lines[0]
+    assert lines[1] == "source_every: trained 2, evaluated 1"
+    degraded = {"condition_source": "degraded", "captures": []}
+    assert sd.protocol_mismatches(degraded, gcfg, 1, 4) == [
+        "trained on 'degraded' conditions, evaluated on splats"
+    ]
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / sd.TRAINING_RECORD).write_text("{not json")
+    with pytest.raises(sd.SplatDataError, match="training_data.json"):
+        sd.find_training_record(tmp_path / "bad" / "x.ckpt")
+
+
+def test_sim_train_records_its_conditions_and_eval_render_flags_a_different_protocol(box_capture, tmp_path):
+    """`sim train` writes training_data.json next to config.json; the render benchmark reads it from
+    the checkpoint's run and lists (and logs) every way its own conditions differ."""
+    pytest.importorskip("image2sim.eval.render_bench")
+    import json
+
+    import yaml
+    from image2sim.eval.render_bench import RenderBenchConfig, render_markdown, run_render_bench
+    from image2sim.simulator.cli import sim_app
+    from image2sim.simulator.renderer.config import config_to_dict
+    from typer.testing import CliRunner
+
+    from .test_meanflow import small_cfg
+
+    cfg = config_to_dict(small_cfg(height=H, width=W))
+    cfg["curriculum"].update(stage2_start=1, stage3_start=1, total_steps=1)
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(yaml.safe_dump(cfg))
+    run = tmp_path / "run"
+    args = ["train", "--config", str(cfg_file), "--data", str(box_capture), "--out", str(run)]
+    args += ["--holdout-every", "0", "--source-every", "2", "--splat-cache", str(tmp_path / "cache")]
+    result = CliRunner().invoke(sim_app, args)
+    assert result.exit_code == 0, result.output
+    record = json.loads((run / sd.TRAINING_RECORD).read_text())
+    assert record["captures"] == [str(box_capture)]
+    assert record["splat_data"]["source_every"] == 2 and record["gaussians"]["encoder"]["scale_init"] > 0
+    bench = RenderBenchConfig(
+        renderer_config=str(cfg_file),
+        checkpoint=str(run / "checkpoints" / "last.ckpt"),
+        data=[str(box_capture)],
+        holdout_every=4,
+        steps=[1],
+        condition_source="gaussians",
+        warmup=0,
+        runs=1,
+    )
+    doc = run_render_bench(bench, tmp_path / "render.json", show_progress=False)
+    mismatches = doc["protocol"]["training_data"]["mismatches"]
+    assert mismatches == ["source_every: trained 2, evaluated 1", "holdout_every: trained 0, evaluated 4"]
+    assert "conditions differ from the checkpoint's training**: source_every" in render_markdown(doc)

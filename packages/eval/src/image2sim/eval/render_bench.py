@@ -30,6 +30,7 @@ degradations, with the tier's noise levels below; the output records this as ``c
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -43,6 +44,8 @@ from image2sim.eval.metrics.timing import hardware_string, measure_fps
 from image2sim.eval.render_scores import RenderCell, score_views, summarize_views
 from image2sim.eval.results import write_json_atomic
 from image2sim.simulator.config import ConfigError, config_from_dict
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "HEADLINE_METHODS",
@@ -549,6 +552,27 @@ def method_record(cells: Mapping[str, RenderCell]) -> dict[str, Any]:
     return rec
 
 
+def _training_protocol(bench: RenderBenchConfig) -> dict[str, Any] | None:
+    """The checkpoint's training record (``sim train`` writes it) and how this benchmark's splat
+    conditions differ from it; each difference is also logged as a warning, since a renderer scored
+    on conditions unlike its training ones measures the mismatch, not the renderer."""
+    if bench.checkpoint is None:
+        return None
+    from image2sim.simulator.gaussians.config import load_gaussian_config
+    from image2sim.simulator.renderer.splat_data import find_training_record, protocol_mismatches
+
+    record = find_training_record(bench.checkpoint)
+    if record is None:
+        return None
+    mismatches: list[str] = []
+    if bench.condition_source == "gaussians":
+        gcfg = load_gaussian_config(bench.gaussian_config)
+        mismatches = protocol_mismatches(record, gcfg, bench.source_every, bench.holdout_every)
+        for line in mismatches:
+            logger.warning("%s: conditions differ from training: %s", bench.checkpoint, line)
+    return {"record": record, "mismatches": mismatches}
+
+
 def run_render_bench(
     bench: RenderBenchConfig, out_json: str | Path, show_progress: bool = True
 ) -> dict[str, Any]:
@@ -559,6 +583,7 @@ def run_render_bench(
     torch.set_num_threads(bench.threads)
     cfg = load_renderer_config(bench.renderer_config)
     held: list = []
+    trained_on = _training_protocol(bench)
     if bench.condition_source == "degraded":
         targets = _targets([Path(d) for d in bench.data], cfg.height, cfg.width, bench.max_frames)
         _, held = _split(targets, bench.holdout_every)
@@ -668,6 +693,8 @@ def run_render_bench(
         },
         "methods": {name: method_record(c) for name, c in cells.items()},
     }
+    if trained_on is not None:
+        doc["protocol"]["training_data"] = trained_on
     missing = [m for m in HEADLINE_METHODS if m not in doc["methods"]]
     if missing:
         doc["protocol"]["not_evaluated"] = missing
@@ -720,6 +747,8 @@ def render_markdown(doc: Mapping[str, Any]) -> str:
                 + (f"; {fps['scope']}" if fps.get("scope") else "")
             )
         notes.append(f"conditions: {proto.get('condition_source')}")
+        for line in (proto.get("training_data") or {}).get("mismatches", []):
+            notes.append(f"**conditions differ from the checkpoint's training**: {line}")
         kinds = sorted({k for t in (proto.get("tiers") or {}).values() for k in t.get("targets", [])})
         if kinds:
             notes.append(

@@ -81,7 +81,12 @@ def train_command(
         typer.echo("no --data given: splat conditions need captures, using degraded conditions instead")
         condition_source = "degraded"
     if condition_source == "splat":
-        from image2sim.simulator.renderer.splat_data import SplatConditionDataset, SplatDataConfig
+        from image2sim.simulator.renderer.splat_data import (
+            SplatConditionDataset,
+            SplatDataConfig,
+            training_record,
+            write_training_record,
+        )
 
         scfg = SplatDataConfig(
             gaussian_config=gaussian_config,
@@ -92,6 +97,7 @@ def train_command(
             max_frames=None if max_frames < 0 else max_frames,
         )
         ds = SplatConditionDataset(data, cfg.height, cfg.width, scfg, progress=True)
+        write_training_record(out, training_record(data, scfg, ds.gaussian_config))
         cached = sum(s.cached for s in ds.sources)
         typer.echo(
             f"{ds.num_splat} splat + {ds.num_degraded} degraded training samples at {cfg.height}x{cfg.width} "
@@ -102,6 +108,9 @@ def train_command(
         train, held = _split(targets, holdout_every)
         typer.echo(f"{len(train)} training / {len(held)} held-out panoramas at {cfg.height}x{cfg.width}")
         ds = DegradedPanoramaDataset(train, cfg.curriculum.total_steps * cfg.curriculum.batch_size)
+        from image2sim.simulator.renderer.splat_data import write_training_record
+
+        write_training_record(out, {"condition_source": "degraded", "captures": [str(d) for d in data]})
     ckpt = str(out / "checkpoints" / "last.ckpt") if resume == "last" else (resume or None)
     fit(
         cfg,

@@ -49,7 +49,16 @@ __all__ = [
     "capture_conditions",
     "conditions_cache_key",
     "SplatConditionDataset",
+    "TRAINING_RECORD",
+    "training_record",
+    "write_training_record",
+    "find_training_record",
+    "protocol_mismatches",
 ]
+
+TRAINING_RECORD = "training_data.json"
+"""File name of a run's record of its training conditions, next to ``config.json`` in the run
+folder (``sim train --out``)."""
 
 CACHE_VERSION = 1
 """Bumped whenever the cached conditions would change for the same inputs."""
@@ -346,6 +355,8 @@ class SplatConditionDataset(Dataset):
         gcfg = (
             gaussian_config if gaussian_config is not None else load_gaussian_config(self.cfg.gaussian_config)
         )
+        self.gaussian_config = gcfg
+        """The resolved Gaussian config the conditions were built with."""
         all_targets = [load_capture_targets(p, height, width, self.cfg.max_frames) for p in captures]
         split = holdout_split([len(t) for t in all_targets], self.cfg.holdout_every)
         conds, rgbs, depths = [], [], []
@@ -394,3 +405,71 @@ class SplatConditionDataset(Dataset):
             "index": index,
             "source": "splat",
         }
+
+
+def training_record(
+    captures: Sequence[str | Path], cfg: SplatDataConfig, gaussian_config: Any
+) -> dict[str, Any]:
+    """What the conditions of a training run were made of: the captures, the splat-data settings
+    (split, sparsity) and the resolved Gaussian config. A renderer is only meaningful on conditions
+    built the same way, so ``eval render`` compares its own protocol against this record."""
+    from image2sim.simulator.gaussians.config import config_to_dict
+
+    return {
+        "condition_source": "splat",
+        "captures": [str(c) for c in captures],
+        "splat_data": dataclasses.asdict(cfg),
+        "gaussians": config_to_dict(gaussian_config),
+    }
+
+
+def write_training_record(run_dir: str | Path, record: dict[str, Any]) -> Path:
+    """Write ``record`` as ``run_dir/training_data.json`` (atomic); returns the path."""
+    from image2sim.simulator.io.atomic import write_json_atomic
+
+    path = Path(run_dir) / TRAINING_RECORD
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_json_atomic(path, record)
+
+
+def find_training_record(checkpoint: str | Path) -> dict[str, Any] | None:
+    """The training record of the run a checkpoint belongs to (``<run>/checkpoints/x.ckpt`` or
+    ``<run>/x``), or None when there is none (older runs, exported weights)."""
+    ckpt = Path(checkpoint)
+    for folder in (ckpt.parent, ckpt.parent.parent):
+        path = folder / TRAINING_RECORD
+        if path.is_file():
+            try:
+                return json.loads(path.read_text())
+            except json.JSONDecodeError as exc:
+                raise SplatDataError(f"{path}: not valid JSON ({exc})") from exc
+    return None
+
+
+def protocol_mismatches(
+    record: dict[str, Any], gaussian_config: Any, source_every: int, holdout_every: int
+) -> list[str]:
+    """How an evaluation's conditions differ from the ones a renderer was trained on, one line per
+    difference (empty: same Gaussian config, sparsity and split)."""
+    from image2sim.simulator.gaussians.config import config_to_dict
+
+    if record.get("condition_source") != "splat":
+        return [f"trained on {record.get('condition_source')!r} conditions, evaluated on splats"]
+    out = []
+    trained, now = record.get("gaussians", {}), config_to_dict(gaussian_config)
+
+    def flat(d: dict, prefix: str = "") -> dict[str, Any]:
+        items: dict[str, Any] = {}
+        for k, v in d.items():
+            items.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return items
+
+    a, b = flat(trained), flat(now)
+    for key in sorted(set(a) | set(b)):
+        if key != "name" and a.get(key) != b.get(key):
+            out.append(f"gaussians.{key}: trained {a.get(key)!r}, evaluated {b.get(key)!r}")
+    sd = record.get("splat_data", {})
+    for key, value in (("source_every", source_every), ("holdout_every", holdout_every)):
+        if key in sd and sd[key] != value:
+            out.append(f"{key}: trained {sd[key]}, evaluated {value}")
+    return out
