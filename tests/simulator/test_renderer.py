@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.aligner import SemanticAligner, alignment_loss
 from image2sim.simulator.renderer.config import (
@@ -148,6 +149,36 @@ def test_distillation_loss_ground_truth():
         distillation_loss(fs, fs[:1], [1.0], 0.1)
     with pytest.raises(ValueError):
         normalised_level_weights([0.0, 0.0])
+
+
+def test_normalised_distillation_is_scale_free_and_bounded():
+    torch.manual_seed(0)
+    fs = [torch.randn(2, 8, 3, 3), torch.randn(2, 4, 6, 6) + 3.0]
+    ft = [torch.randn_like(f) for f in fs]
+    w = [4.0, 1.0]
+    norm = distillation_loss(fs, ft, w, beta=0.1, normalise=True)
+    big = distillation_loss([1e3 * f for f in fs], [1e3 * f for f in ft], w, beta=0.1, normalise=True)
+    assert torch.allclose(norm, big, rtol=1e-4)  # activations 1000x larger: same loss
+    raw, raw_big = (
+        distillation_loss(a, b, w, beta=0.1)
+        for a, b in ((fs, ft), ([1e3 * f for f in fs], [1e3 * f for f in ft]))
+    )
+    assert raw_big > 1e5 * raw  # the paper's form grows with the square of the activations
+    assert norm <= 2.0 + 4 * 0.1
+    assert distillation_loss(fs, [f.clone() for f in fs], w, beta=0.1, normalise=True).abs() < 1e-6
+
+    def standardise(f):  # a readable reference
+        return (f - f.mean(1, keepdim=True)) / (f.var(1, unbiased=False, keepdim=True) + 1e-5).sqrt()
+
+    wn = normalised_level_weights(w)
+    expected = sum(
+        wk
+        * (
+            1 - F.cosine_similarity(a, b, dim=1) + 0.1 * (standardise(a) - standardise(b)).pow(2).mean(1)
+        ).mean()
+        for wk, a, b in zip(wn, fs, ft, strict=True)
+    )
+    assert torch.allclose(norm, expected, atol=1e-5)
 
 
 def test_default_level_weights_emphasise_deeper_levels():

@@ -176,6 +176,12 @@ class DistillConfig:
     """Weight of the squared-L2 term next to the cosine term."""
     level_weights: tuple[float, ...] = (4.0, 3.0, 2.0, 1.0)
     """Unnormalised weights per decoder level, deepest (H/8) first; normalised to sum to 1."""
+    normalise_features: bool = False
+    """Take the squared-L2 term between per-pixel channel-normalised features (zero mean, unit
+    variance over channels; the cosine term is scale-free already). False: the paper's raw
+    features, whose L2 grows with the activations: a wider tiny model with full-resolution blocks
+    reached a distillation loss of 1e4 at the stage-2 boundary on HM3D and diverged
+    (reports/renderer_tiny.md)."""
 
 
 @dataclass

@@ -79,15 +79,27 @@ def normalised_level_weights(weights: Sequence[float]) -> list[float]:
     return [x / total for x in w]
 
 
+def _standardise(f: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
+    """Zero mean, unit variance over the channel dimension of ``(B, C, H, W)`` at each pixel."""
+    mean = f.mean(dim=1, keepdim=True)
+    var = f.var(dim=1, unbiased=False, keepdim=True)
+    return (f - mean) / torch.sqrt(var + eps)
+
+
 def distillation_loss(
     student: Sequence[torch.Tensor],
     teacher: Sequence[torch.Tensor],
     weights: Sequence[float],
     beta: float,
+    normalise: bool = False,
 ) -> torch.Tensor:
     """sum_k w~_k mean_pixels[1 - cos(f_S, f_T) + beta * mean_c (f_S - f_T)^2] over feature maps
     ``(B, C_k, H_k, W_k)``. The squared distance is averaged over channels so levels of different
-    widths are comparable; the teacher features are constants. Computed in float32."""
+    widths are comparable; the teacher features are constants. Computed in float32.
+
+    ``normalise``: the squared distance is taken between features standardised over channels at
+    each pixel (no affine), so the whole loss is invariant to the activations' scale and at most
+    ``2 + 4 beta`` per level."""
     if not (len(student) == len(teacher) == len(weights)):
         raise ValueError(
             f"distillation_loss: {len(student)} student, {len(teacher)} teacher levels, "
@@ -100,6 +112,8 @@ def distillation_loss(
             raise ValueError(f"distillation level shapes differ: {tuple(fs.shape)} vs {tuple(ft.shape)}")
         fs32, ft32 = fs.float(), ft.detach().float()
         cos = F.cosine_similarity(fs32, ft32, dim=1, eps=1e-6)
+        if normalise:
+            fs32, ft32 = _standardise(fs32), _standardise(ft32)
         sq = (fs32 - ft32).pow(2).mean(dim=1)
         total = total + wk * (1.0 - cos + beta * sq).mean()
     return total

@@ -211,7 +211,11 @@ class PixelFlowRenderer(nn.Module):
                 z_gt = teacher.privileged_source(target, noise)
                 t_out = teacher.predict(z_gt, condition, zeros, ones, teacher.tokens(condition))
             distill = distillation_loss(
-                out.features, t_out.features, cfg.distill.level_weights, cfg.distill.beta
+                out.features,
+                t_out.features,
+                cfg.distill.level_weights,
+                cfg.distill.beta,
+                normalise=cfg.distill.normalise_features,
             )
         pixel = mf.adaptive_normalise(
             (rgb.float() - target_rgb.float()).pow(2).flatten(1).mean(1), cfg.loss.pixel_norm_c
