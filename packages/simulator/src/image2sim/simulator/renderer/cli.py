@@ -72,6 +72,7 @@ def train_command(
     from image2sim.simulator.renderer.config import load_renderer_config
     from image2sim.simulator.renderer.data import DegradedPanoramaDataset
     from image2sim.simulator.renderer.module import fit
+    from image2sim.simulator.renderer.splat_data import write_training_record
 
     torch.set_num_threads(threads)
     cfg = load_renderer_config(config)
@@ -85,7 +86,6 @@ def train_command(
             SplatConditionDataset,
             SplatDataConfig,
             training_record,
-            write_training_record,
         )
 
         scfg = SplatDataConfig(
@@ -108,8 +108,6 @@ def train_command(
         train, held = _split(targets, holdout_every)
         typer.echo(f"{len(train)} training / {len(held)} held-out panoramas at {cfg.height}x{cfg.width}")
         ds = DegradedPanoramaDataset(train, cfg.curriculum.total_steps * cfg.curriculum.batch_size)
-        from image2sim.simulator.renderer.splat_data import write_training_record
-
         write_training_record(out, {"condition_source": "degraded", "captures": [str(d) for d in data]})
     ckpt = str(out / "checkpoints" / "last.ckpt") if resume == "last" else (resume or None)
     fit(

@@ -48,6 +48,7 @@ __all__ = [
 LOG_DEPTH_RANGE = (1e-6, 1e2)
 """State-depth bounds of the ``log`` depth head (10 µm to 1 km at depth_scale 10): the base is floored
 at the lower one before the log, and the log-depth is clamped to both so exp cannot overflow."""
+_LOG_DEPTH_BOUNDS = (math.log(LOG_DEPTH_RANGE[0]), math.log(LOG_DEPTH_RANGE[1]))
 
 
 def timestep_embedding(
@@ -316,11 +317,7 @@ class RenderingDecoder(nn.Module):
             )
             rgb_logits = rgb_logits + base_logits
             if self.log_depth:
-                depth = depth + torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
-            else:
-                depth = depth + base_depth
-        if self.log_depth:
-            depth = torch.exp(depth.clamp(math.log(LOG_DEPTH_RANGE[0]), math.log(LOG_DEPTH_RANGE[1])))
-        else:
-            depth = F.relu(depth)
+                base_depth = torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
+            depth = depth + base_depth
+        depth = torch.exp(depth.clamp(*_LOG_DEPTH_BOUNDS)) if self.log_depth else F.relu(depth)
         return DecoderOutput(torch.cat((torch.sigmoid(rgb_logits), depth), dim=1), features, rgb_logits)
