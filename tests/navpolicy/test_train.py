@@ -13,12 +13,12 @@ from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, make_sampl
 from image2sim.navpolicy.prompting import PromptBuilder
 from image2sim.navpolicy.train import (
     PositionDataset,
-    StepSampler,
     action_accuracy,
     epoch_permutation,
     train_bc,
     warmup_cosine,
 )
+from image2sim.simulator.sampling import StepSampler
 
 
 def _cfg(tiny_cfg, steps: int):

@@ -274,6 +274,16 @@ def test_configs_presets_round_trip_and_reject_unknown_keys(tmp_path):
     assert p.decoder.bottleneck_depth == 8 and p.aligner.token_dim == 1024 and p.distill.ema_decay == 0.999
     assert p.curriculum.total_steps == 400_000 and p.loss.lambda_rec == 0.1 and p.loss.saturation == 0.2
     assert renderer_config_from_dict(config_to_dict(p)) == p
+    # The paper trains on 8 GPUs with DDP, batch 2 per GPU, in bf16; tiny is one CPU process.
+    assert (p.trainer.accelerator, p.trainer.devices, p.trainer.strategy) == ("gpu", 8, "ddp")
+    assert p.curriculum.batch_size == 2 and p.trainer.precision == "bf16-mixed"
+    assert (t.trainer.accelerator, t.trainer.devices, t.trainer.strategy) == ("cpu", 1, "auto")
+    with pytest.raises(ValueError, match="trainer.strategy"):
+        renderer_config_from_dict({"trainer": {"strategy": "fsdp"}})
+    with pytest.raises(ValueError, match="use 'ddp'"):
+        renderer_config_from_dict({"trainer": {"devices": 2}})
+    with pytest.raises(ValueError, match="trainer.precision"):
+        renderer_config_from_dict({"trainer": {"precision": "fp8"}})
     with pytest.raises(ValueError, match="decoder.bogus"):
         renderer_config_from_dict({"decoder": {"bogus": 1}})
     with pytest.raises(ValueError, match="meanflow.tangent"):

@@ -5,9 +5,9 @@ The same code path runs on 64 GPUs (``strategy="deepspeed_zero2"``, bf16, gradie
 CPU, so :class:`CPUDeepSpeedStrategy` overrides only device validation (DeepSpeed itself runs on its
 CPU accelerator with gloo).
 
-Data order is a pure function of (seed, global sample position): :class:`StepSampler` starts at the
-position implied by the restored ``global_step``, so a resumed run sees exactly the batches the
-uninterrupted run would have seen.
+Data order is a pure function of (seed, global sample position): the shared
+:class:`~image2sim.simulator.sampling.StepSampler` starts at the position implied by the restored
+``global_step``, so a resumed run sees exactly the batches the uninterrupted run would have seen.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
 from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, NavShardDataset, make_sample
 from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
+from image2sim.simulator.sampling import StepSampler
 
 REPO_ROOT = Path(__file__).resolve().parents[5]
 
@@ -71,25 +71,6 @@ class PositionDataset(torch.utils.data.Dataset):
         sample = make_sample(traj, self.base.max_observations, self.base.max_action_labels, rng, stride)
         sample.episode_id = sample.episode_id or f"#{i}"
         return sample
-
-
-class StepSampler(torch.utils.data.Sampler):
-    """Yields global positions ``start, start + stride, ...`` up to ``stop`` (one per rank).
-
-    ``start`` already includes the rank offset; with ``world_size`` ranks, rank r reads positions
-    ``r, r + W, r + 2W, ...`` so the ranks' batches together cover the global order.
-    """
-
-    def __init__(self, start: int, stop: int, rank: int = 0, world_size: int = 1) -> None:
-        self.start, self.stop, self.rank, self.world_size = start, stop, rank, world_size
-
-    def __iter__(self) -> Iterator[int]:
-        return iter(
-            range(self.start * self.world_size + self.rank, self.stop * self.world_size, self.world_size)
-        )
-
-    def __len__(self) -> int:
-        return max(0, self.stop - self.start)
 
 
 # ------------------------------------------------------------------------------------ DeepSpeed on CPU

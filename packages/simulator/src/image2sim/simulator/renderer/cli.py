@@ -53,6 +53,10 @@ def train_command(
     seed: int = typer.Option(0, help="Seed of data order, degradations, (r, t) and noise."),
     threads: int = typer.Option(1, help="torch threads (1 is fastest on a shared 2-core machine)."),
     bf16: bool = typer.Option(False, help="bf16 autocast."),
+    accelerator: str = typer.Option("", help="Override trainer.accelerator: cpu, gpu or auto."),
+    devices: int = typer.Option(0, help="Override trainer.devices (processes per node; >1 needs ddp)."),
+    num_nodes: int = typer.Option(0, help="Override trainer.num_nodes."),
+    strategy: str = typer.Option("", help="Override trainer.strategy: auto (one process) or ddp."),
     logger: str = typer.Option("csv", help="csv or wandb (offline)."),
     checkpoint_every: int = typer.Option(250, help="Checkpoint every n steps."),
     grid_every: int = typer.Option(250, help="Image grid (prior | one-step | target | alpha) every n steps."),
@@ -76,6 +80,15 @@ def train_command(
 
     torch.set_num_threads(threads)
     cfg = load_renderer_config(config)
+    overrides = {"accelerator": accelerator, "devices": devices, "num_nodes": num_nodes, "strategy": strategy}
+    overrides = {k: v for k, v in overrides.items() if v}
+    if overrides:
+        import dataclasses
+
+        try:
+            cfg = dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, **overrides))
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from exc
     if condition_source not in ("splat", "degraded"):
         raise typer.BadParameter(f"--condition-source must be splat or degraded, got {condition_source!r}")
     if condition_source == "splat" and not data:

@@ -11,14 +11,15 @@ Two sources live here:
   fixed random projection of the observed RGB-D) so the renderer can be trained and tested
   without the splatting stack. Each sample index gives its own deterministic degradation.
 
-:class:`StepSampler` makes the sample order a pure function of (seed, position), so a resumed run
-continues exactly where it stopped.
+:func:`permuted_index` makes the sample order a pure function of (seed, position), so a resumed run
+continues exactly where it stopped (the shared :class:`~image2sim.simulator.sampling.StepSampler`
+serves it, split over ranks under DDP).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,14 +27,14 @@ import torch
 import torch.nn.functional as F
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.renderer.condition import build_condition
-from torch.utils.data import Dataset, Sampler
+from torch.utils.data import Dataset
 
 __all__ = [
     "DegradeConfig",
     "degrade_to_condition",
     "DegradedPanoramaDataset",
     "ConditionDataset",
-    "StepSampler",
+    "permuted_index",
     "resize_target",
     "load_capture_targets",
 ]
@@ -149,27 +150,15 @@ class ConditionDataset(Dataset):
         }
 
 
-class StepSampler(Sampler[int]):
-    """Indices ``perm(start), perm(start+1), ...`` where each block of ``len(dataset)`` indices is
-    a permutation seeded by ``(seed, block)``: deterministic, resumable from any position."""
-
-    def __init__(self, length: int, seed: int = 0, start: int = 0, total: int | None = None) -> None:
-        if length <= 0:
-            raise ValueError("StepSampler needs a non-empty dataset")
-        self.length, self.seed, self.start = int(length), int(seed), int(start)
-        self.total = int(total) if total is not None else self.length
-
-    def __len__(self) -> int:
-        return max(0, self.total - self.start)
-
-    def index_at(self, position: int) -> int:
-        block, offset = divmod(position, self.length)
-        perm = torch.randperm(self.length, generator=torch.Generator().manual_seed(self.seed * 7_919 + block))
-        return int(perm[offset])
-
-    def __iter__(self) -> Iterator[int]:
-        for pos in range(self.start, self.total):
-            yield self.index_at(pos)
+def permuted_index(position: int, length: int, seed: int = 0) -> int:
+    """Dataset index at global sample ``position``: each block of ``length`` positions is a
+    permutation seeded by ``(seed, block)``, so the order is deterministic and resumable anywhere
+    (the ``index_of`` of :class:`~image2sim.simulator.sampling.StepSampler`)."""
+    if length <= 0:
+        raise ValueError("the renderer's data order needs a non-empty dataset")
+    block, offset = divmod(int(position), int(length))
+    perm = torch.randperm(length, generator=torch.Generator().manual_seed(int(seed) * 7_919 + block))
+    return int(perm[offset])
 
 
 def resize_target(

@@ -116,7 +116,10 @@ class RendererModule(L.LightningModule):
 
     # --- helpers -------------------------------------------------------------------------------
     def _step_generator(self, step: int) -> torch.Generator:
-        return torch.Generator().manual_seed(self.seed * 1_000_003 + int(step))
+        """Per-(seed, step, rank) randomness; one process gets the single-rank stream exactly."""
+        world = self.trainer.world_size if self._trainer is not None else 1
+        rank = self.global_rank if self._trainer is not None else 0
+        return torch.Generator().manual_seed((self.seed * 1_000_003 + int(step)) * world + rank)
 
     def _enter_stage(self, stage: int) -> None:
         if stage != self.current_stage:
@@ -162,7 +165,7 @@ class RendererModule(L.LightningModule):
         log["train/psnr_one_step"] = psnr(out["x_one_step"][:, :3], rgb)
         self.log_dict(log, prog_bar=False, on_step=True, on_epoch=False, batch_size=b)
         self.last_losses = {k: float(v) for k, v in log.items()}
-        if self.grid_every and step % self.grid_every == 0:
+        if self.grid_every and step % self.grid_every == 0 and self.global_rank == 0:
             self._log_grid(cond, out["x_one_step"], rgb, step)
         return total
 
@@ -238,14 +241,19 @@ class RendererDataModule(L.LightningDataModule):
         self._start_step = int(state.get("position_step", 0))
 
     def train_dataloader(self):
-        from image2sim.simulator.renderer.data import StepSampler
+        import functools
+
+        from image2sim.simulator.renderer.data import permuted_index
+        from image2sim.simulator.sampling import StepSampler
         from torch.utils.data import DataLoader
 
+        trainer = self.trainer
         sampler = StepSampler(
-            len(self.dataset),
-            self.seed,
-            start=self._start_step * self.batch_size,
-            total=self.total_steps * self.batch_size,
+            self._start_step * self.batch_size,
+            self.total_steps * self.batch_size,
+            rank=trainer.global_rank if trainer is not None else 0,
+            world_size=trainer.world_size if trainer is not None else 1,
+            index_of=functools.partial(permuted_index, length=len(self.dataset), seed=self.seed),
         )
         return DataLoader(
             self.dataset,
@@ -269,7 +277,12 @@ def fit(
     grid_every: int = 0,
     progress: bool = True,
 ) -> RendererModule:
-    """Train (or resume) the renderer; checkpoints and logs under ``out_dir``."""
+    """Train (or resume) the renderer; checkpoints and logs under ``out_dir``.
+
+    Hardware and distribution come from ``cfg.trainer`` (``bf16=True`` overrides its precision).
+    Under DDP every rank runs this function; each reads its own share of the step-indexed data
+    order, rank 0 writes checkpoints, logs and image grids.
+    """
     import dataclasses
     from pathlib import Path
 
@@ -293,12 +306,22 @@ def fit(
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True, save_top_k=-1
     )
+    tc = cfg.trainer
+    strategy: object = tc.strategy
+    if tc.strategy == "ddp":
+        from lightning.pytorch.strategies import DDPStrategy
+
+        # Stage 3 freezes the backbone mid-run: DDP must not wait for gradients that never come.
+        strategy = DDPStrategy(find_unused_parameters=True)
     trainer = L.Trainer(
-        accelerator="cpu",
-        devices=1,
+        accelerator=tc.accelerator,
+        devices=tc.devices,
+        num_nodes=tc.num_nodes,
+        strategy=strategy,
         max_steps=steps,
         gradient_clip_val=cfg.curriculum.grad_clip,
-        precision="bf16-mixed" if bf16 else "32-true",
+        precision="bf16-mixed" if bf16 else tc.precision,
+        use_distributed_sampler=False,  # the StepSampler already splits the data order over ranks
         logger=log,
         callbacks=[ckpt],
         enable_progress_bar=progress,
