@@ -33,3 +33,24 @@ def hm3d_scene_dir() -> Path:
     if not HM3D_SCENE.is_dir():
         pytest.skip(f"real sample data not found at {HM3D_SCENE}")
     return HM3D_SCENE
+
+
+@pytest.fixture
+def tiny_dinov3():
+    """Factory of tiny randomly initialised transformers ``DINOv3ViTModel``s: the real class that
+    loads the paper's DINOv3 weights, which do not exist on this machine."""
+    transformers = pytest.importorskip("transformers")
+
+    def make(hidden: int = 32, patch_size: int = 16, registers: int = 4):
+        config = transformers.DINOv3ViTConfig(
+            hidden_size=hidden,
+            num_hidden_layers=1,
+            num_attention_heads=2,
+            intermediate_size=2 * hidden,
+            patch_size=patch_size,
+            image_size=4 * patch_size,
+            num_register_tokens=registers,
+        )
+        return transformers.DINOv3ViTModel(config)
+
+    return make

@@ -118,25 +118,10 @@ def test_rolled_panorama_gives_rolled_output():
     assert not torch.allclose(pb, torch.roll(pa, k, dims=-1), atol=1e-4)
 
 
-def _tiny_dino(hidden=32):
-    from transformers import DINOv3ViTConfig, DINOv3ViTModel
-
-    c = DINOv3ViTConfig(
-        hidden_size=hidden,
-        num_hidden_layers=1,
-        num_attention_heads=2,
-        intermediate_size=64,
-        patch_size=16,
-        image_size=64,
-        num_register_tokens=4,
-    )
-    return DINOv3ViTModel(c)
-
-
-def test_tiny_dinov3_end_to_end_and_frozen_backbone_gets_no_gradient():
+def test_tiny_dinov3_end_to_end_and_frozen_backbone_gets_no_gradient(tiny_dinov3):
     cfg = _small()
     cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(cfg.semantic, backbone="dinov3", dim=32))
-    semantic = build_semantic(cfg.semantic, _tiny_dino())
+    semantic = build_semantic(cfg.semantic, tiny_dinov3())
     enc = GaussianEncoder(cfg, semantic)
     enc.train()
     assert not semantic.training  # stays in eval mode
@@ -156,12 +141,12 @@ def test_tiny_dinov3_end_to_end_and_frozen_backbone_gets_no_gradient():
     assert not torch.allclose(gs.features.detach(), gs2.features)
 
 
-def test_semantic_config_errors_name_the_field():
+def test_semantic_config_errors_name_the_field(tiny_dinov3):
     cfg = tiny().semantic
     with pytest.raises(ConfigError, match="semantic.weights"):
         build_semantic(dataclasses.replace(cfg, backbone="dinov3"))
     with pytest.raises(ConfigError, match="semantic.dim"):
-        build_semantic(dataclasses.replace(cfg, backbone="dinov3", dim=1024), _tiny_dino())
+        build_semantic(dataclasses.replace(cfg, backbone="dinov3", dim=1024), tiny_dinov3())
     assert build_semantic(cfg) is None
 
 

@@ -99,23 +99,13 @@ def test_lightning_run_logs_checkpoints_and_resumes(procedural, tmp_path):
     assert any(r.get("train/rgb") for r in rows)
 
 
-def test_semantic_alignment_term_with_tiny_dinov3(procedural):
+def test_semantic_alignment_term_with_tiny_dinov3(procedural, tiny_dinov3):
     from image2sim.simulator.gaussians.train_geometry import GeometryModule
-    from transformers import DINOv3ViTConfig, DINOv3ViTModel
 
     _, frames = procedural
     cfg = _cfg()
     cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(cfg.semantic, backbone="dinov3", dim=32))
-    dino = DINOv3ViTModel(
-        DINOv3ViTConfig(
-            hidden_size=32,
-            num_hidden_layers=1,
-            num_attention_heads=2,
-            intermediate_size=64,
-            patch_size=16,
-            num_register_tokens=2,
-        )
-    )
+    dino = tiny_dinov3(hidden=32, registers=2)
     module = GeometryModule(cfg, dino)
     batch = GeometryDataset([frames], 2, 1)[0]
     losses, _ = stage1_losses(

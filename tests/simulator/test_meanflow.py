@@ -222,9 +222,14 @@ def test_pose_noise_is_deterministic_per_pose():
 
 # --- numerical stability of the full objective --------------------------------------------------
 def _losses_and_grads(model, teacher, cond, rgb, depth, noise, r, t, autocast=False):
+    """Every term of the objective, the alignment term included (random backbone tokens on a grid
+    other than the aligner's, so the resampling path runs too)."""
     model.zero_grad(set_to_none=True)
+    tokens = torch.randn(
+        cond.shape[0], model.cfg.aligner.token_dim, 3, 5, generator=torch.Generator().manual_seed(1)
+    )
     with mf.maybe_autocast(autocast):
-        out = model.losses(cond, rgb, depth, noise, r, t, teacher=teacher)
+        out = model.losses(cond, rgb, depth, noise, r, t, teacher=teacher, target_tokens=tokens)
         total = out["flow"] + out["rec"] + out["distill"] + out["align"] + out["pixel"]
     total.backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
@@ -251,7 +256,7 @@ def test_loss_and_grads_finite_at_extreme_times(stability_model, r_mode):
     out, total, grads = _losses_and_grads(model, teacher.module, cond, rgb, depth, noise, r, t)
     assert torch.isfinite(total)
     assert grads and all(torch.isfinite(g).all() for g in grads)
-    assert out["flow"].item() > 0
+    assert out["flow"].item() > 0 and 0 < out["align"].item() <= 2
 
 
 @pytest.mark.parametrize("case", ["alpha0", "alpha1", "depth0", "bf16"])
@@ -265,6 +270,7 @@ def test_loss_and_grads_finite_on_degenerate_conditions(stability_model, case):
         model, teacher.module, cond, rgb, depth, noise, r, t, autocast=case == "bf16"
     )
     assert torch.isfinite(total) and all(torch.isfinite(g).all() for g in grads)
+    assert 0 < out["align"].item() <= 2
     pred_rgb = out["x_one_step"][:, :3]
     if case == "depth0":  # no valid depth: only RGB enters the reconstruction term
         assert torch.allclose(out["rec"], (pred_rgb - rgb).abs().mean(), atol=1e-6)
@@ -347,3 +353,43 @@ def test_flow_loss_alone_trains_every_parameter_through_the_jvp_primal():
     out["flow"].backward()
     missing = [n for n, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
     assert missing == []
+
+
+def test_saturation_penalty_enters_the_flow_term_through_the_implied_clean_colour():
+    """flow = normalised flow loss + loss.saturation * penalty(z_t - t * V): the difference between
+    two weights is exactly the penalty of the colour the compound velocity implies."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg())
+    with torch.no_grad():  # away from the residual heads' identity start, so colours overshoot
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    cond, rgb, depth, noise = make_batch(b=2)
+    t, r = torch.tensor([0.9, 0.6]), torch.tensor([0.2, 0.6])
+    flows = []
+    for weight in (0.0, 5.0):
+        model.cfg = dataclasses.replace(
+            model.cfg, loss=dataclasses.replace(model.cfg.loss, saturation=weight)
+        )
+        with torch.no_grad():
+            flows.append(model.losses(cond, rgb, depth, noise, r, t)["flow"])
+    # Reference: the implied colour from the same model pieces, computed by hand.
+    m = model.cfg.meanflow
+    from image2sim.simulator.renderer.losses import saturation_penalty
+    from image2sim.simulator.renderer.model import prior_state, to_state
+
+    target = to_state(rgb, depth.clamp_min(0), m.depth_scale)
+    prior, alpha = prior_state(cond, m.depth_scale)
+    z_src = mf.alpha_gated_source(prior, alpha, noise, m.sigma_small, m.sigma_large)
+    z_t = mf.interpolate(target, z_src, t)
+    tokens = model.tokens(cond)
+
+    def x_fn(z, r_, t_):
+        return model.predict(z, cond, r_, t_, tokens).x
+
+    u, dudt = mf.total_derivative(x_fn, z_t, r, t, mf.target_velocity(target, z_src), m.t_eps)
+    V = mf.compound_velocity(u, dudt, t, r)
+    penalty = saturation_penalty(z_t[:, :3] - t.view(-1, 1, 1, 1) * V[:, :3])
+    assert penalty > 0  # a random model implies colours outside [0, 1]
+    torch.testing.assert_close(flows[1] - flows[0], 5.0 * penalty, rtol=1e-4, atol=1e-6)

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import pytest
 import torch
 
 pytest.importorskip("lightning")
 
-from image2sim.simulator.renderer.config import renderer_config_from_dict  # noqa: E402
+from image2sim.simulator.renderer.config import config_to_dict, renderer_config_from_dict  # noqa: E402
 from image2sim.simulator.renderer.data import (  # noqa: E402
     DegradeConfig,
     DegradedPanoramaDataset,
@@ -235,3 +236,141 @@ def test_ddp_on_two_cpu_processes_trains_through_the_stage3_freeze(tmp_path):
     metrics = (out / "logs").glob("version_*/metrics.csv")
     rows = [line.split(",") for f in metrics for line in f.read_text().splitlines()]
     assert len(rows) > 1  # rank 0 logged its steps
+
+
+def test_dinov3_from_a_local_folder_drives_the_alignment_term(tmp_path, tiny_dinov3):
+    """With `semantic.backbone: dinov3` the module loads the backbone from its local folder
+    (transformers `from_pretrained`, local files only), takes the target panorama's patch tokens as
+    the aligner's targets, and the alignment term trains the aligner; checkpoints carry no copy of
+    the frozen backbone."""
+    import lightning as L
+
+    folder = tmp_path / "dinov3"
+    tiny_dinov3(hidden=16, patch_size=4, registers=2).save_pretrained(folder)
+    base = train_cfg(total_steps=3, stage2_start=3, stage3_start=3)
+    semantic = {"backbone": "dinov3", "weights": str(folder), "dim": 16, "patch_size": 4}
+    data = config_to_dict(base)
+    cfg = renderer_config_from_dict(
+        {**data, "semantic": semantic, "aligner": {**data["aligner"], "target_dim": 16}}
+    )
+    module = RendererModule(cfg)
+    assert module.semantic_backbone is not None and module.semantic_backbone.dim == 16
+    assert not any(k.startswith("semantic") for k in module.state_dict())
+    before = module.renderer.aligner.head.weight.detach().clone()
+    aligns = []
+
+    class Recorder(L.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            aligns.append(pl_module.last_losses["train/align"])
+
+    trainer = L.Trainer(
+        accelerator="cpu",
+        max_steps=3,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[Recorder()],
+        use_distributed_sampler=False,
+    )
+    from image2sim.simulator.renderer.module import RendererDataModule
+
+    trainer.fit(module, datamodule=RendererDataModule(dataset(), 2, 3))
+    assert len(aligns) == 3 and all(0.0 < a <= 2.0 for a in aligns), aligns
+    assert not torch.allclose(module.renderer.aligner.head.weight, before)
+    # The backbone itself never trains.
+    assert all(not p.requires_grad and p.grad is None for p in module.semantic_backbone.parameters())
+
+
+def test_semantic_and_ablation_misconfigurations_are_named():
+    from image2sim.simulator.config import ConfigError
+
+    base = config_to_dict(train_cfg())
+    with pytest.raises(ValueError, match="aligner.target_dim"):
+        renderer_config_from_dict({**base, "semantic": {"backbone": "dinov3", "dim": 1024}})
+    ok = {**base, "aligner": {**base["aligner"], "target_dim": 1024}, "semantic": {"backbone": "dinov3"}}
+    with pytest.raises(ConfigError, match="semantic.weights"):
+        RendererModule(renderer_config_from_dict(ok))
+    # The semantic ablation needs no backbone at all.
+    RendererModule(renderer_config_from_dict({**ok, "ablation": {"no_semantic": True}}))
+    with pytest.raises(ValueError, match="nothing to train"):
+        RendererModule(renderer_config_from_dict({**base, "ablation": {"no_pixel_flow": True}}))
+    no_distill = RendererModule(renderer_config_from_dict({**base, "ablation": {"no_distill": True}}))
+    assert no_distill.teacher is None
+    assert RendererModule(renderer_config_from_dict(base)).teacher is not None
+
+
+def test_wandb_offline_run_holds_losses_psnr_and_image_grids(tmp_path, monkeypatch):
+    """`sim train --logger wandb` (offline unless the user configured W&B) logs every loss term,
+    the one-step PSNR and the prior | one-step | target | alpha grid."""
+    pytest.importorskip("wandb")
+    tracking = pytest.importorskip("image2sim.eval.tracking")  # the offline-run reader
+    import json
+
+    for var in ("WANDB_DIR", "WANDB_CACHE_DIR", "WANDB_CONFIG_DIR", "WANDB_DATA_DIR"):
+        monkeypatch.setenv(var, str(tmp_path / var.lower()))
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.chdir(tmp_path)
+    module = fit(
+        train_cfg(total_steps=2, stage2_start=1, stage3_start=2),
+        dataset(),
+        str(tmp_path / "run"),
+        logger="wandb",
+        grid_every=1,
+        checkpoint_every=2,
+        progress=False,
+    )
+    run = module.logger.experiment
+    assert run.settings.mode in ("offline", "dryrun")  # dryrun: W&B's internal name for offline
+    run_dir = Path(run.dir).parent
+    run.finish()
+    import wandb
+
+    wandb.teardown()
+    records = tracking.read_offline_run(run_dir)
+    items = [i for kind, r in records if kind == "history" for i in r.item]
+    keys = {i.nested_key[0] if i.nested_key else i.key for i in items}
+    expected = {"train/loss", "train/flow", "train/rec", "train/distill", "train/psnr_one_step"}
+    assert expected <= keys, sorted(keys)
+    grid = "grid/prior|one_step|target|alpha"
+    fields = [
+        (tuple(i.nested_key[1:]), json.loads(i.value_json)) for i in items if i.nested_key[:1] == [grid]
+    ]
+    assert fields.count((("_type",), "images/separated")) == 2  # one grid per step
+    assert (("width",), 4 * W) in fields and (("height",), H) in fields  # four panels side by side
+    files = [f for key, value in fields if key == ("filenames",) for f in value]
+    assert len(files) == 2 and all((run_dir / "files" / f).is_file() for f in files), files
+
+
+def test_training_updates_the_teacher_by_its_ema_formula_after_every_step(tmp_path):
+    """Inside training, the teacher starts at stage 2 as the student and then follows
+    T_k = d * T_(k-1) + (1 - d) * S_k after every optimiser step (d = distill.ema_decay)."""
+    import lightning as L
+
+    data = config_to_dict(train_cfg(total_steps=4, stage2_start=1, stage3_start=4))
+    cfg = renderer_config_from_dict({**data, "distill": {**data["distill"], "ema_decay": 0.9}})
+    snapshots = []
+
+    def flat(module):
+        return torch.cat([p.detach().flatten().clone() for p in module.parameters()])
+
+    class Recorder(L.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            snapshots.append((flat(pl_module.renderer), flat(pl_module.teacher.module)))
+
+    import image2sim.simulator.renderer.module as mod
+
+    original = mod.L.Trainer
+    mod.L.Trainer = lambda *a, **k: original(*a, **{**k, "callbacks": [*k.get("callbacks", []), Recorder()]})
+    try:
+        fit(cfg, dataset(), str(tmp_path / "run"), checkpoint_every=10, progress=False)
+    finally:
+        mod.L.Trainer = original
+    assert len(snapshots) == 4
+    (s0, _), (s1, t1), (s2, t2), (s3, t3) = snapshots
+    # Step 1 (first of stage 2) copies the student as it was (s0), then takes one EMA step.
+    torch.testing.assert_close(t1, 0.9 * s0 + 0.1 * s1, rtol=1e-5, atol=1e-6)
+    for (_, t_prev), (s_next, t_next) in (((s1, t1), (s2, t2)), ((s2, t2), (s3, t3))):
+        torch.testing.assert_close(t_next, 0.9 * t_prev + 0.1 * s_next, rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(t_next, s_next)  # a lagging average, not a copy

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from image2sim.simulator.gaussians.config import SemanticConfig
+
 __all__ = [
     "AlignerConfig",
     "DecoderConfig",
@@ -22,6 +24,7 @@ __all__ = [
     "AblationConfig",
     "CurriculumConfig",
     "TrainerConfig",
+    "SemanticConfig",
     "RendererConfig",
     "tiny",
     "paper",
@@ -273,6 +276,10 @@ class RendererConfig:
     """Training schedule."""
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     """Hardware and distribution of training."""
+    semantic: SemanticConfig = field(default_factory=SemanticConfig)
+    """Frozen backbone (DINOv3 from a local folder) whose patch tokens of the target panorama are the
+    aligner's targets in training (L_align). ``none``: no alignment term unless the samples carry
+    ``target_tokens``. The same section as the scene encoder's."""
 
     def __post_init__(self) -> None:
         self.validate()
@@ -336,6 +343,15 @@ class RendererConfig:
             raise ValueError("curriculum needs 0 <= stage2_start <= stage3_start <= total_steps")
         if cur.batch_size < 1:
             raise ValueError(f"curriculum.batch_size must be >= 1, got {cur.batch_size}")
+        sem = self.semantic
+        if sem.backbone not in ("none", "dinov3"):
+            raise ValueError(f"semantic.backbone must be 'none' or 'dinov3', got {sem.backbone!r}")
+        token_out = self.aligner.target_dim or self.aligner.token_dim
+        if sem.backbone != "none" and token_out != sem.dim:
+            raise ValueError(
+                f"semantic.dim is {sem.dim} but the aligner's tokens have {token_out} channels: "
+                "set aligner.target_dim to the backbone's hidden size"
+            )
         tr = self.trainer
         if tr.strategy not in TRAINER_STRATEGIES:
             raise ValueError(f"trainer.strategy must be one of {TRAINER_STRATEGIES}, got {tr.strategy!r}")
@@ -402,6 +418,7 @@ def paper() -> RendererConfig:
         ),
         curriculum=CurriculumConfig(),
         trainer=TrainerConfig(accelerator="gpu", devices=8, strategy="ddp", precision="bf16-mixed"),
+        semantic=SemanticConfig(backbone="dinov3", weights=None, dim=1024, patch_size=16),
     )
 
 

@@ -97,9 +97,21 @@ class RendererModule(L.LightningModule):
     """Renderer + EMA teacher + curriculum; AdamW with a cosine schedule (per step)."""
 
     def __init__(
-        self, cfg: RendererConfig, seed: int = 0, lpips_path: str | None = None, grid_every: int = 0
+        self,
+        cfg: RendererConfig,
+        seed: int = 0,
+        lpips_path: str | None = None,
+        grid_every: int = 0,
+        semantic_model: nn.Module | None = None,
     ) -> None:
+        """``semantic_model``: an already built DINOv3 model for ``cfg.semantic`` (tests pass a tiny
+        random one); by default it is loaded from ``cfg.semantic.weights``."""
         super().__init__()
+        if cfg.ablation.no_pixel_flow:
+            raise ValueError(
+                "ablation.no_pixel_flow is the splat-only renderer and has nothing to train: "
+                "evaluate it directly (`eval render` scores splat-only on every run)"
+            )
         self.cfg = cfg
         self.seed = int(seed)
         self.grid_every = int(grid_every)
@@ -111,6 +123,14 @@ class RendererModule(L.LightningModule):
         )
         self.register_buffer("teacher_started", torch.zeros((), dtype=torch.bool))
         self.perceptual = load_lpips(lpips_path or cfg.loss.lpips_weights)
+        backbone = None
+        if cfg.semantic.backbone != "none" and not cfg.ablation.no_semantic:
+            from image2sim.simulator.gaussians.semantic import build_semantic
+
+            backbone = build_semantic(cfg.semantic, semantic_model)
+        # Frozen and loaded from its own folder: kept out of the registered submodules so that
+        # checkpoints do not carry a copy of the backbone (about 1.2 GB for ViT-L).
+        object.__setattr__(self, "semantic_backbone", backbone)
         self.current_stage = 0
         self.save_hyperparameters({"config": __import__("dataclasses").asdict(cfg), "seed": seed})
 
@@ -133,6 +153,9 @@ class RendererModule(L.LightningModule):
         self._enter_stage(stage)
         cond, rgb, depth = batch["condition"], batch["target_rgb"], batch["target_depth"]
         b = cond.shape[0]
+        target_tokens = batch.get("target_tokens")
+        if target_tokens is None and self.semantic_backbone is not None:
+            target_tokens = self.semantic_backbone.to(cond.device)(rgb)
         gen = self._step_generator(step)
         r, t = mf.sample_time_pairs(b, self.cfg.meanflow.p_r_equals_t, generator=gen)
         noise = torch.randn((b, 4, *cond.shape[-2:]), generator=gen)
@@ -153,7 +176,7 @@ class RendererModule(L.LightningModule):
             r,
             t,
             teacher=teacher,
-            target_tokens=batch.get("target_tokens"),
+            target_tokens=target_tokens,
             perceptual=self.perceptual if weights["perc"] > 0 else None,
             spatial_focus=stage >= 2,
         )
