@@ -166,7 +166,6 @@ def _record_losses(out_dir, cfg, ds, max_steps, resume=None):
     return losses, module
 
 
-@pytest.mark.slow
 def test_interrupted_and_resumed_training_reproduces_the_losses(tmp_path):
     cfg, ds = train_cfg(), dataset()
     full, full_module = _record_losses(tmp_path / "full", cfg, ds, max_steps=6)
