@@ -186,6 +186,21 @@ def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_ru
     assert calls == [] and (out / "train" / "train.json.gz").read_bytes() == before
 
 
+def test_restart_from_cached_scene_assets_reproduces_the_uninterrupted_run(scenes_root, full_run, tmp_path):
+    """A job killed after a scene's navigation map, graph and objects were cached, but before its
+    episodes, restarts from those files; its episodes must equal the uninterrupted run's (the
+    SIGKILL test hits this state only sometimes, depending on when the kill lands)."""
+    ref_out, _ = full_run
+    out = tmp_path / "out"
+    cached = out / "scenes" / "scene_001"
+    cached.mkdir(parents=True)
+    for name in ("navmap.npz", "navgraph.npz", "objects.json"):
+        shutil.copy2(ref_out / "scenes" / "scene_001" / name, cached / name)
+    run_engine(scenes_root, out, EngineConfig(**CFG), executor="local", progress=False)
+    got = _read(out / "train" / "train.json.gz")["episodes"]
+    assert got == _read(ref_out / "train" / "train.json.gz")["episodes"]
+
+
 def test_scene_failure_is_reported_and_other_scenes_finish(scenes_root, tmp_path):
     root = tmp_path / "scenes"
     shutil.copytree(scenes_root, root)

@@ -391,7 +391,11 @@ class NavMap:
 
     # --- persistence ----------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:
-        """Write an ``.npz`` (no pickle) atomically; returns the path."""
+        """Write an ``.npz`` (no pickle) atomically; returns the path.
+
+        Every field :meth:`load` reads is stored losslessly (float64), so a job that resumes from a
+        saved map computes exactly what the uninterrupted job computed from the fresh one. Only
+        ``points``, derived and kept for viewers, is float32."""
         path = Path(path)
         meta = {
             "format_version": NAVMAP_FORMAT_VERSION,
@@ -405,15 +409,15 @@ class NavMap:
             "meta_json": np.array(json.dumps(meta)),
             "origin": self.origin,
             "floor_ij": self.floor_ij.astype(np.int32),
-            "floor_z": self.floor_z.astype(np.float32),
+            "floor_z": self.floor_z.astype(np.float64),
             "floor_level": self.floor_level.astype(np.int16),
             "floor_filled": self.floor_filled,
-            "clearance": self.clearance.astype(np.float32),
+            "clearance": self.clearance.astype(np.float64),
             "navigable": self.navigable,
             "obstacle_ij": self.obstacle_ij.astype(np.int32),
-            "obstacle_xyz": self.obstacle_xyz.astype(np.float32),
+            "obstacle_xyz": self.obstacle_xyz.astype(np.float64),
             "support_ij": self.support_ij.astype(np.int32),
-            "support_z": self.support_z.astype(np.float32),
+            "support_z": self.support_z.astype(np.float64),
             "level_heights": self.level_heights,
             "level_planes": self.level_planes,
             "rotation": self.rotation,
