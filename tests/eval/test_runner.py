@@ -294,6 +294,23 @@ def test_sigkill_and_resume_gives_the_uninterrupted_aggregate(scene, tmp_path):
     assert proto == PROTO and manifest["config"]["seed"] == 5 and "crc32" in manifest["seed_rule"]
 
 
+def test_resume_with_other_result_settings_is_refused(scene, tmp_path):
+    """A second call into the same folder with another seed or agent option would skip every logged
+    episode and report the old run's numbers as the new one's: it is refused, naming the field."""
+    root, _, episodes = scene
+    out = tmp_path / "out"
+    run_nav(episodes[:2], root, PROTO, RunConfig(agent="random", seed=0), out, show_progress=False)
+    with pytest.raises(RunnerError, match=r"seed: logged 0, now 9"):
+        run_nav(episodes[:2], root, PROTO, RunConfig(agent="random", seed=9), out, show_progress=False)
+    opts = RunConfig(agent="random", seed=0, agent_options={"probabilities": [0.25, 0.25, 0.25, 0.25]})
+    with pytest.raises(RunnerError, match="agent_options"):
+        run_nav(episodes[:2], root, PROTO, opts, out, show_progress=False)
+    # Settings that do not change an episode's result may differ; the same run resumes as before.
+    same = RunConfig(agent="random", seed=0, workers=2)
+    again = run_nav(episodes[:2], root, PROTO, same, out, show_progress=False)
+    assert again.num_episodes == 2
+
+
 @pytest.mark.slow
 def test_parallel_scenes_match_serial(scene, tmp_path):
     root, _, episodes = scene

@@ -759,6 +759,31 @@ def _scene_task(task: dict) -> tuple[str, int]:
     return task["scene"], n
 
 
+RESULT_SETTINGS = ("agent", "agent_options", "seed", "backend")
+"""RunConfig fields that change an episode's result: a resumed run must keep them (``workers`` and
+``max_episodes_per_scene`` only change how many episodes run and where)."""
+
+
+def _refuse_resume_with_other_settings(out: Path, config: RunConfig) -> None:
+    """Raise when ``out`` already logs episodes of a run with other result-changing settings: resuming
+    would silently keep the old episodes and mix them with new ones."""
+    previous_file = out / "run.json"
+    logged = [p for p in out.glob("*.jsonl") if not p.name.endswith(".traj.jsonl")]
+    if not previous_file.is_file() or not logged:
+        return
+    _, manifest = read_result_file(previous_file)
+    before = manifest.get("config", {})
+    now = json.loads(json.dumps(asdict(config)))  # as run.json holds it (tuples become lists)
+    changed = [
+        f"{k}: logged {before.get(k)!r}, now {now[k]!r}" for k in RESULT_SETTINGS if before.get(k) != now[k]
+    ]
+    if changed:
+        raise RunnerError(
+            f"{out} already holds episodes of a run with other settings ({'; '.join(changed)}); "
+            "resuming would mix them. Use another --out, or delete the folder to start over"
+        )
+
+
 def _group_by_scene(episodes: Iterable[NavEpisode], limit: int | None) -> dict[str, list[NavEpisode]]:
     groups: dict[str, list[NavEpisode]] = {}
     for ep in episodes:
@@ -807,6 +832,7 @@ def run_nav_results(
     for name, path in scene_paths.items():
         if not (path.is_file() if config.backend == "habitat" else path.is_dir()):
             raise RunnerError(f"scene {name!r}: {path} not found (episodes reference it)")
+    _refuse_resume_with_other_settings(out, config)
     manifest = {
         "config": asdict(config),
         "seed_rule": "episode_seed = crc32(f'{seed}:{episode_id}') & 0x7fffffff",
