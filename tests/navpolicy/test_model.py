@@ -159,6 +159,7 @@ def test_configs_are_strict(tmp_path):
     assert (paper.observation.height, paper.observation.width) == (336, 336)
     assert (paper.data.max_observations, paper.data.max_action_labels) == (32, 64)
     assert paper.train.strategy == "deepspeed_zero2" and paper.model.gradient_checkpointing
+    assert paper.train.devices * paper.train.num_nodes == 64  # the paper's 64 GPUs: 8 nodes x 8
     assert load_config("paper").to_dict() == paper.to_dict()
     wide = load_config("paper-wide").observation
     got = (wide.camera, wide.width, wide.height, wide.hfov_deg, wide.vfov_deg)

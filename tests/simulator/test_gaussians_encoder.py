@@ -304,3 +304,24 @@ def test_disc_gaussians_splat_the_floor_at_a_novel_pose_with_less_depth_bias():
         errors[shape] = ((depth - target.depth[0, 0]) / target.depth[0, 0])[ok]
     assert errors["sphere"].median() < -0.005  # the isotropic bias this option exists to remove
     assert errors["disc"].abs().mean() < 0.8 * errors["sphere"].abs().mean()
+
+
+def test_nan_and_inf_depth_pixels_are_dropped_not_spread():
+    """One NaN and one inf depth pixel: those pixels give no Gaussian, every other Gaussian is
+    finite and equal to the encoding of the same frame with those pixels marked invalid (0)."""
+    cfg = _small()
+    torch.manual_seed(0)
+    enc = GaussianEncoder(cfg).eval()
+    frame = _frame(EquirectCamera(32, 64))
+    bad_depth = frame.depth.clone()
+    bad_depth[0, 0, 10, 20], bad_depth[0, 0, 3, 40] = float("nan"), float("inf")
+    bad_rgb = frame.rgb.clone()
+    bad_rgb[0, :, 5, 5] = float("nan")
+    zero_depth = torch.where(torch.isfinite(bad_depth), bad_depth, torch.zeros_like(bad_depth))
+    with torch.no_grad():
+        (bad,) = enc([dataclasses.replace(frame, rgb=bad_rgb, depth=bad_depth)])
+        (ref,) = enc([dataclasses.replace(frame, rgb=bad_rgb.nan_to_num(0.0), depth=zero_depth)])
+    assert len(bad) == len(ref) == 32 * 64 - 2
+    for name in ("means", "scales", "quats", "opacities", "features", "colors"):
+        assert torch.isfinite(getattr(bad, name)).all(), name
+        torch.testing.assert_close(getattr(bad, name), getattr(ref, name))

@@ -132,7 +132,7 @@ def train_cmd(
         typer.Option(help="dagger: discard a run recorded in --out and start over (default: continue it)."),
     ] = False,
 ) -> None:
-    """Train the policy. Writes config.json, CSV/W&B logs, checkpoints and a merged export.
+    """Train the policy. Writes config.yaml, CSV/W&B logs, checkpoints and a merged export.
 
     ``--stage dagger`` runs online DAgger (``dagger`` section of the config) in NeuralSimulators on
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).

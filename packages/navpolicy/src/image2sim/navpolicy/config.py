@@ -160,7 +160,10 @@ class TrainConfig:
     accelerator: str = "cpu"
     """Lightning accelerator: cpu or gpu."""
     devices: int = 1
-    """Processes/devices."""
+    """Processes/devices per node."""
+    num_nodes: int = 1
+    """Nodes (the paper: 8 nodes x 8 GPUs = 64 H20s); the global batch is batch_size x devices x
+    num_nodes x accumulate_grad_batches."""
     log_every: int = 1
     """Log every N steps."""
     checkpoint_every: int = 10
@@ -331,6 +334,7 @@ def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPol
             strategy="deepspeed_zero2",
             accelerator="gpu",
             devices=8,
+            num_nodes=8,
             log_every=10,
             checkpoint_every=1000,
             wandb=True,

@@ -3,8 +3,9 @@
 ``source == "tiny"`` builds a small Qwen3-VL from scratch with the offline tokenizer; anything else
 must be a local folder holding a Qwen3-VL checkpoint (config, safetensors, tokenizer,
 ``preprocessor_config.json``) — hub ids are refused, nothing is downloaded. The vision tower is
-frozen; the vision-language merger (projector, incl. DeepStack mergers) and the language model train,
-or only LoRA adapters on the language model when enabled.
+frozen; the vision-language merger (projector, incl. DeepStack mergers) and the language model train.
+With LoRA enabled, the language model trains only through its adapters, and the merger still trains
+unless ``train_merger`` is off.
 """
 
 from __future__ import annotations

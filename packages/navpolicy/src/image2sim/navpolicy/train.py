@@ -295,6 +295,7 @@ def train_bc(
     trainer = L.Trainer(
         accelerator=tc.accelerator,
         devices=tc.devices,
+        num_nodes=tc.num_nodes,
         strategy=strategy,
         precision=tc.precision,
         max_steps=max_steps if max_steps is not None else tc.max_steps,

@@ -34,6 +34,7 @@ from torch import nn
 
 __all__ = [
     "encoder_inputs",
+    "sanitise_inputs",
     "normal_frame",
     "valid_pixels",
     "identity_gaussians",
@@ -55,6 +56,14 @@ def encoder_inputs(
     normals = sobel_normals(depth, circular=circular)
     rays = camera.ray_map(depth.dtype, depth.device).expand(depth.shape[0], -1, -1, -1)
     return torch.cat((rgb, depth / depth_scale, normals, rays), dim=1)
+
+
+def sanitise_inputs(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Non-finite or non-positive depth -> 0 (invalid, as the readers mark missing depth) and
+    non-finite colour -> 0. One NaN pixel would otherwise spread through the network's
+    normalisation layers into every Gaussian of the frame."""
+    depth = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
+    return torch.nan_to_num(rgb, nan=0.0, posinf=1.0, neginf=0.0), depth
 
 
 def normal_frame(normals: torch.Tensor) -> torch.Tensor:
@@ -247,6 +256,7 @@ class GaussianEncoder(nn.Module):
             raise ValueError(
                 f"GaussianEncoder expects {e.height}x{e.width} inputs, got {tuple(rgb.shape[-2:])}"
             )
+        rgb, depth = sanitise_inputs(rgb, depth)
         x = encoder_inputs(rgb, depth, camera, e.depth_scale)
         tokens = self.semantic(rgb) if self.semantic is not None else None
         return self.heads(self.upsampler(self.detail(x), tokens))
@@ -256,8 +266,7 @@ class GaussianEncoder(nn.Module):
         if not frames:
             return []
         camera = frames[0].camera
-        rgb = torch.cat([f.rgb for f in frames])
-        depth = torch.cat([f.depth for f in frames])
+        rgb, depth = sanitise_inputs(torch.cat([f.rgb for f in frames]), torch.cat([f.depth for f in frames]))
         poses = torch.stack([f.cam_to_world for f in frames])
         maps = self.forward_maps(rgb, depth, camera)
         return pixel_maps_to_gaussians(maps, rgb, depth, camera, poses, self.cfg)
