@@ -117,6 +117,22 @@ def test_semantic_alignment_term_with_tiny_dinov3(procedural, tiny_dinov3):
     assert all(p.grad is None for p in module.encoder.semantic.parameters())
 
 
+def test_checkpoints_leave_the_frozen_dinov3_out_and_resume_with_it(procedural, tiny_dinov3, tmp_path):
+    _, frames = procedural
+    cfg = _cfg(steps=1, checkpoint_every=1)
+    cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(cfg.semantic, backbone="dinov3", dim=32))
+    dino = tiny_dinov3(hidden=32, registers=2)
+    out = tmp_path / "run"
+    train_stage1(cfg, out, scenes=[frames], semantic_model=dino, progress=False)
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    keys = list(ckpt["state_dict"])
+    assert keys and not any(k.startswith("encoder.semantic.") for k in keys)
+    assert any(k.startswith("align_head.") for k in keys)  # the trained parts are all there
+    cfg2 = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=2))
+    r2 = train_stage1(cfg2, out, scenes=[frames], semantic_model=dino, progress=False)
+    assert r2["steps"] == 2 and len(r2["losses"]) == 1  # resumed (strict load) with the backbone
+
+
 def test_trained_checkpoint_builds_a_scene(procedural, tmp_path):
     from image2sim.simulator.gaussians.build import build_scene, save_encoder
 
@@ -127,3 +143,12 @@ def test_trained_checkpoint_builds_a_scene(procedural, tmp_path):
     enc_info = scene.manifest()["encoder"]
     assert enc_info["kind"] == "learned" and len(enc_info["sha256"]) == 64
     assert scene.feature_dim == 16 and len(scene) > 1000
+
+
+def test_cli_train_geometry_without_data_names_the_missing_argument(tmp_path):
+    from image2sim.simulator.cli import sim_app
+    from typer.testing import CliRunner
+
+    result = CliRunner().invoke(sim_app, ["train-geometry", "--out", str(tmp_path / "run")])
+    assert result.exit_code == 2 and "capture folder" in result.output, result.output
+    assert not (tmp_path / "run").exists()  # nothing written

@@ -203,7 +203,9 @@ def _frame_pose(sc, frame: int):
 
 
 def train_geometry_command(
-    data: list[Path] = typer.Argument(None, help="Capture folders to train on (default: procedural scenes)."),
+    data: list[Path] = typer.Argument(
+        None, help="Capture folders to train on (required; `image2sim data synth` makes procedural ones)."
+    ),
     out: Path = typer.Option(Path("runs/geometry"), "--out", help="Run folder (checkpoints, logs, encoder)."),
     config: str = typer.Option("tiny", help="Preset (tiny, paper) or YAML/JSON overrides."),
     steps: int = typer.Option(0, help="Override train.steps."),
@@ -215,8 +217,13 @@ def train_geometry_command(
     from image2sim.simulator.gaussians.config import load_gaussian_config
     from image2sim.simulator.gaussians.train_geometry import train_stage1
 
+    if not data:
+        raise typer.BadParameter(
+            "give at least one capture folder (e.g. procedural ones from `image2sim data synth --out DIR`)",
+            param_hint="DATA",
+        )
     cfg = load_gaussian_config(config)
     if steps:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=steps))
-    result = train_stage1(cfg, out, captures=list(data or []), resume=resume)
+    result = train_stage1(cfg, out, captures=list(data), resume=resume)
     typer.echo(json.dumps(result, indent=2))

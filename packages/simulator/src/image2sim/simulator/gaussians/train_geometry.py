@@ -189,6 +189,21 @@ class GeometryModule(L.LightningModule):
         self.image_dir = image_dir
         self.history: list[float] = []
 
+    # The frozen DINOv3 is rebuilt from its own folder; checkpoints leave it out (a ViT-L is about
+    # 1.2 GB, and every checkpoint is kept) and a resume puts the loaded backbone's weights back.
+    _FROZEN_PREFIX = "encoder.semantic."
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        state = checkpoint["state_dict"]
+        for key in [k for k in state if k.startswith(self._FROZEN_PREFIX)]:
+            del state[key]
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        state = checkpoint["state_dict"]
+        for key, value in self.state_dict().items():
+            if key.startswith(self._FROZEN_PREFIX):
+                state.setdefault(key, value)
+
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         camera = camera_from_dict(json.loads(batch["camera"]))
         losses, images = stage1_losses(self.encoder, batch, camera, self.align_head)
