@@ -212,6 +212,11 @@ def test_config_presets_reject_unknown_keys_and_round_trip():
     assert cfg.semantic.backbone == "none" and (cfg.encoder.height, cfg.encoder.width) == (128, 256)
     assert gaussian_config_from_dict(config_to_dict(cfg)) == cfg
     assert gaussian_config_from_dict(config_to_dict(paper())) == paper()
+    assert cfg.trainer.accelerator == "cpu" and paper().trainer.accelerator == "gpu"
+    with pytest.raises(ConfigError, match="trainer.strategy"):
+        gaussian_config_from_dict({"trainer": {"strategy": "fsdp"}})
+    with pytest.raises(ConfigError, match="use 'ddp'"):
+        gaussian_config_from_dict({"trainer": {"devices": 4}})
     with pytest.raises(ConfigError, match="fusion.polcy"):
         gaussian_config_from_dict({"fusion": {"polcy": "fixed"}})
     with pytest.raises(ConfigError, match="fusion.policy"):

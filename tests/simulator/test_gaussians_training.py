@@ -152,3 +152,29 @@ def test_cli_train_geometry_without_data_names_the_missing_argument(tmp_path):
     result = CliRunner().invoke(sim_app, ["train-geometry", "--out", str(tmp_path / "run")])
     assert result.exit_code == 2 and "capture folder" in result.output, result.output
     assert not (tmp_path / "run").exists()  # nothing written
+
+
+def test_train_geometry_with_ddp_on_two_cpu_processes(procedural, tmp_path):
+    """`sim train-geometry --devices 2 --strategy ddp` (gloo on CPU): the code path of GPU scale-out.
+    Both ranks train, rank 0 writes the checkpoint and the encoder once."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from image2sim.simulator.gaussians.config import config_to_dict
+
+    capture, _ = procedural
+    cfg_file = tmp_path / "cfg.json"
+    cfg_file.write_text(json.dumps(config_to_dict(_cfg(steps=3, checkpoint_every=3, image_every=0))))
+    out = tmp_path / "run"
+    cli = Path(sys.executable).with_name("image2sim")
+    args = [sys.executable, str(cli), "sim", "train-geometry", str(capture), "--out", str(out)]
+    args += ["--config", str(cfg_file), "--accelerator", "cpu", "--devices", "2", "--strategy", "ddp"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    res = subprocess.run(args, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert "GLOBAL_RANK: 1" in res.stderr + res.stdout  # two processes really ran
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert ckpt["global_step"] == 3
+    assert (out / "encoder.safetensors").is_file() and not list(out.glob(".*tmp*"))

@@ -31,11 +31,12 @@ def save_encoder(encoder: GaussianEncoder, path: str | Path) -> Path:
     state = {
         k: v.detach().contiguous() for k, v in encoder.state_dict().items() if not k.startswith("semantic.")
     }
-    tmp = path.with_name(f".{path.name}.tmp")
-    save_file(state, str(tmp))
-    tmp.replace(path)
+    from image2sim.simulator.io.atomic import atomic_path, write_json_atomic
+
+    with atomic_path(path) as tmp:
+        save_file(state, str(tmp))
     meta = {"config": config_to_dict(encoder.cfg), "panoramic": encoder.panoramic}
-    path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+    write_json_atomic(path.with_suffix(".json"), meta)
     return path
 
 

@@ -210,8 +210,12 @@ def train_geometry_command(
     config: str = typer.Option("tiny", help="Preset (tiny, paper) or YAML/JSON overrides."),
     steps: int = typer.Option(0, help="Override train.steps."),
     resume: bool = typer.Option(True, help="Resume from <out>/checkpoints/last.ckpt when present."),
+    accelerator: str = typer.Option("", help="Override trainer.accelerator: cpu, gpu or auto."),
+    devices: int = typer.Option(0, help="Override trainer.devices (processes per node; >1 needs ddp)."),
+    num_nodes: int = typer.Option(0, help="Override trainer.num_nodes."),
+    strategy: str = typer.Option("", help="Override trainer.strategy: auto (one process) or ddp."),
 ) -> None:
-    """Stage-1 geometry training of the Gaussian encoder (Lightning)."""
+    """Stage-1 geometry training of the Gaussian encoder (Lightning; DDP by config or flags)."""
     import dataclasses
 
     from image2sim.simulator.gaussians.config import load_gaussian_config
@@ -222,8 +226,16 @@ def train_geometry_command(
             "give at least one capture folder (e.g. procedural ones from `image2sim data synth --out DIR`)",
             param_hint="DATA",
         )
+    from image2sim.simulator.trainer import with_overrides
+
     cfg = load_gaussian_config(config)
     if steps:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=steps))
+    try:
+        cfg = dataclasses.replace(
+            cfg, trainer=with_overrides(cfg.trainer, accelerator, devices, num_nodes, strategy)
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     result = train_stage1(cfg, out, captures=list(data), resume=resume)
     typer.echo(json.dumps(result, indent=2))

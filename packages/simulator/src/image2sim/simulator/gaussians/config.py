@@ -14,6 +14,7 @@ from typing import Literal
 
 from image2sim.simulator.config import ConfigError as SharedConfigError
 from image2sim.simulator.config import config_to_dict, merge_config, read_mapping
+from image2sim.simulator.trainer import TrainerConfig, check_trainer_config
 
 __all__ = [
     "SemanticConfig",
@@ -185,10 +186,18 @@ class GaussianConfig:
     """Scene memory fusion and pruning."""
     train: Stage1Config = field(default_factory=Stage1Config)
     """Stage-1 training."""
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    """Hardware and distribution of stage-1 training (one scene sample per device and step). The
+    paper does not state its stage-1 hardware: ``paper`` runs on one GPU; set ``devices`` and
+    ``strategy: ddp`` for more."""
 
     def validate(self) -> GaussianConfig:
         """Check value ranges; raises :class:`ConfigError` naming the field."""
         e, f, s = self.encoder, self.fusion, self.semantic
+        try:
+            check_trainer_config(self.trainer)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
         if e.height <= 0 or e.width <= 0 or e.height % 16 or e.width % 16:
             raise ConfigError(
                 f"encoder.height/width must be positive multiples of 16, got {e.height}x{e.width}"
@@ -256,6 +265,7 @@ def paper() -> GaussianConfig:
             blocks_per_stage=2,
         ),
         train=Stage1Config(num_sources=4, steps=100_000, lr=1e-4, wandb=True),
+        trainer=TrainerConfig(accelerator="gpu"),
     ).validate()
 
 

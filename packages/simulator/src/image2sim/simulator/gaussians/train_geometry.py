@@ -118,7 +118,15 @@ class GeometryDataModule(L.LightningDataModule):
         self._start = int(state.get("start_step", 0))
 
     def train_dataloader(self) -> DataLoader:
-        order = list(range(self._start, len(self.dataset)))
+        from image2sim.simulator.sampling import StepSampler
+
+        trainer = self.trainer
+        order = StepSampler(
+            self._start,
+            len(self.dataset),
+            rank=trainer.global_rank if trainer is not None else 0,
+            world_size=trainer.world_size if trainer is not None else 1,
+        )
         return DataLoader(self.dataset, batch_size=1, sampler=order, collate_fn=_collate, num_workers=0)
 
 
@@ -213,7 +221,7 @@ class GeometryModule(L.LightningModule):
         )
         self.history.append(float(losses["total"].detach()))
         step = int(self.global_step)
-        if self.image_dir and t.image_every and step % t.image_every == 0:
+        if self.image_dir and t.image_every and step % t.image_every == 0 and self.global_rank == 0:
             _write_grid(Path(self.image_dir) / f"step_{step:07d}.png", images)
         return losses["total"]
 
@@ -276,9 +284,10 @@ def train_stage1(
         save_last=True,
         save_top_k=-1,
     )
+    from image2sim.simulator.trainer import lightning_trainer_args
+
     trainer = L.Trainer(
-        accelerator="cpu",
-        devices=1,
+        **lightning_trainer_args(cfg.trainer),
         max_steps=cfg.train.steps,
         logger=loggers,
         callbacks=[ckpt],
@@ -291,7 +300,9 @@ def train_stage1(
     )
     last = out / "checkpoints" / "last.ckpt"
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume and last.is_file() else None)
-    path = save_encoder(module.encoder, out / "encoder.safetensors")
+    path = out / "encoder.safetensors"
+    if trainer.is_global_zero:  # under DDP every rank gets here with the same weights
+        save_encoder(module.encoder, path)
     return {
         "steps": int(trainer.global_step),
         "losses": module.history,

@@ -80,15 +80,16 @@ def train_command(
 
     torch.set_num_threads(threads)
     cfg = load_renderer_config(config)
-    overrides = {"accelerator": accelerator, "devices": devices, "num_nodes": num_nodes, "strategy": strategy}
-    overrides = {k: v for k, v in overrides.items() if v}
-    if overrides:
+    try:
         import dataclasses
 
-        try:
-            cfg = dataclasses.replace(cfg, trainer=dataclasses.replace(cfg.trainer, **overrides))
-        except ValueError as exc:
-            raise typer.BadParameter(str(exc)) from exc
+        from image2sim.simulator.trainer import with_overrides
+
+        cfg = dataclasses.replace(
+            cfg, trainer=with_overrides(cfg.trainer, accelerator, devices, num_nodes, strategy)
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     if condition_source not in ("splat", "degraded"):
         raise typer.BadParameter(f"--condition-source must be splat or degraded, got {condition_source!r}")
     if condition_source == "splat" and not data:

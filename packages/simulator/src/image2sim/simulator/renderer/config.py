@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from image2sim.simulator.gaussians.config import SemanticConfig
+from image2sim.simulator.trainer import TrainerConfig, check_trainer_config
 
 __all__ = [
     "AlignerConfig",
@@ -228,28 +229,6 @@ class CurriculumConfig:
     """Per-device batch size."""
 
 
-TRAINER_STRATEGIES = ("auto", "ddp")
-TRAINER_PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
-
-
-@dataclass
-class TrainerConfig:
-    """Where and how the Lightning trainer runs (the paper: 8 GPUs with DDP, batch 2 per GPU)."""
-
-    accelerator: str = "cpu"
-    """Lightning accelerator: ``cpu``, ``gpu`` or ``auto``."""
-    devices: int = 1
-    """Processes per node (GPUs, or CPU processes with gloo); each takes ``curriculum.batch_size``."""
-    num_nodes: int = 1
-    """Nodes; the global batch is ``batch_size * devices * num_nodes``."""
-    strategy: str = "auto"
-    """``auto`` (one process) or ``ddp``. DDP looks for unused parameters every step, because stage 3
-    freezes part of the network mid-run and DDP would otherwise wait for their gradients."""
-    precision: str = "32-true"
-    """Lightning precision: ``32-true``, ``bf16-mixed`` (the paper; ``sim train --bf16`` sets it) or
-    ``16-mixed``."""
-
-
 @dataclass
 class RendererConfig:
     """Complete pixel-flow renderer configuration."""
@@ -352,21 +331,7 @@ class RendererConfig:
                 f"semantic.dim is {sem.dim} but the aligner's tokens have {token_out} channels: "
                 "set aligner.target_dim to the backbone's hidden size"
             )
-        tr = self.trainer
-        if tr.strategy not in TRAINER_STRATEGIES:
-            raise ValueError(f"trainer.strategy must be one of {TRAINER_STRATEGIES}, got {tr.strategy!r}")
-        if tr.precision not in TRAINER_PRECISIONS:
-            raise ValueError(f"trainer.precision must be one of {TRAINER_PRECISIONS}, got {tr.precision!r}")
-        if tr.accelerator not in ("cpu", "gpu", "auto"):
-            raise ValueError(f"trainer.accelerator must be cpu, gpu or auto, got {tr.accelerator!r}")
-        if tr.devices < 1 or tr.num_nodes < 1:
-            raise ValueError(
-                f"trainer.devices and trainer.num_nodes must be >= 1, got {tr.devices} and {tr.num_nodes}"
-            )
-        if tr.strategy == "auto" and tr.devices * tr.num_nodes > 1:
-            raise ValueError(
-                "trainer.strategy 'auto' runs one process: use 'ddp' for devices * num_nodes > 1"
-            )
+        check_trainer_config(self.trainer, "trainer")
 
 
 def tiny() -> RendererConfig:

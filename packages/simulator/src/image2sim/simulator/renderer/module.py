@@ -329,22 +329,12 @@ def fit(
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True, save_top_k=-1
     )
-    tc = cfg.trainer
-    strategy: object = tc.strategy
-    if tc.strategy == "ddp":
-        from lightning.pytorch.strategies import DDPStrategy
+    from image2sim.simulator.trainer import lightning_trainer_args
 
-        # Stage 3 freezes the backbone mid-run: DDP must not wait for gradients that never come.
-        strategy = DDPStrategy(find_unused_parameters=True)
     trainer = L.Trainer(
-        accelerator=tc.accelerator,
-        devices=tc.devices,
-        num_nodes=tc.num_nodes,
-        strategy=strategy,
+        **lightning_trainer_args(cfg.trainer, "bf16-mixed" if bf16 else None),
         max_steps=steps,
         gradient_clip_val=cfg.curriculum.grad_clip,
-        precision="bf16-mixed" if bf16 else tc.precision,
-        use_distributed_sampler=False,  # the StepSampler already splits the data order over ranks
         logger=log,
         callbacks=[ckpt],
         enable_progress_bar=progress,
