@@ -217,7 +217,9 @@ def test_configuration_follows_the_protocol(fake_hs, scene_file, protocol):
     cam = protocol.camera
     assert sensor.kind == "pinhole" and sensor.uuid == "rgb" and sensor.sensor_type == "COLOR"
     assert sensor.resolution == [cam.height, cam.width] and sensor.hfov == cam.hfov_deg
-    assert sensor.position == [0.0, protocol.agent_height_m, 0.0]
+    assert sensor.position == [0.0, protocol.eye_height_m, 0.0]
+    if protocol.name == "vlnce":  # Habitat's default RGB sensor height on R2R-CE's 1.5 m agent
+        assert (protocol.eye_height_m, protocol.agent_height_m) == (1.25, 1.5)
     assert backend.name == "fake"
 
 

@@ -28,6 +28,13 @@ def test_published_values() -> None:
     assert (VLNCE.max_steps, VLNCE.turn_angle_deg, VLNCE.forward_step_m) == (500, 15.0, 0.25)
     assert (VLNCE.camera.width, VLNCE.camera.height, VLNCE.camera.hfov_deg) == (224, 224, 90.0)
     assert (VLNCE.agent_height_m, VLNCE.agent_radius_m, VLNCE.success_distance_m) == (1.5, 0.1, 3.0)
+    # R2R-CE's camera is Habitat's default RGB sensor, 1.25 m up, not the 1.5 m agent height.
+    assert VLNCE.eye_height_m == 1.25 and IMAGE2SIM.eye_height_m == IMAGE2SIM.agent_height_m == 1.25
+    assert RXR_HABITAT.eye_height_m == RXR_HABITAT.agent_height_m == 0.88
+    older = {k: v for k, v in VLNCE.to_dict().items() if k != "camera_height_m"}
+    assert Protocol.from_dict(older).eye_height_m == 1.5  # records written before the field existed
+    with pytest.raises(ProtocolError, match="camera_height_m"):
+        dataclasses.replace(VLNCE, camera_height_m=2.0)
     cam = RXR_HABITAT.camera
     assert (RXR_HABITAT.turn_angle_deg, cam.width, cam.height) == (30.0, 640, 480)
     assert RXR_HABITAT.camera.hfov_deg == 79.0 and not RXR_HABITAT.allow_sliding

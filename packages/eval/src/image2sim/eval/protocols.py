@@ -48,7 +48,8 @@ def _from_mapping(cls: type, data: Mapping[str, Any], where: str) -> dict[str, A
     unknown = sorted(set(data) - names)
     if unknown:
         raise ProtocolError(f"{where}: unknown field(s) {unknown}; allowed: {sorted(names)}")
-    missing = sorted(names - set(data))
+    optional = {f.name for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+    missing = sorted(names - set(data) - optional)  # optional fields may be absent in older records
     if missing:
         raise ProtocolError(f"{where}: missing field(s) {missing}")
     return dict(data)
@@ -113,7 +114,8 @@ class Protocol:
     camera: CameraSpec
     """The RGB observation camera."""
     agent_height_m: float
-    """Agent (camera) height above the floor in metres."""
+    """Agent body height above the floor in metres (also the camera height unless
+    ``camera_height_m`` is set)."""
     agent_radius_m: float
     """Agent collision radius in metres."""
     allow_sliding: bool
@@ -126,6 +128,14 @@ class Protocol:
     """DTW algorithm; only exact O(nm) DTW is implemented (VLN-CE's fastdtw is approximate)."""
     source: str
     """Where the values come from (paper / config file)."""
+    camera_height_m: float | None = None
+    """Camera height above the floor in metres when it differs from the body height (Habitat's RGB
+    sensor sits at 1.25 m on a 1.5 m agent in R2R-CE); ``None``: ``agent_height_m``."""
+
+    @property
+    def eye_height_m(self) -> float:
+        """Height of the observation camera above the floor."""
+        return float(self.camera_height_m if self.camera_height_m is not None else self.agent_height_m)
 
     def __post_init__(self) -> None:
         if not self.name:
@@ -140,6 +150,13 @@ class Protocol:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ProtocolError(
                     f"protocol {self.name}: {field} must be a finite positive number, got {value!r}"
+                )
+        if self.camera_height_m is not None:
+            h = self.camera_height_m
+            if not (isinstance(h, (int, float)) and math.isfinite(h) and 0 < h <= self.agent_height_m):
+                raise ProtocolError(
+                    f"protocol {self.name}: camera_height_m must be a finite number in "
+                    f"(0, agent_height_m = {self.agent_height_m}], got {h!r}"
                 )
         if not isinstance(self.allow_sliding, bool):
             raise ProtocolError(f"protocol {self.name}: allow_sliding must be a bool")
@@ -190,7 +207,9 @@ VLNCE = Protocol(
     success_distance_m=3.0,
     ndtw_threshold_m=3.0,
     dtw="exact",
-    source="R2R-CE: VLN-CE habitat_extensions/config/vlnce_task.yaml with Habitat agent defaults",
+    source="R2R-CE: VLN-CE habitat_extensions/config/vlnce_task.yaml with Habitat agent defaults "
+    "(agent 1.5 m tall, radius 0.1 m; RGB sensor at the default position [0, 1.25, 0])",
+    camera_height_m=1.25,
 )
 
 RXR_HABITAT = Protocol(

@@ -143,7 +143,7 @@ def embodiment_for(protocol: Protocol, base: Any | None = None):
     kw = b.to_dict()
     kw.update(
         radius=protocol.agent_radius_m,
-        eye_height=protocol.agent_height_m,
+        eye_height=protocol.eye_height_m,
         forward_step=protocol.forward_step_m,
         turn_angle_deg=protocol.turn_angle_deg,
         wall_sliding=protocol.allow_sliding,
@@ -158,7 +158,7 @@ def check_embodiment(embodiment: Any, protocol: Protocol, where: str = "scene") 
         "forward_step": (embodiment.forward_step, protocol.forward_step_m),
         "turn_angle_deg": (embodiment.turn_angle_deg, protocol.turn_angle_deg),
         "radius": (embodiment.radius, protocol.agent_radius_m),
-        "eye_height": (embodiment.eye_height, protocol.agent_height_m),
+        "eye_height": (embodiment.eye_height, protocol.eye_height_m),
         "wall_sliding": (embodiment.wall_sliding, protocol.allow_sliding),
     }
     bad = {
@@ -325,7 +325,7 @@ class HabitatBackend:
         sensor.uuid = "rgb"
         sensor.sensor_type = hs.SensorType.COLOR
         sensor.resolution = [int(cam.height), int(cam.width)]
-        sensor.position = [0.0, float(protocol.agent_height_m), 0.0]
+        sensor.position = [0.0, protocol.eye_height_m, 0.0]
         agent_cfg = hs.agent.AgentConfiguration()
         agent_cfg.height = float(protocol.agent_height_m)
         agent_cfg.radius = float(protocol.agent_radius_m)
