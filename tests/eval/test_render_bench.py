@@ -120,6 +120,12 @@ def test_fps_includes_the_condition_splatting_time_when_known(held):
     assert 1.0 < cell.fps <= 2.0  # end to end: at most 1 / 0.5 s of splatting per frame
     plain = benchmark_methods({"m": instant}, {"none": _tier_samples(held, "none", seed=0, max_views=1)})
     assert plain["m"]["none"].fps > 10 * cell.fps
+    # Views of two captures with different splatting times: the view-weighted mean counts, not the
+    # first capture's (2 views at 0.1 s, 1 at 0.7 s -> 0.3 s per frame).
+    views = _tier_samples(held, "none", seed=0, max_views=3)
+    mixed = [dict(s, condition_seconds=0.1 if k < 2 else 0.7) for k, s in enumerate(views)]
+    both = benchmark_methods({"m": instant}, {"none": mixed}, warmup=1, runs=3)["m"]["none"]
+    assert 1 / 0.3 * 0.8 < both.fps <= 1 / 0.3
 
 
 def test_method_record_weights_tiers_by_views(held):
