@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -500,3 +501,61 @@ def test_cli_nav_reads_a_vlnce_schema_episode_file(scene, tmp_path):
     assert res.exit_code == 0, res.output
     oracle = json.loads(metrics.read_text())["agents"]["oracle"]
     assert oracle["n_episodes"] == 3 and oracle["sr"] == 1.0 and oracle["spl"] >= 0.95
+
+
+def test_cli_nav_reads_the_published_benchmark_layouts(scene, tmp_path):
+    """`eval nav --dataset r2r-ce|rxr-ce|reverie-ce --dataset-root R --split S` goes through each
+    benchmark's own loader: R2R-CE refuses a file without its vocabulary, RxR-CE filters roles."""
+    import gzip
+
+    from image2sim.eval.cli import app
+    from typer.testing import CliRunner
+
+    root, _, episodes = scene
+
+    def write(path, with_vocab):
+        doc = {
+            "frame": "image2sim-z-up",
+            "quaternion_order": "wxyz",
+            "episodes": [
+                {
+                    "episode_id": e.episode_id,
+                    "scene_id": "procedural/scene_000.glb",
+                    "start_position": e.start_position.tolist(),
+                    "start_rotation": e.start_rotation.tolist(),
+                    "goals": [{"position": e.goal_position.tolist(), "radius": 3.0}],
+                    "reference_path": e.reference_path.tolist(),
+                    "instruction": {"instruction_text": "walk to the goal", "language": "en-US"},
+                    "info": {"geodesic_distance": e.geodesic_distance},
+                }
+                for e in episodes[:2]
+            ],
+        }
+        if with_vocab:
+            doc["instruction_vocab"] = {"word_list": ["walk", "to", "the", "goal"]}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with gzip.open(path, "wt", encoding="utf-8") as f:
+            json.dump(doc, f)
+
+    proto_file = tmp_path / "proto.json"
+    proto_file.write_text(json.dumps({"protocol": PROTO.to_dict()}))
+
+    def run(dataset, data_root, *extra):
+        args = ["nav", "--scenes", str(root), "--dataset", dataset, "--dataset-root", str(data_root)]
+        args += ["--split", "val_seen", "--agent", "oracle", "--protocol", str(proto_file)]
+        args += ["--out", str(tmp_path / f"run_{dataset}"), "--metrics", str(tmp_path / f"{dataset}.json")]
+        return CliRunner().invoke(app, args + list(extra))
+
+    write(tmp_path / "r2r" / "val_seen" / "val_seen.json.gz", with_vocab=True)
+    res = run("r2r-ce", tmp_path / "r2r")
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "r2r-ce.json").read_text())["agents"]["oracle"]["n_episodes"] == 2
+    write(tmp_path / "novocab" / "val_seen" / "val_seen.json.gz", with_vocab=False)
+    res = run("r2r-ce", tmp_path / "novocab")
+    assert res.exit_code == 2 and "instruction_vocab" in res.output
+    assert run("reverie-ce", tmp_path / "novocab").exit_code == 0  # REVERIE-CE has no vocabulary
+    write(tmp_path / "rxr" / "val_seen" / "val_seen_guide.json.gz", with_vocab=False)
+    res = run("rxr-ce", tmp_path / "rxr", "--language", "te-IN")
+    said = re.sub(r"[│╭╮╰╯─\s]+", " ", res.output)  # the error box wraps long lines
+    assert res.exit_code == 2 and "no episodes" in said, said  # no Telugu episodes: said so
+    assert run("rxr-ce", tmp_path / "rxr", "--language", "en-US").exit_code == 0

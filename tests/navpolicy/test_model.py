@@ -158,6 +158,7 @@ def test_configs_are_strict(tmp_path):
     paper = paper_config()
     assert (paper.observation.height, paper.observation.width) == (336, 336)
     assert (paper.data.max_observations, paper.data.max_action_labels) == (32, 64)
+    assert paper.data.observation_stride == 2  # observations where the streaming agent observes
     assert paper.train.strategy == "deepspeed_zero2" and paper.model.gradient_checkpointing
     assert paper.train.devices * paper.train.num_nodes == 64  # the paper's 64 GPUs: 8 nodes x 8
     assert load_config("paper").to_dict() == paper.to_dict()

@@ -163,6 +163,24 @@ def nav_cmd(
         Path | None, typer.Option(help="VLN-CE schema episode file (.json.gz); scenes by scene_id stem.")
     ] = None,
     gt: Annotated[Path | None, typer.Option(help="Matching *_gt.json.gz (dense nDTW references).")] = None,
+    dataset: Annotated[
+        str,
+        typer.Option(
+            help="Published benchmark to read from --dataset-root: r2r-ce, rxr-ce or reverie-ce "
+            "(their layout, schema and checks: R2R-CE needs its vocabulary, RxR-CE has roles and "
+            "languages); 'none' reads --episodes or samples --point-goal."
+        ),
+    ] = "none",
+    dataset_root: Annotated[
+        Path | None, typer.Option(help="With --dataset: the folder holding <split>/<split>*.json.gz.")
+    ] = None,
+    split: Annotated[str, typer.Option(help="With --dataset: the split, e.g. val_unseen.")] = "val_unseen",
+    rxr_role: Annotated[
+        list[str], typer.Option(help="rxr-ce: roles to load, guide and/or follower (repeatable).")
+    ] = ["guide"],  # noqa: B006
+    language: Annotated[
+        list[str], typer.Option(help="rxr-ce: keep only these languages, e.g. en-US (repeatable).")
+    ] = [],  # noqa: B006
     point_goal: Annotated[
         int, typer.Option(help="Without --episodes: sample this many point-goal episodes per scene.")
     ] = 0,
@@ -209,9 +227,31 @@ def nav_cmd(
     )
 
     proto = _protocol(protocol)
-    if backend == "habitat" and episodes is None:
-        raise typer.BadParameter("--backend habitat needs --episodes (point goals are sampled on our graphs)")
-    if episodes is not None:
+    if backend == "habitat" and episodes is None and dataset == "none":
+        raise typer.BadParameter(
+            "--backend habitat needs --episodes or --dataset (point goals are sampled on our graphs)"
+        )
+    if dataset != "none":
+        from image2sim.eval import datasets as ds
+
+        loaders = {
+            "r2r-ce": lambda: ds.load_r2r_ce(dataset_root, split),
+            "reverie-ce": lambda: ds.load_reverie_ce(dataset_root, split),
+            "rxr-ce": lambda: ds.load_rxr_ce(dataset_root, split, roles=rxr_role, languages=language or None),
+        }
+        if dataset not in loaders:
+            raise typer.BadParameter(f"--dataset must be none or one of {sorted(loaders)}, got {dataset!r}")
+        if dataset_root is None or episodes is not None:
+            raise typer.BadParameter("--dataset needs --dataset-root (and no --episodes)")
+        try:
+            eps = list(loaders[dataset]().episodes)
+        except (ds.EpisodeFileError, ValueError) as err:
+            raise typer.BadParameter(str(err)) from err
+        if not eps:
+            raise typer.BadParameter(
+                f"{dataset} {split} at {dataset_root}: no episodes (after role/language filters)"
+            )
+    elif episodes is not None:
         from image2sim.eval.datasets import load_image2sim_episodes
 
         eps = list(load_image2sim_episodes(episodes, gt).episodes)

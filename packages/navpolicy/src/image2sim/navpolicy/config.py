@@ -323,7 +323,7 @@ def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPol
         name="paper",
         model=ModelConfig(source=checkpoint, gradient_checkpointing=True, dtype="bfloat16"),
         observation=ObservationConfig(camera="pinhole", height=336, width=336, hfov_deg=90.0, vfov_deg=90.0),
-        data=DataConfig(max_observations=32, max_action_labels=64, num_workers=8),
+        data=DataConfig(max_observations=32, max_action_labels=64, observation_stride=2, num_workers=8),
         train=TrainConfig(
             batch_size=1,
             max_steps=70_000,
