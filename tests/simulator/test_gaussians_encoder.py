@@ -264,7 +264,9 @@ def test_identity_disc_gaussians_lie_flat_on_the_floor():
     cam = EquirectCamera(32, 64)
     frame, down = _floor_frame(cam)
     cfg = _small(h=32, w=64)
-    sphere = identity_gaussians(frame, cfg)
+    sphere_cfg = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, identity_shape="sphere"))
+    sphere = identity_gaussians(frame, sphere_cfg)
+    assert torch.equal(sphere.scales[:, 0], sphere.scales[:, 2])  # isotropic
     disc_cfg = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, identity_shape="disc"))
     disc = identity_gaussians(frame, disc_cfg)
     torch.testing.assert_close(disc.means, sphere.means)

@@ -93,6 +93,10 @@ def test_lightning_run_logs_checkpoints_and_resumes(procedural, tmp_path):
     cfg4 = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=4))
     r2 = train_stage1(cfg4, out, scenes=[frames], progress=False)
     assert r2["steps"] == 4 and len(r2["losses"]) == 2  # resumed: only steps 2 and 3 ran
+    # ... and exactly as the uninterrupted run: same samples (data position restored), same weights.
+    full = train_stage1(cfg4, tmp_path / "full", scenes=[frames], progress=False)
+    assert full["losses"][:2] == pytest.approx(r1["losses"], rel=1e-6)
+    assert r2["losses"] == pytest.approx(full["losses"][2:], rel=1e-5)
     rows = []
     for f in (out / "logs").rglob("metrics.csv"):
         rows += list(csv.DictReader(f.open()))
