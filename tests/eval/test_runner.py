@@ -559,3 +559,47 @@ def test_cli_nav_reads_the_published_benchmark_layouts(scene, tmp_path):
     said = re.sub(r"[│╭╮╰╯─\s]+", " ", res.output)  # the error box wraps long lines
     assert res.exit_code == 2 and "no episodes" in said, said  # no Telugu episodes: said so
     assert run("rxr-ce", tmp_path / "rxr", "--language", "en-US").exit_code == 0
+
+
+def test_ultra_wide_observation_is_the_centred_180_by_118_degree_crop(scene):
+    """The `image2sim-180` camera (512 x 336 at 180 x 118 deg) is the middle of a full panorama with
+    the same angular resolution: its edges sit at longitude +-90 deg and latitude +-59 deg, and the
+    agent receives exactly 336 x 512 pixels, centred on the heading."""
+    import math
+
+    import torch
+    from image2sim.eval.protocols import PROTOCOLS
+    from image2sim.eval.runner import equirect_crop
+    from image2sim.simulator.sim import NeuralSimulator
+
+    wide = PROTOCOLS["image2sim-180"]
+    full, (rows, cols) = equirect_crop(wide.camera)
+    assert (full.height, full.width) == (512, 1024) and (rows.stop - rows.start, cols.stop - cols.start) == (
+        336,
+        512,
+    )
+    lon, lat = full.pixel_to_lonlat(
+        torch.tensor([float(cols.start), float(cols.stop)]),
+        torch.tensor([float(rows.start), float(rows.stop)]),
+    )
+    assert torch.allclose(torch.rad2deg(lon), torch.tensor([-90.0, 90.0]))
+    assert torch.allclose(torch.rad2deg(lat), torch.tensor([59.0, -59.0]), atol=0.2)
+    full360, crop = equirect_crop(dataclasses.replace(wide.camera, hfov_deg=360.0, vfov_deg=180.0))
+    assert crop is None and (full360.height, full360.width) == (336, 512)
+
+    _, sim, episodes = scene
+
+    def lon_image(camera, pose):  # red = longitude of the pixel, so the crop's position shows
+        u = torch.arange(camera.width, dtype=torch.float32) + 0.5
+        lon_u, _ = camera.pixel_to_lonlat(u, torch.zeros_like(u))
+        red = ((lon_u + math.pi) / (2 * math.pi)).numpy()
+        rgb = np.zeros((camera.height, camera.width, 3), np.float32)
+        rgb[..., 0] = red
+        return {"rgb": rgb, "depth": np.ones((camera.height, camera.width), np.float32)}
+
+    proto = dataclasses.replace(wide, success_distance_m=0.5, ndtw_threshold_m=0.5)
+    backend = NeuralSimBackend(NeuralSimulator(sim.navmap, sim.graph, lon_image), proto)
+    obs = backend.reset(episodes[0], observe=True)
+    assert obs.rgb.shape == (336, 512, 3)
+    red = obs.rgb[0, :, 0].astype(float) / 255.0
+    assert abs(red[0] - 0.25) < 0.01 and abs(red[-1] - 0.75) < 0.01  # -90 deg ... +90 deg

@@ -517,3 +517,22 @@ def test_dagger_resume_refuses_other_arguments(scene, tiny_cfg, tiny_policy, tmp
         resume=False,
     )
     assert res.dataset_sizes == [1] and len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
+
+
+def test_nav_act_runs_the_ultra_wide_setting(scene, tiny_cfg):
+    """`nav act` with an equirectangular observation (the paper's 180 x 118 deg setting, here at
+    64 x 42 pixels) observes the centred crop of a full panorama at the configured size."""
+    import copy
+
+    from image2sim.eval.runner import NeuralSimBackend
+    from image2sim.navpolicy.act import act_protocol, task_episodes
+
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.observation.camera, cfg.observation.width, cfg.observation.height = "equirect", 64, 42
+    cfg.observation.hfov_deg, cfg.observation.vfov_deg = 180.0, 118.0
+    proto = act_protocol(cfg, 50, 0.5)
+    assert proto.camera.kind == "equirect" and (proto.camera.width, proto.camera.height) == (64, 42)
+    sim, _ = scene
+    (episode,) = task_episodes(sim, 1, 0, "plain")
+    obs = NeuralSimBackend(sim, proto, "plain").reset(episode, observe=True)
+    assert obs.rgb.shape == (42, 64, 3) and obs.rgb.dtype == np.uint8

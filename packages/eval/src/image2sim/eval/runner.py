@@ -174,6 +174,29 @@ def check_embodiment(embodiment: Any, protocol: Protocol, where: str = "scene") 
         )
 
 
+def equirect_crop(cam: Any) -> tuple[Any, tuple[slice, slice] | None]:
+    """The full panorama to render for an equirectangular protocol camera, and the centred crop
+    that is the observation (None for a full 360 x 180 view).
+
+    The ultra-wide setting (512 x 336 at 180 deg x 118 deg) is the middle of a 1024 x 512 panorama:
+    the same angular resolution, longitude 0 (straight ahead) at the centre column, the horizon at
+    the centre row.
+    """
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+
+    if not (0 < cam.hfov_deg <= 360 and 0 < cam.vfov_deg <= 180):
+        raise RunnerError(
+            f"equirect camera: fov must lie in (0, 360] x (0, 180], got {cam.hfov_deg} x {cam.vfov_deg}"
+        )
+    # Same parity as the crop, so the crop sits exactly in the middle (the fov moves < 0.4 deg).
+    full_w = cam.width + 2 * round((cam.width * 360.0 / cam.hfov_deg - cam.width) / 2)
+    full_h = cam.height + 2 * round((cam.height * 180.0 / cam.vfov_deg - cam.height) / 2)
+    if (full_w, full_h) == (cam.width, cam.height):
+        return EquirectCamera(cam.height, cam.width), None
+    top, left = (full_h - cam.height) // 2, (full_w - cam.width) // 2
+    return EquirectCamera(full_h, full_w), (slice(top, top + cam.height), slice(left, left + cam.width))
+
+
 class NeuralSimBackend:
     """:class:`~image2sim.simulator.sim.NeuralSimulator` as a runner backend (one agent).
 
@@ -192,13 +215,14 @@ class NeuralSimBackend:
         self._last_dist, self._last_reason, self._last_approx = float("inf"), "", False
         cam = protocol.camera
         self._camera = None
+        self._crop: tuple[slice, slice] | None = None
         if sim.render_fn is not None:
-            from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+            from image2sim.simulator.geometry.cameras import PinholeCamera
 
             if cam.kind == "pinhole":
                 self._camera = PinholeCamera.from_fov(cam.hfov_deg, cam.vfov_deg, cam.width, cam.height)
             else:
-                self._camera = EquirectCamera(cam.height, cam.width)
+                self._camera, self._crop = equirect_crop(cam)
 
     @property
     def planner(self):
@@ -216,6 +240,8 @@ class NeuralSimBackend:
                 raise RunnerError(f"{self.name}: the agent needs images but the scene has no render function")
             out = self.sim.render_fn(self._camera, self.sim.camera_pose(0))
             rgb = np.clip(np.asarray(out["rgb"], np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            if self._crop is not None:
+                rgb = rgb[self._crop[0], self._crop[1]]
         # Turns do not move the agent: reuse the last distance instead of another graph snap.
         if self._last_pos is None or not np.array_equal(pos_map, self._last_pos):
             self._last_pos = np.array(pos_map, dtype=np.float64)

@@ -17,20 +17,19 @@ from image2sim.simulator.io.atomic import atomic_path, write_text_atomic
 
 
 def act_protocol(cfg: NavPolicyConfig, max_steps: int, success_distance: float):
-    """The paper's protocol with the policy's camera, a step limit and a success radius that fits
-    the small procedural rooms (the paper's 3 m would count most starts as successes)."""
+    """The paper's protocol with the policy's camera (pinhole, or the ultra-wide equirectangular
+    crop, which the evaluation backend cuts from a full panorama), a step limit and a success radius
+    that fits the small procedural rooms (the paper's 3 m would count most starts as successes)."""
     from image2sim.eval.protocols import IMAGE2SIM, CameraSpec
 
     o = cfg.observation
-    if o.camera != "pinhole":
-        raise ValueError(f"observation.camera {o.camera!r}: nav act renders pinhole observations only")
     return dataclasses.replace(
         IMAGE2SIM,
         name="nav-act",
         max_steps=int(max_steps),
         success_distance_m=float(success_distance),
         ndtw_threshold_m=float(success_distance),
-        camera=CameraSpec("pinhole", o.width, o.height, o.hfov_deg, o.vfov_deg),
+        camera=CameraSpec(o.camera, o.width, o.height, o.hfov_deg, o.vfov_deg),
     )
 
 
