@@ -278,6 +278,11 @@ def test_training_record_is_found_from_a_checkpoint_and_names_every_protocol_dif
     assert len(lines) == 2
     assert lines[0].startswith("gaussians.encoder.scale_init: trained") and "0.3" in lines[0]
     assert lines[1] == "source_every: trained 2, evaluated 1"
+    # Stage-1 training settings do not shape the conditions; records from before the trainer
+    # section existed are not flagged either.
+    older = {**record, "gaussians": {k: v for k, v in record["gaussians"].items() if k != "trainer"}}
+    other_training = dataclasses.replace(gcfg, train=dataclasses.replace(gcfg.train, steps=7, lr=0.5))
+    assert sd.protocol_mismatches(older, other_training, source_every=2, holdout_every=4) == []
     degraded = {"condition_source": "degraded", "captures": []}
     assert sd.protocol_mismatches(degraded, gcfg, 1, 4) == [
         "trained on 'degraded' conditions, evaluated on splats"

@@ -465,8 +465,11 @@ def protocol_mismatches(
         return items
 
     a, b = flat(trained), flat(now)
+    # Stage-1 training settings (``train.*``, ``trainer.*``) do not change the Gaussians a scene is
+    # built with, and older records lack some of them: they are not protocol differences.
+    ignored = ("name", "train.", "trainer.")
     for key in sorted(set(a) | set(b)):
-        if key != "name" and a.get(key) != b.get(key):
+        if not key.startswith(ignored) and a.get(key) != b.get(key):
             out.append(f"gaussians.{key}: trained {a.get(key)!r}, evaluated {b.get(key)!r}")
     sd = record.get("splat_data", {})
     for key, value in (("source_every", source_every), ("holdout_every", holdout_every)):
