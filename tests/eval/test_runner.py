@@ -449,14 +449,10 @@ def test_image2nav_adapter_runs_the_tiny_navpolicy_model(scene):
     assert 1 <= len(actions) <= 4 and res.metrics["steps"] == len(actions)
 
 
-def test_cli_nav_reads_a_vlnce_schema_episode_file(scene, tmp_path):
-    """The data engine's layout: world-frame VLN-CE json.gz, scenes found by the scene_id stem."""
+def _write_vlnce_file(path, episodes, instruction=None, vocab=None):
+    """A world-frame VLN-CE-schema episode file (the data engine's layout) for ``episodes``."""
     import gzip
 
-    from image2sim.eval.cli import app
-    from typer.testing import CliRunner
-
-    root, _, episodes = scene
     doc = {
         "frame": "image2sim-z-up",
         "quaternion_order": "wxyz",
@@ -468,15 +464,27 @@ def test_cli_nav_reads_a_vlnce_schema_episode_file(scene, tmp_path):
                 "start_rotation": e.start_rotation.tolist(),
                 "goals": [{"position": e.goal_position.tolist(), "radius": 3.0}],
                 "reference_path": e.reference_path.tolist(),
-                "instruction": {"instruction_text": "walk to the goal"},
+                "instruction": instruction or {"instruction_text": "walk to the goal"},
                 "info": {"geodesic_distance": e.geodesic_distance},
             }
-            for e in episodes[:3]
+            for e in episodes
         ],
     }
-    path = tmp_path / "val_seen.json.gz"
+    if vocab is not None:
+        doc["instruction_vocab"] = {"word_list": list(vocab)}
+    path.parent.mkdir(parents=True, exist_ok=True)
     with gzip.open(path, "wt", encoding="utf-8") as f:
         json.dump(doc, f)
+    return path
+
+
+def test_cli_nav_reads_a_vlnce_schema_episode_file(scene, tmp_path):
+    """The data engine's layout: world-frame VLN-CE json.gz, scenes found by the scene_id stem."""
+    from image2sim.eval.cli import app
+    from typer.testing import CliRunner
+
+    root, _, episodes = scene
+    path = _write_vlnce_file(tmp_path / "val_seen.json.gz", episodes[:3])
     proto_file = tmp_path / "proto.json"
     proto_file.write_text(json.dumps({"protocol": PROTO.to_dict()}))  # a result-file style record works too
     metrics = tmp_path / "nav.json"
@@ -506,36 +514,15 @@ def test_cli_nav_reads_a_vlnce_schema_episode_file(scene, tmp_path):
 def test_cli_nav_reads_the_published_benchmark_layouts(scene, tmp_path):
     """`eval nav --dataset r2r-ce|rxr-ce|reverie-ce --dataset-root R --split S` goes through each
     benchmark's own loader: R2R-CE refuses a file without its vocabulary, RxR-CE filters roles."""
-    import gzip
-
     from image2sim.eval.cli import app
     from typer.testing import CliRunner
 
     root, _, episodes = scene
 
     def write(path, with_vocab):
-        doc = {
-            "frame": "image2sim-z-up",
-            "quaternion_order": "wxyz",
-            "episodes": [
-                {
-                    "episode_id": e.episode_id,
-                    "scene_id": "procedural/scene_000.glb",
-                    "start_position": e.start_position.tolist(),
-                    "start_rotation": e.start_rotation.tolist(),
-                    "goals": [{"position": e.goal_position.tolist(), "radius": 3.0}],
-                    "reference_path": e.reference_path.tolist(),
-                    "instruction": {"instruction_text": "walk to the goal", "language": "en-US"},
-                    "info": {"geodesic_distance": e.geodesic_distance},
-                }
-                for e in episodes[:2]
-            ],
-        }
-        if with_vocab:
-            doc["instruction_vocab"] = {"word_list": ["walk", "to", "the", "goal"]}
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with gzip.open(path, "wt", encoding="utf-8") as f:
-            json.dump(doc, f)
+        instruction = {"instruction_text": "walk to the goal", "language": "en-US"}
+        vocab = ["walk", "to", "the", "goal"] if with_vocab else None
+        _write_vlnce_file(path, episodes[:2], instruction, vocab)
 
     proto_file = tmp_path / "proto.json"
     proto_file.write_text(json.dumps({"protocol": PROTO.to_dict()}))

@@ -483,6 +483,9 @@ def benchmark_methods(
     for tier, samples in samples_by_tier.items():
         if not samples:
             raise RenderBenchError(f"tier {tier!r}: no held-out views")
+        # Splatting time of the tier's views, view-weighted over their captures (None: precomputed).
+        splat_times = [s["condition_seconds"] for s in samples if s.get("condition_seconds") is not None]
+        splat_seconds = float(np.mean(splat_times)) if splat_times else None
         for name, fn in methods.items():
             # Time first: the warm-up calls are the method's very first calls (JIT, allocator, caches).
             cond0 = samples[0]["condition"][None]
@@ -506,9 +509,8 @@ def benchmark_methods(
                 if progress is not None:
                     progress()
             fps = timing.fps
-            splat_times = [s["condition_seconds"] for s in samples if s.get("condition_seconds") is not None]
-            if splat_times:  # end to end: splatting the condition (view-weighted over captures) + the method
-                fps = 1.0 / (1.0 / timing.fps + float(np.mean(splat_times)))
+            if splat_seconds is not None:  # end to end: splatting the condition + the method
+                fps = 1.0 / (1.0 / timing.fps + splat_seconds)
             out.setdefault(name, {})[tier] = summarize_views(records, fps, timing.hardware)
     return out
 

@@ -175,7 +175,7 @@ class NavBCModule(L.LightningModule):
         per_step = tc.batch_size * tc.accumulate_grad_batches
         start = self.trainer.global_step * per_step
         stop = tc.max_steps * per_step
-        sampler = StepSampler(start, stop, self.global_rank, self.trainer.world_size)
+        sampler = StepSampler.for_trainer(self.trainer, start, stop)
         return torch.utils.data.DataLoader(
             PositionDataset(self.dataset, tc.seed),
             batch_size=tc.batch_size,

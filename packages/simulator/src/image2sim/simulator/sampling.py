@@ -11,6 +11,7 @@ reshuffle and re-split the order and break exact resume).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import Any
 
 from torch.utils.data import Sampler
 
@@ -40,6 +41,15 @@ class StepSampler(Sampler[int]):
         self.start, self.stop = int(start), int(stop)
         self.rank, self.world_size = int(rank), int(world_size)
         self.index_of = index_of
+
+    @classmethod
+    def for_trainer(
+        cls, trainer: Any, start: int, stop: int, index_of: Callable[[int], int] | None = None
+    ) -> StepSampler:
+        """This process's share under a Lightning ``trainer`` (rank 0 of 1 when there is none)."""
+        if trainer is None:
+            return cls(start, stop, index_of=index_of)
+        return cls(start, stop, trainer.global_rank, trainer.world_size, index_of)
 
     def positions(self) -> range:
         """The global positions this rank reads, in order."""

@@ -251,12 +251,15 @@ class GaussianEncoder(nn.Module):
 
     def forward_maps(self, rgb: torch.Tensor, depth: torch.Tensor, camera: Camera) -> dict[str, torch.Tensor]:
         """Per-pixel raw head outputs for (B, 3, H, W) / (B, 1, H, W) inputs."""
+        return self._maps(*sanitise_inputs(rgb, depth), camera)
+
+    def _maps(self, rgb: torch.Tensor, depth: torch.Tensor, camera: Camera) -> dict[str, torch.Tensor]:
+        """:meth:`forward_maps` of inputs already passed through :func:`sanitise_inputs`."""
         e = self.cfg.encoder
         if (rgb.shape[-2], rgb.shape[-1]) != (e.height, e.width):
             raise ValueError(
                 f"GaussianEncoder expects {e.height}x{e.width} inputs, got {tuple(rgb.shape[-2:])}"
             )
-        rgb, depth = sanitise_inputs(rgb, depth)
         x = encoder_inputs(rgb, depth, camera, e.depth_scale)
         tokens = self.semantic(rgb) if self.semantic is not None else None
         return self.heads(self.upsampler(self.detail(x), tokens))
@@ -268,7 +271,7 @@ class GaussianEncoder(nn.Module):
         camera = frames[0].camera
         rgb, depth = sanitise_inputs(torch.cat([f.rgb for f in frames]), torch.cat([f.depth for f in frames]))
         poses = torch.stack([f.cam_to_world for f in frames])
-        maps = self.forward_maps(rgb, depth, camera)
+        maps = self._maps(rgb, depth, camera)
         return pixel_maps_to_gaussians(maps, rgb, depth, camera, poses, self.cfg)
 
 

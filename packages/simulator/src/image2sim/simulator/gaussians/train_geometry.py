@@ -120,13 +120,7 @@ class GeometryDataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         from image2sim.simulator.sampling import StepSampler
 
-        trainer = self.trainer
-        order = StepSampler(
-            self._start,
-            len(self.dataset),
-            rank=trainer.global_rank if trainer is not None else 0,
-            world_size=trainer.world_size if trainer is not None else 1,
-        )
+        order = StepSampler.for_trainer(self.trainer, self._start, len(self.dataset))
         return DataLoader(self.dataset, batch_size=1, sampler=order, collate_fn=_collate, num_workers=0)
 
 

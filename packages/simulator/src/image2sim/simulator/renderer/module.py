@@ -155,7 +155,7 @@ class RendererModule(L.LightningModule):
         b = cond.shape[0]
         target_tokens = batch.get("target_tokens")
         if target_tokens is None and self.semantic_backbone is not None:
-            target_tokens = self.semantic_backbone.to(cond.device)(rgb)
+            target_tokens = self.semantic_backbone(rgb)
         gen = self._step_generator(step)
         r, t = mf.sample_time_pairs(b, self.cfg.meanflow.p_r_equals_t, generator=gen)
         noise = torch.randn((b, 4, *cond.shape[-2:]), generator=gen)
@@ -191,6 +191,11 @@ class RendererModule(L.LightningModule):
         if self.grid_every and step % self.grid_every == 0 and self.global_rank == 0:
             self._log_grid(cond, out["x_one_step"], rgb, step)
         return total
+
+    def on_fit_start(self) -> None:
+        # The backbone is not a registered submodule (see __init__), so Lightning does not move it.
+        if self.semantic_backbone is not None:
+            self.semantic_backbone.to(self.device)
 
     def optimizer_step(self, *args, **kwargs) -> None:
         super().optimizer_step(*args, **kwargs)
@@ -270,12 +275,10 @@ class RendererDataModule(L.LightningDataModule):
         from image2sim.simulator.sampling import StepSampler
         from torch.utils.data import DataLoader
 
-        trainer = self.trainer
-        sampler = StepSampler(
+        sampler = StepSampler.for_trainer(
+            self.trainer,
             self._start_step * self.batch_size,
             self.total_steps * self.batch_size,
-            rank=trainer.global_rank if trainer is not None else 0,
-            world_size=trainer.world_size if trainer is not None else 1,
             index_of=functools.partial(permuted_index, length=len(self.dataset), seed=self.seed),
         )
         return DataLoader(
