@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny
+.PHONY: setup test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny sim2real
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -44,6 +44,10 @@ test-slow: setup  ## slow tests only
 
 demo: setup  ## the main job: `dvc repro` on the active profile (params.yaml), then a summary
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" bash scripts/demo.sh
+
+sim2real: setup  ## train in neural simulators, evaluate in exact held-out houses + scaling curve (pipelines/sim2real, <= 60 min)
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/dvc repro pipelines/sim2real/dvc.yaml
+	@cat reports/sim2real.md
 
 bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports/)
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done

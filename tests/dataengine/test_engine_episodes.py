@@ -46,10 +46,11 @@ def test_run_produces_episodes_for_every_scene(full_run):
     assert summary["scenes_done"] == 2
     assert summary["episodes"] >= 4, summary
     doc = _read(out / "train" / "train.json.gz")
-    assert {e["scene_id"] for e in doc["episodes"]} == {
-        json.loads((out / "scenes" / n / "done.json").read_text())["scene_id"]
-        for n in ("scene_000", "scene_001")
-    }
+    # scene_id is the scene folder's name, so `<scenes dir>/<scene_id>` finds it (eval nav --scenes).
+    assert {e["scene_id"] for e in doc["episodes"]} == {"scene_000", "scene_001"}
+    for n in ("scene_000", "scene_001"):
+        done = json.loads((out / "scenes" / n / "done.json").read_text())
+        assert done["scene"] == n and done["scene_id"].startswith("synth-")  # the capture's own id
 
 
 def test_every_episode_replays_to_its_recorded_end_without_collision(full_run):

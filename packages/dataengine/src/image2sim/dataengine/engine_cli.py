@@ -74,7 +74,12 @@ def episodes_command(
     annotator_option: list[str] = typer.Option(
         None, "--annotator-option", "-A", help="Backend option key=value (repeatable), e.g. base_url=..."
     ),
-    render: str = typer.Option("auto", "--render", help="auto, procedural, gaussians or none."),
+    render: str = typer.Option(
+        "auto",
+        "--render",
+        help="auto (= gaussians: the neural simulator, with --renderer its pixel-flow renderer), "
+        "procedural (the exact renderer of a procedural capture, chosen explicitly), gaussians or none.",
+    ),
     view: str = typer.Option("pinhole", "--view", help="Stored observation: pinhole or ultrawide."),
     renderer: Path | None = typer.Option(
         None,
@@ -82,6 +87,12 @@ def episodes_command(
         help="Local pixel-flow renderer weights: Gaussians are splatted, then rendered by the renderer.",
     ),
     obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
+    frame_stride: int = typer.Option(
+        1,
+        "--frame-stride",
+        min=1,
+        help="Store the observation of every n-th step (2 = what the streaming policy sees).",
+    ),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),
     seed: int = typer.Option(0, "--seed", help="Base seed."),
     executor: str = typer.Option("ray", "--executor", help="ray or local (in-process)."),
@@ -106,6 +117,7 @@ def episodes_command(
             render=render,
             view=view,
             obs_height=obs_height,
+            frame_stride=frame_stride,
             split=split,
             seed=seed,
             renderer=None if renderer is None else str(renderer),

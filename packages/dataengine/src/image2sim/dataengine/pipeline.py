@@ -59,12 +59,17 @@ class EngineConfig:
     annotator_options: dict = field(default_factory=dict)
     """Backend options (openai: base_url, model, timeout, ...; transformers: path)."""
     render: str = "auto"
-    """Observation renderer: auto (procedural for procedural captures, else gaussians), procedural,
-    gaussians or none (no frames, no shard)."""
+    """Observation renderer: auto (= gaussians: the neural simulator over Gaussians built from the
+    capture, through ``renderer`` when given), procedural (the exact renderer of a procedural capture:
+    an upper bound, chosen explicitly), gaussians or none (no frames, no shard)."""
     view: str = "pinhole"
     """Observation stored in the shard: pinhole (90 degrees, square) or ultrawide (180 x 118 degrees)."""
     obs_height: int = 336
     """Pinhole size / ultra-wide height in pixels (ultra-wide width = height x 512 / 336)."""
+    frame_stride: int = 1
+    """Store the observation of every n-th step only (1 = every step). Image2Nav's streaming agent
+    observes every other step and its samples take every ``data.observation_stride``-th step, so 2
+    keeps everything training reads at half the rendering cost."""
     annotation_view_height: int = 168
     """Height of the 180 degree views given to VLM annotators (width = 2 x height x 180 / 118)."""
     renderer: str | None = None
@@ -99,6 +104,8 @@ class EngineConfig:
             raise ValueError(f"EngineConfig.view must be pinhole or ultrawide, got {self.view!r}")
         if self.per_scene is not None and self.per_scene < 1:
             raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
+        if self.frame_stride < 1:
+            raise ValueError(f"EngineConfig.frame_stride must be >= 1, got {self.frame_stride}")
         if self.obs_height < 8:
             raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
         if self.renderer is not None and self.render not in ("auto", "gaussians"):
@@ -160,18 +167,15 @@ def resolve_scene(path: str | Path) -> SceneInputs:
 
 
 def _navigation(inputs: SceneInputs, cache: Path):
-    from image2sim.simulator.navigation import NavMap, NavMapConfig, extract_navmap
+    from image2sim.simulator.navigation import NavMap
     from image2sim.simulator.navigation.graph import NavGraph
 
     for folder in (inputs.scene_dir, cache):
         if (folder / "navmap.npz").is_file() and (folder / "navgraph.npz").is_file():
             return NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz")
-    from image2sim.simulator.io.registry import open_capture
+    from image2sim.dataengine.procedural.exact import capture_navigation
 
-    cap = open_capture(inputs.capture_dir)
-    labels = (1, 10) if inputs.procedural else ()  # procedural floor + rug categories
-    navmap = extract_navmap(cap, config=NavMapConfig(floor_labels=labels))
-    graph = NavGraph.build(navmap)
+    navmap, graph = capture_navigation(inputs.capture_dir, inputs.procedural)
     navmap.save(cache / "navmap.npz")
     graph.save(cache / "navgraph.npz")
     return navmap, graph
@@ -220,29 +224,15 @@ def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None
     if renderer is not None and mode == "auto":
         mode = "gaussians"
     if mode == "auto":
-        mode = "procedural" if inputs.procedural else "gaussians"
+        mode = "gaussians"  # training data comes from the neural simulator unless asked otherwise
     if mode == "none":
         return None, mode
     if mode == "procedural":
         if not inputs.procedural:
             raise ValueError(f"{inputs.capture_dir}: render=procedural needs a procedural capture")
-        from image2sim.dataengine.procedural import generate_scene, preset, synth_config_from_dict
-        from image2sim.dataengine.procedural.render import render
+        from image2sim.dataengine.procedural.exact import exact_render_fn
 
-        meta = json.loads((inputs.capture_dir / "manifest.json").read_text())["metadata"]
-        scene = generate_scene(
-            synth_config_from_dict(meta["config"], base=preset("default")), int(meta["seed"])
-        )
-
-        def fn(camera, pose):
-            out = render(scene, camera, np.asarray(pose))
-            return {
-                "rgb": out["rgb"].astype(np.float32) / 255.0,
-                "depth": out["depth"],
-                "instances": out["instances"],
-            }
-
-        return fn, mode
+        return exact_render_fn(inputs.capture_dir, instances=True), mode
     from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
     from image2sim.simulator.sim import GaussianRenderFn
 
@@ -414,7 +404,7 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
             }
             rec = episode_record(
                 req.episode_id,
-                inputs.scene_id,
+                inputs.name,  # resolvable as <scenes dir>/<scene_id>
                 world[0],
                 heading_w,
                 goal_w,
@@ -431,14 +421,14 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
                 "forward_steps": r.forward_steps,
             }
             if writer is not None:
-                frames = _render_rollout(sim, render_fn, plan, r, cfg)
+                frames, frame_steps = _render_rollout(sim, render_fn, plan, r, cfg)
                 writer.add(
                     req.episode_id,
-                    inputs.scene_id,
+                    inputs.name,
                     ann.text,
                     r.actions,
                     frames,
-                    list(range(len(r.actions))),
+                    frame_steps,
                     {
                         "style": ann.style,
                         "start_position": rec["start_position"],
@@ -475,20 +465,38 @@ def _world_heading(navmap, heading: float) -> float:
     return math.atan2(d[1], d[0])
 
 
-def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> np.ndarray:
-    """Observation before every action of the rollout (T frames), by re-executing it with rendering on."""
+def observation_steps(n_actions: int, stride: int) -> list[int]:
+    """Steps whose observation a shard stores: every ``stride``-th step from 0 (the policy's streaming
+    agent observes every other step, so stride 2 stores what it sees), always including step 0."""
+    return list(range(0, max(int(n_actions), 1), max(int(stride), 1)))
+
+
+def _pano_height(cfg: EngineConfig) -> int:
+    """Panorama height at the stored view's angular resolution (a 64 px, 90 degree pinhole view spans
+    a quarter of a 256-wide panorama), so a panoramic renderer is not upsampled into the view."""
+    if cfg.view == "pinhole":
+        return max(64, int(round(cfg.obs_height * 180.0 / 90.0)))
+    return max(64, int(round(cfg.obs_height * 512 / 336)))  # 180 degrees = half the panorama width
+
+
+def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> tuple[np.ndarray, list[int]]:
+    """Observations of the rollout at :func:`observation_steps` (frames, their steps), by re-executing
+    it with rendering on where a frame is stored."""
     sim.render_fn = render_fn
-    sim.spec = _observation_spec(cfg, pano_height=max(64, int(cfg.obs_height)))
+    sim.spec = _observation_spec(cfg, pano_height=_pano_height(cfg))
     key = "pinhole" if cfg.view == "pinhole" else "ultrawide"
+    steps = observation_steps(len(r.actions), cfg.frame_stride)
+    wanted = set(steps)
     try:
         obs, _ = sim.reset(np.asarray(plan.start, float)[None], np.array([plan.heading]))
         frames = [_to_uint8(obs[0][key]["rgb"])]
-        for a in r.actions[:-1]:
-            obs, _ = sim.step([a])
-            frames.append(_to_uint8(obs[0][key]["rgb"]))
+        for t, a in enumerate(r.actions[:-1], start=1):
+            obs, _ = sim.step([a], observe=t in wanted)
+            if t in wanted:
+                frames.append(_to_uint8(obs[0][key]["rgb"]))
     finally:
         sim.render_fn = None
-    return np.stack(frames)
+    return np.stack(frames), steps
 
 
 def _annotation_view(sim, render_fn, plan, r, state: int, cfg: EngineConfig) -> np.ndarray:

@@ -200,7 +200,8 @@ def nav_cmd(
     backend: Annotated[
         str,
         typer.Option(
-            help="neural (scene folders with navmap/navgraph) or habitat (habitat-sim on "
+            help="neural (scene folders with navmap/navgraph), exact (procedural captures from "
+            "`data synth`, rendered exactly: the sim-to-real 'real world') or habitat (habitat-sim on "
             "<scenes>/<episode scene_id>; needs habitat-sim and --episodes)."
         ),
     ] = "neural",
@@ -219,6 +220,7 @@ def nav_cmd(
     from image2sim.eval.report import nav_table_markdown, write_nav_report
     from image2sim.eval.runner import (
         RunConfig,
+        load_exact_backend,
         load_scene_backend,
         nav_summary,
         run_nav_results,
@@ -257,13 +259,15 @@ def nav_cmd(
         eps = list(load_image2sim_episodes(episodes, gt).episodes)
     elif point_goal > 0:
         eps = []
-        for d in sorted(p for p in scenes.iterdir() if (p / "navmap.npz").is_file()):
-            sim = load_scene_backend(d, proto).sim
+        marker = "manifest.json" if backend == "exact" else "navmap.npz"
+        for d in sorted(p for p in scenes.iterdir() if (p / marker).is_file()):
+            load = load_exact_backend if backend == "exact" else load_scene_backend
+            sim = load(d, proto).sim
             eps += sample_point_goal_episodes(
                 sim, point_goal, seed=seed, min_distance=min_distance, scene_id=d.name
             )
         if not eps:
-            raise typer.BadParameter(f"{scenes}: no scene folder with navmap.npz")
+            raise typer.BadParameter(f"{scenes}: no scene folder with {marker}")
     else:
         raise typer.BadParameter("give --episodes or --point-goal N")
     rows = []
@@ -307,6 +311,102 @@ def nav_cmd(
         }
         run_dir = log_metrics_wandb(json.loads(metrics.read_text()), "nav", stage="eval_nav", config=command)
         typer.echo(f"W&B run: {run_dir}")
+
+
+def _split_spec(spec: str, option: str) -> tuple[str, str]:
+    name, sep, rest = spec.partition("=")
+    if not sep or not name or not rest:
+        raise typer.BadParameter(f"expected NAME=VALUE, got {spec!r}", param_hint=option)
+    return name, rest
+
+
+def _nav_source(value: str, option: str) -> dict:
+    """``AGENT@FILE`` -> {"doc", "agent", "where"}."""
+    from image2sim.eval.sim2real import load_json
+
+    agent, sep, path = value.partition("@")
+    if not sep:
+        raise typer.BadParameter(f"expected AGENT@nav.json, got {value!r}", param_hint=option)
+    try:
+        return {"doc": load_json(path), "agent": agent, "where": path}
+    except (FileNotFoundError, ValueError) as exc:
+        raise typer.BadParameter(str(exc), param_hint=option) from exc
+
+
+@app.command("sim2real")
+def sim2real_cmd(
+    row: Annotated[
+        list[str],
+        typer.Option(
+            help="NAME=AGENT@nav.json: a transfer row (neural, splat_only, exact, random, forward)."
+        ),
+    ],
+    scaling: Annotated[
+        list[str],
+        typer.Option(
+            help="HOUSES:EPISODES=AGENT@nav.json: one point of the data-scaling curve (repeatable)."
+        ),
+    ] = [],  # noqa: B006
+    check: Annotated[
+        list[str],
+        typer.Option(
+            help="CHECK/NAME=AGENT@nav.json: a row of another held-out evaluation (e.g. fresh seeds)."
+        ),
+    ] = [],  # noqa: B006
+    policy: Annotated[
+        list[str], typer.Option(help="NAME=FOLDER: the exported policy of a row (path relative to the repo).")
+    ] = [],  # noqa: B006
+    budget: Annotated[
+        list[str],
+        typer.Option(help="NAME=FILE: a timing record of scripts/timed.py (wall_s, cpu_s) to report."),
+    ] = [],  # noqa: B006
+    header: Annotated[Path | None, typer.Option(help="Markdown put above the generated tables.")] = None,
+    out: Annotated[Path, typer.Option(help="Metrics JSON.")] = Path("metrics/sim2real.json"),
+    report: Annotated[Path, typer.Option(help="Markdown report.")] = Path("reports/sim2real.md"),
+    plot: Annotated[Path, typer.Option(help="Scaling plot (PNG).")] = Path("plots/sim2real_scaling.png"),
+) -> None:
+    """Gather the sim-to-real experiment's evaluations into metrics/sim2real.json, a report and a plot."""
+    from image2sim.eval.sim2real import gather, load_json, policy_parameters, write_outputs
+
+    rows = {}
+    for spec in row:
+        name, value = _split_spec(spec, "--row")
+        rows[name] = _nav_source(value, "--row")
+    points = []
+    for spec in scaling:
+        key, value = _split_spec(spec, "--scaling")
+        houses, sep, episodes = key.partition(":")
+        if not sep or not houses.isdigit() or not episodes.isdigit():
+            raise typer.BadParameter(f"expected HOUSES:EPISODES=..., got {spec!r}", param_hint="--scaling")
+        points.append({"houses": int(houses), "episodes": int(episodes), **_nav_source(value, "--scaling")})
+    checks: dict = {}
+    for spec in check:
+        key, value = _split_spec(spec, "--check")
+        group, sep, name = key.partition("/")
+        if not sep:
+            raise typer.BadParameter(f"expected CHECK/NAME=AGENT@file, got {spec!r}", param_hint="--check")
+        checks.setdefault(group, {"rows": {}})["rows"][name] = _nav_source(value, "--check")
+    policies = dict(_split_spec(p, "--policy") for p in policy)
+    budgets: dict = {}
+    for spec in budget:
+        name, path = _split_spec(spec, "--budget")
+        try:
+            budgets[name] = load_json(path)
+        except (FileNotFoundError, ValueError) as exc:
+            raise typer.BadParameter(str(exc), param_hint="--budget") from exc
+    for name, folder in policies.items():
+        budgets.setdefault(f"policy_{name}", {})["parameters"] = policy_parameters(folder)
+    try:
+        doc = gather(rows, points, policies, budgets, checks)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    if header is not None:
+        doc["header"] = header.read_text()
+    write_outputs(doc, out, report, plot)
+    typer.echo(f"wrote {out}, {report}" + (f", {plot}" if doc.get("scaling") else ""))
+    for name, chk in doc["checks"].items():
+        if chk.get("met") is not None:
+            typer.echo(f"{name}: neural SR {chk['sr_ratio']:.2f}x best baseline; target met: {chk['met']}")
 
 
 @app.command("render")

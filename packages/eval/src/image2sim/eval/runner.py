@@ -74,6 +74,7 @@ __all__ = [
     "embodiment_for",
     "episode_seed",
     "load_scene_backend",
+    "load_exact_backend",
     "make_agent",
     "nav_markdown",
     "nav_summary",
@@ -220,13 +221,27 @@ class NeuralSimBackend:
             from image2sim.simulator.geometry.cameras import PinholeCamera
 
             if cam.kind == "pinhole":
-                self._camera = PinholeCamera.from_fov(cam.hfov_deg, cam.vfov_deg, cam.width, cam.height)
+                self._camera = PinholeCamera.from_fov(cam.hfov_deg, cam.vfov_deg, cam.height, cam.width)
             else:
                 self._camera, self._crop = equirect_crop(cam)
 
     @property
     def planner(self):
         return self.sim.planner
+
+    def render_at(self, size: tuple[int, int] | None) -> None:
+        """Render pinhole observations at ``(height, width)`` instead of the protocol camera's pixel
+        size, keeping its field of view: an agent whose input is smaller (a 64 px policy under a
+        336 px protocol) then gets its own resolution rendered directly instead of paying for pixels
+        it would only downsample. ``None`` or a non-pinhole protocol keeps the protocol's camera."""
+        cam = self.protocol.camera
+        if size is None or self._camera is None or cam.kind != "pinhole":
+            return
+        from image2sim.simulator.geometry.cameras import PinholeCamera
+
+        h, w = (int(v) for v in size)
+        if h < cam.height or w < cam.width:
+            self._camera = PinholeCamera.from_fov(cam.hfov_deg, cam.vfov_deg, h, w)
 
     def _heading_to_map(self, heading: float) -> float:
         d = self.sim.navmap.rotation @ np.array([math.cos(heading), math.sin(heading), 0.0])
@@ -458,6 +473,44 @@ def load_scene_backend(scene_dir: str | Path, protocol: Protocol, render: bool =
     return NeuralSimBackend(NeuralSimulator(navmap, graph, render_fn), protocol, scene_dir.name)
 
 
+def load_exact_backend(capture_dir: str | Path, protocol: Protocol, render: bool = False) -> NeuralSimBackend:
+    """A :class:`NeuralSimBackend` on a procedural capture's house with the *exact* renderer: the
+    "real world" of the sim-to-real experiment (``--backend exact``).
+
+    The navigation map and graph come from the folder when it holds them (``navmap.npz`` +
+    ``navgraph.npz``), else they are extracted from the capture as the data engine does; observations
+    are the regenerated house rendered exactly (:mod:`image2sim.dataengine.procedural.exact`; the
+    data engine is imported only here).
+    """
+    from image2sim.simulator.navigation import NavMap
+    from image2sim.simulator.navigation.graph import NavGraph
+    from image2sim.simulator.sim import NeuralSimulator
+
+    capture_dir = Path(capture_dir)
+    try:
+        from image2sim.dataengine.procedural.exact import (
+            capture_navigation,
+            exact_render_fn,
+            is_procedural_capture,
+        )
+    except ImportError as exc:  # pragma: no cover - the monorepo installs it
+        raise BackendUnavailable("--backend exact needs the image2sim-dataengine package") from exc
+    try:
+        if not is_procedural_capture(capture_dir):
+            raise RunnerError(
+                f"{capture_dir}: --backend exact needs a procedural capture (written by `image2sim data "
+                "synth`); use --backend neural for built scenes"
+            )
+        render_fn = exact_render_fn(capture_dir) if render else None
+    except (FileNotFoundError, ValueError) as exc:
+        raise RunnerError(str(exc)) from exc
+    if (capture_dir / "navmap.npz").is_file() and (capture_dir / "navgraph.npz").is_file():
+        navmap, graph = NavMap.load(capture_dir / "navmap.npz"), NavGraph.load(capture_dir / "navgraph.npz")
+    else:
+        navmap, graph = capture_navigation(capture_dir, procedural=True)
+    return NeuralSimBackend(NeuralSimulator(navmap, graph, render_fn), protocol, capture_dir.name)
+
+
 # ------------------------------------------------------------------------------------------ agents
 
 
@@ -590,6 +643,18 @@ class Image2NavAdapter:
             self._queue = []
         return a
 
+    @staticmethod
+    def observation_size(options: Mapping[str, Any]) -> tuple[int, int] | None:
+        """The policy's pinhole input size (height, width) from its config, or None."""
+        from image2sim.navpolicy.config import load_config
+
+        model = options.get("model", "tiny")
+        cfg = load_config(
+            options.get("config", "tiny"), {"model": {"source": model}} if model != "tiny" else None
+        )
+        obs = cfg.observation
+        return (obs.height, obs.width) if obs.camera == "pinhole" else None
+
     @property
     def wants_image(self) -> bool:
         """An image is needed at the next step only when the action queue is empty."""
@@ -685,6 +750,11 @@ def _require_finite_distance(obs: StepObservation, episode: NavEpisode, when: st
         )
 
 
+BACKENDS = ("neural", "exact", "habitat")
+"""neural: scene folders (navmap, navgraph, Gaussians); exact: procedural captures rendered exactly;
+habitat: habitat-sim on the episodes' scene files."""
+
+
 @dataclass
 class RunConfig:
     """One navigation evaluation run (one agent, one protocol, many scenes)."""
@@ -701,13 +771,14 @@ class RunConfig:
     """Evaluate at most this many episodes per scene (file order), None = all."""
     backend: str = "neural"
     """``neural``: scene folders ``<scenes_root>/<scene name>`` with navmap.npz + navgraph.npz;
-    ``habitat``: habitat-sim on the scene files ``<scenes_root>/<episode scene_id>``."""
+    ``exact``: procedural captures ``<scenes_root>/<scene name>`` rendered exactly; ``habitat``:
+    habitat-sim on the scene files ``<scenes_root>/<episode scene_id>``."""
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
             raise RunnerError(f"RunConfig.agent: unknown agent {self.agent!r}; known: {sorted(AGENTS)}")
-        if self.backend not in ("neural", "habitat"):
-            raise RunnerError(f"RunConfig.backend: expected 'neural' or 'habitat', got {self.backend!r}")
+        if self.backend not in BACKENDS:
+            raise RunnerError(f"RunConfig.backend: expected one of {BACKENDS}, got {self.backend!r}")
         if int(self.workers) < 1:
             raise RunnerError(f"RunConfig.workers must be >= 1, got {self.workers}")
         if self.max_episodes_per_scene is not None and int(self.max_episodes_per_scene) < 1:
@@ -764,6 +835,13 @@ def run_scene(
     return ran
 
 
+def observation_size(config: RunConfig) -> tuple[int, int] | None:
+    """The input size an image agent declares (``observation_size(options)``), if any."""
+    cls = AGENTS.get(config.agent)
+    get = getattr(cls, "observation_size", None)
+    return get(config.agent_options) if get is not None else None
+
+
 def _scene_task(task: dict) -> tuple[str, int]:
     """Worker entry point (top level so it pickles): load the scene and run its episodes."""
     if task.get("worker"):
@@ -780,7 +858,9 @@ def _scene_task(task: dict) -> tuple[str, int]:
             backend.close()
         return task["scene"], n
     render = AGENTS[config.agent] is Image2NavAdapter
-    backend = load_scene_backend(task["scene_dir"], protocol, render=render)
+    load = load_exact_backend if config.backend == "exact" else load_scene_backend
+    backend = load(task["scene_dir"], protocol, render=render)
+    backend.render_at(observation_size(config))
     n = run_scene(backend, task["episodes"], protocol, config, task["log"])
     return task["scene"], n
 

@@ -131,6 +131,30 @@ def train_cmd(
         bool,
         typer.Option(help="dagger: discard a run recorded in --out and start over (default: continue it)."),
     ] = False,
+    episodes: Annotated[
+        Path | None,
+        typer.Option(
+            help="dagger: instruction episodes (the data engine's <out>/<split>/<split>.json.gz) to roll "
+            "out, oracle following each reference path; scenes from --sim-scenes. Without it: "
+            "procedural point-goal tasks (--scenes/--tasks-per-scene)."
+        ),
+    ] = None,
+    sim_scenes: Annotated[
+        Path | None,
+        typer.Option(help="dagger with --episodes: folder of scene folders named by the episodes' scene_id."),
+    ] = None,
+    source: Annotated[
+        str,
+        typer.Option(
+            help="dagger with --episodes: observations from 'neural' (built scenes + --renderer, the "
+            "default), 'splat_only' (built scenes, no learned renderer) or 'exact' (procedural "
+            "captures rendered exactly: an upper bound)."
+        ),
+    ] = "neural",
+    renderer: Annotated[
+        Path | None,
+        typer.Option(help="dagger, source neural: pixel-flow renderer weights (.safetensors/.ckpt)."),
+    ] = None,
 ) -> None:
     """Train the policy. Writes config.yaml, CSV/W&B logs, checkpoints and a merged export.
 
@@ -138,8 +162,23 @@ def train_cmd(
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
     """
     if stage == "dagger":
+        episode_source = None
+        if episodes is not None:
+            if sim_scenes is None:
+                raise typer.BadParameter("--episodes needs --sim-scenes", param_hint="--sim-scenes")
+            episode_source = (episodes, sim_scenes, source, renderer)
         _train_dagger(
-            config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed, fresh
+            config,
+            shards,
+            out,
+            max_steps,
+            threads,
+            init,
+            scenes,
+            tasks_per_scene,
+            scene_seed,
+            fresh,
+            episode_source,
         )
         return
     if stage != "bc":
@@ -178,8 +217,42 @@ def train_cmd(
     )
 
 
+def _dagger_episode_scenes(episodes: Path, scenes_root: Path, source: str, renderer, marker):
+    from image2sim.navpolicy.dagger import SOURCES, episode_scenes
+
+    if source not in SOURCES:
+        raise typer.BadParameter(
+            f"must be one of {', '.join(SOURCES)}, got {source!r}", param_hint="--source"
+        )
+    if source == "neural" and renderer is None:
+        raise typer.BadParameter(
+            "source neural renders through the pixel-flow renderer: give --renderer <weights>, "
+            "or --source splat_only",
+            param_hint="--renderer",
+        )
+    from image2sim.eval.datasets import EpisodeFileError, load_image2sim_episodes
+
+    gt = episodes.with_name(episodes.name.replace(".json.gz", "_gt.json.gz"))
+    try:
+        eps = list(load_image2sim_episodes(episodes, gt if gt.is_file() else None).episodes)
+        return episode_scenes(eps, scenes_root, source, renderer, goal_marker=marker)
+    except (EpisodeFileError, FileNotFoundError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+
+
 def _train_dagger(
-    config, shards, out, max_steps, threads, init, scenes, tasks_per_scene, scene_seed, fresh=False
+    config,
+    shards,
+    out,
+    max_steps,
+    threads,
+    init,
+    scenes,
+    tasks_per_scene,
+    scene_seed,
+    fresh=False,
+    episode_source=None,
 ) -> None:
     import torch
 
@@ -208,7 +281,10 @@ def _train_dagger(
         except ShardError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
-    sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed, goal_marker=cfg.task.active_marker())
+    if episode_source is not None:
+        sc = _dagger_episode_scenes(*episode_source, marker=cfg.task.active_marker())
+    else:
+        sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed, goal_marker=cfg.task.active_marker())
     try:
         res = run_dagger(cfg, sc, out, base_trajectories=base, resume=not fresh)
     except ValueError as exc:  # a recorded run with other arguments in --out

@@ -219,6 +219,11 @@ class DaggerConfig:
     override_model_stop: bool = True
     """A model STOP the oracle disagrees with is labelled but not executed (the oracle's action is),
     so an untrained policy's early STOPs do not end episodes after one step."""
+    observe_every: int = 1
+    """Render the observation of every n-th step only, plus every step where the model asks for
+    actions (it asks every other step when it drives): 2 stores what the streaming agent and
+    ``data.observation_stride: 2`` samples read, at half the rendering cost. Labels are kept at every
+    step."""
     include_bc_data: bool = True
     """Seed the aggregated dataset with the BC shards (``data.shards``) when they exist."""
     seed: int = 0
@@ -289,6 +294,8 @@ class NavPolicyConfig:
         if self.train.strategy not in ("auto", "ddp", "deepspeed_zero2"):
             raise ConfigError(f"train.strategy {self.train.strategy!r} is not auto, ddp or deepspeed_zero2")
         d = self.dagger
+        if d.observe_every < 1:
+            raise ConfigError(f"dagger.observe_every must be >= 1, got {d.observe_every}")
         if not 1 <= d.chunk_min <= d.chunk_max:
             raise ConfigError(
                 f"dagger.chunk_min/chunk_max must satisfy 1 <= min <= max, got {d.chunk_min}, {d.chunk_max}"

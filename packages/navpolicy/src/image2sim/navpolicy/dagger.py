@@ -99,36 +99,73 @@ class ChunkMixer:
 
 
 class OracleLabeler:
-    """The oracle's actions at arbitrary states of one episode (stateless per query).
+    """The oracle's actions at arbitrary states of one episode.
 
-    ``action(state)`` plans the shortest path from ``state`` to the goal and returns the follower's
-    pure-pursuit action there (a fresh :class:`OracleFollower`, so the label depends on the state
-    only, never on what was executed before). ``labels(state)`` adds the second action: the
-    oracle's action at the state its first action leads to (kinematics applied without stepping
-    the simulator); after STOP the second label is STOP.
+    Point-goal episodes (no reference path) are labelled statelessly: ``action(state)`` plans the
+    shortest path from ``state`` to the goal and returns the follower's pure-pursuit action there (a
+    fresh :class:`OracleFollower`, so the label depends on the state only, never on what was
+    executed before). ``labels(state)`` adds the second action: the oracle's action at the state
+    its first action leads to (kinematics applied without stepping the simulator); after STOP the
+    second label is STOP. Instruction episodes (a reference path) are labelled by the episode's
+    :class:`ReferencePathFollower` (see :meth:`labels`).
     """
 
-    def __init__(self, sim, goal: np.ndarray, follower_config=None) -> None:
+    def __init__(self, sim, goal: np.ndarray, follower_config=None, reference_path=None) -> None:
         from image2sim.simulator.navigation.agent import Kinematics
 
         self.sim = sim
         self.goal = np.asarray(goal, dtype=np.float64).reshape(3)
         self.kinematics = Kinematics(sim.world, sim.embodiment)
         self.follower_config = follower_config
+        self.reference_path = None if reference_path is None else np.asarray(reference_path, np.float64)
+        self._follower = None
 
     def action(self, state) -> int:
+        """The shortest-path oracle's action at ``state`` (a fresh plan: depends on the state only)."""
         from image2sim.simulator.navigation.follower import OracleFollower
 
         f = OracleFollower(self.sim.planner, self.sim.embodiment, self.follower_config, self.kinematics)
         f.reset(state.position, self.goal)
         return int(f.act(state))
 
+    def _reference_follower(self, state):
+        from image2sim.simulator.navigation.follower import ReferencePathFollower
+
+        if self._follower is None:
+            self._follower = ReferencePathFollower(
+                self.sim.planner,
+                self.reference_path,
+                self.sim.embodiment,
+                self.follower_config,
+                self.kinematics,
+            )
+            self._follower.reset(np.asarray(state.position, np.float64), self.goal)
+        return self._follower
+
     def labels(self, state) -> tuple[int, int]:
-        first = self.action(state)
+        """The oracle's next two actions at ``state``.
+
+        Without a reference path: the shortest-path oracle, planned afresh at each state. With one:
+        one :class:`ReferencePathFollower` per episode, queried at every visited state; it keeps its
+        plan while the agent stays within ``replan_distance`` of it and rejoins the reference path
+        (never behind the progress made) when the agent has left it. Its plan is the expensive part,
+        so it is not redone per state; the second label asks a copy, so the lookahead leaves the
+        episode's follower untouched.
+        """
+        if self.reference_path is None:
+            first = self.action(state)
+            if first == int(Action.STOP):
+                return first, int(Action.STOP)
+            nxt, _, _ = self.kinematics.apply(state, first)
+            return first, self.action(nxt)
+        f = self._reference_follower(state)
+        first = int(f.act(state))
         if first == int(Action.STOP):
             return first, int(Action.STOP)
         nxt, _, _ = self.kinematics.apply(state, first)
-        return first, self.action(nxt)
+        look = copy.copy(f)
+        look._blocked_at = list(f._blocked_at)
+        return first, int(look.act(nxt))
 
 
 # --------------------------------------------------------------------------------------- rollouts
@@ -147,6 +184,9 @@ class NavTask:
     """(3,) goal feet position."""
     instruction: str
     scene_id: str = ""
+    reference_path: np.ndarray | None = None
+    """(P, 3) route the instruction describes (map frame); the oracle follows it when given, else it
+    takes the shortest path to ``goal``."""
 
 
 class Controller(Protocol):
@@ -164,6 +204,18 @@ def render_observation(sim, obs: ObservationConfig) -> np.ndarray:
     if sim.render_fn is None:
         raise ValueError("the simulator has no render function: DAgger needs observations")
     pose = sim.camera_pose(0)
+    if obs.camera == "pinhole" and getattr(sim.render_fn, "panoramic", False):
+        # A panoramic renderer (the pixel-flow renderer): render the panorama at the pinhole view's
+        # angular resolution and cut the view out of it, as NeuralSimulator.observe does.
+        from image2sim.simulator.sim import ObservationSpec, views_from_panorama
+
+        h = max(32, int(round(obs.width * 180.0 / obs.hfov_deg)))
+        pano = sim.render_fn(EquirectCamera(h, 2 * h), pose)
+        spec = ObservationSpec(
+            panorama=False, pinhole=True, pinhole_size=obs.height, pinhole_hfov_deg=obs.hfov_deg
+        )
+        rgb = np.asarray(views_from_panorama(pano, spec)["pinhole"]["rgb"], dtype=np.float32)
+        return np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if obs.camera == "pinhole":
         out = sim.render_fn(PinholeCamera.from_fov(obs.hfov_deg, obs.vfov_deg, obs.height, obs.width), pose)
         rgb = np.asarray(out["rgb"], dtype=np.float32)
@@ -230,6 +282,7 @@ def dagger_rollout(
     follower_config=None,
     observe: Callable | None = None,
     override_model_stop: bool = False,
+    observe_every: int = 1,
 ) -> DaggerEpisode:
     """Roll out ``task`` with control alternating between ``controller`` and the oracle.
 
@@ -243,21 +296,25 @@ def dagger_rollout(
     if controller is None and mixer.p > 0:
         raise ValueError("dagger_rollout: a model probability > 0 needs a controller")
     observe = observe or (lambda s: render_observation(s, obs))
-    labeler = OracleLabeler(sim, task.goal, follower_config)
+    labeler = OracleLabeler(sim, task.goal, follower_config, task.reference_path)
     _, info = sim.reset(np.asarray(task.start, float)[None], np.array([task.heading]), observe=False)
     sim.set_goal(sim.navmap.to_world(np.asarray(task.goal, float).reshape(3)))
     if controller is not None:
         controller.reset(task.instruction, seed=seed)
-    frames, actions, labels, who = [], [], [], []
+    frames, frame_steps, actions, labels, who = [], [], [], [], []
     positions, headings = [info["position"][0].copy()], [float(info["heading"][0])]
     queue: list[int] = []
     executed: list[int] | None = None  # None until the controller has seen its first frame
     end, overrides = "max_steps", 0
-    for _ in range(max_steps):
+    for t in range(max_steps):
         state = sim.agents[0].state.copy()
-        rgb = observe(sim)
         lab = labeler.labels(state)
         c = mixer.next()
+        rgb = None
+        if t % max(int(observe_every), 1) == 0 or (c == MODEL and not queue):
+            rgb = observe(sim)
+            frames.append(rgb)
+            frame_steps.append(t)
         if c == MODEL:
             if not queue:
                 queue = [int(a) for a in controller.act(rgb, executed=executed)]
@@ -268,7 +325,6 @@ def dagger_rollout(
         else:
             queue = []
             a = lab[0]
-        frames.append(rgb)
         actions.append(a)
         labels.append(lab)
         who.append(c)
@@ -288,7 +344,7 @@ def dagger_rollout(
         instruction=task.instruction,
         actions=actions,
         frames=np.stack(frames),
-        frame_steps=list(range(len(actions))),
+        frame_steps=frame_steps,
         episode_id=task.episode_id,
         scene_id=task.scene_id,
         extra={
@@ -445,6 +501,8 @@ def run_fingerprint(
         for t in s.tasks:
             rec = [s.name, t.episode_id, [float(v) for v in t.start], float(t.heading)]
             rec += [[float(v) for v in t.goal], t.instruction]
+            if t.reference_path is not None:
+                rec.append(np.round(np.asarray(t.reference_path, float), 4).tolist())
             h.update(json.dumps(rec).encode())
     h.update(json.dumps([[t.episode_id, len(t.actions)] for t in base_trajectories]).encode())
     return h.hexdigest()
@@ -632,6 +690,7 @@ def run_dagger(
                         dc.stop_on_stuck,
                         seed=e,
                         override_model_stop=dc.override_model_stop,
+                        observe_every=dc.observe_every,
                     )
                     ep.trajectory.episode_id = f"r{r:02d}-{task.episode_id}"
                     rec = {"round": r, "model_probability": p, **ep.log()}
@@ -714,4 +773,131 @@ def procedural_scenes(
         rng = np.random.default_rng([seed, i])
         tasks = sample_tasks(sim, tasks_per_scene, rng, min_distance, name, marker_name=name_of_marker)
         out.append(DaggerScene(sim, tasks, name))
+    return out
+
+
+# ------------------------------------------------------------- generated instruction episodes
+
+
+SOURCES = ("neural", "splat_only", "exact")
+"""Where DAgger observations come from: ``neural`` = built scene folders rendered by the pixel-flow
+renderer over their Gaussians (the product), ``splat_only`` = the same Gaussians splatted without the
+learned renderer, ``exact`` = procedural captures rendered exactly (an upper bound, chosen explicitly)."""
+
+
+def tasks_from_episodes(episodes, sim, scene_id: str = "") -> list[NavTask]:
+    """DAgger tasks from instruction episodes (``image2sim.eval.datasets.NavEpisode``-like records in
+    the world frame: ``episode_id``, ``start_position``, ``start_heading``, ``goal_position``,
+    ``reference_path`` or dense ``gt_locations``, ``instruction.text``), in ``sim``'s map frame.
+    The oracle follows the dense ground-truth route when the episode has one, else its reference
+    path."""
+    nav = sim.navmap
+    out = []
+    for ep in episodes:
+        ref_world = ep.gt_locations if getattr(ep, "gt_locations", None) is not None else ep.reference_path
+        ref = np.asarray(nav.to_map(np.asarray(ref_world, np.float64).reshape(-1, 3)), np.float64)
+        d = nav.rotation @ np.array([math.cos(ep.start_heading), math.sin(ep.start_heading), 0.0])
+        out.append(
+            NavTask(
+                str(ep.episode_id),
+                np.asarray(nav.to_map(np.asarray(ep.start_position, np.float64)), np.float64).reshape(3),
+                float(math.atan2(d[1], d[0])),
+                np.asarray(nav.to_map(np.asarray(ep.goal_position, np.float64)), np.float64).reshape(3),
+                ep.instruction.text,
+                scene_id or ep.scene_name,
+                ref if len(ref) else None,
+            )
+        )
+    return out
+
+
+def scene_simulator(folder: str | Path, source: str = "neural", renderer=None):
+    """A :class:`NeuralSimulator` for DAgger rollouts from one scene folder.
+
+    ``neural``: a built scene (``sim build-scene``: Gaussians + navigation map and graph) rendered by
+    the pixel-flow renderer ``renderer`` (weights path; required); ``splat_only``: the same scene
+    splatted, no learned renderer; ``exact``: a procedural capture rendered exactly (the navigation
+    map and graph from the folder when present, else extracted as the data engine does).
+    """
+    from image2sim.simulator.sim import NeuralSimulator
+
+    folder = Path(folder)
+    if source not in SOURCES:
+        raise ValueError(f"observation source must be one of {SOURCES}, got {source!r}")
+    if source == "exact":
+        from image2sim.dataengine.procedural.exact import capture_navigation, exact_render_fn
+        from image2sim.simulator.navigation import NavMap
+        from image2sim.simulator.navigation.graph import NavGraph
+
+        if (folder / "navmap.npz").is_file() and (folder / "navgraph.npz").is_file():
+            navmap, graph = NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz")
+        else:
+            navmap, graph = capture_navigation(folder, procedural=True)
+        return NeuralSimulator(navmap, graph, exact_render_fn(folder))
+    # A built scene holds its Gaussians; the data engine's scene cache (<out>/scenes/<name>) holds them
+    # under gaussians/ beside the navigation map and graph.
+    gdir = next((f for f in (folder, folder / "gaussians") if (f / "gaussians.safetensors").is_file()), None)
+    for name, ok in (
+        ("gaussians.safetensors", gdir is not None),
+        ("navmap.npz", (folder / "navmap.npz").is_file()),
+        ("navgraph.npz", (folder / "navgraph.npz").is_file()),
+    ):
+        if not ok:
+            raise FileNotFoundError(
+                f"{folder}: missing {name}; source {source!r} needs a built scene folder "
+                "(`image2sim sim build-scene` plus its navigation map and graph, or the data engine's "
+                "<out>/scenes/<name> after --render gaussians)"
+            )
+    if source == "neural" and renderer is None:
+        raise ValueError(
+            "source 'neural' needs pixel-flow renderer weights (--renderer); "
+            "use --source splat_only for splatted Gaussians without the learned renderer"
+        )
+    from image2sim.simulator.gaussians import GaussianScene
+    from image2sim.simulator.navigation import NavMap
+    from image2sim.simulator.navigation.graph import NavGraph
+    from image2sim.simulator.sim import GaussianRenderFn, PixelFlowRenderFn, load_pixel_flow
+
+    g = GaussianScene.load(gdir).gaussians
+    if g is None:
+        raise ValueError(f"{gdir}: the Gaussian scene is empty")
+    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
+    if tensors["features"] is None:
+        del tensors["features"]
+    render_fn = (
+        PixelFlowRenderFn(tensors, load_pixel_flow(renderer))
+        if source == "neural"
+        else GaussianRenderFn(tensors)
+    )
+    return NeuralSimulator(
+        NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz"), render_fn
+    )
+
+
+def episode_scenes(
+    episodes, scenes_root: str | Path, source: str = "neural", renderer=None, goal_marker=None
+) -> list[DaggerScene]:
+    """One :class:`DaggerScene` per scene the episodes name (``<scenes_root>/<scene name>``, the
+    episode's ``scene_id`` stem), with the episodes as tasks (see :func:`tasks_from_episodes`)."""
+    groups: dict[str, list] = {}
+    for ep in episodes:
+        groups.setdefault(ep.scene_name, []).append(ep)
+    if not groups:
+        raise ValueError("no episodes to roll out")
+    model = None
+    if source == "neural" and renderer is not None:
+        from image2sim.simulator.renderer.model import load_renderer
+
+        model = load_renderer(renderer) if isinstance(renderer, (str, Path)) else renderer  # load once
+    out = []
+    for name, eps in sorted(groups.items()):
+        folder = Path(scenes_root) / name
+        if not folder.is_dir():
+            raise FileNotFoundError(f"scene {name!r}: {folder} not found (episodes reference it)")
+        sim = scene_simulator(folder, source, model)
+        if goal_marker is not None:
+            from image2sim.simulator.markers import MarkedRenderFn
+
+            sim.render_fn = MarkedRenderFn(sim.render_fn, goal_marker)
+        out.append(DaggerScene(sim, tasks_from_episodes(eps, sim, name), name))
     return out

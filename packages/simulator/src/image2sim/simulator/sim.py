@@ -33,6 +33,7 @@ __all__ = [
     "NavEnv",
     "RenderFn",
     "views_from_panorama",
+    "load_pixel_flow",
 ]
 
 RenderFn = Callable[[Camera, np.ndarray], dict]
@@ -247,7 +248,7 @@ def _ultrawide_from_pano(pano: dict, spec: ObservationSpec) -> dict:
     return {"rgb": out_rgb, "depth": out_depth}
 
 
-def _load_pixel_flow(renderer):
+def load_pixel_flow(renderer):
     """A ``PixelFlowRenderer`` from a weights path or module; None for None / other callables."""
     import os
 
@@ -317,7 +318,7 @@ class NeuralSimulator:
         g = scene.gaussians
         if g is None:
             raise ValueError(f"{folder}: the Gaussian scene is empty")
-        model = _load_pixel_flow(renderer)  # fail early on a bad path, before the map extraction
+        model = load_pixel_flow(renderer)  # fail early on a bad path, before the map extraction
         if (folder / "navmap.npz").is_file():
             navmap = NavMap.load(folder / "navmap.npz")
         else:

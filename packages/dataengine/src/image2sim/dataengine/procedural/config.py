@@ -82,6 +82,12 @@ class ObjectConfig:
     """Gap between a wall and furniture backed against it, metres (avoids coplanar faces)."""
     door_clearance: float = 0.9
     """Depth of the keep-out zone in front of each door (both sides), metres."""
+    category_colours: bool = True
+    """Each object category's main material has its own saturated hue
+    (:func:`~image2sim.dataengine.procedural.textures.category_hue`), as real object classes have
+    typical looks, so a category named in an instruction is recognisable in a small image; patterns,
+    brightness and the secondary materials still vary per instance. False: every instance's colour
+    is drawn freely from its material family."""
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from image2sim.dataengine.procedural.objects import (
     Surface,
     build_parts,
 )
-from image2sim.dataengine.procedural.textures import MaterialTable
+from image2sim.dataengine.procedural.textures import MaterialTable, category_hue
 
 __all__ = ["ProceduralScene", "generate_scene", "SceneGenerationError", "seed_streams"]
 
@@ -203,7 +203,8 @@ class _Placer:
         return tuple(float(self.rng.uniform(a, b)) for a, b in zip(cat.size_min, cat.size_max, strict=False))  # type: ignore[return-value]
 
     def _materials_for(self, cat: Category) -> tuple[int, int, int]:
-        m0 = self.materials.add(cat.material, self.mat_rng)
+        hue = category_hue(cat.id) if self.cfg.objects.category_colours else None
+        m0 = self.materials.add(cat.material, self.mat_rng, hue=hue)
         m1 = self.materials.add(_SECONDARY.get(cat.material, cat.material), self.mat_rng)
         m2 = self.materials.add("metal", self.mat_rng)
         return (m0, m1, m2)

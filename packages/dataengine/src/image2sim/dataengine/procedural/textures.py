@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = [
+    "category_hue",
     "PATTERNS",
     "FAMILIES",
     "MaterialTable",
@@ -70,6 +71,16 @@ FAMILIES: dict[
 """Material families: which patterns they use and the HSV/scale/contrast ranges they sample from."""
 
 
+FIXED_HUE_MIN_SATURATION = 0.65
+"""Saturation floor of a material with a fixed (category) hue, so the hue is what one sees."""
+
+
+def category_hue(category_id: int) -> float:
+    """The typical hue of an object category: ids spread over the colour wheel by the golden ratio,
+    so categories with nearby ids get clearly different hues."""
+    return float((int(category_id) * 0.6180339887498949) % 1.0)
+
+
 @dataclass
 class MaterialTable:
     """Append-only table of materials; ids index the arrays returned by :meth:`arrays`."""
@@ -85,14 +96,19 @@ class MaterialTable:
     def __len__(self) -> int:
         return len(self.pattern)
 
-    def add(self, family: str, rng: np.random.Generator) -> int:
-        """Sample a material of ``family`` and return its id."""
-        patterns, hue, sat, val, scale, contrast = FAMILIES[family]
+    def add(self, family: str, rng: np.random.Generator, hue: float | None = None) -> int:
+        """Sample a material of ``family`` and return its id. ``hue`` (in [0, 1)) fixes the hue and
+        raises the saturation to at least :data:`FIXED_HUE_MIN_SATURATION` (a category's typical
+        colour); the generator draws the same numbers either way, so the rest of a scene is
+        unchanged."""
+        patterns, hue_range, sat, val, scale, contrast = FAMILIES[family]
         pattern = patterns[int(rng.integers(0, len(patterns)))]
-        h = rng.uniform(*hue)
+        h = rng.uniform(*hue_range)
         s = rng.uniform(*sat)
         v = rng.uniform(*val)
         c = rng.uniform(*contrast)
+        if hue is not None:
+            h, s, v = float(hue) % 1.0, max(s, FIXED_HUE_MIN_SATURATION), min(max(v, 0.45), 0.9)
         a = colorsys.hsv_to_rgb(h % 1.0, s, v)
         # Second colour: darker (or lighter) and slightly hue-shifted so patterns show in luminance too.
         shift = (

@@ -11,7 +11,7 @@ from image2sim.simulator.navigation.embodiment import Embodiment, FollowerConfig
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE
 from image2sim.simulator.navigation.planner import PathResult, Planner
 
-__all__ = ["smooth_path", "pure_pursuit_action", "OracleFollower"]
+__all__ = ["smooth_path", "pure_pursuit_action", "OracleFollower", "ReferencePathFollower"]
 
 
 def smooth_path(waypoints: np.ndarray, window: int = 5) -> np.ndarray:
@@ -180,3 +180,69 @@ class OracleFollower:
         # Discrete turns leave up to half a turn of heading error: keep that much lateral margin.
         margin = self.config.lookahead * math.sin(self.turn_tolerance)
         return bool((graph.clearance[idx[1:]] >= self.embodiment.radius + margin).all())
+
+
+class ReferencePathFollower(OracleFollower):
+    """The oracle of instruction episodes: follows a *reference path* (the route the instruction
+    describes) instead of the shortest path to its end.
+
+    From any state it rejoins the reference path at the nearest point not behind the progress made
+    so far (3D distance, so the storey counts), a little ahead of it (``rejoin_ahead`` metres), by the
+    planner's shortest path, and then follows the reference points to their end (the goal). Leaving
+    the path by more than ``config.replan_distance`` or colliding rejoins again (the parent's pure
+    pursuit, line-of-sight targets and blocked-step handling are unchanged). A rejoin point the
+    planner cannot reach falls back to the shortest path to the goal.
+    """
+
+    def __init__(
+        self,
+        planner: Planner,
+        reference_path: np.ndarray,
+        embodiment: Embodiment | None = None,
+        config: FollowerConfig | None = None,
+        kinematics: Kinematics | None = None,
+        rejoin_ahead: float = 0.5,
+    ) -> None:
+        super().__init__(planner, embodiment, config, kinematics)
+        ref = np.asarray(reference_path, dtype=np.float64)
+        if ref.ndim != 2 or ref.shape[1] != 3 or len(ref) == 0:
+            raise ValueError(f"reference_path must be a non-empty (P, 3) array, got shape {ref.shape}")
+        if not np.isfinite(ref).all():
+            raise ValueError("reference_path holds NaN/inf points")
+        self.reference = ref
+        self.rejoin_ahead = float(rejoin_ahead)
+        self.reference_progress = 0
+        """Index of the reference point the agent last rejoined at (monotone over an episode)."""
+
+    def reset(self, start: np.ndarray, goal: np.ndarray | None = None) -> PathResult:
+        """Follow the reference path from ``start``; ``goal`` defaults to its last point."""
+        self.goal = self.reference[-1].copy() if goal is None else np.asarray(goal, float).reshape(3)
+        self.reference_progress = 0
+        return self._plan(np.asarray(start, dtype=np.float64).reshape(3))
+
+    def rejoin_index(self, position: np.ndarray) -> int:
+        """Reference index to head for from ``position``: the nearest point at or after the progress
+        made so far, moved ``rejoin_ahead`` metres further along the path."""
+        ref = self.reference
+        d = np.linalg.norm(ref[self.reference_progress :] - np.asarray(position, float)[None], axis=1)
+        j = self.reference_progress + int(np.argmin(d))
+        self.reference_progress = j
+        seg = np.linalg.norm(np.diff(ref[j:], axis=0), axis=1)
+        ahead = np.flatnonzero(np.cumsum(seg) >= self.rejoin_ahead)
+        return j + 1 + int(ahead[0]) if len(ahead) else len(ref) - 1
+
+    def _plan(self, start: np.ndarray) -> PathResult:
+        assert self.goal is not None
+        k = self.rejoin_index(start)
+        head = self.planner.shortest_path(start, self.reference[k])
+        if not head.reachable:
+            return super()._plan(start)
+        pts = np.vstack((head.waypoints, self.reference[k + 1 :], self.goal[None]))
+        length = head.length + float(
+            np.linalg.norm(np.diff(pts[len(head.waypoints) - 1 :], axis=0), axis=1).sum()
+        )
+        self.result = PathResult(pts, head.nodes, length, head.cost, "")
+        self.path = smooth_path(pts, self.config.smoothing_window)
+        self._progress = 0
+        self._blocked_at, self._cycling = [], False
+        return self.result

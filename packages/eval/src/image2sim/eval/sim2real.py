@@ -1,0 +1,301 @@
+"""The sim-to-real experiment's numbers: transfer rows, the gap, the data-scaling curve, the budget.
+
+Policies trained on observations of one source (``neural``: the pixel-flow renderer over Gaussian
+scenes built from captures; ``splat_only``: the same Gaussians without the learned renderer;
+``exact``: the procedural houses rendered exactly, an upper bound) are evaluated on held-out houses
+with the exact renderer (``eval nav --backend exact``), beside the ``random`` and ``forward``
+baselines. Each evaluation writes the usual ``nav.json`` document; this module gathers them:
+
+``metrics/sim2real.json``::
+
+    {"format": "image2sim-sim2real", "version": 1, "protocol": {...},
+     "rows": {"neural": {"sr", "sr_ci", "spl", "spl_ci", "ndtw", "ne", "episodes"}, ...},   # SR etc. in %
+     "gap": {"sr": exact - neural, ...},
+     "scaling": [{"episodes" (training), "houses", "sr", "sr_ci", "spl", "ndtw", "eval_episodes"}, ...],
+     "policies": {"neural": "<path relative to the repo root>", ...},
+     "budget": {...}, "checks": {...}}
+
+:func:`gather` is pure (documents in, document out); :func:`write_outputs` writes the JSON, the
+Markdown report and the scaling plot atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["ROWS", "gather", "row_from_nav", "scaling_trend", "sim2real_markdown", "write_outputs"]
+
+ROWS = ("neural", "splat_only", "exact", "random", "forward")
+"""Rows of the transfer table: the three training sources and the two baselines."""
+TRAINED = ("neural", "splat_only", "exact")
+BASELINES = ("random", "forward")
+
+
+def _pct(v: Any) -> float | None:
+    return None if v is None else 100.0 * float(v)
+
+
+def row_from_nav(doc: Mapping[str, Any], agent: str, where: str = "nav.json") -> dict:
+    """One row (percentages) from a ``nav.json`` document's ``agents[agent]``."""
+    agents = doc.get("agents") or {}
+    if agent not in agents:
+        raise ValueError(f"{where}: no agent {agent!r} (has {sorted(agents)})")
+    a = agents[agent]
+    return {
+        "sr": _pct(a["sr"]),
+        "sr_ci": [_pct(x) for x in a["sr_ci"]],
+        "spl": _pct(a["spl"]),
+        "spl_ci": [_pct(x) for x in a.get("spl_ci", [None, None])],
+        "ndtw": _pct(a.get("ndtw")),
+        "ne": a.get("ne"),
+        "steps": a.get("steps"),
+        "episodes": int(a["n_episodes"]),
+    }
+
+
+def scaling_trend(points: Sequence[Mapping[str, Any]]) -> dict:
+    """How SR moves along the scaling points (sorted by episodes): first and last point, the change,
+    whether their 95 % intervals are disjoint, and whether SR never falls from one point to the next."""
+    pts = sorted(points, key=lambda p: p["episodes"])
+    if len(pts) < 2:
+        return {"points": len(pts), "direction": "n/a"}
+    first, last = pts[0], pts[-1]
+    delta = last["sr"] - first["sr"]
+    disjoint = last["sr_ci"][0] > first["sr_ci"][1] or first["sr_ci"][0] > last["sr_ci"][1]
+    if disjoint:
+        direction = "rises" if delta > 0 else "falls"
+    else:
+        direction = "flat within the intervals"
+    return {
+        "points": len(pts),
+        "episodes_span": last["episodes"] / max(first["episodes"], 1),
+        "sr_change": delta,
+        "first_last_disjoint": bool(disjoint),
+        "monotone_non_decreasing": all(b["sr"] >= a["sr"] for a, b in zip(pts, pts[1:], strict=False)),
+        "direction": direction,
+    }
+
+
+def gather(
+    rows: Mapping[str, Mapping[str, Any]],
+    scaling: Sequence[Mapping[str, Any]] = (),
+    policies: Mapping[str, str] | None = None,
+    budget: Mapping[str, Any] | None = None,
+    extra_checks: Mapping[str, Any] | None = None,
+) -> dict:
+    """The ``metrics/sim2real.json`` document.
+
+    Args:
+        rows: row name -> ``{"doc": nav.json document, "agent": agent name in it}``; the baselines
+            are usually the ``random`` / ``forward`` agents of one document.
+        scaling: ``{"episodes", "houses", "doc", "agent"}`` per point of the data-scaling curve.
+        policies: row -> exported policy folder (relative to the repo root).
+        budget: free-form training budget record (wall / CPU seconds, parameters, frames seen).
+        extra_checks: more held-out evaluations, name -> ``{"rows": {...}}`` like ``rows``.
+    """
+    protocol = None
+    out_rows = {}
+    for name, spec in rows.items():
+        out_rows[name] = row_from_nav(spec["doc"], spec["agent"], spec.get("where", name))
+        p = spec["doc"].get("protocol")
+        if protocol is None:
+            protocol = p
+        elif p is not None and p != protocol:
+            raise ValueError(f"row {name!r} was evaluated under another protocol than the others")
+    doc: dict[str, Any] = {
+        "format": "image2sim-sim2real",
+        "version": 1,
+        "protocol": protocol,
+        "rows": out_rows,
+    }
+    if "neural" in out_rows and "exact" in out_rows:
+        n, e = out_rows["neural"], out_rows["exact"]
+        doc["gap"] = {
+            k: (e[k] - n[k]) if e[k] is not None and n[k] is not None else None for k in ("sr", "spl", "ndtw")
+        }
+    pts = []
+    for p in scaling:
+        r = row_from_nav(p["doc"], p["agent"], p.get("where", "scaling"))
+        # "episodes" of a scaling point counts training episodes; its evaluation's count moves aside.
+        pts.append(
+            {**r, "eval_episodes": r["episodes"], "episodes": int(p["episodes"]), "houses": int(p["houses"])}
+        )
+    doc["scaling"] = sorted(pts, key=lambda q: q["episodes"])
+    doc["scaling_trend"] = scaling_trend(doc["scaling"])
+    doc["policies"] = dict(policies or {})
+    doc["budget"] = dict(budget or {})
+    doc["checks"] = {"heldout": target_check(out_rows)}
+    for name, spec in (extra_checks or {}).items():
+        extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
+        doc["checks"][name] = {**target_check(extra), "rows": extra}
+    return doc
+
+
+def target_check(rows: Mapping[str, Mapping[str, Any]], policy: str = "neural") -> dict:
+    """Issue 19's bar: the policy's SR >= 2x the best baseline's and its lower 95 % bound above the
+    best baseline's upper bound."""
+    base = [b for b in BASELINES if b in rows]
+    if policy not in rows or not base:
+        return {"met": None, "reason": "missing rows"}
+    best = max(base, key=lambda b: rows[b]["sr"])
+    p, b = rows[policy], rows[best]
+    ratio = p["sr"] / b["sr"] if b["sr"] > 0 else math.inf if p["sr"] > 0 else None
+    twice = p["sr"] >= 2 * b["sr"]
+    separated = p["sr_ci"][0] > b["sr_ci"][1]
+    return {
+        "best_baseline": best,
+        "sr_ratio": ratio,
+        "twice_best_baseline": bool(twice),
+        "intervals_separated": bool(separated),
+        "met": bool(twice and separated),
+    }
+
+
+def _fmt(v: Any, nd: int = 1) -> str:
+    return "n/a" if v is None else f"{v:.{nd}f}"
+
+
+def _ci(c: Sequence[Any]) -> str:
+    return "n/a" if not c or c[0] is None else f"[{c[0]:.1f}, {c[1]:.1f}]"
+
+
+def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> str:
+    """The report's tables (rows, gap, scaling, checks) from a :func:`gather` document."""
+    lines = ["| policy / baseline | SR % [95% CI] | SPL % [95% CI] | nDTW % | NE (m) | steps | episodes |"]
+    lines.append("|---|---|---|---:|---:|---:|---:|")
+    for name in [r for r in ROWS if r in doc["rows"]] + [r for r in doc["rows"] if r not in ROWS]:
+        r = doc["rows"][name]
+        lines.append(
+            f"| {name} | {_fmt(r['sr'])} {_ci(r['sr_ci'])} | {_fmt(r['spl'])} {_ci(r['spl_ci'])} | "
+            f"{_fmt(r['ndtw'])} | {_fmt(r['ne'], 2)} | {_fmt(r['steps'])} | {r['episodes']} |"
+        )
+    out = ["## Transfer to held-out houses (exact renderer)", "", *lines, ""]
+    if doc.get("gap"):
+        g = doc["gap"]
+        out += [
+            f"Sim-to-real gap (`exact` - `neural`): SR {_fmt(g['sr'])} points, SPL {_fmt(g['spl'])}, "
+            f"nDTW {_fmt(g['ndtw'])}.",
+            "",
+        ]
+    for name, chk in doc.get("checks", {}).items():
+        if chk.get("met") is None:
+            continue
+        out.append(
+            f"Check `{name}`: neural SR / best baseline ({chk['best_baseline']}) = "
+            f"{_fmt(chk['sr_ratio'], 2)}x; "
+            f">= 2x: {'yes' if chk['twice_best_baseline'] else 'no'}; lower bound above the baseline's "
+            f"upper bound: {'yes' if chk['intervals_separated'] else 'no'} -> target "
+            f"{'met' if chk['met'] else 'not met'}."
+        )
+    out.append("")
+    if doc.get("scaling"):
+        out += ["## Data scaling (neural simulator data, behaviour cloning only)", ""]
+        out += [
+            "| training houses | episodes | SR % [95% CI] | SPL % | nDTW % |",
+            "|---:|---:|---|---:|---:|",
+        ]
+        for p in doc["scaling"]:
+            out.append(
+                f"| {p['houses']} | {p['episodes']} | {_fmt(p['sr'])} {_ci(p['sr_ci'])} | "
+                f"{_fmt(p['spl'])} | {_fmt(p['ndtw'])} |"
+            )
+        t = doc.get("scaling_trend", {})
+        if t.get("points", 0) >= 2:
+            out += [
+                "",
+                f"Trend over {t['points']} points spanning {t['episodes_span']:.0f}x in episodes: SR "
+                f"{'+' if t['sr_change'] >= 0 else ''}{t['sr_change']:.1f} points from the smallest to the "
+                f"largest set; {t['direction']} (first and last 95 % intervals "
+                f"{'disjoint' if t['first_last_disjoint'] else 'overlap'}; "
+                f"{'never falls' if t['monotone_non_decreasing'] else 'not monotone'} between points).",
+            ]
+        if plot_name:
+            out += ["", f"![SR against training episodes]({plot_name})"]
+        out.append("")
+    return "\n".join(out)
+
+
+def plot_scaling(doc: Mapping[str, Any], path: str | Path) -> Path:
+    """SR with 95 % intervals against training episodes (log x), baselines as bands."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from image2sim.eval.plots import save_figure_atomic
+
+    pts = doc["scaling"]
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    x = [p["episodes"] for p in pts]
+    y = [p["sr"] for p in pts]
+    err = [[p["sr"] - p["sr_ci"][0] for p in pts], [p["sr_ci"][1] - p["sr"] for p in pts]]
+    ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label="neural-sim data, BC")
+    for p in pts:
+        ax.annotate(f"{p['houses']} h", (p["episodes"], p["sr"]), textcoords="offset points", xytext=(4, 4))
+    colours = {"random": "tab:gray", "forward": "tab:orange", "neural": "tab:green", "exact": "tab:purple"}
+    for name in ("random", "forward", "neural", "exact"):
+        r = doc["rows"].get(name)
+        if r is None:
+            continue
+        ax.axhspan(r["sr_ci"][0], r["sr_ci"][1], color=colours[name], alpha=0.15)
+        ax.axhline(r["sr"], color=colours[name], lw=1, ls="--", label=f"{name} ({r['sr']:.1f})")
+    ax.set_xscale("log")
+    ax.set_xlabel("training episodes (neural simulator)")
+    ax.set_ylabel("SR on held-out houses (%)")
+    ax.legend(fontsize=7, loc="best")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out = save_figure_atomic(fig, path)
+    plt.close(fig)
+    return out
+
+
+def write_outputs(
+    doc: Mapping[str, Any], metrics: str | Path, report: str | Path, plot: str | Path | None
+) -> None:
+    """``metrics`` (JSON), ``report`` (Markdown) and the scaling ``plot`` (PNG), each atomically."""
+    from image2sim.simulator.io.atomic import write_json_atomic, write_text_atomic
+
+    metrics, report = Path(metrics), Path(report)
+    metrics.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(metrics, doc)
+    name = None
+    if plot is not None and doc.get("scaling"):
+        plot = Path(plot)
+        plot.parent.mkdir(parents=True, exist_ok=True)
+        plot_scaling(doc, plot)
+        try:
+            name = str(plot.resolve().relative_to(report.resolve().parent))
+        except ValueError:
+            name = "../" + plot.as_posix() if not plot.is_absolute() else str(plot)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    head = doc.get("header", "")
+    write_text_atomic(report, (head + "\n" if head else "") + sim2real_markdown(doc, name))
+
+
+def policy_parameters(folder: str | Path) -> int | None:
+    """Parameter count of an exported policy folder (its safetensors files), None when absent."""
+    from safetensors import safe_open
+
+    files = sorted(Path(folder).glob("*.safetensors"))
+    if not files:
+        return None
+    n = 0
+    for f in files:
+        with safe_open(str(f), framework="np") as fh:
+            for k in fh.keys():
+                n += int(math.prod(fh.get_slice(k).get_shape()))
+    return n
+
+
+def load_json(path: str | Path) -> dict:
+    p = Path(path)
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"{p}: no such file") from exc
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p}: not valid JSON ({exc})") from exc

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The sim2real pipeline's last stage: gather every evaluation into metrics/sim2real.json,
+# reports/sim2real.md and plots/sim2real_scaling.png (image2sim eval sim2real). Run from the repo root.
+set -euo pipefail
+O=outputs/sim2real
+episodes_of() {  # training episodes behind a scaling point: trajectories in its shards
+  python3 - "$1" <<'PY'
+import json, sys
+from pathlib import Path
+run = Path(sys.argv[1])
+import yaml
+cfg = yaml.safe_load((run / "config.yaml").read_text())
+print(sum(json.loads((Path(s) / "manifest.json").read_text())["num_trajectories"] for s in cfg["data"]["shards"]))
+PY
+}
+scaling=()
+for d in "$O"/scaling/h*; do
+  run=$(readlink -f "$d")
+  n_shards=$(python3 -c "import yaml,sys; print(len(yaml.safe_load(open(sys.argv[1]))['data']['shards']))" "$run/config.yaml")
+  scaling+=(--scaling "$n_shards:$(episodes_of "$run")=image2nav@$d/nav.json")
+done
+budget=()
+for f in "$O"/budget/*.json; do
+  budget+=(--budget "$(basename "$f" .json)=$f")
+done
+image2sim eval sim2real \
+  --row neural=image2nav@"$O"/eval/neural/nav.json \
+  --row splat_only=image2nav@"$O"/eval/splat_only/nav.json \
+  --row exact=image2nav@"$O"/eval/exact/nav.json \
+  --row random=random@"$O"/eval/baselines/nav.json \
+  --row forward=forward@"$O"/eval/baselines/nav.json \
+  --row oracle=oracle@"$O"/eval/baselines/nav.json \
+  --policy neural="$O"/policies/neural/dagger/export \
+  --policy splat_only="$O"/policies/splat_only/dagger/export \
+  --policy exact="$O"/policies/exact/dagger/export \
+  "${scaling[@]}" "${budget[@]}" \
+  --header pipelines/sim2real/report_header.md \
+  --out metrics/sim2real.json --report reports/sim2real.md --plot plots/sim2real_scaling.png
