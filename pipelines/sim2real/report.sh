@@ -3,21 +3,22 @@
 # reports/sim2real.md and plots/sim2real_scaling.png (image2sim eval sim2real). Run from the repo root.
 set -euo pipefail
 O=outputs/sim2real
-episodes_of() {  # training episodes behind a scaling point: trajectories in its shards
+episodes_of() {  # training episodes behind a scaling point: the trajectories in its run's shards
   python3 - "$1" <<'PY'
 import json, sys
 from pathlib import Path
-run = Path(sys.argv[1])
+
 import yaml
-cfg = yaml.safe_load((run / "config.yaml").read_text())
+
+cfg = yaml.safe_load(Path(sys.argv[1]).read_text())
 print(sum(json.loads((Path(s) / "manifest.json").read_text())["num_trajectories"] for s in cfg["data"]["shards"]))
 PY
 }
 scaling=()
 for d in "$O"/scaling/h*; do
-  run=$(readlink -f "$d")
-  n_shards=$(python3 -c "import yaml,sys; print(len(yaml.safe_load(open(sys.argv[1]))['data']['shards']))" "$run/config.yaml")
-  scaling+=(--scaling "$n_shards:$(episodes_of "$run")=image2nav@$d/nav.json")
+  cfg="$d/bc/config.yaml"; [ -f "$cfg" ] || cfg="$d/config.yaml"   # hall: the neural row's BC run
+  n_shards=$(python3 -c "import yaml,sys; print(len(yaml.safe_load(open(sys.argv[1]))['data']['shards']))" "$cfg")
+  scaling+=(--scaling "$n_shards:$(episodes_of "$cfg")=image2nav@$d/nav.json")
 done
 budget=()
 for f in "$O"/budget/*.json; do

@@ -295,3 +295,13 @@ def test_flat_scaling_is_called_flat():
     pts = [{"episodes": e, "sr": s, "sr_ci": [s - 8, s + 8]} for e, s in [(50, 20.0), (400, 24.0)]]
     t = scaling_trend(pts)
     assert t["direction"] == "flat within the intervals" and not math.isnan(t["sr_change"])
+
+
+def test_paper_preset_has_the_papers_dagger_budget():
+    """Sec. 4: 10K online DAgger steps with randomised 4-32-step chunks (was 2 x 10 = 20 updates)."""
+    from image2sim.navpolicy.config import load_config
+
+    for name in ("paper", "paper-wide"):
+        d = load_config(name).dagger
+        assert d.rounds * d.train_steps_per_round == 10_000
+        assert (d.chunk_min, d.chunk_max) == (4, 32)

@@ -17,7 +17,8 @@ def _config(config: str, overrides: dict | None = None):
     try:
         return load_config(config, overrides)
     except ConfigError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--config") from exc
+        hint = "--shard-weight" if "data.shard_weights" in str(exc) else "--config"
+        raise typer.BadParameter(str(exc), param_hint=hint) from exc
 
 
 @app.command("tokenizer")
@@ -113,6 +114,15 @@ def train_cmd(
     shards: Annotated[
         list[Path] | None, typer.Option("--shard", help="Shard folder(s); overrides data.shards.")
     ] = None,
+    shard_weights: Annotated[
+        list[float] | None,
+        typer.Option(
+            "--shard-weight",
+            help="Sample ratio of each --shard, same order (repeatable; overrides data.shard_weights): "
+            "e.g. --shard human --shard-weight 1 --shard generated --shard-weight 3. None: every "
+            "trajectory equally likely.",
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option(help="Run folder.")] = Path("outputs/nav-bc"),
     resume: Annotated[
         str, typer.Option(help="Checkpoint to resume from ('last' = the run folder's last).")
@@ -167,6 +177,12 @@ def train_cmd(
             if sim_scenes is None:
                 raise typer.BadParameter("--episodes needs --sim-scenes", param_hint="--sim-scenes")
             episode_source = (episodes, sim_scenes, source, renderer)
+        if shard_weights:
+            raise typer.BadParameter(
+                "sample ratios apply to behaviour cloning (--stage bc); DAgger's aggregated buffer "
+                "draws every trajectory equally",
+                param_hint="--shard-weight",
+            )
         _train_dagger(
             config,
             shards,
@@ -186,6 +202,8 @@ def train_cmd(
     overrides: dict = {}
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
+    if shard_weights:
+        overrides.setdefault("data", {})["shard_weights"] = [float(w) for w in shard_weights]
     if max_steps:
         overrides.setdefault("train", {})["max_steps"] = max_steps
     cfg = _config(config, overrides)
@@ -306,6 +324,139 @@ def _train_dagger(
             indent=2,
         )
     )
+
+
+@app.command("from-episodes")
+def from_episodes_cmd(
+    out: Annotated[
+        Path, typer.Option(help="Shard folder to write (published atomically; refused if it exists).")
+    ],
+    sim_scenes: Annotated[
+        Path, typer.Option(help="Folder of scene folders named by the episodes' scene_id stem.")
+    ],
+    episodes: Annotated[
+        Path | None,
+        typer.Option(
+            help="A VLN-CE-schema episode file (.json.gz; Habitat frame unless it states its frame). "
+            "Its <name>_gt.json.gz beside it is used when --gt is not given."
+        ),
+    ] = None,
+    gt: Annotated[
+        Path | None, typer.Option(help="With --episodes: the matching *_gt.json.gz (dense routes).")
+    ] = None,
+    dataset: Annotated[
+        str,
+        typer.Option(
+            help="Instead of --episodes: a published benchmark in --dataset-root, r2r-ce or rxr-ce."
+        ),
+    ] = "none",
+    dataset_root: Annotated[
+        Path | None, typer.Option(help="With --dataset: the folder holding <split>/<split>*.json.gz.")
+    ] = None,
+    split: Annotated[str, typer.Option(help="With --dataset: the split, e.g. train.")] = "train",
+    rxr_role: Annotated[
+        list[str], typer.Option(help="rxr-ce: roles to load, guide and/or follower (repeatable).")
+    ] = ["guide"],  # noqa: B006
+    language: Annotated[
+        list[str], typer.Option(help="rxr-ce: keep only these languages, e.g. en-US (repeatable).")
+    ] = [],  # noqa: B006
+    source: Annotated[
+        str,
+        typer.Option(
+            help="Observations from 'neural' (built scenes + --renderer), 'splat_only' (built scenes, "
+            "no learned renderer) or 'exact' (procedural captures rendered exactly)."
+        ),
+    ] = "neural",
+    renderer: Annotated[
+        Path | None, typer.Option(help="source neural: pixel-flow renderer weights (.safetensors/.ckpt).")
+    ] = None,
+    config: Annotated[
+        str, typer.Option(help="Policy preset or YAML: its observation section sets the frames.")
+    ] = "tiny",
+    frame_stride: Annotated[
+        int, typer.Option(help="Store the observation of every n-th step (2 = what the agent sees).")
+    ] = 2,
+    max_steps: Annotated[int, typer.Option(help="Step cap per episode (reached: skipped).")] = 500,
+    end_tolerance: Annotated[
+        float, typer.Option(help="Skip an episode whose follower stops farther (m) from the route's end.")
+    ] = 0.5,
+    skip_missing_scenes: Annotated[
+        bool, typer.Option(help="Count episodes of absent scene folders as skipped instead of failing.")
+    ] = False,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing --out shard.")] = False,
+) -> None:
+    """Human-annotated instruction episodes (R2R-CE / RxR-CE) -> an Image2Nav training shard.
+
+    Each episode is rolled out in its scene's simulator by the reference-path oracle along its dense
+    ground-truth route (else its reference path), and stored with its human instruction; episodes
+    whose route the oracle cannot finish are skipped and counted by reason. Mix the shard with
+    generated data by sample ratio: ``nav train --shard OUT --shard-weight W ...``.
+    """
+    from image2sim.eval import datasets as ds
+    from image2sim.navpolicy.dagger import SOURCES
+    from image2sim.navpolicy.human import shard_from_episodes
+
+    if source not in SOURCES:
+        raise typer.BadParameter(
+            f"must be one of {', '.join(SOURCES)}, got {source!r}", param_hint="--source"
+        )
+    if source == "neural" and renderer is None:
+        raise typer.BadParameter(
+            "source neural renders through the pixel-flow renderer: give --renderer <weights>, "
+            "or --source splat_only / exact",
+            param_hint="--renderer",
+        )
+    if renderer is not None and not renderer.is_file():
+        raise typer.BadParameter(f"{renderer}: no such file", param_hint="--renderer")
+    if not sim_scenes.is_dir():
+        raise typer.BadParameter(f"{sim_scenes}: no such folder", param_hint="--sim-scenes")
+    if (episodes is None) == (dataset == "none"):
+        raise typer.BadParameter("give either --episodes FILE or --dataset r2r-ce|rxr-ce (one of them)")
+    if out.exists() and not overwrite:
+        raise typer.BadParameter(f"{out} exists (pass --overwrite to replace it)", param_hint="--out")
+    cfg = _config(config)
+    try:
+        if episodes is not None:
+            if gt is None:
+                beside = episodes.with_name(episodes.name.replace(".json.gz", "_gt.json.gz"))
+                gt = beside if beside != episodes and beside.is_file() else None
+            data = ds.load_image2sim_episodes(episodes, gt)
+        else:
+            if dataset not in ("r2r-ce", "rxr-ce"):
+                raise typer.BadParameter(f"must be r2r-ce or rxr-ce, got {dataset!r}", param_hint="--dataset")
+            if dataset_root is None:
+                raise typer.BadParameter("--dataset needs --dataset-root", param_hint="--dataset-root")
+            if dataset == "r2r-ce":
+                data = ds.load_r2r_ce(dataset_root, split)
+            else:
+                data = ds.load_rxr_ce(dataset_root, split, roles=rxr_role, languages=language or None)
+    except (ds.EpisodeFileError, ValueError) as exc:  # names the file, the episode and the field
+        raise typer.BadParameter(str(exc), param_hint="--episodes" if episodes else "--dataset") from exc
+    if not data.episodes:
+        raise typer.BadParameter(f"{episodes or dataset_root}: no episodes (after role/language filters)")
+    try:
+        summary = shard_from_episodes(
+            data,
+            sim_scenes,
+            out,
+            source,
+            renderer,
+            cfg.observation,
+            frame_stride,
+            max_steps,
+            dataset=episodes.name if episodes is not None else data.name,
+            end_tolerance=end_tolerance,
+            missing_scenes="skip" if skip_missing_scenes else "error",
+            overwrite=overwrite,
+        )
+    except FileNotFoundError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--sim-scenes") from exc
+    except (ValueError, FileExistsError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    shown = {k: v for k, v in summary.items() if k != "skipped_episodes"}
+    shown["summary_file"] = str(out / "summary.json")  # lists every skipped episode and why
+    typer.echo(json.dumps(shown, indent=2))
 
 
 @app.command("act")

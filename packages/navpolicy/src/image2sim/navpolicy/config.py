@@ -8,6 +8,7 @@ reject unknown keys, naming the offending key path.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -116,6 +117,13 @@ class DataConfig:
 
     shards: list[str] = field(default_factory=list)
     """Shard folders (see :mod:`image2sim.navpolicy.data` for the format)."""
+    shard_weights: list[float] = field(default_factory=list)
+    """Sample ratios of the shards (e.g. human annotations : generated data). Empty: every trajectory
+    of every shard is equally likely (the plain epoch order). Else one weight >= 0 per entry of
+    ``shards``: a drawn trajectory comes from shard ``k`` with probability ``w_k / sum(w)``, whatever
+    the shards' sizes; inside a shard every trajectory is drawn once before any is drawn again. The
+    order stays a pure function of (seed, position), so resume is exact. Behaviour cloning on
+    ``shards`` only (DAgger's aggregated buffer draws every trajectory equally)."""
     max_observations: int = 32
     """Observations sampled uniformly along a trajectory per sample (paper: 32)."""
     max_action_labels: int = 64
@@ -281,6 +289,7 @@ class NavPolicyConfig:
             raise ConfigError("model.tiny.num_position_embeddings must be a perfect square")
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
+        self._validate_shard_weights()
         if self.data.observation_stride < 1:
             raise ConfigError(f"data.observation_stride must be >= 1, got {self.data.observation_stride}")
         if self.observation.camera not in ("pinhole", "equirect"):
@@ -311,6 +320,21 @@ class NavPolicyConfig:
             raise ConfigError(f"model.dtype {self.model.dtype!r} is not float32, bfloat16 or float16")
         return self
 
+    def _validate_shard_weights(self) -> None:
+        w, n = self.data.shard_weights, len(self.data.shards)
+        if not w:
+            return
+        if len(w) != n:
+            raise ConfigError(
+                f"data.shard_weights has {len(w)} entries but data.shards has {n}: give one weight per "
+                "shard, in the same order (or none: every trajectory equally likely)"
+            )
+        bad = [x for x in w if not (math.isfinite(x) and x >= 0)]
+        if bad:
+            raise ConfigError(f"data.shard_weights must be finite and >= 0, got {w}")
+        if sum(w) <= 0:
+            raise ConfigError(f"data.shard_weights must have a positive sum, got {w}")
+
     def to_dict(self) -> dict[str, Any]:
         """Plain data (YAML/JSON-safe)."""
         from image2sim.simulator.config import config_to_dict
@@ -325,7 +349,8 @@ def tiny_config() -> NavPolicyConfig:
 
 def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPolicyConfig:
     """The paper's setting: Qwen3-VL-4B-Instruct (local folder), 336x336 pinhole at 90 deg,
-    32 observations / 64 labels, DeepSpeed ZeRO-2, bf16, gradient checkpointing, 70K BC steps."""
+    32 observations / 64 labels, DeepSpeed ZeRO-2, bf16, gradient checkpointing, 70K BC steps, then
+    10K DAgger steps."""
     return NavPolicyConfig(
         name="paper",
         model=ModelConfig(source=checkpoint, gradient_checkpointing=True, dtype="bfloat16"),
@@ -345,6 +370,21 @@ def paper_config(checkpoint: str = "checkpoints/Qwen3-VL-4B-Instruct") -> NavPol
             log_every=10,
             checkpoint_every=1000,
             wandb=True,
+        ),
+        # Stage 2: 10K online DAgger updates (10 rounds x 1000 steps) with 4-32-step chunks. The
+        # paper fixes the update budget and the chunks; rounds, episodes per round and the mixing
+        # schedule are our choice.
+        dagger=DaggerConfig(
+            rounds=10,
+            episodes_per_round=2000,
+            train_steps_per_round=1000,
+            model_probability=0.3,
+            final_model_probability=0.9,
+            schedule="linear",
+            chunk_min=4,
+            chunk_max=32,
+            max_steps=500,
+            observe_every=2,
         ),
     ).validate()
 

@@ -8,6 +8,8 @@ CPU accelerator with gloo).
 Data order is a pure function of (seed, global sample position): the shared
 :class:`~image2sim.simulator.sampling.StepSampler` starts at the position implied by the restored
 ``global_step``, so a resumed run sees exactly the batches the uninterrupted run would have seen.
+With ``data.shard_weights`` the shards are drawn in the given ratios (:class:`MixtureOrder`), still
+as a function of (seed, position) only.
 """
 
 from __future__ import annotations
@@ -38,18 +40,100 @@ def epoch_permutation(n: int, seed: int, epoch: int) -> np.ndarray:
     return np.random.default_rng([seed, epoch, 7919]).permutation(n)
 
 
+class MixtureOrder:
+    """Global sample position -> (group epoch, dataset index) when shard groups are drawn by weight.
+
+    ``sizes[g]`` trajectories of group ``g`` sit at dataset indices ``offsets[g] ..`` (shard order).
+    Position ``p`` lies in block ``b = p // BLOCK``; the block's groups are drawn from
+    ``default_rng([seed, b, 6271])`` with probabilities ``weights / sum(weights)``, so they depend on
+    (seed, p) only. The ``k``-th draw of group ``g`` (counted over all earlier positions) is
+    trajectory ``perm[k % n_g]`` of the group's epoch ``e = k // n_g``, a permutation seeded by
+    ``(seed, e, g)``: inside a group every trajectory is drawn once before any is drawn twice, as in
+    the unweighted order. Counting the draws before a block replays the earlier blocks' group draws
+    (no sample is loaded), so any position, e.g. a resume's, is located exactly.
+    """
+
+    BLOCK = 4096
+
+    def __init__(self, sizes: list[int], weights: list[float], seed: int) -> None:
+        w = np.asarray(weights, dtype=np.float64)
+        self.sizes = [int(n) for n in sizes]
+        if len(w) != len(self.sizes):
+            raise ValueError(
+                f"data.shard_weights has {len(w)} entries for {len(self.sizes)} shards (one weight each)"
+            )
+        if not np.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
+            raise ValueError(f"data.shard_weights must be finite, >= 0 and sum to > 0, got {list(weights)}")
+        empty = [g for g in range(len(w)) if w[g] > 0 and self.sizes[g] == 0]
+        if empty:
+            raise ValueError(
+                f"data.shard_weights: shard {empty[0]} has a positive weight but no trajectories"
+            )
+        self.seed = int(seed)
+        self.offsets = np.concatenate(([0], np.cumsum(self.sizes)[:-1])).astype(np.int64)
+        self.cdf = np.cumsum(w) / w.sum()
+        self.last = int(np.flatnonzero(w > 0)[-1])
+        self._before = [np.zeros(len(w), np.int64)]  # draws per group before block i
+        self._block: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._perms: dict[int, tuple[int, np.ndarray]] = {}
+
+    def groups(self, block: int) -> np.ndarray:
+        """The group of each position of ``block``."""
+        u = np.random.default_rng([self.seed, block, 6271]).random(self.BLOCK)
+        return np.minimum(np.searchsorted(self.cdf, u, side="right"), self.last)
+
+    def _draws_before(self, block: int) -> np.ndarray:
+        while len(self._before) <= block:
+            b = len(self._before) - 1
+            self._before.append(self._before[-1] + np.bincount(self.groups(b), minlength=len(self.cdf)))
+        return self._before[block]
+
+    def locate(self, position: int) -> tuple[int, int]:
+        """(group epoch, dataset index) of a global position."""
+        b, o = divmod(int(position), self.BLOCK)
+        if self._block is None or self._block[0] != b:
+            g = self.groups(b)
+            rank = np.empty(self.BLOCK, np.int64)  # draws of the same group earlier in the block
+            for k in np.unique(g):
+                m = g == k
+                rank[m] = np.arange(int(m.sum()))
+            self._block = (b, g, rank)
+        _, g_of, rank = self._block
+        g = int(g_of[o])
+        epoch, r = divmod(int(self._draws_before(b)[g] + rank[o]), self.sizes[g])
+        cached = self._perms.get(g)
+        if cached is None or cached[0] != epoch:
+            perm = np.random.default_rng([self.seed, epoch, 7919, g]).permutation(self.sizes[g])
+            cached = self._perms[g] = (epoch, perm)
+        return epoch, int(self.offsets[g] + cached[1][r])
+
+
 class PositionDataset(torch.utils.data.Dataset):
     """Maps a global sample position ``p`` to sample ``perm_e[p % n]`` of epoch ``e = p // n``.
 
+    With ``weights`` (one per shard of a :class:`NavShardDataset`) the position is mapped by a
+    :class:`MixtureOrder` instead: shards are drawn in those ratios whatever their sizes.
     The per-sample sampling randomness (which observations) is seeded by ``(seed, e, index)``.
     """
 
-    def __init__(self, base: NavShardDataset | InMemoryNavDataset, seed: int) -> None:
+    def __init__(
+        self,
+        base: NavShardDataset | InMemoryNavDataset,
+        seed: int,
+        weights: list[float] | None = None,
+    ) -> None:
         self.base, self.seed = base, seed
         self._perms: dict[int, np.ndarray] = {}
+        self.mixture = None
+        if weights:
+            if not isinstance(base, NavShardDataset):
+                raise ValueError("data.shard_weights needs a shard dataset (one weight per shard)")
+            self.mixture = MixtureOrder([len(r) for r in base.readers], list(weights), seed)
 
     def locate(self, position: int) -> tuple[int, int]:
         """(epoch, dataset index) of a global position."""
+        if self.mixture is not None:
+            return self.mixture.locate(position)
         n = len(self.base)
         epoch = position // n
         if epoch not in self._perms:
@@ -176,8 +260,10 @@ class NavBCModule(L.LightningModule):
         start = self.trainer.global_step * per_step
         stop = tc.max_steps * per_step
         sampler = StepSampler.for_trainer(self.trainer, start, stop)
+        # Sample ratios apply to the shards of data.shards (a DAgger buffer draws every trajectory).
+        weights = self.cfg.data.shard_weights if isinstance(self.dataset, NavShardDataset) else None
         return torch.utils.data.DataLoader(
-            PositionDataset(self.dataset, tc.seed),
+            PositionDataset(self.dataset, tc.seed, weights),
             batch_size=tc.batch_size,
             sampler=sampler,
             collate_fn=self._collate,
