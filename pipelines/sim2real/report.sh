@@ -20,6 +20,45 @@ for d in "$O"/scaling/h*; do
   n_shards=$(python3 -c "import yaml,sys; print(len(yaml.safe_load(open(sys.argv[1]))['data']['shards']))" "$cfg")
   scaling+=(--scaling "$n_shards:$(episodes_of "$cfg")=image2nav@$d/nav.json")
 done
+# Data behind each training source: generated episodes and stored frames, DAgger episodes and frames,
+# BC optimiser steps x batch (what the budget table reports as "frames seen").
+python3 - "$O" <<'PY'
+import json, sys
+from pathlib import Path
+
+import yaml
+
+root = Path(sys.argv[1])
+out = {}
+for src in ("neural", "splat_only", "exact"):
+    shards = sorted((root / "episodes" / src / "scenes").glob("*/shard"))
+    dagger = sorted((root / "policies" / src / "dagger").glob("round_*/shard"))
+
+    def count(paths):
+        n = f = 0
+        for s in paths:
+            for line in (s / "trajectories.jsonl").read_text().splitlines():
+                n += 1
+                f += len(json.loads(line)["frame_steps"])
+        return n, f
+
+    n, f = count(shards)
+    dn, df = count(dagger)
+    cfg = yaml.safe_load((root / "policies" / src / "dagger" / "config.yaml").read_text())
+    bc_steps = cfg["train"]["max_steps"]
+    d = cfg["dagger"]
+    out[src] = {
+        "generated_episodes": n,
+        "generated_frames": f,
+        "dagger_episodes": dn,
+        "dagger_frames": df,
+        "bc_samples_seen": bc_steps * cfg["train"]["batch_size"],
+        "dagger_samples_seen": d["rounds"] * d["train_steps_per_round"] * cfg["train"]["batch_size"],
+        "max_observations_per_sample": cfg["data"]["max_observations"],
+    }
+(root / "budget").mkdir(exist_ok=True)
+(root / "budget" / "data.json").write_text(json.dumps(out, indent=1) + "\n")
+PY
 budget=()
 for f in "$O"/budget/*.json; do
   budget+=(--budget "$(basename "$f" .json)=$f")

@@ -142,3 +142,18 @@ def test_fused_ply_opens_in_an_independent_reader(tmp_path: Path) -> None:
     cloud = trimesh.load(out)
     np.testing.assert_allclose(np.asarray(cloud.vertices), ours["points"], atol=1e-6)
     np.testing.assert_array_equal(np.asarray(cloud.colors)[:, :3], ours["colors"])
+
+
+def test_half_pixel_flag_reaches_the_realsee_reader(tmp_path: Path) -> None:
+    """`--half-pixel resample` reads data written at integer pixel indices; the default reads pixel
+    centres; the flag on another format is an error naming the option, not a traceback."""
+    src = write_realsee_fixture(tmp_path / "src", convention="index")
+    out = tmp_path / "canon"
+    result = _run("ingest", src, "--out", out, "--half-pixel", "resample")
+    assert result.exit_code == 0, result.output
+    notes = json.loads(next((out / "frames").glob("*_pose.json")).read_text())["notes"]
+    assert any("resample" in n for n in notes), notes
+    default = _run("inspect", write_realsee_fixture(tmp_path / "centred"))
+    assert default.exit_code == 0, default.output
+    bad = _run("inspect", write_hm3d_fixture(tmp_path / "hm3d"), "--half-pixel", "resample")
+    assert bad.exit_code == 1 and "half_pixel" in bad.output

@@ -261,7 +261,21 @@ def test_gather_reports_rows_gap_trend_and_the_target(tmp_path):
         {"houses": h, "episodes": e, "doc": _nav_doc({"image2nav": (s, 200)}), "agent": "image2nav"}
         for h, e, s in [(4, 400, 40), (1, 50, 20), (8, 800, 70)]
     ]
-    doc = gather(rows, scaling, {"neural": "outputs/x"})
+    budget = {
+        "policy_neural": {"wall_s": 600.0, "cpu_s": 1100.0, "parameters": 221984},
+        "data": {
+            "neural": {
+                "generated_episodes": 400,
+                "generated_frames": 9000,
+                "dagger_episodes": 64,
+                "dagger_frames": 2000,
+                "bc_samples_seen": 4000,
+                "dagger_samples_seen": 2000,
+                "max_observations_per_sample": 16,
+            }
+        },
+    }
+    doc = gather(rows, scaling, {"neural": "outputs/x"}, budget)
     assert doc["rows"]["neural"]["sr"] == pytest.approx(35.0)
     assert doc["gap"]["sr"] == pytest.approx(10.0)
     assert [p["episodes"] for p in doc["scaling"]] == [50, 400, 800]
@@ -276,6 +290,8 @@ def test_gather_reports_rows_gap_trend_and_the_target(tmp_path):
     assert json.loads((tmp_path / "m.json").read_text())["rows"]["forward"]["episodes"] == 200
     text = (tmp_path / "r.md").read_text()
     assert "| neural | 35.0" in text and "rises" in text and "p.png" in text
+    assert "| policy_neural | 10.0 | 18.3 |" in text and "221,984" in text
+    assert "| neural | 400 | 9000 |" in text
     assert (tmp_path / "p.png").stat().st_size > 1000
 
 

@@ -23,7 +23,11 @@ from image2sim.simulator.io import (
 )
 from image2sim.simulator.io.fusion import backproject_frame
 from image2sim.simulator.io.hm3d360 import hm3d_pixel_direction_gl, hm3d_pose_to_cam_to_world
-from image2sim.simulator.io.realsee import realsee_pixel_direction, realsee_pose_to_cam_to_world
+from image2sim.simulator.io.realsee import (
+    realsee_index_pixel_direction,
+    realsee_pixel_direction,
+    realsee_pose_to_cam_to_world,
+)
 from scipy.spatial.transform import Rotation
 
 from .test_io_room import (
@@ -58,15 +62,20 @@ def test_hm3d_mapping_equals_ours_exactly() -> None:
     np.testing.assert_allclose(d_cv, ours, atol=1e-12)
 
 
-def test_realsee_mapping_is_half_a_pixel_off_ours() -> None:
+def test_realsee_mapping_equals_ours_exactly() -> None:
+    """Realsee samples sit on pixel centres: its pixel index (u, v) looks where our (u + .5, v + .5)
+    does; the index mapping of ``half_pixel="resample"`` is half a pixel off (tests/simulator/
+    test_io_realsee.py has the reader-level checks)."""
     h, w = 16, 32
     v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     theirs = realsee_pixel_direction(u, v, h, w)
     cam = EquirectCamera(h, w)
-    at_index = cam.pixel_to_ray(torch.from_numpy(u * 1.0), torch.from_numpy(v * 1.0)).numpy()
-    np.testing.assert_allclose(theirs, at_index, atol=1e-12)  # their index u == our continuous u
     at_centre = cam.pixel_to_ray(torch.from_numpy(u + 0.5), torch.from_numpy(v + 0.5)).numpy()
-    assert np.min(np.linalg.norm(theirs - at_centre, axis=-1)[1:]) > 0.04  # so a correction is needed
+    np.testing.assert_allclose(theirs, at_centre, atol=1e-12)
+    index = realsee_index_pixel_direction(u, v, h, w)
+    at_index = cam.pixel_to_ray(torch.from_numpy(u * 1.0), torch.from_numpy(v * 1.0)).numpy()
+    np.testing.assert_allclose(index, at_index, atol=1e-12)
+    assert np.min(np.linalg.norm(index - at_centre, axis=-1)[1:]) > 0.04
 
 
 @given(
@@ -117,24 +126,29 @@ def test_hm3d_reader_rejects_unconverted_pose(tmp_path: Path) -> None:
     assert np.median(surface_distance(points)) > 0.1
 
 
-@pytest.mark.parametrize("rgb_scale", [1, 2])
-def test_realsee_reader_ground_truth(tmp_path: Path, rgb_scale: int) -> None:
+@pytest.mark.parametrize("rgb_scale", [1, 2, 2.5, 0.5])
+def test_realsee_reader_ground_truth(tmp_path: Path, rgb_scale: float) -> None:
     cap = open_capture(write_realsee_fixture(tmp_path / "rs", rgb_scale=rgb_scale, height=64, width=128))
     assert cap.format == "realsee" and cap.frame_ids == ["vp00", "vp01", "vp02"]
     frame = cap[0]
-    assert frame.rgb.shape == (64, 128, 3) and "half a pixel" in frame.notes[0]
+    assert frame.rgb.shape == (64, 128, 3) and "half_pixel=centres" in frame.notes[0]
+    assert ("colour" in frame.notes[0]) == (rgb_scale != 1)
     dist, match = _surface_errors(cap)
+    # Depth is used as stored: only the 1/4000 m quantisation (and float32 back-projection) remain.
+    assert dist.max() < 2e-4
+    assert match.mean() > (0.85 if rgb_scale < 1 else 0.9)  # colour coarser than depth blurs face edges
+
+
+def test_realsee_resample_reads_index_convention_data(tmp_path: Path) -> None:
+    """``half_pixel="resample"`` is right for data written at integer pixel indices, and reading such
+    data as centres (the default) is measurably wrong."""
+    root = write_realsee_fixture(tmp_path / "rs", height=64, width=128, convention="index")
+    cap = open_capture(root, half_pixel="resample")
+    assert "half_pixel=resample" in cap[0].notes[0] and "half a pixel" in cap[0].notes[0]
+    fixed, match = _surface_errors(cap)
     # Residual: interpolating range between 2.8-degree samples (curvature) and the clamped bottom row.
-    assert np.median(dist) < 0.003 and np.quantile(dist, 0.95) < 0.02
-    assert match.mean() > 0.9
-
-
-def test_realsee_without_half_pixel_fix_is_measurably_wrong(tmp_path: Path) -> None:
-    root = write_realsee_fixture(tmp_path / "rs", height=64, width=128)
-    fixed, _ = _surface_errors(open_capture(root))
-    raw_cap = open_capture(root, half_pixel="ignore")
-    assert "NOT corrected" in raw_cap[0].notes[0]
-    raw, _ = _surface_errors(raw_cap)
+    assert np.median(fixed) < 0.003 and np.quantile(fixed, 0.95) < 0.02 and match.mean() > 0.9
+    raw, _ = _surface_errors(open_capture(root))
     assert np.median(raw) > 5 * np.median(fixed) and np.median(raw) > 0.01
 
 

@@ -92,7 +92,33 @@ def write_hm3d_fixture(root: Path, n: int = 3, height: int = 32, width: int = 64
     return root
 
 
-# --- realsee: Y-down world, camera x right y down z forward, lon = (u/W - .5) 2pi, lat = (v/H - .5) pi
+# --- realsee: Y-down world, camera x right y down z forward, samples on pixel centres:
+#     lon = ((u + .5)/W - .5) 2pi, lat = ((v + .5)/H - .5) pi (u, v = pixel indices; what real RealSee3D
+#     data measures, see docs/data-formats.md). convention="index" writes the other mapping,
+#     lon = (u/W - .5) 2pi, lat = (v/H - .5) pi, for the reader's half_pixel="resample" mode.
+
+REALSEE_CONVENTIONS = ("centres", "index")
+
+
+def realsee_directions(height: int, width: int, convention: str = "centres") -> np.ndarray:
+    """Unit camera-frame directions (H, W, 3) of every Realsee pixel, written from the format's
+    description (independently of the reader)."""
+    if convention not in REALSEE_CONVENTIONS:
+        raise ValueError(f"convention must be one of {REALSEE_CONVENTIONS}, got {convention!r}")
+    offset = 0.5 if convention == "centres" else 0.0
+    vv, uu = np.meshgrid(np.arange(height) + offset, np.arange(width) + offset, indexing="ij")
+    lon = (uu / width - 0.5) * 2 * np.pi
+    lat = (vv / height - 0.5) * np.pi
+    return np.stack((np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)), axis=-1)
+
+
+def realsee_viewpoint(pos: np.ndarray, rot_r: np.ndarray) -> np.ndarray:
+    """Realsee extrinsics (camera-to-world in its Y-down world) of a camera at ``pos`` (our world)
+    with rotation ``rot_r`` (its world)."""
+    ext = np.eye(4)
+    ext[:3, :3] = rot_r
+    ext[:3, 3] = Y_DOWN_TO_Z_UP_WORLD.T @ pos  # camera centre in their world
+    return ext
 
 
 def write_realsee_fixture(
@@ -100,34 +126,33 @@ def write_realsee_fixture(
     n: int = 3,
     height: int = 32,
     width: int = 64,
-    rgb_scale: int = 1,
+    rgb_scale: float = 1,
     seed: int = 0,
     scale: float = 4000.0,
+    convention: str = "centres",
+    viewpoints: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Path:
+    """``n`` viewpoints of the box room (or the given ``(position in our world, rotation in the
+    Realsee world)`` pairs). Colour is rendered at ``rgb_scale`` times the depth size (rounded)."""
     root.mkdir(parents=True, exist_ok=True)
     M = Y_DOWN_TO_Z_UP_WORLD  # ours = M @ theirs
-
-    def dirs(h: int, w: int) -> np.ndarray:
-        vv, uu = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-        lon = (uu / w - 0.5) * 2 * np.pi
-        lat = (vv / h - 0.5) * np.pi
-        return np.stack((np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)), axis=-1)
-
+    if viewpoints is None:
+        viewpoints = [
+            (pos, Rotation.random(random_state=100 + seed + i).as_matrix())  # rotation in the Y-down world
+            for i, pos in enumerate(camera_positions(n, seed))
+        ]
+    ch, cw = int(round(height * rgb_scale)), int(round(width * rgb_scale))
     ids = []
-    for i, pos in enumerate(camera_positions(n, seed)):
+    for i, (pos, rot_r) in enumerate(viewpoints):
         vid = f"vp{i:02d}"
         ids.append(vid)
-        rot_r = Rotation.random(random_state=100 + seed + i).as_matrix()  # in the Y-down world
-        ext = np.eye(4)
-        ext[:3, :3] = rot_r
-        ext[:3, 3] = M.T @ pos  # camera centre in their world
-        rng, _ = render(pos, dirs(height, width) @ (M @ rot_r).T)
-        _, colour = render(pos, dirs(height * rgb_scale, width * rgb_scale) @ (M @ rot_r).T)
+        rng, _ = render(pos, realsee_directions(height, width, convention) @ (M @ rot_r).T)
+        _, colour = render(pos, realsee_directions(ch, cw, convention) @ (M @ rot_r).T)
         vp = root / "viewpoints" / vid
         _write_png(vp / "depth_image.png", np.rint(rng * scale).astype(np.uint16))
         vp.mkdir(parents=True, exist_ok=True)
         assert cv2.imwrite(str(vp / "panoImage_1600.jpg"), colour[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 98])
-        np.savetxt(vp / "extrinsics.txt", ext)
+        np.savetxt(vp / "extrinsics.txt", realsee_viewpoint(pos, rot_r))
         (vp / "depth_scale.txt").write_text(f"{scale}\n")
     (root / "viewpoints.txt").write_text("\n".join(ids) + "\n")
     return root

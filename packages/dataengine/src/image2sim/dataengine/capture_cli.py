@@ -22,11 +22,20 @@ def _fail(message: str) -> None:
     raise typer.Exit(code=1)
 
 
-def _open(path: Path, fmt: str | None, strict: bool = True):
+_HALF_PIXEL_HELP = (
+    "realsee only: pixel convention of the panoramas. 'centres' (default): samples sit on pixel "
+    "centres, images used as stored; 'resample': data written at integer pixel indices, resampled by "
+    "half a pixel onto our grid."
+)
+
+
+def _open(path: Path, fmt: str | None, strict: bool = True, half_pixel: str | None = None):
     from image2sim.simulator.io import CaptureError, open_capture
 
+    # Only passed when set: the other formats refuse options they do not know.
+    options = {} if half_pixel is None else {"half_pixel": half_pixel}
     try:
-        return open_capture(path, fmt, strict=strict)
+        return open_capture(path, fmt, strict=strict, **options)
     except CaptureError as err:
         _fail(str(err))
 
@@ -78,6 +87,7 @@ def inspect(
     rows: Annotated[
         int, typer.Option("--rows", min=1, help="Frame rows to print (first and last halves).")
     ] = 12,
+    half_pixel: Annotated[str | None, typer.Option("--half-pixel", help=_HALF_PIXEL_HELP)] = None,
 ) -> None:
     """Print a capture's frames, sizes, depth range and pose bounds."""
     import numpy as np
@@ -85,7 +95,7 @@ def inspect(
     from rich.console import Console
     from rich.table import Table
 
-    cap = _open(capture, format, strict=False)
+    cap = _open(capture, format, strict=False, half_pixel=half_pixel)
     console = Console()
     n_load = len(cap) if max_frames is None else min(max_frames, len(cap))
     stats, errors = [], []
@@ -162,13 +172,14 @@ def fuse(
     ] = None,
     stride: Annotated[int, typer.Option("--stride", min=1, help="Use every S-th frame.")] = 1,
     format: Annotated[str | None, typer.Option("--format", "-f", help=_FORMAT_HELP)] = None,
+    half_pixel: Annotated[str | None, typer.Option("--half-pixel", help=_HALF_PIXEL_HELP)] = None,
 ) -> None:
     """Back-project frames into the world, voxel-average colours, write a binary PLY (atomically)."""
     from image2sim.simulator.io import CaptureError, write_ply
     from image2sim.simulator.io.fusion import VoxelAccumulator, backproject_frame, select_indices
     from rich.console import Console
 
-    cap = _open(capture, format)
+    cap = _open(capture, format, half_pixel=half_pixel)
     indices = select_indices(len(cap), stride, max_frames)
     acc = VoxelAccumulator(voxel)
     try:
@@ -207,6 +218,7 @@ def ingest(
     scene_id: Annotated[
         str | None, typer.Option("--scene-id", help="Scene id for the manifest (default: the source's).")
     ] = None,
+    half_pixel: Annotated[str | None, typer.Option("--half-pixel", help=_HALF_PIXEL_HELP)] = None,
 ) -> None:
     """Convert a capture to the canonical format; nothing is written unless everything succeeds."""
     from image2sim.simulator.io import CaptureError, write_capture
@@ -214,7 +226,7 @@ def ingest(
 
     if out.exists() and not overwrite:
         _fail(f"{out}: already exists (pass --overwrite to replace it)")
-    cap = _open(src, format, strict=not skip_bad)
+    cap = _open(src, format, strict=not skip_bad, half_pixel=half_pixel)
     skipped = [(fid, reason) for fid, reason in cap.skipped]
     written_ids: list[str] = []
 

@@ -216,7 +216,50 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         if plot_name:
             out += ["", f"![SR against training episodes]({plot_name})"]
         out.append("")
+    out += budget_markdown(doc.get("budget") or {})
     return "\n".join(out)
+
+
+def budget_markdown(budget: Mapping[str, Any]) -> list[str]:
+    """The budget section: measured wall / CPU time per stage, policy sizes, data per source."""
+    if not budget:
+        return []
+    out = ["## Budget (measured by the pipeline)", ""]
+    timed = {k: v for k, v in budget.items() if isinstance(v, Mapping) and "wall_s" in v}
+    if timed:
+        out += ["| stage | wall (min) | CPU (min) |", "|---|---:|---:|"]
+        for k, v in sorted(timed.items()):
+            out.append(f"| {k} | {v['wall_s'] / 60:.1f} | {v['cpu_s'] / 60:.1f} |")
+        total = sum(v["wall_s"] for v in timed.values())
+        out += [
+            f"| total of the timed stages | {total / 60:.1f} | |",
+            "",
+            "CPU time counts the command's own process tree; Ray workers (the data engine's "
+            "episodes stages) run outside it, so their CPU is not included there.",
+            "",
+        ]
+    params = {
+        k[len("policy_") :]: v["parameters"]
+        for k, v in budget.items()
+        if k.startswith("policy_") and isinstance(v, Mapping) and v.get("parameters")
+    }
+    if params:
+        out.append("Policy parameters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(params.items())) + ".")
+        out.append("")
+    data = budget.get("data")
+    if isinstance(data, Mapping) and data:
+        out += [
+            "| source | generated episodes | stored frames | DAgger episodes | DAgger frames "
+            "| BC samples seen | DAgger samples seen |",
+            "|---|---:|---:|---:|---:|---:|---:|",
+        ]
+        for k, v in data.items():
+            out.append(
+                f"| {k} | {v['generated_episodes']} | {v['generated_frames']} | {v['dagger_episodes']} | "
+                f"{v['dagger_frames']} | {v['bc_samples_seen']} | {v['dagger_samples_seen']} |"
+            )
+        out += ["", "A sample is one trajectory with up to 16 observations and 32 action labels.", ""]
+    return out
 
 
 def plot_scaling(doc: Mapping[str, Any], path: str | Path) -> Path:

@@ -100,6 +100,11 @@ def build_scene(
 
     ``fuse_every`` frames are fused into memory in one pass (1: frame by frame, the incremental
     MemoryState; larger: fewer passes over the growing scene, much faster for long captures).
+
+    Frames are area-resized to ``encoder.height x encoder.width`` of the config (a learned encoder:
+    of its checkpoint's config). ``info`` (the manifest) records that resolution and where it came
+    from (``encoding``), the encoded camera (``camera``) and the capture's own camera
+    (``source.camera``), which ``sim render`` uses by default.
     """
     if fuse_every < 1:
         raise ValueError(f"build_scene: fuse_every must be >= 1, got {fuse_every}")
@@ -127,16 +132,21 @@ def build_scene(
         # The checkpoint brings its encoder (sizes, heads); fusion is a scene-building choice from cfg.
         cfg = dataclasses.replace(net.cfg, fusion=cfg.fusion)
     h, w = cfg.encoder.height, cfg.encoder.width
+    where = f"config {cfg.name!r}" if net is None else "the encoder checkpoint's config"
+    encoding = {"height": h, "width": w, "from": f"encoder.height, encoder.width of {where}"}
     scene = GaussianScene(fusion=cfg.fusion)
     camera = None
+    source_camera = capture.camera
     it = indices
     if progress:
         from rich.progress import track
 
-        it = track(indices, description=f"encoding {len(indices)} frames")
+        it = track(indices, description=f"encoding {len(indices)} frames at {w}x{h}")
     pending = []
     for i in it:
-        inputs = prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance)
+        frame = capture[i]
+        source_camera = source_camera or frame.camera
+        inputs = prepare_frame(frame, h, w, cfg.fusion.edge_tolerance)
         if net is not None and isinstance(inputs.camera, EquirectCamera) != net.panoramic:
             raise SceneError(
                 f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})"
@@ -154,9 +164,11 @@ def build_scene(
             "format": capture.format,
             "scene_id": capture.scene_id,
             "num_frames": len(capture),
+            "camera": source_camera.to_dict() if source_camera is not None else None,
         },
         "encoder": enc_info,
         "camera": camera.to_dict() if camera is not None else None,
+        "encoding": encoding,
         "config": config_to_dict(cfg),
     }
     return scene

@@ -36,7 +36,8 @@ def build_scene_command(
     config: str = typer.Option(
         "tiny",
         help="Preset (tiny, paper) or YAML/JSON overrides (identity only; a "
-        "checkpoint brings its own config).",
+        "checkpoint brings its own config). Frames are encoded at its encoder.height x "
+        "encoder.width (tiny 256x128, paper 1024x512); the command prints the resolution it used.",
     ),
     frames: str = typer.Option("", help="Frame indices, e.g. '0,3,5-8' (default: all)."),
     voxel_policy: str = typer.Option("", help="Override fusion.policy: footprint or fixed."),
@@ -81,11 +82,33 @@ def build_scene_command(
     except (ConfigError, SceneError, CaptureError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    counts = scene.manifest()["counts"]
+    manifest = scene.manifest()
+    counts = manifest["counts"]
+    typer.echo(_encoding_statement(manifest, config, encoder))
     typer.echo(
         f"{out}: {counts['gaussians']} Gaussians from {counts['frames']} frames in {elapsed:.2f} s "
         f"({counts['frames'] / max(elapsed, 1e-9):.2f} frames/s); per voxel size {counts['per_voxel_size']}"
     )
+
+
+def _encoding_statement(manifest: dict, config: str, encoder: str) -> str:
+    """One line: the resolution frames were encoded at, where it came from, and the capture's own."""
+    enc = manifest.get("encoding") or {}
+    h, w = enc.get("height"), enc.get("width")
+    if str(encoder) == "identity":
+        origin = f"encoder.width x encoder.height of --config {config}"
+        change = "; set encoder.height/encoder.width in a --config YAML to change it"
+    else:
+        origin = f"encoder.width x encoder.height of the config of the encoder checkpoint {encoder}"
+        change = ""
+    src = (manifest.get("source") or {}).get("camera") or {}
+    native = ""
+    if src.get("width"):
+        same = (src["width"], src["height"]) == (w, h)
+        native = f"; the capture's frames are {src['width']}x{src['height']}" + (
+            "" if same else ", area-resized"
+        )
+    return f"encoded at {w}x{h} (W x H = {origin}){native}{change}"
 
 
 def _parse_pose(text: str):
@@ -115,8 +138,14 @@ def render_command(
     ),
     frame: int = typer.Option(-1, help="Render at the pose of this frame index of the source capture."),
     pose: str = typer.Option("", help="Camera-to-world pose: 'tx ty tz qw qx qy qz' or 16 numbers."),
-    height: int = typer.Option(0, help="Output height (default: the scene's input camera)."),
-    width: int = typer.Option(0, help="Output width (default: the scene's input camera)."),
+    height: int = typer.Option(
+        0,
+        help="Output height (default: the source capture's camera, recorded in the scene manifest; "
+        "with only --height the width keeps the camera's aspect).",
+    ),
+    width: int = typer.Option(
+        0, help="Output width (default: the source capture's camera; alone, the height follows)."
+    ),
     backend: str = typer.Option("auto", help="Splatting backend (auto, cpu, torch, reference)."),
     renderer: Path = typer.Option(
         None,
@@ -130,7 +159,6 @@ def render_command(
     import torch
     from image2sim.simulator.gaussians.frames import resize_camera
     from image2sim.simulator.gaussians.scene import GaussianScene, SceneError
-    from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.io.images import write_rgb_png, write_uint16_png
 
     try:
@@ -141,9 +169,14 @@ def render_command(
             c2w = _parse_pose(pose)
         else:
             c2w = _frame_pose(sc, frame)
-        camera = sc.camera() or EquirectCamera(256, 512)
+        if height < 0 or width < 0:
+            raise ValueError(f"--height/--width must be positive, got {height}x{width}")
+        camera, origin = _default_camera(sc)
         if height or width:
-            camera = resize_camera(camera, height or camera.height, width or camera.width)
+            h = height or max(1, round(width * camera.height / camera.width))
+            w = width or max(1, round(height * camera.width / camera.height))
+            camera, origin = resize_camera(camera, h, w), "--height/--width"
+        typer.echo(f"rendering at {camera.width}x{camera.height} (W x H, {origin})")
         res = sc.render(camera, torch.as_tensor(c2w, dtype=sc.gaussians.means.dtype), backend=backend)
         flow = None
         if renderer is not None:
@@ -178,6 +211,36 @@ def render_command(
         f"({res.backend} backend)"
         + ("" if flow is None else f", pixel-flow renderer {renderer} in {steps} step(s)")
     )
+
+
+def _default_camera(sc):
+    """The camera ``sim render`` uses without --height/--width, and where it came from.
+
+    The source capture's camera (manifest ``source.camera``); for scenes built before that was
+    recorded, the source capture's camera read from disk when it is still there; else the scene's
+    input (encoded) camera; else a 512x256 panorama.
+    """
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+
+    cam = sc.source_camera()
+    if cam is not None:
+        return cam, "the source capture's camera, manifest source.camera"
+    source = (sc.info.get("source") or {}).get("capture")
+    if source and Path(source).exists():
+        from image2sim.simulator.io.records import CaptureError
+        from image2sim.simulator.io.registry import open_capture
+
+        try:
+            cap = open_capture(source, strict=False)
+            cam = cap.camera if cap.camera is not None else cap[0].camera
+        except (CaptureError, IndexError):
+            cam = None
+        if cam is not None:
+            return cam, f"the source capture's camera, read from {source}"
+    cam = sc.camera()
+    if cam is not None:
+        return cam, "the scene's input camera, manifest camera: the source capture's is not recorded"
+    return EquirectCamera(256, 512), "no camera recorded in the scene: default panorama"
 
 
 def _frame_pose(sc, frame: int):

@@ -3,8 +3,10 @@
 Folder layout written by :meth:`GaussianScene.save`::
 
     gaussians.safetensors   means, scales, quats, opacities, colors, features, footprints, weights, levels
-    manifest.json           format/version, source capture, frames used (+ poses), encoder (kind,
-                            checkpoint, sha256), fusion policy, conventions, counts, bounds, camera
+    manifest.json           format/version, source capture (+ its camera), frames used (+ poses),
+                            encoder (kind, checkpoint, sha256), camera (the encoded input camera),
+                            encoding (its resolution and the config fields it came from), fusion
+                            policy, conventions, counts, bounds
 
 :meth:`export_ply` writes the standard 3D Gaussian Splatting vertex layout (x y z, nx ny nz,
 f_dc_0..2, opacity as a logit, scale_0..2 as logs, rot_0..3 = w x y z, then feat_0..C-1), which
@@ -142,6 +144,7 @@ class GaussianScene:
             "frames": self.frames,
             "encoder": self.info.get("encoder", {"kind": "unknown"}),
             "camera": self.info.get("camera"),
+            "encoding": self.info.get("encoding"),
             "config": self.info.get("config"),
             "fusion": {k: v for k, v in config_to_dict_fusion(self.fusion).items()},
             "conventions": CONVENTIONS,
@@ -219,12 +222,19 @@ class GaussianScene:
             fusion = config_from_dict(FusionConfig, manifest.get("fusion", {}), "fusion")
         except ConfigError as exc:
             raise SceneError(f"{man_path}: {exc}") from None
-        info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "config")}
+        info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "encoding", "config")}
         return cls(fusion=fusion, gaussians=gaussians, frames=list(manifest.get("frames", [])), info=info)
 
     def camera(self) -> Camera | None:
-        """The input camera recorded at build time (None when unknown)."""
+        """The input camera recorded at build time: the resolution frames were encoded at (None when
+        unknown)."""
         cam = self.info.get("camera")
+        return camera_from_dict(cam) if cam else None
+
+    def source_camera(self) -> Camera | None:
+        """The source capture's own camera (manifest ``source.camera``; None for scenes built before
+        it was recorded, or not built from a capture)."""
+        cam = (self.info.get("source") or {}).get("camera")
         return camera_from_dict(cam) if cam else None
 
     # ------------------------------------------------------------------ 3DGS PLY
