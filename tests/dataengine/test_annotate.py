@@ -324,3 +324,123 @@ def test_concurrency_cap_and_order(server_factory):
     assert [a.episode_id for a in out] == [f"e{i}" for i in range(7)]
     assert all(a.accepted for a in out)
     assert 1 < srv.max_in_flight <= 3
+
+
+# ------------------------------------------------------------------------- template grammar and truth
+
+_IMPERATIVE_VERBS = {
+    "walk", "go", "head", "continue", "move", "turn", "make", "rotate", "face", "curve", "veer", "take",
+    "pause", "bear", "stop", "wait", "halt", "find", "check", "inspect", "locate", "get", "bring", "grab",
+    "fetch",
+}  # fmt: skip
+_MOVEMENTS = [
+    "walk forward", "turn left", "turn right", "walk forward while turning left",
+    "walk forward while turning right", "turn left and walk forward", "turn right and walk forward",
+    "turn around to the left", "turn around to the right", "turn slightly left", "turn slightly right",
+]  # fmt: skip
+
+
+def _sentences(text: str) -> list[str]:
+    import re
+
+    return [s for s in re.split(r"(?<=[.?])\s+", text.strip()) if s]
+
+
+def _grammar_problems(text: str) -> list[str]:
+    """Rules every template sentence must satisfy (each one a defect seen in generated data)."""
+    import re
+
+    bad = []
+    if re.search(r"\s{2,}|\s[,.?;]|,,|\.\.|\?\.|\.\?", text):
+        bad.append("spacing or doubled punctuation")
+    if re.search(r"\b(the|a|and|then|to)\s+\1\b", text, flags=re.I):
+        bad.append("doubled word")
+    for s in _sentences(text):
+        if not (s[0].isupper() and s[-1] in ".?"):
+            bad.append(f"sentence not capitalised or not closed: {s!r}")
+        words = s.rstrip(".?").replace(",", "").split()
+        if words[0] in ("Please", "Kindly") or words[:2] == ["Could", "you"]:
+            verb = words[2] if words[0] == "Could" else words[1]
+            if verb not in _IMPERATIVE_VERBS:
+                bad.append(f"polite word before a non-verb {verb!r}: {s!r}")
+        if words[:2] == ["Could", "you"] and not s.endswith("?"):
+            bad.append(f"question without '?': {s!r}")
+        if s.endswith("?") and not re.search(r"^(Could|Can|What|Where|Is)\b|,\s*(can|could) you\b", s):
+            bad.append(f"'?' on a statement: {s!r}")
+        for m in re.finditer(r"\b(if you|to reach it,)\s+(\w+)", s):
+            if m.group(2) not in _IMPERATIVE_VERBS:
+                bad.append(f"{m.group(1)!r} followed by {m.group(2)!r}")
+    return bad
+
+
+GOALS = ["fridge", "table_lamp", "widget"]  # a demand entry, a two-word name, an unknown category
+
+
+def test_every_template_and_fill_renders_a_grammatical_instruction():
+    """All styles x structures x tones, every movement alone and in sequences, with and without room,
+    landmarks and near objects, over many seeds (the synonym and join choices): no broken sentence
+    ("Could you your target is ...", "Kindly the clock ... needs to be checked")."""
+    from image2sim.dataengine.annotate.prompts import STRUCTURES, TONES
+
+    seqs = (
+        [[m] for m in _MOVEMENTS]
+        + [
+            [
+                _MOVEMENTS[i],
+                _MOVEMENTS[(3 * i + 1) % len(_MOVEMENTS)],
+                _MOVEMENTS[(5 * i + 2) % len(_MOVEMENTS)],
+            ]
+            for i in range(len(_MOVEMENTS))
+        ]
+        + [[]]
+    )
+    n = 0
+    problems = []
+    for style in ("r2r", "reverie", "demand"):
+        for structure in STRUCTURES:
+            for tone in TONES:
+                for k, moves in enumerate(seqs):
+                    for room in ("kitchen", None):
+                        for seed in range(12):
+                            req = AnnotationRequest(
+                                episode_id="g",
+                                movements=[*moves, "stop"],
+                                images=[],
+                                goal={"category": GOALS[seed % 3], "room_type": room},
+                                visible=[["sofa", "dining_table"], ["chair"], []][: len(moves)] + [[]],
+                                rooms=[room] * (len(moves) + 1),
+                                style=style,
+                                structure=structure,
+                                tone=tone,
+                                seed=seed + 100 * k,
+                                near=["sofa", "floor_lamp"] if seed % 2 else [],
+                            )
+                            text = compose(req)
+                            n += 1
+                            problems += [(p, text) for p in _grammar_problems(text)]
+    assert n > 4000
+    assert not problems, problems[:5]
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "Could you your target is the table lamp. walk forward?",
+        "Kindly the clock in the kitchen near the small plant needs to be checked.",
+        "Please the tv near the bed is to be found.",
+        "Walk forward,  and stop.",
+        "Could you walk forward.",
+    ],
+)
+def test_the_grammar_rules_catch_the_reported_sentences(text):
+    assert _grammar_problems(text)
+
+
+def test_template_near_names_only_objects_near_the_goal():
+    """A REVERIE "near X" names only ``req.near``, never just any visible object."""
+    for s in range(60):
+        req = _req(seed=s, style="reverie")
+        req.near = ["sofa"] if s % 2 else []
+        text = compose(req)
+        if " near the " in text:
+            assert s % 2 and "near the sofa" in text, text

@@ -31,6 +31,8 @@ def test_cli_episodes_then_stats(scenes_root, tmp_path):
         [
             "data",
             "episodes",
+            "--sampling",
+            "min_path_length=1.0",  # tiny houses hold no 3 m path
             "--scenes",
             str(scenes_root / "scene_001"),
             "--out",
@@ -70,6 +72,8 @@ def test_cli_rejects_bad_arguments(scenes_root, tmp_path):
         [
             "data",
             "episodes",
+            "--sampling",
+            "min_path_length=1.0",  # tiny houses hold no 3 m path
             "--scenes",
             str(scenes_root),
             "--out",
@@ -86,6 +90,8 @@ def test_cli_rejects_bad_arguments(scenes_root, tmp_path):
         [
             "data",
             "episodes",
+            "--sampling",
+            "min_path_length=1.0",  # tiny houses hold no 3 m path
             "--scenes",
             str(tmp_path / "nowhere"),
             "--out",
@@ -139,6 +145,7 @@ def test_scene_task_with_openai_annotator_applies_the_gate(scenes_root, tmp_path
     try:
         cfg = EngineConfig(
             per_scene=4,
+            sampling={"min_path_length": 1.0},  # tiny houses hold no 3 m path
             annotator="openai",
             obs_height=24,
             annotation_view_height=24,

@@ -12,6 +12,7 @@ from image2sim.dataengine.mining import SceneObject
 from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
 from image2sim.dataengine.trajectories import (
     DEFAULT_BUCKETS,
+    Bucket,
     SamplingConfig,
     coverage_radius,
     draw_buckets,
@@ -106,6 +107,8 @@ def test_plans_respect_buckets_radii_and_walls(world):
             assert not why and geo == pytest.approx(p.geodesic_distance, abs=1e-9)
         if p.bucket != "fallback":
             assert buckets[p.bucket].min_length <= p.geodesic_distance < buckets[p.bucket].max_length
+        # Never inside the 3 m success distance of every protocol: stopping at once must not succeed.
+        assert p.geodesic_distance >= 3.0
         obj = np.asarray(p.goal_object["position"])
         assert np.linalg.norm(p.goal[:2] - obj[:2]) <= p.goal_radius
         assert p.goal_radius == (1.5 if p.goal_object["small"] else 3.0)
@@ -123,6 +126,17 @@ def test_plans_respect_buckets_radii_and_walls(world):
         np.array_equal(a.start, b.start) and np.array_equal(a.goal, b.goal)
         for a, b in zip(plans, again, strict=True)
     )
+
+
+def test_small_scene_fallback_never_starts_inside_the_success_distance(world):
+    """A scene too small for every bucket still gets episodes, none of them shorter than 3 m."""
+    m, g, planner = world
+    tiny_buckets = (Bucket("huge", 40.0, 60.0, 1.0),)  # infeasible here: forces the fallback
+    cfg = SamplingConfig(buckets=tiny_buckets)
+    plans, stats = sample_plans(g, planner, OBJECTS, 12, cfg, np.random.default_rng(1))
+    assert plans and stats["bucket_huge_infeasible"] > 0
+    assert {p.bucket for p in plans} == {"fallback"}
+    assert min(p.geodesic_distance for p in plans) >= cfg.min_path_length == 3.0
 
 
 def test_rollouts_replay_exactly_and_end_in_the_goal_radius(world):

@@ -191,3 +191,37 @@ def test_visibility_agrees_with_exact_ray_casting_over_the_scene(procedural):
     assert len(seen["wall"]) >= 20 and len(seen["open"]) >= 100, {k: len(v) for k, v in seen.items()}
     assert np.mean(seen["wall"]) <= 0.1, np.mean(seen["wall"])
     assert np.mean(seen["open"]) >= 0.75, np.mean(seen["open"])
+
+
+def test_near_needs_distance_same_storey_and_no_wall_between():
+    """ "The goal near the X" holds in the geometry: within 2.5 m, same storey, mutually visible."""
+    from image2sim.dataengine.visibility import NearConfig, near_categories
+
+    occ = Occupancy.from_points(_wall_points(2.0, -1.0, 1.0, 0.0, 2.5), voxel=0.05)
+    box = np.stack(np.meshgrid(*[np.arange(-0.15, 0.16, 0.05)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    goal = np.array([1.0, 0.0, 0.8])
+    occ_with_goal = Occupancy.from_points(
+        np.concatenate((box + goal, _wall_points(2.0, -1.0, 1.0, 0.0, 2.5))), voxel=0.05
+    )
+    objs = [_obj("bed"), _obj("lamp"), _obj("wardrobe"), _obj("door"), _obj("chair"), _obj("bed")]
+    pos = np.array(
+        [
+            goal,
+            [0.0, 1.5, 0.8],  # lamp: 1.8 m away, same room
+            [2.8, 0.0, 0.8],  # wardrobe: 1.8 m away, behind the wall
+            [1.0, 0.5, 3.6],  # door: 2.8 m above (another storey), 2.85 m
+            [1.0, -3.0, 0.8],  # chair: 3 m away
+            [0.5, 0.0, 0.8],  # another bed: never "the bed near the bed"
+        ]
+    )
+    for o in (occ, occ_with_goal):  # the goal's own voxels do not block its view
+        assert near_categories(0, objs, pos, o) == ["lamp"]
+    assert near_categories(0, objs, pos, None) == ["lamp", "wardrobe"]  # no occupancy: no wall test
+    assert near_categories(0, objs, pos, None, NearConfig(max_distance=3.5, max_height_difference=3.0)) == [
+        "chair", "door", "lamp", "wardrobe",
+    ]  # fmt: skip
+    assert occ.mutually_visible(goal, pos[1], 1.0) and not occ.mutually_visible(goal, pos[2], 1.0)
+    # A wall farther than the object's own extent from both centres blocks; one within it is a body.
+    assert not occ.mutually_visible(np.array([1.0, 0, 0.8]), np.array([3.0, 0, 0.8]), 0.5)
+    with pytest.raises(ValueError, match="max_distance"):
+        NearConfig(max_distance=0.0)

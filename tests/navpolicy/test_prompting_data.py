@@ -233,3 +233,76 @@ def test_dataengine_shard_writer_output_is_readable(tmp_path, tiny_policy, build
     ds = NavShardDataset([root], max_observations=4, max_action_labels=8)
     batch = NavCollator(builder, tiny_policy.image_processor)([ds[0], ds[1]])
     assert int((batch["labels"] != IGNORE_INDEX).sum()) == 2 * (len(ds[0].steps) + len(ds[1].steps))
+
+
+def _long_trajectory(T: int = 100, seed: int = 3) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    acts = [int(a) for a in rng.integers(1, 4, size=T - 1)] + [int(Action.STOP)]
+    return Trajectory("long", acts, rng.integers(0, 255, (T, 4, 4, 3), dtype=np.uint8), list(range(T)))
+
+
+def test_streaming_samples_are_what_the_agent_sees_at_the_cut():
+    """``context=(sparse, dense)``: a sample is the agent's context after ``cut + 1`` observations
+    (one per two actions), labelled with the oracle's next two actions at every frame."""
+    from image2sim.navpolicy.data import select_context_frames
+
+    traj = _long_trajectory()
+    seen_cuts = set()
+    for seed in range(40):
+        s = make_sample(traj, 16, 32, np.random.default_rng(seed), stride=2, context=(8, 8))
+        obs_index = [t // 2 for t in s.steps]  # the agent's observation k is taken at step 2k
+        cut = obs_index[-1]
+        seen_cuts.add(cut)
+        assert obs_index == select_context_frames(cut + 1, 8, 8)
+        assert all(t % 2 == 0 for t in s.steps) and s.steps[0] == 0
+        # Executed = every action between consecutive context frames (the agent's history text).
+        assert all(
+            s.executed[j] == tuple(traj.actions[s.steps[j - 1] : s.steps[j]]) for j in range(1, len(s.steps))
+        )
+        assert s.targets == [tuple(traj.actions[t : t + 2]) for t in s.steps]
+        np.testing.assert_array_equal(s.observations, np.asarray(traj.frames)[s.steps])
+    # Cuts are spread over the whole episode, not only its end (where the uniform layout always ends).
+    assert min(seen_cuts) < 15 and max(seen_cuts) > 35 and len(seen_cuts) > 20
+    # Without rng: the cut is the end, so the last label is the final STOP.
+    end = make_sample(traj, 16, 32, None, stride=2, context=(8, 8))
+    assert end.steps[-1] == 98 and end.targets[-1] == (int(traj.actions[98]), int(Action.STOP))
+
+
+def test_streaming_samples_label_stop_only_at_the_end():
+    """Uniform layout: every sample ends in the trajectory's last sixteenth, where the full context is
+    followed by STOP. Streaming: STOP ends only the samples cut at the end."""
+    traj = _long_trajectory()
+    stop = int(Action.STOP)
+    uni = [make_sample(traj, 16, 32, np.random.default_rng(s), stride=2) for s in range(60)]
+    assert all(len(s.steps) == 16 and s.steps[-1] >= 92 for s in uni)
+    rngs = [np.random.default_rng(s) for s in range(60)]
+    stream = [make_sample(traj, 16, 32, rng, stride=2, context=(8, 8)) for rng in rngs]
+    with_stop = sum(stop in s.targets[-1] for s in stream)
+    assert with_stop < 10  # 1 of 50 cuts ends the episode: ~1.2 expected in 60 draws
+
+
+def test_streaming_context_must_fit_the_sample():
+    traj = _long_trajectory(20)
+    with pytest.raises(ValueError, match="streaming context"):
+        make_sample(traj, 8, 16, stride=2, context=(8, 8))
+    with pytest.raises(ValueError, match="dense >= 1"):
+        make_sample(traj, 16, 32, stride=2, context=(8, 0))
+
+
+def test_streaming_config_is_validated(tiny_cfg):
+    import copy
+
+    from image2sim.navpolicy.config import ConfigError
+    from image2sim.navpolicy.data import sample_options
+
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.data.sampling = "streaming"
+    cfg.agent.sparse_frames, cfg.agent.dense_frames = 8, 8
+    cfg.data.max_observations, cfg.data.max_action_labels = 16, 32
+    assert sample_options(cfg.validate())["context"] == (8, 8)
+    cfg.agent.sparse_frames = 24
+    with pytest.raises(ConfigError, match="sparse_frames"):
+        cfg.validate()
+    cfg.data.sampling = "random"
+    with pytest.raises(ConfigError, match="uniform or streaming"):
+        cfg.validate()

@@ -27,7 +27,7 @@ def engine_run(tmp_path_factory):
     summary = run_engine(
         root / "captures",
         out,
-        EngineConfig(per_scene=4, render="none", seed=1),
+        EngineConfig(per_scene=4, render="none", seed=1, sampling={"min_path_length": 1.0}),
         executor="local",
         progress=False,
     )

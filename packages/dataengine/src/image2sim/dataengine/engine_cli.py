@@ -99,6 +99,14 @@ def episodes_command(
     workers: int = typer.Option(2, "--workers", min=1, help="Ray workers (local cluster)."),
     address: str | None = typer.Option(None, "--address", help="Join a Ray cluster at this address."),
     min_steps: int | None = typer.Option(None, "--min-steps", help="Drop episodes with fewer actions."),
+    sampling: list[str] = typer.Option(
+        None,
+        "--sampling",
+        "-S",
+        help="Trajectory sampling option key=value (repeatable; SamplingConfig fields), e.g. "
+        "min_path_length=1.0 for houses too small for a 3 m path (such episodes start inside the 3 m "
+        "success distance of the evaluation).",
+    ),
 ) -> None:
     """Sample, roll out, render and annotate episodes for every scene (resumable; one Ray task per scene)."""
     from image2sim.dataengine.distributed import RunError, run_engine
@@ -122,6 +130,7 @@ def episodes_command(
             seed=seed,
             renderer=None if renderer is None else str(renderer),
             rollout={} if min_steps is None else {"min_steps": min_steps},
+            sampling=_parse_options(sampling),
         )
         summary = run_engine(scenes, out, cfg, executor=executor, workers=workers, address=address)
     except (RunError, ValueError) as err:

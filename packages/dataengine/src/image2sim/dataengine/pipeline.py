@@ -332,7 +332,12 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
-    from image2sim.dataengine.visibility import Occupancy, VisibilityConfig, visible_categories
+    from image2sim.dataengine.visibility import (
+        Occupancy,
+        VisibilityConfig,
+        near_categories,
+        visible_categories,
+    )
 
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
@@ -340,6 +345,8 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and objects else None
     obj_map = navmap.to_map(np.array([o.position for o in objects], dtype=np.float64).reshape(-1, 3))
     eye_up = np.array([0.0, 0.0, float(navmap.embodiment.eye_height)])
+    index_of = {int(o.object_id): i for i, o in enumerate(objects)}
+    near_of: dict[int, list[str]] = {}  # goal object id -> its "near" landmarks (computed once per goal)
     requests, chunks = [], []
     for k, (plan, r) in enumerate(kept):
         eid = f"{inputs.name}-{k:05d}"
@@ -352,6 +359,9 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         ]
         rooms = [_room_at(objects, world[m.start]) for m in steps]
         style, structure, tone = route_style(rng)
+        gid = int(plan.goal_object["object_id"])
+        if gid not in near_of:
+            near_of[gid] = near_categories(index_of[gid], objects, obj_map, occupancy)
         images = []
         if vlm:
             images = [_annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
@@ -367,6 +377,7 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
                 structure,
                 tone,
                 seed=int(rng.integers(2**31)),
+                near=near_of[gid],
             )
         )
         chunks.append(steps)

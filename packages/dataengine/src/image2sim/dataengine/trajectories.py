@@ -77,8 +77,10 @@ class SamplingConfig:
     at most this times the goal radius (rejects points behind walls)."""
     start_candidates: int = 32
     """Random candidate starts among which furthest-point sampling picks the best-covering one."""
-    min_path_length: float = 1.0
-    """Fallback lower bound (metres) when no bucket is feasible in a small scene."""
+    min_path_length: float = 3.0
+    """Fallback lower bound (metres, geodesic) when no bucket is feasible in a small scene. Keep it at
+    or above the evaluation's success distance (3 m in every protocol): a shorter episode starts
+    inside the success radius and is solved by stopping at once."""
     bucket_fallback: bool = True
     """Small scenes: when the drawn bucket has no candidate, try the other buckets, then any length
     >= ``min_path_length`` (recorded as bucket ``fallback``)."""

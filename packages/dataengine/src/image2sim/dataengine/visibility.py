@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Occupancy", "VisibilityConfig", "in_view", "visible_categories"]
+__all__ = ["NearConfig", "Occupancy", "VisibilityConfig", "in_view", "near_categories", "visible_categories"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +112,23 @@ class Occupancy:
         out[inside] = self.occupied[q[:, 0], q[:, 1], q[:, 2]]
         return out
 
+    def mutually_visible(self, a: np.ndarray, b: np.ndarray, own_extent: float) -> bool:
+        """True when the segment between two objects' centres a and b (sampled every half voxel) is free
+        but for their own bodies: an unbroken run of occupied samples starting at either end and ending
+        within ``own_extent`` metres of it."""
+        a = np.asarray(a, dtype=np.float64).reshape(3)
+        b = np.asarray(b, dtype=np.float64).reshape(3)
+        length = float(np.linalg.norm(b - a))
+        s = np.append(np.arange(0.0, length, 0.5 * self.voxel), length)
+        pts = a + (s / max(length, 1e-12))[:, None] * (b - a)
+        occ = self.is_occupied(pts)
+        lo, hi = 0, len(s)
+        while lo < hi and occ[lo] and s[lo] <= own_extent:  # a's own body
+            lo += 1
+        while hi > lo and occ[hi - 1] and length - s[hi - 1] <= own_extent:  # b's own body
+            hi -= 1
+        return not occ[lo:hi].any()
+
     def segments_clear(self, eye: np.ndarray, targets: np.ndarray, tolerance: float) -> np.ndarray:
         """(N,) True where the first occupied voxel met on the segment eye -> target (sampled every half
         voxel, so none is skipped) lies within ``tolerance`` metres of the target, or there is none:
@@ -172,3 +189,47 @@ def visible_categories(
         idx = np.nonzero(ok)[0]
         ok[idx] = occupancy.segments_clear(eye, pos[idx], cfg.tolerance)
     return sorted({objects[i].category for i in np.nonzero(ok)[0]})
+
+
+@dataclass(frozen=True)
+class NearConfig:
+    """When an instruction may say "the goal near the X" (a spatial relation that must hold)."""
+
+    max_distance: float = 2.5
+    """Centre-to-centre distance (metres) within which two objects are "near"."""
+    max_height_difference: float = 1.0
+    """Larger vertical offsets mean another storey (or a shelf far above): never "near"."""
+    own_extent: float = 1.0
+    """How far (metres) from its centre an object's own body may block the line between the two."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_distance", "max_height_difference", "own_extent"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"NearConfig.{name} must be a positive number, got {v!r}")
+
+
+def near_categories(
+    goal_index: int,
+    objects: Sequence,
+    positions: np.ndarray,
+    occupancy: Occupancy | None,
+    config: NearConfig | None = None,
+) -> list[str]:
+    """Sorted categories of the objects "near" ``objects[goal_index]``: within ``max_distance``, on the
+    same storey (``max_height_difference``) and mutually visible (no wall between them; skipped when
+    ``occupancy`` is None). The goal's own category is never its own landmark."""
+    cfg = config or NearConfig()
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    goal = pos[goal_index]
+    goal_cat = objects[goal_index].category
+    out = set()
+    for i, p in enumerate(pos):
+        if i == goal_index or objects[i].category == goal_cat:
+            continue
+        if abs(p[2] - goal[2]) > cfg.max_height_difference or np.linalg.norm(p - goal) > cfg.max_distance:
+            continue
+        if occupancy is not None and not occupancy.mutually_visible(goal, p, cfg.own_extent):
+            continue
+        out.add(objects[i].category)
+    return sorted(out)

@@ -22,30 +22,10 @@ import numpy as np
 import torch
 from image2sim.navpolicy.actions import ACTIONS_PER_STEP, parse_actions
 from image2sim.navpolicy.config import AgentConfig
-from image2sim.navpolicy.data import image_token_counts
+from image2sim.navpolicy.data import image_token_counts, select_context_frames
 from image2sim.navpolicy.model import NavPolicy, base_qwen
 from image2sim.navpolicy.prompting import IMAGE_TOKEN, PromptBuilder, Turn, common_prefix_length
 from image2sim.simulator.conventions import Action
-
-
-def select_context_frames(n: int, sparse: int, dense: int) -> list[int]:
-    """Frame indices (sorted) of the context for an episode with ``n`` observations.
-
-    All frames while ``n <= sparse + dense``; otherwise the ``dense`` latest frames plus every
-    ``stride``-th earlier frame (0, s, 2s, ...), with ``stride`` the smallest power of two giving at
-    most ``sparse`` of them.
-    """
-    if n <= 0:
-        return []
-    if n <= sparse + dense:
-        return list(range(n))
-    history = n - dense
-    if sparse <= 0:
-        return list(range(history, n))
-    stride = 1
-    while -(-history // stride) > sparse:
-        stride *= 2
-    return list(range(0, history, stride)) + list(range(history, n))
 
 
 @dataclass

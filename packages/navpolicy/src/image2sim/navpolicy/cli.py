@@ -77,18 +77,14 @@ def inspect_cmd(
     config: Annotated[str, typer.Option(help="Preset or YAML.")] = "tiny",
 ) -> None:
     """Print the training prompt of one sample, marking the labelled (action) tokens with [[...]]."""
-    from image2sim.navpolicy.data import NavCollator, ShardReader, make_sample
+    from image2sim.navpolicy.data import NavCollator, NavShardDataset, sample_options
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 
     cfg = _config(config)
     pol = build_policy(cfg, seed=0)
-    sample = make_sample(
-        ShardReader(shard)[index],
-        cfg.data.max_observations,
-        cfg.data.max_action_labels,
-        stride=cfg.data.observation_stride,
-    )
+    opts = sample_options(cfg) | {"jitter": False}  # deterministic: the last cut, bin centres
+    sample = NavShardDataset([shard], **opts)[index]
     batch = NavCollator(PromptBuilder(pol.tokenizer, pol.codec, cfg.system_prompt), pol.image_processor)(
         [sample]
     )

@@ -133,6 +133,11 @@ class DataConfig:
     observation_stride: int = 1
     """Sample observations only at steps that are multiples of this; 2 matches the streaming agent,
     which observes once per two actions (stride 1 shows every step of short trajectories)."""
+    sampling: str = "uniform"
+    """Sample layout. ``uniform`` (the paper): observations spread over the whole trajectory, the last
+    one at its end. ``streaming``: the agent's sparse-dense context (``agent.sparse_frames``,
+    ``agent.dense_frames``) at a uniformly drawn point of the trajectory, i.e. what the streaming
+    agent sees when it is asked there (see :func:`image2sim.navpolicy.data.make_sample`)."""
     num_workers: int = 0
     """DataLoader worker processes."""
 
@@ -290,6 +295,16 @@ class NavPolicyConfig:
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
+        if self.data.sampling not in ("uniform", "streaming"):
+            raise ConfigError(f"data.sampling must be uniform or streaming, not {self.data.sampling!r}")
+        if self.data.sampling == "streaming" and (
+            self.agent.sparse_frames + self.agent.dense_frames
+            > min(self.data.max_observations, self.data.max_action_labels // 2)
+        ):
+            raise ConfigError(
+                "data.sampling streaming: agent.sparse_frames + agent.dense_frames must fit "
+                "data.max_observations (and data.max_action_labels / 2)"
+            )
         if self.data.observation_stride < 1:
             raise ConfigError(f"data.observation_stride must be >= 1, got {self.data.observation_stride}")
         if self.observation.camera not in ("pinhole", "equirect"):

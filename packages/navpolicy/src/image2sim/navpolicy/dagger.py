@@ -611,7 +611,7 @@ def run_dagger(
             ``ValueError``); False discards it and starts over.
     """
     from image2sim.navpolicy.agent import Image2NavAgent
-    from image2sim.navpolicy.data import InMemoryNavDataset, ShardWriter
+    from image2sim.navpolicy.data import InMemoryNavDataset, ShardWriter, sample_options
     from image2sim.navpolicy.model import build_policy, export_policy
     from image2sim.navpolicy.train import train_bc
     from image2sim.simulator.config import save_config
@@ -722,14 +722,7 @@ def run_dagger(
             rc.train.max_steps = dc.train_steps_per_round
             rc.train.seed = cfg.train.seed + r
             rc.train.checkpoint_every = max(1, min(rc.train.checkpoint_every, dc.train_steps_per_round))
-            ds = InMemoryNavDataset(
-                aggregated,
-                cfg.data.max_observations,
-                cfg.data.max_action_labels,
-                cfg.data.jitter,
-                rc.train.seed,
-                cfg.data.observation_stride,
-            )
+            ds = InMemoryNavDataset(aggregated, seed=rc.train.seed, **sample_options(cfg))
             tdir = rdir / "train"
             last = tdir / "checkpoints" / "last.ckpt"
             res = train_bc(

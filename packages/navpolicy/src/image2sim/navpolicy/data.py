@@ -135,19 +135,62 @@ def next_actions(actions: Sequence[int], step: int, count: int = ACTIONS_PER_STE
     return tuple(int(actions[t]) if t < len(actions) else int(Action.STOP) for t in range(step, step + count))
 
 
+def select_context_frames(n: int, sparse: int, dense: int) -> list[int]:
+    """Frame indices (sorted) of the streaming agent's context for an episode with ``n`` observations.
+
+    All frames while ``n <= sparse + dense``; otherwise the ``dense`` latest frames plus every
+    ``stride``-th earlier frame (0, s, 2s, ...), with ``stride`` the smallest power of two giving at
+    most ``sparse`` of them.
+    """
+    if n <= 0:
+        return []
+    if n <= sparse + dense:
+        return list(range(n))
+    history = n - dense
+    if sparse <= 0:
+        return list(range(history, n))
+    stride = 1
+    while -(-history // stride) > sparse:
+        stride *= 2
+    return list(range(0, history, stride)) + list(range(history, n))
+
+
+def sample_options(cfg) -> dict:
+    """Dataset keyword arguments of a :class:`~image2sim.navpolicy.config.NavPolicyConfig`: the sample
+    layout (``data.sampling``: the streaming layout takes the agent's sparse/dense frame counts)."""
+    d = cfg.data
+    context = (cfg.agent.sparse_frames, cfg.agent.dense_frames) if d.sampling == "streaming" else None
+    return {
+        "max_observations": d.max_observations,
+        "max_action_labels": d.max_action_labels,
+        "jitter": d.jitter,
+        "stride": d.observation_stride,
+        "context": context,
+    }
+
+
 def make_sample(
     traj: Trajectory,
     max_observations: int = 32,
     max_action_labels: int = 64,
     rng: np.random.Generator | None = None,
     stride: int = 1,
+    context: tuple[int, int] | None = None,
 ) -> NavSample:
-    """Sample observations uniformly along ``traj`` and pair each with its next two actions.
+    """Sample observations of ``traj`` and pair each with its next two actions.
 
     ``stride``: only frames at steps that are multiples of it are candidates. With
     ``stride = ACTIONS_PER_STEP`` (2) a sample looks like what the streaming agent sees at inference
     (an observation every two actions, ``Executed:`` lists of two), also on short trajectories where
     stride 1 would show every step.
+
+    ``context=None`` (the paper's layout): observations spread uniformly over the *whole* trajectory,
+    so the last one is always its end (labelled STOP). ``context=(sparse, dense)``: the streaming
+    agent's layout at a cut drawn uniformly among the candidates (the last one without ``rng``): the
+    frames :func:`select_context_frames` gives for the candidates up to the cut. The sample then ends
+    where an agent at that point of the episode would be asked, so STOP is the last label only when
+    the cut is the end, not whenever the context is full (a small policy trained on whole-trajectory
+    samples learns "16 observations in the context: stop").
     """
     n_obs = min(max_observations, max_action_labels // ACTIONS_PER_STEP)
     if n_obs < 1:
@@ -155,7 +198,17 @@ def make_sample(
     if stride < 1:
         raise ValueError(f"observation stride must be >= 1, got {stride}")
     cand = [i for i, s in enumerate(traj.frame_steps) if int(s) % stride == 0] or [0]
-    idx = [cand[i] for i in uniform_indices(len(cand), n_obs, rng)]
+    if context is None:
+        idx = [cand[i] for i in uniform_indices(len(cand), n_obs, rng)]
+    else:
+        sparse, dense = (int(v) for v in context)
+        if dense < 1 or sparse < 0 or sparse + dense > n_obs:
+            raise ValueError(
+                f"streaming context ({sparse} sparse + {dense} dense frames) must have dense >= 1 and fit "
+                f"the {n_obs} observations a sample holds"
+            )
+        cut = len(cand) - 1 if rng is None else int(rng.integers(len(cand)))
+        idx = [cand[i] for i in select_context_frames(cut + 1, sparse, dense)]
     steps = [int(traj.frame_steps[i]) for i in idx]
     executed, prev = [], None
     for s in steps:
@@ -314,8 +367,9 @@ class NavShardDataset(torch.utils.data.Dataset):
         jitter: bool = True,
         seed: int = 0,
         stride: int = 1,
+        context: tuple[int, int] | None = None,
     ) -> None:
-        self.stride = stride
+        self.stride, self.context = stride, context
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s) for s in shards]
@@ -335,8 +389,12 @@ class NavShardDataset(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> NavSample:
         r, j = self.index[i]
         rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
+        return self.sample(self.readers[r][j], rng)
+
+    def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
+        """``traj`` as this dataset samples it (observation layout, stride, context)."""
         return make_sample(
-            self.readers[r][j], self.max_observations, self.max_action_labels, rng, self.stride
+            traj, self.max_observations, self.max_action_labels, rng, self.stride, self.context
         )
 
 
@@ -351,8 +409,9 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
         jitter: bool = True,
         seed: int = 0,
         stride: int = 1,
+        context: tuple[int, int] | None = None,
     ) -> None:
-        self.stride = stride
+        self.stride, self.context = stride, context
         self.trajectories = list(trajectories)
         self.max_observations, self.max_action_labels = max_observations, max_action_labels
         self.jitter, self.seed, self.epoch = jitter, seed, 0
@@ -365,8 +424,12 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> NavSample:
         rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
+        return self.sample(self.trajectories[i], rng)
+
+    def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
+        """``traj`` as this dataset samples it (observation layout, stride, context)."""
         return make_sample(
-            self.trajectories[i], self.max_observations, self.max_action_labels, rng, self.stride
+            traj, self.max_observations, self.max_action_labels, rng, self.stride, self.context
         )
 
 

@@ -24,7 +24,7 @@ import lightning as L
 import numpy as np
 import torch
 from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
-from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, NavShardDataset, make_sample
+from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, NavShardDataset, sample_options
 from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler
@@ -151,8 +151,7 @@ class PositionDataset(torch.utils.data.Dataset):
         else:
             traj = self.base.trajectories[i]
         rng = np.random.default_rng([self.seed, epoch, i]) if self.base.jitter else None
-        stride = getattr(self.base, "stride", 1)
-        sample = make_sample(traj, self.base.max_observations, self.base.max_action_labels, rng, stride)
+        sample = self.base.sample(traj, rng)
         sample.episode_id = sample.episode_id or f"#{i}"
         return sample
 
@@ -248,14 +247,7 @@ class NavBCModule(L.LightningModule):
     def train_dataloader(self):
         tc = self.cfg.train
         if self.dataset is None:
-            self.dataset = NavShardDataset(
-                self.cfg.data.shards,
-                self.cfg.data.max_observations,
-                self.cfg.data.max_action_labels,
-                self.cfg.data.jitter,
-                tc.seed,
-                self.cfg.data.observation_stride,
-            )
+            self.dataset = NavShardDataset(self.cfg.data.shards, seed=tc.seed, **sample_options(self.cfg))
         per_step = tc.batch_size * tc.accumulate_grad_batches
         start = self.trainer.global_step * per_step
         stop = tc.max_steps * per_step

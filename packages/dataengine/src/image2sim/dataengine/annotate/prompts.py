@@ -50,6 +50,10 @@ class AnnotationRequest:
     structure: str
     tone: str
     seed: int = 0
+    near: list[str] = field(default_factory=list)
+    """Categories of objects near the goal (same storey, within a stated distance, mutually visible;
+    :func:`image2sim.dataengine.visibility.near_categories`): the only ones "the goal near the X" may
+    name."""
 
     @property
     def allowed_objects(self) -> set[str]:

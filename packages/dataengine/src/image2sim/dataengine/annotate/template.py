@@ -79,6 +79,9 @@ _DEMAND = {
     "table_lamp": ["It's too dark to read.", "I need more light."],
 }
 _POLITE = ["Please ", "Could you ", "Kindly "]
+_AT = ["at the {l}", "by the {l}"]
+"""Landmarks of turns in place (one does not turn "past" something)."""
+_TURNS_IN_PLACE = {m for m in _VERB_SYNONYMS if m.startswith("turn") and "walk forward" not in m}
 
 
 def _name(cat: str) -> str:
@@ -93,8 +96,28 @@ def _room(room: str | None) -> str:
     return _name(room) if room else ""
 
 
+def _sentence(text: str, question: bool = False) -> str:
+    """Capitalised, with one final mark."""
+    text = text.strip().rstrip(".?")
+    return text[0].upper() + text[1:] + ("?" if question else ".")
+
+
+def _imperative(rng: np.random.Generator, text: str, tone: str) -> str:
+    """One imperative sentence (lower-case verb first, no final mark) in the request's tone."""
+    if tone == "polite":
+        word = _pick(rng, _POLITE)
+        return _sentence(word + text[0].lower() + text[1:], question=word.startswith("Could"))
+    return _sentence(text)
+
+
 def compose(req: AnnotationRequest) -> str:
-    """The instruction text of one request (deterministic in ``req.seed``)."""
+    """The instruction text of one request (deterministic in ``req.seed``).
+
+    Every sentence is built whole in its tone: a polite request wraps an imperative ("Please walk ...",
+    "Could you find ...?"), never a declarative ("Could you your target is ..."); declaratives ("The
+    painting ... needs to be checked.") stand alone. "Near" names only ``req.near`` (objects that are
+    near the goal in the geometry).
+    """
     rng = np.random.default_rng([req.seed, 7])
     goal = _name(req.goal.get("category", "object"))
     room = _room(req.goal.get("room_type"))
@@ -120,37 +143,45 @@ def compose(req: AnnotationRequest) -> str:
             if marks and req.structure != "compact" and rng.random() < 0.6:
                 lm = marks[int(rng.integers(len(marks)))]
                 used.add(lm)
-                c += " " + _pick(rng, _PASS).format(l=_name(lm))
+                c += " " + _pick(rng, _AT if m in _TURNS_IN_PLACE else _PASS).format(l=_name(lm))
             clauses.append(c)
         if req.structure == "compact" and len(clauses) > 3:
             clauses = [clauses[0], clauses[len(clauses) // 2], clauses[-1]]
-        stop = _pick(rng, _STOP).format(g=goal) + (f" in the {room}" if room and rng.random() < 0.5 else "")
+        # "your destination is ..." only joins a route ("walk ..., and your destination is ..."): alone
+        # it is no imperative.
+        stops = _STOP if clauses else [t for t in _STOP if not t.startswith("your")]
+        stop = _pick(rng, stops).format(g=goal) + (f" in the {room}" if room and rng.random() < 0.5 else "")
         if req.structure == "landmark_first":
-            head = f"Your target is the {goal}" + (f" in the {room}" if room else "") + ". "
+            head = _sentence(f"your target is the {goal}" + (f" in the {room}" if room else "")) + " "
         else:
             head = ""
-        body = ""
-        for k, c in enumerate(clauses):
-            body += c if k == 0 else f", {_pick(rng, _JOIN)} {c}"
-        text = head + (body + ", and " if body else "") + stop + "."
+        joins = [", " if req.tone == "terse" else f", {_pick(rng, _JOIN)} " for _ in clauses[1:]]
+        body = clauses[0] + "".join(j + c for j, c in zip(joins, clauses[1:], strict=True)) if clauses else ""
+        text = head + _imperative(rng, (body + ", and " if body else "") + stop, req.tone)
     elif req.style == "reverie":
         where = f" in the {room}" if room else ""
-        near = [v for v in sorted(req.allowed_objects) if v != req.goal.get("category")]
+        near = [v for v in req.near if v != req.goal.get("category")]
         near_txt = f" near the {_name(_pick(rng, near))}" if near and rng.random() < 0.7 else ""
-        first = _pick(
-            rng,
-            [
-                f"The {goal}{where}{near_txt} should be inspected",
-                f"The {goal}{where}{near_txt} needs to be checked",
-                f"The {goal}{near_txt}{where} is to be found",
-                f"The {goal}{where} has been left{near_txt} and must be located",
-            ],
-        )
+        route = ""
         if req.structure == "sequential" and moves:
             route = _pick(rng, _VERB_SYNONYMS.get(moves[0], [moves[0]]))
-            text = f"{first}; it is reached if you {route} and keep going until it is close."
+        if req.tone == "polite":
+            verb = _pick(rng, ["find", "check", "inspect", "locate"])
+            text = _imperative(rng, f"{verb} the {goal}{where}{near_txt}", "polite")
+            if route:
+                text += " " + _sentence(f"to reach it, {route} and keep going until it is close")
         else:
-            text = first + "."
+            first = _pick(
+                rng,
+                [
+                    f"the {goal}{where}{near_txt} should be inspected",
+                    f"the {goal}{where}{near_txt} needs to be checked",
+                    f"the {goal}{near_txt}{where} is to be found",
+                    f"the {goal}{where} has been left{near_txt} and must be located",
+                ],
+            )
+            tail = f"; it is reached if you {route} and keep going until it is close" if route else ""
+            text = _sentence(first + tail)
     else:  # demand
         need = _pick(
             rng,
@@ -161,20 +192,14 @@ def compose(req: AnnotationRequest) -> str:
         ask = _pick(
             rng,
             [
-                f" Go to the {goal}.",
-                f" Find the {goal}" + (f" in the {room}" if room else "") + ".",
-                " Take me there.",
-                f" Head over to the {goal} and wait there.",
+                f"go to the {goal}",
+                f"find the {goal}" + (f" in the {room}" if room else ""),
+                "take me there",
+                f"head over to the {goal} and wait there",
             ],
         )
-        text = need if req.structure == "compact" else need + ask
-    if req.tone == "polite" and req.style != "demand":
-        text = _pick(rng, _POLITE) + text[0].lower() + text[1:]
-        if text.startswith("Could you "):
-            text = text.rstrip(".") + "?"
-    elif req.tone == "terse":
-        text = text.replace(", and then ", ", ").replace(", after that ", ", ")
-    return text[0].upper() + text[1:]
+        text = need if req.structure == "compact" else need + " " + _sentence(ask)
+    return text
 
 
 class TemplateAnnotator:
