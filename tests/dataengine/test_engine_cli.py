@@ -172,3 +172,19 @@ def test_scene_task_with_openai_annotator_applies_the_gate(scenes_root, tmp_path
     assert all(e["instruction"]["instruction_text"] == "Walk ahead and stop there." for e in doc["episodes"])
     manifest = json.loads((tmp_path / "scenes" / "scene_000" / "shard" / "manifest.json").read_text())
     assert manifest["num_trajectories"] == summary["episodes"]
+
+
+def test_cli_episodes_exits_non_zero_when_no_scene_yields_an_episode(tmp_path):
+    """A one-room house (~2.6 m^2) holds no path of the shortest bucket (3 m): 0 episodes is an error,
+    with the per-scene reason, not a silent empty dataset."""
+    from image2sim.dataengine.procedural import preset, synthesize
+
+    synthesize(preset("tiny"), tmp_path / "s", scenes=1, seed=0, progress=False)
+    res = CliRunner().invoke(
+        build_app(),
+        ["data", "episodes", "--scenes", str(tmp_path / "s" / "scene_000"), "--out", str(tmp_path / "o"),
+         "--per-scene", "2", "--executor", "local", "--render", "none"],
+    )  # fmt: skip
+    assert res.exit_code == 1, res.output
+    assert "scene scene_000: 0 episodes" in res.output and "infeasible" in res.output
+    assert "no episode was produced" in res.output and "min_path_length" in res.output

@@ -209,12 +209,13 @@ def run_engine(
 def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -> dict:
     """Rebuild ``{out}/{split}/{split}.json.gz`` (+ gt) and the shard list from finished scenes."""
     out_dir = Path(out_dir)
-    episodes, gt, shards, done = [], {}, [], []
+    episodes, gt, shards, done, per_scene = [], {}, [], [], {}
     for name in sorted(scene_names):
         folder = out_dir / "scenes" / name
         if not (folder / DONE_FILE).is_file():
             continue
         doc = json.loads((folder / EPISODES_FILE).read_text())
+        per_scene[name] = _scene_outcome(json.loads((folder / DONE_FILE).read_text()), len(doc["episodes"]))
         episodes += doc["episodes"]
         gt.update(doc["gt"])
         done.append(name)
@@ -228,4 +229,18 @@ def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -
         "episode_file": str(main),
         "gt_file": str(gt_path),
         "shards": len(shards),
+        "per_scene": per_scene,
     }
+
+
+def _scene_outcome(done: dict, n: int) -> dict:
+    """One scene's line of the run summary: its episode count and, when it has none, why (the most
+    frequent reasons of its planning and rollout statistics)."""
+    out: dict = {"episodes": n}
+    if n == 0:
+        reasons = {k: v for k, v in {**done.get("plan_stats", {}), **done.get("drops", {})}.items()}
+        reasons.pop("planned", None)
+        top = sorted(reasons.items(), key=lambda kv: -kv[1])[:3]
+        out["why"] = ", ".join(f"{k}: {v}" for k, v in top) or "no objects to navigate to"
+        out["navigable_area_m2"] = round(float(done.get("navigable_area", 0.0)), 2)
+    return out

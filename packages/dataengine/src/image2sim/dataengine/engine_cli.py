@@ -144,6 +144,15 @@ def episodes_command(
             indent=1,
         )
     )
+    if summary["episodes"] == 0:
+        for name, outcome in summary.get("per_scene", {}).items():
+            typer.echo(f"scene {name}: 0 episodes ({outcome.get('why', '')})", err=True)
+        typer.echo(
+            "error: no episode was produced (every scene failed or had none); see the per-scene reasons "
+            "above. Small houses: --sampling min_path_length=... allows shorter episodes.",
+            err=True,
+        )
+        raise typer.Exit(1)
 
 
 @app.command("stats")
