@@ -219,3 +219,31 @@ def test_movement_text_cases():
     assert movement_text(0.5, 90.0, cfg) == "turn left and walk forward"
     assert movement_text(0.0, 0.0, cfg) == "stay in place"
     assert movement_text(0.0, 15.0, cfg) == "turn slightly left"
+
+
+def test_a_path_that_walks_past_the_goal_is_cut_at_its_closest_approach():
+    from image2sim.dataengine.rollout import Rollout, closest_approach_cut, truncate_rollout
+
+    # Walk along x from 0 to 6 m; the object stands at x = 3 m, 1 m to the side.
+    xs = np.arange(0.0, 6.01, 0.25)
+    pos = np.column_stack((xs, np.zeros_like(xs), np.zeros_like(xs)))
+    target = np.array([3.0, 1.0, 0.5])
+    k = closest_approach_cut(pos, target, overshoot=1.0)
+    assert k == 12 and pos[k, 0] == 3.0  # the first state at the minimum distance
+    assert closest_approach_cut(pos[:16], target, overshoot=1.0) is None  # ends 0.8 m past: kept
+    acts = [int(Action.MOVE_FORWARD)] * (len(xs) - 1) + [int(Action.STOP)]
+    r = Rollout(acts, np.vstack((pos, pos[-1:])), np.zeros(len(xs) + 1), [False] * len(acts))
+    cut = truncate_rollout(r, k)
+    assert cut.actions == [int(Action.MOVE_FORWARD)] * 12 + [int(Action.STOP)]
+    assert len(cut.positions) == len(cut.actions) + 1 and cut.positions[-1, 0] == 3.0
+    assert cut.path_length == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="cannot cut"):
+        truncate_rollout(r, 99)
+
+
+def test_bucket_of_names_the_bucket_or_rejects_a_too_short_path():
+    from image2sim.dataengine.trajectories import bucket_of
+
+    cfg = SamplingConfig()
+    assert [bucket_of(x, cfg) for x in (3.0, 7.5, 14.9)] == ["short", "medium", "long"]
+    assert bucket_of(16.0, cfg) == "fallback" and bucket_of(2.9, cfg) is None

@@ -21,15 +21,21 @@ import math
 import shutil
 import time
 import zlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps
 from image2sim.dataengine.episodes import episode_record
 from image2sim.dataengine.mining import MiningConfig
-from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
-from image2sim.dataengine.trajectories import SamplingConfig, episode_capacity, sample_plans
+from image2sim.dataengine.rollout import (
+    RolloutConfig,
+    closest_approach_cut,
+    replay,
+    rollout_plan,
+    truncate_rollout,
+)
+from image2sim.dataengine.trajectories import SamplingConfig, bucket_of, episode_capacity, sample_plans
 from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.atomic import write_bytes_atomic
 
@@ -253,6 +259,26 @@ def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None
 # ---------------------------------------------------------------------------------------- helpers
 
 
+def _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg):
+    """A rollout that walks past the goal object (its end is more than ``rcfg.overshoot`` farther from
+    the object than its closest approach) stops at the closest approach instead; the episode's goal and
+    length follow. Dropped (reason ``overshoot_too_short``) when the cut path is no longer a valid
+    episode (shorter than the sampling config allows, or than ``rcfg.min_steps``)."""
+    target = navmap.to_map(np.asarray(plan.goal_object["position"], dtype=np.float64).reshape(1, 3))[0]
+    k = closest_approach_cut(r.positions, target, rcfg.overshoot)
+    if k is None:
+        return r, plan
+    cut = truncate_rollout(r, k)
+    geo, why = sim.planner.geodesic_distance(plan.start, cut.positions[-1])
+    bucket = None if why else bucket_of(float(geo), scfg)
+    if bucket is None or len(cut.actions) < rcfg.min_steps:
+        cut.reason = "overshoot_too_short"
+        return cut, plan
+    cut.extra["cut_past_goal_m"] = float(r.path_length - cut.path_length)
+    plan = replace(plan, goal=cut.positions[-1].copy(), geodesic_distance=float(geo), bucket=bucket)
+    return cut, plan
+
+
 def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
 
@@ -317,6 +343,8 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     kept = []
     for plan in plans:
         r = rollout_plan(sim, follower, plan, rcfg)
+        if r.ok:
+            r, plan = _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg)
         if not r.ok:
             drops[r.reason] = drops.get(r.reason, 0) + 1
             continue
@@ -459,6 +487,7 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         "capacity": n,
         "planned": len(plans),
         "rolled_out_ok": len(kept),
+        "stopped_at_goal": sum("cut_past_goal_m" in r.extra for _, r in kept),
         "episodes": len(episodes),
         "drops": drops,
         "plan_stats": plan_stats,

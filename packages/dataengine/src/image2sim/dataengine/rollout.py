@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from image2sim.simulator.conventions import Action
 
-__all__ = ["RolloutConfig", "Rollout", "rollout_plan", "replay"]
+__all__ = ["RolloutConfig", "Rollout", "closest_approach_cut", "rollout_plan", "replay", "truncate_rollout"]
 
 
 @dataclass(frozen=True)
@@ -28,8 +28,13 @@ class RolloutConfig:
     """Episodes with fewer actions (STOP included) are dropped."""
     allow_collisions: bool = False
     """Keep rollouts in which a forward step was blocked (wall sliding). Off: every episode is clean."""
+    overshoot: float = 1.0
+    """A rollout that ends more than this (metres) farther from the goal object than its closest
+    approach is cut there and stops there: paths stop at the goal, not past it."""
 
     def __post_init__(self) -> None:
+        if not self.overshoot >= 0:
+            raise ValueError(f"RolloutConfig.overshoot must be >= 0, got {self.overshoot!r}")
         if self.max_steps < 1 or self.min_steps < 1 or self.min_steps > self.max_steps:
             raise ValueError(
                 f"RolloutConfig: need 1 <= min_steps <= max_steps, got {self.min_steps}, {self.max_steps}"
@@ -110,6 +115,31 @@ def rollout_plan(sim, follower, plan, config: RolloutConfig | None = None) -> Ro
     elif np.linalg.norm(r.positions[-1, :2] - np.asarray(plan.goal)[:2]) > plan.goal_radius:
         r.reason = "outside_goal_radius"
     return r
+
+
+def closest_approach_cut(positions: np.ndarray, target: np.ndarray, overshoot: float) -> int | None:
+    """The state index to stop at when the path ends more than ``overshoot`` metres (horizontal) farther
+    from ``target`` than its closest approach: the first state at that minimum distance. ``None`` when
+    the end is already within ``overshoot`` of it."""
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    d = np.linalg.norm(p[:, :2] - np.asarray(target, dtype=np.float64)[:2], axis=1)
+    if d[-1] - d.min() <= overshoot:
+        return None
+    return int(np.argmin(d))
+
+
+def truncate_rollout(r: Rollout, k: int) -> Rollout:
+    """``r`` stopped at state ``k``: its first ``k`` actions, then STOP."""
+    if not 0 <= k < len(r.positions):
+        raise ValueError(f"cannot cut a rollout of {len(r.positions)} states at state {k}")
+    return Rollout(
+        [int(a) for a in r.actions[:k]] + [int(Action.STOP)],
+        np.concatenate((r.positions[: k + 1], r.positions[k : k + 1])),
+        np.concatenate((r.headings[: k + 1], r.headings[k : k + 1])),
+        list(r.collided[:k]) + [False],
+        truncated_stuck=r.truncated_stuck,
+        extra=dict(r.extra),
+    )
 
 
 def replay(sim, start: np.ndarray, heading: float, actions) -> tuple[np.ndarray, np.ndarray, list[bool]]:

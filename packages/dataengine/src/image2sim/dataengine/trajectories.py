@@ -120,6 +120,17 @@ class EpisodePlan:
     extra: dict = field(default_factory=dict)
 
 
+def bucket_of(geodesic: float, config: SamplingConfig) -> str | None:
+    """The name of the bucket a path length falls in, ``"fallback"`` for any other length the config
+    accepts (>= ``min_path_length`` with ``bucket_fallback``), else ``None`` (not a valid episode)."""
+    for b in config.buckets:
+        if b.min_length <= geodesic < b.max_length:
+            return b.name
+    if config.bucket_fallback and geodesic >= config.min_path_length:
+        return "fallback"
+    return None
+
+
 def episode_capacity(navigable_area: float, config: SamplingConfig) -> int:
     """Per-scene episode count: area x density clamped to [min_episodes, max_episodes]."""
     if not math.isfinite(navigable_area) or navigable_area < 0:
