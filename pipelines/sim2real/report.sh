@@ -11,7 +11,8 @@ from pathlib import Path
 import yaml
 
 cfg = yaml.safe_load(Path(sys.argv[1]).read_text())
-print(sum(json.loads((Path(s) / "manifest.json").read_text())["num_trajectories"] for s in cfg["data"]["shards"]))
+n = sum(json.loads((Path(s) / "manifest.json").read_text())["num_trajectories"] for s in cfg["data"]["shards"])
+print(min(n, cfg["data"].get("max_trajectories") or n))
 PY
 }
 scaling=()

@@ -306,3 +306,32 @@ def test_streaming_config_is_validated(tiny_cfg):
     cfg.data.sampling = "random"
     with pytest.raises(ConfigError, match="uniform or streaming"):
         cfg.validate()
+
+
+def test_end_cut_probability_oversamples_the_final_stop():
+    traj = _long_trajectory()
+    stop = int(Action.STOP)
+    for p, lo, hi in ((0.0, 0, 6), (0.3, 40, 80), (1.0, 200, 200)):
+        n = sum(
+            stop in make_sample(traj, 16, 32, np.random.default_rng(s), 2, (8, 8), p).targets[-1]
+            for s in range(200)
+        )
+        assert lo <= n <= hi, (p, n)
+
+
+def test_max_trajectories_keeps_the_first_ones_in_shard_order(tmp_path, tiny_cfg):
+    import copy
+
+    from image2sim.navpolicy.config import ConfigError
+
+    a = write_shard(tmp_path / "a", synthetic_trajectories(3, height=8, width=8, seed=1))
+    b = write_shard(tmp_path / "b", synthetic_trajectories(4, height=8, width=8, seed=2))
+    full = NavShardDataset([a, b])
+    part = NavShardDataset([a, b], max_trajectories=5)
+    assert len(full) == 7 and len(part) == 5 and part.index == full.index[:5]
+    with pytest.raises(ValueError, match="max_trajectories"):
+        NavShardDataset([a], max_trajectories=0)
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.data.shards, cfg.data.shard_weights, cfg.data.max_trajectories = [str(a), str(b)], [1.0, 1.0], 3
+    with pytest.raises(ConfigError, match="max_trajectories"):
+        cfg.validate()

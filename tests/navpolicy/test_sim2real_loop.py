@@ -321,3 +321,22 @@ def test_paper_preset_has_the_papers_dagger_budget():
         d = load_config(name).dagger
         assert d.rounds * d.train_steps_per_round == 10_000
         assert (d.chunk_min, d.chunk_max) == (4, 32)
+
+
+def test_sim2real_config_and_scaling_points_compose():
+    """The experiment's real configs: the policy trains on samples laid out as its streaming context
+    (the layout that stops the early-STOP shortcut), and the scaling curve spans >= 8x."""
+    from pathlib import Path
+
+    import yaml
+    from image2sim.navpolicy.config import load_config
+    from image2sim.navpolicy.data import sample_options
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = load_config(str(root / "configs/navpolicy/sim2real.yaml"))
+    assert cfg.data.sampling == "streaming" and 0 < cfg.data.end_cut_probability < 1
+    assert sample_options(cfg)["context"] == (cfg.agent.sparse_frames, cfg.agent.dense_frames)
+    params = yaml.safe_load((root / "pipelines/sim2real/params.yaml").read_text())
+    points = [p.split(":") for p in str(params["scaling"]["points"]).split()]
+    capped = [int(p[1]) for p in points if len(p) == 2]
+    assert len(points) + 1 >= 3 and capped and min(capped) * 8 <= 400  # all 8 houses: ~460 episodes

@@ -124,6 +124,10 @@ def train_cmd(
         str, typer.Option(help="Checkpoint to resume from ('last' = the run folder's last).")
     ] = "",
     max_steps: Annotated[int, typer.Option(help="Override train.max_steps (0 = keep).")] = 0,
+    max_trajectories: Annotated[
+        int,
+        typer.Option(help="bc: train on the first N trajectories of the shards (0 = all; scaling curves)."),
+    ] = 0,
     threads: Annotated[
         int, typer.Option(help="torch threads (0 = torch default; tiny models prefer 1).")
     ] = 0,
@@ -202,6 +206,8 @@ def train_cmd(
         overrides.setdefault("data", {})["shard_weights"] = [float(w) for w in shard_weights]
     if max_steps:
         overrides.setdefault("train", {})["max_steps"] = max_steps
+    if max_trajectories:
+        overrides.setdefault("data", {})["max_trajectories"] = max_trajectories
     cfg = _config(config, overrides)
     if not cfg.data.shards:
         raise typer.BadParameter("no training shards: pass --shard or set data.shards", param_hint="--shard")

@@ -138,6 +138,12 @@ class DataConfig:
     one at its end. ``streaming``: the agent's sparse-dense context (``agent.sparse_frames``,
     ``agent.dense_frames``) at a uniformly drawn point of the trajectory, i.e. what the streaming
     agent sees when it is asked there (see :func:`image2sim.navpolicy.data.make_sample`)."""
+    max_trajectories: int | None = None
+    """Behaviour cloning on the first N trajectories of ``shards`` only (in shard order; data-scaling
+    curves). None: all. Not combinable with ``shard_weights``."""
+    end_cut_probability: float = 0.0
+    """``streaming`` only: probability that a sample is cut at the trajectory's end (its last label the
+    final STOP) instead of at a uniform point; 0 leaves STOP as rare as in the trajectories."""
     num_workers: int = 0
     """DataLoader worker processes."""
 
@@ -297,6 +303,14 @@ class NavPolicyConfig:
         self._validate_shard_weights()
         if self.data.sampling not in ("uniform", "streaming"):
             raise ConfigError(f"data.sampling must be uniform or streaming, not {self.data.sampling!r}")
+        if self.data.max_trajectories is not None and (
+            self.data.max_trajectories < 1 or self.data.shard_weights
+        ):
+            raise ConfigError("data.max_trajectories must be >= 1 and cannot be used with data.shard_weights")
+        if not 0.0 <= self.data.end_cut_probability <= 1.0:
+            raise ConfigError(
+                f"data.end_cut_probability must lie in [0, 1], got {self.data.end_cut_probability}"
+            )
         if self.data.sampling == "streaming" and (
             self.agent.sparse_frames + self.agent.dense_frames
             > min(self.data.max_observations, self.data.max_action_labels // 2)

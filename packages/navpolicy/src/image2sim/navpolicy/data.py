@@ -166,6 +166,7 @@ def sample_options(cfg) -> dict:
         "jitter": d.jitter,
         "stride": d.observation_stride,
         "context": context,
+        "end_cut_probability": d.end_cut_probability,
     }
 
 
@@ -176,6 +177,7 @@ def make_sample(
     rng: np.random.Generator | None = None,
     stride: int = 1,
     context: tuple[int, int] | None = None,
+    end_cut_probability: float = 0.0,
 ) -> NavSample:
     """Sample observations of ``traj`` and pair each with its next two actions.
 
@@ -190,7 +192,9 @@ def make_sample(
     frames :func:`select_context_frames` gives for the candidates up to the cut. The sample then ends
     where an agent at that point of the episode would be asked, so STOP is the last label only when
     the cut is the end, not whenever the context is full (a small policy trained on whole-trajectory
-    samples learns "16 observations in the context: stop").
+    samples learns "16 observations in the context: stop"). ``end_cut_probability``: the cut is the
+    end with this probability (else uniform), so the final STOP, one label in a whole trajectory, is
+    seen often enough to be learned.
     """
     n_obs = min(max_observations, max_action_labels // ACTIONS_PER_STEP)
     if n_obs < 1:
@@ -207,7 +211,10 @@ def make_sample(
                 f"streaming context ({sparse} sparse + {dense} dense frames) must have dense >= 1 and fit "
                 f"the {n_obs} observations a sample holds"
             )
-        cut = len(cand) - 1 if rng is None else int(rng.integers(len(cand)))
+        if rng is None or rng.random() < end_cut_probability:
+            cut = len(cand) - 1
+        else:
+            cut = int(rng.integers(len(cand)))
         idx = [cand[i] for i in select_context_frames(cut + 1, sparse, dense)]
     steps = [int(traj.frame_steps[i]) for i in idx]
     executed, prev = [], None
@@ -368,12 +375,18 @@ class NavShardDataset(torch.utils.data.Dataset):
         seed: int = 0,
         stride: int = 1,
         context: tuple[int, int] | None = None,
+        end_cut_probability: float = 0.0,
+        max_trajectories: int | None = None,
     ) -> None:
-        self.stride, self.context = stride, context
+        self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s) for s in shards]
         self.index = [(r, i) for r in range(len(self.readers)) for i in range(len(self.readers[r]))]
+        if max_trajectories is not None:
+            if max_trajectories < 1:
+                raise ValueError(f"max_trajectories must be >= 1, got {max_trajectories}")
+            self.index = self.index[:max_trajectories]  # the first ones, in shard order
         self.max_observations = max_observations
         self.max_action_labels = max_action_labels
         self.jitter = jitter
@@ -394,7 +407,13 @@ class NavShardDataset(torch.utils.data.Dataset):
     def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
         """``traj`` as this dataset samples it (observation layout, stride, context)."""
         return make_sample(
-            traj, self.max_observations, self.max_action_labels, rng, self.stride, self.context
+            traj,
+            self.max_observations,
+            self.max_action_labels,
+            rng,
+            self.stride,
+            self.context,
+            self.end_cut_probability,
         )
 
 
@@ -410,8 +429,9 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
         seed: int = 0,
         stride: int = 1,
         context: tuple[int, int] | None = None,
+        end_cut_probability: float = 0.0,
     ) -> None:
-        self.stride, self.context = stride, context
+        self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
         self.trajectories = list(trajectories)
         self.max_observations, self.max_action_labels = max_observations, max_action_labels
         self.jitter, self.seed, self.epoch = jitter, seed, 0
@@ -429,7 +449,13 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
     def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
         """``traj`` as this dataset samples it (observation layout, stride, context)."""
         return make_sample(
-            traj, self.max_observations, self.max_action_labels, rng, self.stride, self.context
+            traj,
+            self.max_observations,
+            self.max_action_labels,
+            rng,
+            self.stride,
+            self.context,
+            self.end_cut_probability,
         )
 
 

@@ -247,7 +247,12 @@ class NavBCModule(L.LightningModule):
     def train_dataloader(self):
         tc = self.cfg.train
         if self.dataset is None:
-            self.dataset = NavShardDataset(self.cfg.data.shards, seed=tc.seed, **sample_options(self.cfg))
+            self.dataset = NavShardDataset(
+                self.cfg.data.shards,
+                seed=tc.seed,
+                max_trajectories=self.cfg.data.max_trajectories,
+                **sample_options(self.cfg),
+            )
         per_step = tc.batch_size * tc.accumulate_grad_batches
         start = self.trainer.global_step * per_step
         stop = tc.max_steps * per_step
