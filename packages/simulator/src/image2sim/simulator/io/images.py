@@ -19,6 +19,10 @@ _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"
 _JPEG_MAGIC = b"\xff\xd8"
 _JPEG_END = b"\xff\xd9"
+MAX_IMAGE_PIXELS = 100_000_000
+"""Images declaring more pixels are refused from their header, before anything is decoded (a 1 MB PNG
+may declare 32768 x 16384 pixels: 3.5 GB and 13 s to decode). 100 MP covers 12K x 6K panoramas."""
+_SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
 def _read_bytes(path: Path, what: str) -> bytes:
@@ -43,9 +47,47 @@ def _check_complete(path: Path, data: bytes, what: str) -> None:
             raise CaptureError(f"{path}: {what} JPEG is truncated (no end-of-image marker)")
 
 
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """(height, width) declared by a PNG (IHDR) or JPEG (start-of-frame) header, without decoding;
+    None for other formats or a header that cannot be parsed."""
+    if data.startswith(_PNG_MAGIC) and data[12:16] == b"IHDR" and len(data) >= 24:
+        return int.from_bytes(data[20:24], "big"), int.from_bytes(data[16:20], "big")
+    if data.startswith(_JPEG_MAGIC):
+        i = 2
+        while i + 9 <= len(data):
+            if data[i] != 0xFF:
+                return None
+            marker = data[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            if marker in _SOF_MARKERS:
+                return int.from_bytes(data[i + 5 : i + 7], "big"), int.from_bytes(data[i + 7 : i + 9], "big")
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # markers without a length
+                i += 2
+                continue
+            i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
+    return None
+
+
+def _check_dimensions(path: Path, data: bytes, what: str) -> None:
+    size = header_size(data)
+    if size is None:
+        return
+    h, w = size
+    if h < 1 or w < 1:
+        raise CaptureError(f"{path}: {what} image header declares {w} x {h} pixels")
+    if h * w > MAX_IMAGE_PIXELS:
+        raise CaptureError(
+            f"{path}: {what} image declares {w} x {h} pixels ({h * w / 1e6:.0f} MP), above the "
+            f"{MAX_IMAGE_PIXELS / 1e6:.0f} MP limit; refused before decoding"
+        )
+
+
 def _decode(path: Path, what: str, flags: int) -> np.ndarray:
     data = _read_bytes(path, what)
     _check_complete(path, data, what)
+    _check_dimensions(path, data, what)
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     if image is None or image.size == 0:
         raise CaptureError(f"{path}: cannot decode {what} image (unreadable or corrupt file)")
@@ -80,10 +122,11 @@ def image_size(path: Path, what: str = "image") -> tuple[int, int]:
     if not path.is_file():
         raise CaptureError(f"{path}: missing {what} file")
     with path.open("rb") as fh:
-        head = fh.read(24)
-    # PNG: 8-byte magic, then the IHDR chunk (length, b"IHDR", width, height as big-endian uint32).
-    if head.startswith(_PNG_MAGIC) and head[12:16] == b"IHDR":
-        return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
+        head = fh.read(65536)  # PNG IHDR is at byte 16; a JPEG's frame header follows its EXIF/tables
+    size = header_size(head)
+    if size is not None:
+        _check_dimensions(path, head, what)
+        return size
     image = _decode(path, what, cv2.IMREAD_UNCHANGED)
     return int(image.shape[0]), int(image.shape[1])
 
