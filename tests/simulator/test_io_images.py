@@ -61,3 +61,17 @@ def test_a_header_declaring_no_pixels_is_refused(tmp_path):
 def test_unknown_formats_have_no_header_size():
     assert header_size(b"GIF89a....") is None and header_size(b"") is None
     assert header_size(b"\xff\xd8\x00\x00") is None  # a JPEG start without a frame header
+
+
+@pytest.mark.parametrize("value,why", [(0, "no valid pixel"), (65535, "saturated")])
+def test_degenerate_depth_is_refused(tmp_path, value, why):
+    from image2sim.simulator.io.images import read_depth_uint16, write_uint16_png
+
+    p = tmp_path / "depth.png"
+    write_uint16_png(p, np.full((8, 16), value, dtype=np.uint16))
+    with pytest.raises(CaptureError, match=f"depth.png.*{why}"):
+        read_depth_uint16(p)
+    ok = np.full((8, 16), value, dtype=np.uint16)
+    ok[3, 4] = 1000
+    write_uint16_png(p, ok)
+    np.testing.assert_array_equal(read_depth_uint16(p), ok)  # one valid pixel is a (poor) depth map

@@ -259,7 +259,7 @@ def test_hm3d_image_problems(tmp_path: Path) -> None:
         cap[0]
     import cv2
 
-    cv2.imwrite(str(root / "00001_depth.png"), np.zeros((16, 32), np.uint16))
+    cv2.imwrite(str(root / "00001_depth.png"), np.full((16, 32), 1000, np.uint16))
     with pytest.raises(
         CaptureError, match=r"00001_rgb.png: rgb/depth size mismatch: rgb is 64x32, depth is 32x16"
     ):

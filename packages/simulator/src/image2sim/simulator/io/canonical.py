@@ -28,7 +28,13 @@ from pathlib import Path
 import numpy as np
 from image2sim.simulator.conventions import DEPTH_PNG_SCALE
 from image2sim.simulator.geometry.cameras import camera_from_dict
-from image2sim.simulator.io.images import read_rgb, read_uint16, write_rgb_png, write_uint16_png
+from image2sim.simulator.io.images import (
+    read_depth_uint16,
+    read_rgb,
+    read_uint16,
+    write_rgb_png,
+    write_uint16_png,
+)
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.validation import check_depth, check_pose, check_same_size
 
@@ -334,7 +340,7 @@ def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
         frames = root / "frames"
         rgb = read_rgb(frames / f"{fid}_rgb.png")
         depth_path = frames / f"{fid}_depth.png"
-        depth = read_uint16(depth_path).astype(np.float32) / np.float32(DEPTH_PNG_SCALE)
+        depth = read_depth_uint16(depth_path).astype(np.float32) / np.float32(DEPTH_PNG_SCALE)
         check_same_size(rgb, depth, frames / f"{fid}_rgb.png")
         if depth.shape != (camera.height, camera.width):
             raise CaptureError(

@@ -21,7 +21,7 @@ import torch
 from image2sim.simulator.conventions import opengl_to_opencv_cam_to_world
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.geometry.se3 import quat_to_matrix, quat_xyzw_to_wxyz
-from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
+from image2sim.simulator.io.images import probe_first_size, read_depth_uint16, read_rgb
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.validation import (
     check_equirect_size,
@@ -115,7 +115,7 @@ def read_hm3d_360(path: str | Path, *, strict: bool = True) -> Capture:
     def load(fid: str) -> Frame:
         rgb_path, depth_path = root / f"{fid}_rgb.png", root / f"{fid}_depth.png"
         rgb = read_rgb(rgb_path)
-        depth = read_uint16(depth_path).astype(np.float32) / np.float32(DEPTH_SCALE)
+        depth = read_depth_uint16(depth_path).astype(np.float32) / np.float32(DEPTH_SCALE)
         check_same_size(rgb, depth, rgb_path)
         if depth.shape != (camera.height, camera.width):
             raise CaptureError(

@@ -13,7 +13,15 @@ import cv2
 import numpy as np
 from image2sim.simulator.io.records import CaptureError
 
-__all__ = ["read_rgb", "read_uint16", "write_rgb_png", "write_uint16_png", "image_size", "probe_first_size"]
+__all__ = [
+    "read_depth_uint16",
+    "read_rgb",
+    "read_uint16",
+    "write_rgb_png",
+    "write_uint16_png",
+    "image_size",
+    "probe_first_size",
+]
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"
@@ -114,6 +122,18 @@ def read_uint16(path: Path, what: str = "depth") -> np.ndarray:
     if image.dtype != np.uint16:
         raise CaptureError(f"{path}: {what} image must be 16-bit (uint16), got {image.dtype}")
     return image
+
+
+def read_depth_uint16(path: Path) -> np.ndarray:
+    """A 16-bit depth PNG as (H, W) uint16, refusing degenerate frames: every pixel 0 (no valid depth
+    at all) or every pixel 65535 (saturated, or not a depth image). Either would be ingested as an
+    empty or a wall-everywhere frame and build a scene silently without it."""
+    raw = read_uint16(path, "depth")
+    if not raw.any():
+        raise CaptureError(f"{path}: depth image has no valid pixel (every value is 0)")
+    if (raw == np.iinfo(np.uint16).max).all():
+        raise CaptureError(f"{path}: depth image is saturated (every value is 65535): not a depth map")
+    return raw
 
 
 def image_size(path: Path, what: str = "image") -> tuple[int, int]:

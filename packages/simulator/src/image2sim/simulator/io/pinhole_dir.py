@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from image2sim.simulator.conventions import opencv_principal_point_to_ours
 from image2sim.simulator.geometry.cameras import PinholeCamera
-from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
+from image2sim.simulator.io.images import probe_first_size, read_depth_uint16, read_rgb
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.resample import sample_rgb
 from image2sim.simulator.io.validation import check_pose, read_matrix_txt
@@ -143,7 +143,7 @@ def read_pinhole_dir(path: str | Path, *, strict: bool = True, depth_scale: floa
         colour_path = _colour_path(root, fid)
         if colour_path is None:
             raise CaptureError(f"{root / 'color' / (fid + '.jpg')}: missing colour file")
-        depth = read_uint16(depth_path).astype(np.float32) / scale
+        depth = read_depth_uint16(depth_path).astype(np.float32) / scale
         if depth.shape != (height, width):
             raise CaptureError(
                 f"{depth_path}: image is {depth.shape[1]}x{depth.shape[0]}, other frames are {width}x{height}"

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 from image2sim.simulator.conventions import Y_DOWN_TO_Z_UP_WORLD
 from image2sim.simulator.geometry.cameras import EquirectCamera
-from image2sim.simulator.io.images import probe_first_size, read_rgb, read_uint16
+from image2sim.simulator.io.images import probe_first_size, read_depth_uint16, read_rgb
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
 from image2sim.simulator.io.resample import planar_rel_tol, sample_depth, sample_rgb
 from image2sim.simulator.io.validation import (
@@ -220,7 +220,7 @@ def read_realsee(path: str | Path, *, strict: bool = True, half_pixel: str = "ce
     def load(vid: str) -> Frame:
         vp_dir = root / "viewpoints" / vid
         rgb = read_rgb(vp_dir / RGB_NAME)
-        raw = read_uint16(vp_dir / DEPTH_NAME)
+        raw = read_depth_uint16(vp_dir / DEPTH_NAME)
         check_equirect_size(*rgb.shape[:2], vp_dir / RGB_NAME)
         if raw.shape != (height, width):
             raise CaptureError(
