@@ -315,8 +315,8 @@ def _read_pose_json(path: Path) -> tuple[np.ndarray, list[str]]:
 def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
     """Open a canonical capture. Poses are read and checked now; images load lazily per frame.
 
-    With ``strict=False`` frames whose pose file is missing or bad are listed in
-    ``Capture.skipped`` instead of raising.
+    With ``strict=False`` frames whose pose file is missing or bad, or whose colour or depth file is
+    missing, are listed in ``Capture.skipped`` instead of raising (strict: the first one raises).
     """
     root = Path(path)
     manifest = _load_manifest(root)
@@ -326,6 +326,9 @@ def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
     for fid in manifest["frame_ids"]:
         try:
             pose, frame_notes = _read_pose_json(root / "frames" / f"{fid}_pose.json")
+            for kind in ("rgb", "depth"):  # cheap now; decoding stays lazy
+                if not (root / "frames" / f"{fid}_{kind}.png").is_file():
+                    raise CaptureError(f"{root / 'frames' / f'{fid}_{kind}.png'}: missing {kind} file")
         except CaptureError as err:
             if strict:
                 raise

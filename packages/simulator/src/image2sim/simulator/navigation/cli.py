@@ -18,7 +18,7 @@ def _parse_point(text: str, name: str) -> list[float]:
     return values
 
 
-def _load_source(path: Path, config: dict, stride: int | None):
+def _load_source(path: Path, config: dict, stride: int | None, skip_bad: bool = False):
     """A capture folder (any registered format), a Gaussian scene folder, or a point-cloud .npz."""
     import numpy as np
     from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
@@ -54,8 +54,11 @@ def _load_source(path: Path, config: dict, stride: int | None):
         )
     from image2sim.simulator.io import open_capture
 
-    capture = open_capture(path, strict=False)
-    return extract_navmap(capture, emb, cfg, progress=True)
+    capture = open_capture(path, strict=not skip_bad)
+    navmap = extract_navmap(capture, emb, cfg, progress=True)
+    for fid, why in getattr(capture, "skipped", []) or []:
+        typer.echo(f"skipped frame {fid}: {why}", err=True)
+    return navmap
 
 
 def navmap_command(
@@ -75,12 +78,24 @@ def navmap_command(
     graph: bool = typer.Option(  # noqa: B008 (typer's declaration style)
         True, "--graph/--no-graph", help="Also build and save navgraph.npz beside the map."
     ),
+    skip_bad: bool = typer.Option(  # noqa: B008 (typer's declaration style)
+        False,
+        "--skip-bad",
+        help="Skip unreadable frames (bad pose, missing or corrupt image) and list them on stderr. "
+        "Default: the first bad frame is an error (a map silently built from fewer frames is smaller).",
+    ),
 ) -> None:
     """Extract the navigable map (+ top-down PNG of navigable cells, clearance and levels)."""
+    from image2sim.simulator.io.records import CaptureError
     from image2sim.simulator.navigation.navmap import render_topdown, write_png
 
     cfg = _read_config(config)
-    navmap = _load_source(source, cfg, stride)
+    try:
+        navmap = _load_source(source, cfg, stride, skip_bad)
+    except (CaptureError, FileNotFoundError, ValueError) as err:
+        typer.echo(f"error: {err}", err=True)
+        typer.echo("(--skip-bad skips unreadable frames and lists them)", err=True)
+        raise typer.Exit(2) from None
     navmap.save(out)
     png = write_png(out.with_suffix(".png"), render_topdown(navmap))
     summary = navmap.summary()
