@@ -103,3 +103,14 @@ def test_render_default_for_scenes_without_a_recorded_source_camera(built, tmp_p
     assert code == 0, out
     assert "rendering at 256x128 (W x H, the scene's input camera" in out
     assert read_rgb(tmp_path / "b.png").shape == (128, 256, 3)
+
+
+def test_build_scene_with_no_surviving_gaussian_is_an_error(built, tmp_path: Path) -> None:
+    """Every depth beyond fusion.max_range: nothing to fuse is an error, and nothing is written."""
+    capture, _, _ = built
+    cfg = tmp_path / "near.yaml"
+    cfg.write_text("fusion:\n  max_range: 0.2\n")
+    code, out = _invoke("build-scene", capture, "--out", tmp_path / "s", "--config", cfg, "--no-ply")
+    assert code == 2, out
+    assert "no Gaussian survived fusion" in out and "nothing written" in out
+    assert not (tmp_path / "s").exists()

@@ -76,6 +76,11 @@ def build_scene_command(
             capture, cfg, encoder=encoder, frames=_parse_frames(frames), progress=True, fuse_every=fuse_every
         )
         elapsed = time.perf_counter() - t0
+        if len(scene) == 0:  # e.g. every depth pixel outside fusion.min_range..max_range
+            raise SceneError(
+                f"{capture}: no Gaussian survived fusion (every pixel invalid or outside the depth range "
+                f"{cfg.fusion.min_range:g}..{cfg.fusion.max_range:g} m); nothing written"
+            )
         scene.save(out, overwrite=overwrite)
         if ply:
             scene.export_ply(out / "gaussians.ply")
