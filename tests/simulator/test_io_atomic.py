@@ -51,3 +51,23 @@ def test_ply_vertices_round_trip_every_type(tmp_path):
         assert np.array_equal(cols[name], data[name]), name
     with pytest.raises(PlyError, match="structured"):
         write_ply_vertices(tmp_path / "bad.ply", np.zeros(3))
+
+
+def test_atomic_files_get_the_mode_a_plain_open_would_give(tmp_path):
+    """Not mkstemp's 0600: outputs are shared like any file the user writes (umask applies)."""
+    import os
+    import stat
+
+    from image2sim.simulator.io.atomic import write_text_atomic
+
+    old = os.umask(0o022)
+    try:
+        plain = tmp_path / "plain.txt"
+        plain.write_text("x")
+        atomic = write_text_atomic(tmp_path / "atomic.txt", "x")
+        mode = stat.S_IMODE(atomic.stat().st_mode)
+        assert mode == stat.S_IMODE(plain.stat().st_mode) == 0o644
+        os.umask(0o077)
+        assert stat.S_IMODE(write_text_atomic(tmp_path / "private.txt", "x").stat().st_mode) == 0o600
+    finally:
+        os.umask(old)

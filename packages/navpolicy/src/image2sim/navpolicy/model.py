@@ -21,6 +21,7 @@ import torch
 from image2sim.navpolicy.actions import ActionCodec
 from image2sim.navpolicy.config import ModelConfig, NavPolicyConfig, ObservationConfig
 from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
+from image2sim.simulator.io.atomic import process_umask
 
 MERGE_SIZE = 2
 """Qwen3-VL merges 2x2 patches into one language token."""
@@ -263,6 +264,7 @@ def export_policy(policy: NavPolicy, out_dir: str | Path) -> Path:
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    os.chmod(tmp, 0o777 & ~process_umask())  # mkdtemp's 0700 would make the export private
     try:
         model = merged_model(policy.model)
         policy.model = model

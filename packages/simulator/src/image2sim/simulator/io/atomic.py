@@ -27,6 +27,25 @@ __all__ = [
 ]
 
 
+def process_umask() -> int:
+    """The process umask, read without changing it where the OS tells (Linux ``/proc``); elsewhere
+    set-and-restored once (a brief window other threads could see)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _default_file_mode() -> int:
+    """The mode ``open(..., "w")`` would give a new file: 0666 minus the process umask."""
+    return 0o666 & ~process_umask()
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temp path beside ``path``; on a clean exit it is renamed to ``path``.
@@ -41,6 +60,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         dir=path.parent, prefix=f".{path.name}.", suffix=(path.suffix if suffix is None else suffix) + ".tmp"
     )
     os.close(fd)
+    os.chmod(tmp_name, _default_file_mode())  # mkstemp's 0600 would make outputs private to the writer
     tmp = Path(tmp_name)
     # mkstemp's ".tmp" ending would hide the real suffix from format-sniffing writers: drop it.
     final_tmp = tmp.with_name(tmp.name[: -len(".tmp")])
