@@ -974,9 +974,14 @@ def run_nav_results(
         else:
             import multiprocessing as mp
 
-            # spawn: torch and OpenMP do not survive fork reliably.
+            from image2sim.simulator.lifetime import die_with_parent
+
+            # spawn: torch and OpenMP do not survive fork reliably. Workers end with this process.
             with ProcessPoolExecutor(
-                min(config.workers, len(tasks)), mp_context=mp.get_context("spawn")
+                min(config.workers, len(tasks)),
+                mp_context=mp.get_context("spawn"),
+                initializer=die_with_parent,
+                initargs=(os.getpid(),),
             ) as pool:
                 for _ in pool.map(_scene_task, [{**t, "worker": True} for t in tasks]):
                     if bar is not None:
