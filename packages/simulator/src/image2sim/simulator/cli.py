@@ -61,7 +61,39 @@ def build_app() -> typer.Typer:
     )
     for ep in sorted(entry_points(group="image2sim.cli"), key=lambda e: e.name):
         app.add_typer(ep.load(), name=ep.name)
+
+    def _print_versions(value: bool) -> None:
+        if value:
+            typer.echo(versions_text())
+            raise typer.Exit(0)
+
+    @app.callback()
+    def _root(
+        version: bool = typer.Option(  # noqa: B008 (typer's declaration style)
+            False,
+            "--version",
+            is_eager=True,
+            callback=_print_versions,
+            help="Print the installed image2sim packages and their versions, then exit.",
+        ),
+    ) -> None:
+        """Image2Sim: posed RGB-D captures -> neural simulators -> navigation data and policies."""
+
     return app
+
+
+def versions_text() -> str:
+    """One line per installed image2sim package (``image2sim-simulator 0.1.0``), and torch's."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    lines = []
+    packages = ("simulator", "dataengine", "navpolicy", "eval")
+    for name in [f"image2sim-{p}" for p in packages] + ["torch"]:
+        try:
+            lines.append(f"{name} {version(name)}")
+        except PackageNotFoundError:
+            lines.append(f"{name} (not installed)")
+    return "\n".join(lines)
 
 
 def main() -> None:
