@@ -91,6 +91,8 @@ __all__ = [
 class RunnerError(RuntimeError):
     """The run cannot proceed as configured (message names the scene / episode / field)."""
 
+    cli_exit_code = 2  # bad input: the CLI's error boundary answers it with one line, status 2
+
 
 class BackendUnavailable(ImportError):
     """An optional simulator backend is not installed."""

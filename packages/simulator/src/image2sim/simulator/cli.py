@@ -1,9 +1,18 @@
 """The single ``image2sim`` command. Packages contribute subcommand groups through the
 ``image2sim.cli`` entry-point group (``data``, ``sim``, ``nav``, ``eval``); nothing is imported
-until the command runs."""
+until the command runs.
+
+One error boundary (:func:`main`): an error that escapes a command is one line on stderr naming
+its class and message, and the exit status says which class it is: 2 = bad input (``ValueError``,
+``OSError`` and errors that declare ``cli_exit_code = 2``: a missing file, a bad capture, config or
+episode file), 1 = a failure while running, 130 = interrupted. ``--debug`` (or ``IMAGE2SIM_DEBUG=1``)
+shows the traceback instead. Usage errors keep click's own message and status 2.
+"""
 
 from __future__ import annotations
 
+import os
+import sys
 from importlib.metadata import entry_points
 
 import typer
@@ -96,5 +105,37 @@ def versions_text() -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    build_app()()
+EXIT_BAD_INPUT = 2
+EXIT_RUNTIME = 1
+EXIT_INTERRUPTED = 130
+
+
+def exit_code_of(err: BaseException) -> int:
+    """The exit status of an error that escaped a command (see the module docstring)."""
+    declared = getattr(err, "cli_exit_code", None)
+    if isinstance(declared, int):
+        return declared
+    return EXIT_BAD_INPUT if isinstance(err, (ValueError, OSError)) else EXIT_RUNTIME
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in args or os.environ.get("IMAGE2SIM_DEBUG", "") not in ("", "0")
+    args = [a for a in args if a != "--debug"]
+    app = build_app()
+    if debug:
+        app(args=args, prog_name="image2sim")
+        return
+    try:
+        app(args=args, prog_name="image2sim", standalone_mode=True)
+    except SystemExit:
+        raise
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
+    except Exception as err:  # the boundary: one line, a status by class
+        code = exit_code_of(err)
+        kind = "bad input" if code == EXIT_BAD_INPUT else "failed"
+        print(f"error ({kind}, {type(err).__name__}): {err}", file=sys.stderr)
+        print("(image2sim --debug ... shows the traceback)", file=sys.stderr)
+        sys.exit(code)
