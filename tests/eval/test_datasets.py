@@ -274,6 +274,11 @@ def test_malformed_files(tmp_path: Path) -> None:
     root = _r2r_with(tmp_path, [_r2r_episode(1)], gt={"1": {"locations": [[0, 0, 0]], "actions": ["STOP"]}})
     with pytest.raises(EpisodeFileError, match="episode 1: field 'actions'"):
         load_r2r_ce(root, "s")
+    root = _r2r_with(tmp_path, [_r2r_episode(1)], gt={"1": {"locations": [[0, 0, 0]], "actions": [1, 7, -1]}})
+    with pytest.raises(
+        EpisodeFileError, match=r"episode 1: field 'actions': action ids must be 0..3.*\[-1, 7\]"
+    ):
+        load_r2r_ce(root, "s")
     root = _r2r_with(tmp_path, [_r2r_episode(1), _r2r_episode(1)])
     with pytest.raises(EpisodeFileError, match="episode 1: duplicate episode id"):
         load_r2r_ce(root, "s", with_gt=False)

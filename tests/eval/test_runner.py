@@ -590,3 +590,12 @@ def test_ultra_wide_observation_is_the_centred_180_by_118_degree_crop(scene):
     assert obs.rgb.shape == (336, 512, 3)
     red = obs.rgb[0, :, 0].astype(float) / 255.0
     assert abs(red[0] - 0.25) < 0.01 and abs(red[-1] - 0.75) < 0.01  # -90 deg ... +90 deg
+
+
+def test_an_off_map_start_names_the_episode_and_its_scene(scene):
+    _, sim, episodes = scene
+    far = dataclasses.replace(
+        episodes[0], episode_id="far-away", start_position=np.array([1000.0, 1000.0, 0.0])
+    )
+    with pytest.raises(RunnerError, match=r"episode far-away \(scene scene_000\): cannot place the agent"):
+        run_episode(NeuralSimBackend(sim, PROTO), RandomAgent(), far, PROTO, seed=0)

@@ -429,6 +429,9 @@ def _parse_gt(doc: Any, path: Path, frame: Frame) -> dict[str, tuple[np.ndarray,
             isinstance(actions, list) and all(isinstance(a, int) and not isinstance(a, bool) for a in actions)
         ):
             raise ctx.fail("actions", "expected a list of integer action ids")
+        bad = sorted({a for a in actions or [] if not 0 <= a <= 3})
+        if bad:
+            raise ctx.fail("actions", f"action ids must be 0..3 (STOP, FORWARD, LEFT, RIGHT), got {bad}")
         out[str(eid)] = (_to_world_points(locs, frame), None if actions is None else tuple(actions))
     return out
 

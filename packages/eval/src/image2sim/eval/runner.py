@@ -713,7 +713,10 @@ def run_episode(
     """Run one episode to STOP or the protocol's step limit; returns its result and the actions."""
     ms = Measurements(protocol, DEFAULT_MEASURES)
     wants = (lambda: getattr(agent, "wants_image", True)) if agent.needs_images else (lambda: False)
-    obs = backend.reset(episode, observe=bool(agent.needs_images))
+    try:
+        obs = backend.reset(episode, observe=bool(agent.needs_images))
+    except ValueError as err:  # e.g. a start off the navigation map: name the episode and its scene
+        raise RunnerError(f"episode {episode.episode_id} (scene {episode.scene_id}): {err}") from err
     _require_finite_distance(obs, episode, "starts")
     if obs.distance_approximate:
         raise RunnerError(
