@@ -268,8 +268,9 @@ def test_openai_retries_5xx_then_succeeds(server_factory):
 
 def test_openai_does_not_retry_4xx(server_factory):
     srv = server_factory(lambda n, body: (400, ""))
-    out = _ann(srv.url, max_attempts=1).annotate([_req()])
-    assert not out[0].accepted and "400" in out[0].reason and len(srv.requests) == 1
+    with pytest.raises(TransportError, match="HTTP 400 \\(not retried\\)"):  # e.g. a wrong model name: fatal
+        _ann(srv.url, max_attempts=1).annotate([_req()])
+    assert len(srv.requests) == 1
 
 
 def test_openai_timeout_is_retried(server_factory):
@@ -285,8 +286,13 @@ def test_openai_gives_up_after_retries(server_factory):
     ann = _ann(srv.url, retries=1, max_attempts=2)
     with pytest.raises(TransportError, match="giving up after 2"):
         ann.complete(build_messages(_req()))
-    out = ann.annotate([_req()])
-    assert not out[0].accepted and out[0].reason.startswith("transport")
+    # Transport failures that outlast the retries are fatal, never a dropped ("done") request.
+    with pytest.raises(TransportError, match="giving up after 2"):
+        ann.annotate([_req()])
+    # One transport failure, then an answer: the request goes through.
+    srv2 = server_factory(lambda n, body: (500, "") if n < 2 else (200, GOOD))
+    out = _ann(srv2.url, retries=1, max_attempts=2).annotate([_req()])
+    assert out[0].accepted and out[0].attempts == 2
 
 
 def test_malformed_reply_is_retried_then_dropped_with_reason(server_factory):

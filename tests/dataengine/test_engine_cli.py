@@ -188,3 +188,26 @@ def test_cli_episodes_exits_non_zero_when_no_scene_yields_an_episode(tmp_path):
     assert res.exit_code == 1, res.output
     assert "scene scene_000: 0 episodes" in res.output and "infeasible" in res.output
     assert "no episode was produced" in res.output and "min_path_length" in res.output
+
+
+def test_an_unreachable_annotator_fails_the_scene_instead_of_finishing_it_empty(scenes_root, tmp_path):
+    """Connection refused on every attempt: the scene raises (not marked done, so a resume retries it)."""
+    import socket
+
+    from image2sim.dataengine.annotate.openai_vlm import TransportError
+    from image2sim.dataengine.pipeline import EngineConfig, process_scene
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = EngineConfig(
+        per_scene=2,
+        sampling={"min_path_length": 1.0},
+        annotator="openai",
+        obs_height=24,
+        annotation_view_height=24,
+        annotator_options={"base_url": f"http://127.0.0.1:{port}/v1", "retries": 0, "backoff": 0.0},
+    )
+    with pytest.raises(TransportError, match="connection"):
+        process_scene(scenes_root / "scene_000", tmp_path, cfg)
+    assert not (tmp_path / "scenes" / "scene_000" / "done.json").exists()

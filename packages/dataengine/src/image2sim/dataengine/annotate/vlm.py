@@ -1,9 +1,12 @@
 """Shared VLM annotation loop: prompt -> reply -> quality gate -> anti-hallucination -> retry or drop.
 
 A backend supplies ``complete(messages) -> str`` (raising on transport failure). Malformed replies
-and transport errors are retried up to ``max_attempts`` times, then the request is dropped with the
-last reason. An INVALID verdict rejects (no retry: the model judged the trajectory, not the text).
-A reply naming objects outside the allow-list is retried, then dropped ("hallucination").
+and transport errors are retried up to ``max_attempts`` times. A request whose last attempt still
+failed in transport raises that error: an unreachable endpoint fails the scene (it is not marked
+done, so a resumed run retries it) instead of yielding a "successful" empty dataset. Otherwise the
+request is dropped with the last reason. An INVALID verdict rejects (no retry: the model judged
+the trajectory, not the text). A reply naming objects outside the allow-list is retried, then
+dropped ("hallucination").
 """
 
 from __future__ import annotations
@@ -27,12 +30,15 @@ def annotate_one(
     messages = build_messages(req)
     vocab = list(vocabulary)
     reason = ""
+    transport_error: BaseException | None = None
     for attempt in range(1, max_attempts + 1):
         try:
             reply = complete(messages)
         except tuple(transient) as err:  # transport trouble after the backend's own retries
             reason = f"transport: {type(err).__name__}: {err}"
+            transport_error = err
             continue
+        transport_error = None
         try:
             parsed = parse_reply(reply)
         except MalformedReply as err:
@@ -59,6 +65,8 @@ def annotate_one(
             reason = f"hallucination: {sorted(bad)}"
             continue
         return Annotation(text=parsed.instruction, accepted=True, **base)
+    if transport_error is not None:  # the endpoint never answered the last attempt: fatal
+        raise transport_error
     return Annotation(
         req.episode_id,
         "",
