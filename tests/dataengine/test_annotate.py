@@ -167,6 +167,7 @@ class _Server:
     def __init__(self, script):
         self.script = script
         self.requests: list[dict] = []
+        self.auth: list[str | None] = []
         self.lock = threading.Lock()
         self.in_flight = 0
         self.max_in_flight = 0
@@ -181,6 +182,7 @@ class _Server:
                 with outer.lock:
                     n = len(outer.requests)
                     outer.requests.append(body)
+                    outer.auth.append(self.headers.get("Authorization"))
                     outer.in_flight += 1
                     outer.max_in_flight = max(outer.max_in_flight, outer.in_flight)
                 try:
@@ -450,3 +452,18 @@ def test_template_near_names_only_objects_near_the_goal():
         text = compose(req)
         if " near the " in text:
             assert s % 2 and "near the sofa" in text, text
+
+
+def test_the_api_key_comes_only_from_the_environment(server_factory, monkeypatch):
+    srv = server_factory(lambda n, body: (200, GOOD))
+    monkeypatch.delenv("IMAGE2SIM_ANNOTATOR_API_KEY", raising=False)
+    _ann(srv.url).annotate([_req()])
+    monkeypatch.setenv("IMAGE2SIM_ANNOTATOR_API_KEY", "s3cret")
+    _ann(srv.url).annotate([_req()])
+    monkeypatch.setenv("MY_KEY", "other")
+    _ann(srv.url, api_key_env="MY_KEY").annotate([_req()])
+    assert srv.auth == [None, "Bearer s3cret", "Bearer other"]
+    with pytest.raises(ValueError, match="never an option.*IMAGE2SIM_ANNOTATOR_API_KEY"):
+        build_annotator("openai", VOCAB, api_key="s3cret")
+    with pytest.raises(ValueError, match="api_key_env"):
+        build_annotator("openai", VOCAB, api_key_env="not a name")

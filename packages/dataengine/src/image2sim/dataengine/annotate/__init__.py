@@ -47,6 +47,12 @@ def build_annotator(name: str, vocabulary: Iterable[str] = (), **options):
     if name == "openai":
         from image2sim.dataengine.annotate.openai_vlm import OpenAIAnnotator, OpenAIConfig
 
+        if "api_key" in options:
+            raise ValueError(
+                "openai annotator: the API key is never an option (options are written to run.json and "
+                "visible in the process list); export it as IMAGE2SIM_ANNOTATOR_API_KEY (or name another "
+                "variable with api_key_env=VAR)"
+            )
         known = set(OpenAIConfig.__dataclass_fields__)
         unknown = sorted(set(options) - known)
         if unknown:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import time
 import urllib.error
 import urllib.request
@@ -36,8 +37,9 @@ class OpenAIConfig:
     """Server root; requests go to ``{base_url}/chat/completions``."""
     model: str = "Qwen/Qwen3-VL-32B-Instruct"
     """Model name sent in the request."""
-    api_key: str | None = None
-    """Bearer token, if the server wants one."""
+    api_key_env: str = "IMAGE2SIM_ANNOTATOR_API_KEY"
+    """Name of the environment variable holding the bearer token (unset or empty: none is sent). The
+    key itself is never an option: options are recorded in ``run.json`` and visible in ``ps``."""
     timeout: float = 60.0
     """Seconds per HTTP request."""
     retries: int = 3
@@ -54,6 +56,10 @@ class OpenAIConfig:
     max_tokens: int = 512
 
     def __post_init__(self) -> None:
+        if not self.api_key_env.isidentifier():
+            raise ValueError(
+                f"OpenAIConfig.api_key_env must name an environment variable, got {self.api_key_env!r}"
+            )
         if self.timeout <= 0 or self.retries < 0 or self.backoff < 0:
             raise ValueError("OpenAIConfig: timeout must be > 0, retries and backoff >= 0")
         if self.max_concurrency < 1 or self.batch_size < 1 or self.max_attempts < 1:
@@ -107,8 +113,9 @@ class OpenAIAnnotator:
             }
         ).encode()
         headers = {"Content-Type": "application/json"}
-        if cfg.api_key:
-            headers["Authorization"] = f"Bearer {cfg.api_key}"
+        key = os.environ.get(cfg.api_key_env, "")
+        if key:
+            headers["Authorization"] = f"Bearer {key}"
         url = cfg.base_url.rstrip("/") + "/chat/completions"
         delay, last = cfg.backoff, ""
         for attempt in range(cfg.retries + 1):
