@@ -32,7 +32,7 @@ def test_cli_episodes_then_stats(scenes_root, tmp_path):
             "data",
             "episodes",
             "--sampling",
-            "min_path_length=1.0",  # tiny houses hold no 3 m path
+            "min_path_length=0.5",  # tiny houses hold no 3 m path
             "--scenes",
             str(scenes_root / "scene_001"),
             "--out",
@@ -73,7 +73,7 @@ def test_cli_rejects_bad_arguments(scenes_root, tmp_path):
             "data",
             "episodes",
             "--sampling",
-            "min_path_length=1.0",  # tiny houses hold no 3 m path
+            "min_path_length=0.5",  # tiny houses hold no 3 m path
             "--scenes",
             str(scenes_root),
             "--out",
@@ -91,7 +91,7 @@ def test_cli_rejects_bad_arguments(scenes_root, tmp_path):
             "data",
             "episodes",
             "--sampling",
-            "min_path_length=1.0",  # tiny houses hold no 3 m path
+            "min_path_length=0.5",  # tiny houses hold no 3 m path
             "--scenes",
             str(tmp_path / "nowhere"),
             "--out",

@@ -165,8 +165,8 @@ def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_ru
         return real(scene, out_dir, config)
 
     monkeypatch.setattr(dist, "process_scene", flaky)
-    with pytest.raises(KeyboardInterrupt):
-        run_engine(scenes_root, out, cfg, executor="local", progress=False)
+    with pytest.raises(KeyboardInterrupt):  # in-process (workers=1): the patch reaches the scene task
+        run_engine(scenes_root, out, cfg, executor="local", workers=1, progress=False)
     assert (out / "scenes" / "scene_000" / "done.json").is_file()
     assert not (out / "scenes" / "scene_001" / "done.json").is_file()
     # Restart with the same arguments: only the unfinished scene runs.
@@ -224,6 +224,33 @@ def test_restart_with_other_arguments_is_refused(scenes_root, full_run):
             scenes_root, out, EngineConfig(**{**CFG, "per_scene": 7}), executor="local", progress=False
         )
     merge_outputs(out, ["scene_000", "scene_001"], "train")  # still consistent after the refusal
+
+
+def test_a_second_run_on_the_same_folder_is_refused_while_one_runs(scenes_root, tmp_path):
+    """Two runs on one --out used to interleave (a race left seed-0 and seed-1 scenes in one file)."""
+    import fcntl
+
+    from image2sim.dataengine.distributed import RunError
+
+    out = tmp_path / "out"
+    out.mkdir()
+    with open(out / ".run.lock", "a") as held:  # another run holds the folder
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(RunError, match="another run is writing to this folder"):
+            run_engine(scenes_root, out, EngineConfig(**CFG), executor="local", progress=False)
+        assert not (out / "run.json").exists()  # nothing written by the refused run
+    summary = run_engine(scenes_root, out, EngineConfig(**CFG), executor="local", workers=1, progress=False)
+    assert summary["scenes_done"] == 2  # released: the next run proceeds
+
+
+def test_local_process_pool_matches_one_process(scenes_root, full_run, tmp_path):
+    """The default executor runs scenes in 2 spawned processes; the files equal a 1-process run."""
+    ref_out, ref = full_run  # executor local, workers 2 (the default)
+    assert len({t["pid"] for t in ref["tasks"].values()}) == 2  # two worker processes did the scenes
+    out = tmp_path / "one"
+    run_engine(scenes_root, out, EngineConfig(**CFG), executor="local", workers=1, progress=False)
+    for name in ("train.json.gz", "train_gt.json.gz"):
+        assert _read(out / "train" / name) == _read(ref_out / "train" / name)
 
 
 @pytest.mark.slow

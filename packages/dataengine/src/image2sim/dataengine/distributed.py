@@ -1,6 +1,8 @@
-"""Scale-out and resumability: one task per scene, run in-process or through Ray.
+"""Scale-out and resumability: one task per scene, run in local processes or through Ray.
 
-``run_engine(scene_dirs, out_dir, config, executor="ray", address=None)``:
+``run_engine(scene_dirs, out_dir, config, executor="local", workers=2, address=None)``:
+  * one run per output folder at a time: ``{out}/.run.lock`` is held (``flock``) for the whole run, so
+    two runs on one ``--out`` cannot interleave their scenes and ``run.json``;
   * a run manifest ``{out}/run.json`` records the engine config; restarting with a different config
     in the same folder is refused (it would mix incompatible episodes);
   * a scene is finished when ``{out}/scenes/{name}/done.json`` exists (written last and atomically by
@@ -9,7 +11,10 @@
   * the final episode files are rebuilt from the finished scenes' ``episodes.json`` in sorted scene
     order, so a killed-and-restarted run yields the same files with no duplicates and nothing lost.
 
-Ray: local by default (``ray.init(num_cpus=workers)``); ``address`` joins an existing cluster. Each
+``local`` (the default) runs the scenes in this process (``workers=1``) or in a pool of ``workers``
+spawned processes that die with the driver: no network, nothing left behind by a killed run.
+``ray`` is for clusters (``address``) or an explicit choice: a local Ray (``ray.init(num_cpus=workers)``,
+no dashboard, usage statistics off) still opens ports on every interface in Ray 2.60. Each
 task runs in a worker whose runtime environment pins the BLAS/OpenMP pools to one thread
 (:data:`WORKER_ENV`) and which sets torch to one thread, so ``workers`` tasks use ``workers`` cores
 and do not oversubscribe them. At most ``workers`` tasks are in flight at once on a local Ray (so the
@@ -23,6 +28,7 @@ import os
 import time
 import traceback
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from image2sim.dataengine.episodes import write_episode_files
@@ -81,12 +87,64 @@ def _check_run_manifest(out_dir: Path, config: EngineConfig) -> None:
         write_bytes_atomic(path, json.dumps({"config": cfg}, indent=1).encode())
 
 
-def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable) -> None:
-    for s in todo:
+def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, workers: int = 1) -> None:
+    """In this process (``workers == 1``), else in a pool of ``workers`` spawned processes that end
+    with this one (no network, no daemon: the default executor)."""
+    if workers <= 1 or len(todo) <= 1:
+        for s in todo:
+            try:
+                on_done(s, process_scene(s, out_dir, cfg), None)
+            except Exception as err:  # noqa: BLE001 - a scene failure must not stop the run
+                on_done(s, None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(
+        min(workers, len(todo)),
+        mp_context=mp.get_context("spawn"),  # torch and OpenMP do not survive fork reliably
+        initializer=_pool_worker_init,
+        initargs=(os.getpid(),),
+    ) as pool:
+        futures = {pool.submit(_scene_task, str(s), str(out_dir), cfg): s for s in todo}
+        for fut in as_completed(futures):
+            try:
+                summary, err = fut.result()
+            except Exception as exc:  # noqa: BLE001 - e.g. the worker process died: report, go on
+                summary, err = None, f"{type(exc).__name__}: {exc}"
+            on_done(futures[fut], summary, err)
+
+
+def _pool_worker_init(parent_pid: int) -> None:
+    from image2sim.simulator.lifetime import die_with_parent
+
+    die_with_parent(parent_pid)
+    os.environ.update(WORKER_ENV)
+
+
+@contextmanager
+def run_lock(out_dir: Path):
+    """Hold ``<out>/.run.lock`` (an exclusive ``flock``) for the run: a second run on the same output
+    folder fails at once instead of mixing its scenes and ``run.json`` with this one's. The kernel
+    drops the lock when the process dies, so a killed run never leaves a stale lock."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock (documented)
+        yield
+        return
+    path = Path(out_dir) / ".run.lock"
+    with open(path, "a") as fh:
         try:
-            on_done(s, process_scene(s, out_dir, cfg), None)
-        except Exception as err:  # noqa: BLE001 - a scene failure must not stop the run
-            on_done(s, None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RunError(
+                f"{out_dir}: another run is writing to this folder ({path} is locked); wait for it or "
+                "use another --out"
+            ) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def _run_ray(
@@ -99,6 +157,7 @@ def _run_ray(
         if address:
             ray.init(address=address, log_to_driver=False)
         else:
+            os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage report, no cloud-metadata probe
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
         started = True
     try:
@@ -146,7 +205,7 @@ def run_engine(
     scenes_root: str | Path,
     out_dir: str | Path,
     config: EngineConfig,
-    executor: str = "ray",
+    executor: str = "local",
     workers: int = 2,
     address: str | None = None,
     progress: bool = True,
@@ -162,6 +221,13 @@ def run_engine(
     out_dir = Path(out_dir)
     scenes = find_scenes(scenes_root)
     out_dir.mkdir(parents=True, exist_ok=True)
+    with run_lock(out_dir):
+        return _run_locked(scenes, out_dir, config, executor, workers, address, progress, limit)
+
+
+def _run_locked(
+    scenes, out_dir: Path, config: EngineConfig, executor, workers, address, progress, limit
+) -> dict:
     _check_run_manifest(out_dir, config)
     todo = pending_scenes(scenes, out_dir)
     skipped = len(scenes) - len(todo)
@@ -189,7 +255,7 @@ def run_engine(
 
     try:
         if executor == "local":
-            _run_local(todo, out_dir, config.to_dict(), on_done)
+            _run_local(todo, out_dir, config.to_dict(), on_done, workers)
         else:
             _run_ray(todo, out_dir, config.to_dict(), on_done, workers, address)
     finally:

@@ -95,8 +95,13 @@ def episodes_command(
     ),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),
     seed: int = typer.Option(0, "--seed", help="Base seed."),
-    executor: str = typer.Option("ray", "--executor", help="ray or local (in-process)."),
-    workers: int = typer.Option(2, "--workers", min=1, help="Ray workers (local cluster)."),
+    executor: str = typer.Option(
+        "local",
+        "--executor",
+        help="local (--workers processes on this machine, no network) or ray (a cluster with --address, "
+        "or a local Ray).",
+    ),
+    workers: int = typer.Option(2, "--workers", min=1, help="Parallel scene workers (processes)."),
     address: str | None = typer.Option(None, "--address", help="Join a Ray cluster at this address."),
     min_steps: int | None = typer.Option(None, "--min-steps", help="Drop episodes with fewer actions."),
     sampling: list[str] = typer.Option(
