@@ -282,6 +282,10 @@ def test_sigkill_and_restart_loses_and_duplicates_nothing(scenes_root, full_run,
         str(CFG["seed"]),
         "--executor",
         "local",
+        "--workers",
+        "1",  # one scene after the other: the kill lands between them
+        "--sampling",
+        f"min_path_length={SHORT['min_path_length']}",
     ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
