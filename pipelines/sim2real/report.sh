@@ -60,6 +60,13 @@ for src in ("neural", "splat_only", "exact"):
 (root / "budget").mkdir(exist_ok=True)
 (root / "budget" / "data.json").write_text(json.dumps(out, indent=1) + "\n")
 PY
+# The unused-seed check (run by hand, docs/sim2real.md): rows read when their files exist.
+checks=()
+if [ -f "$O"/fresh/neural.json ] && [ -f "$O"/fresh/baselines.json ]; then
+  checks=(--check fresh_seed/neural=image2nav@"$O"/fresh/neural.json
+          --check fresh_seed/random=random@"$O"/fresh/baselines.json
+          --check fresh_seed/forward=forward@"$O"/fresh/baselines.json)
+fi
 budget=()
 for f in "$O"/budget/*.json; do
   budget+=(--budget "$(basename "$f" .json)=$f")
@@ -74,6 +81,6 @@ image2sim eval sim2real \
   --policy neural="$O"/policies/neural/dagger/export \
   --policy splat_only="$O"/policies/splat_only/dagger/export \
   --policy exact="$O"/policies/exact/dagger/export \
-  "${scaling[@]}" "${budget[@]}" \
+  "${scaling[@]}" "${budget[@]}" ${checks[@]+"${checks[@]}"} \
   --header pipelines/sim2real/report_header.md \
   --out metrics/sim2real.json --report reports/sim2real.md --plot plots/sim2real_scaling.png
