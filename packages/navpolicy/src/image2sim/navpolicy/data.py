@@ -363,7 +363,43 @@ class ShardReader:
         ).validate(f"{self.root} line {i + 1}")
 
 
-class NavShardDataset(torch.utils.data.Dataset):
+class _SamplingDataset(torch.utils.data.Dataset):
+    """What the shard and in-memory datasets share: item ``i`` of epoch ``e`` is
+    ``make_sample(trajectory i)`` with the generator of (seed, e, i), in this dataset's layout."""
+
+    max_observations: int
+    max_action_labels: int
+    stride: int
+    context: tuple[int, int] | None
+    end_cut_probability: float
+    jitter: bool
+    seed: int
+    epoch: int
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def trajectory(self, i: int) -> Trajectory:
+        raise NotImplementedError
+
+    def __getitem__(self, i: int) -> NavSample:
+        rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
+        return self.sample(self.trajectory(i), rng)
+
+    def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
+        """``traj`` as this dataset samples it (observation layout, stride, context)."""
+        return make_sample(
+            traj,
+            self.max_observations,
+            self.max_action_labels,
+            rng,
+            self.stride,
+            self.context,
+            self.end_cut_probability,
+        )
+
+
+class NavShardDataset(_SamplingDataset):
     """Samples over one or more shards; item ``i`` of epoch ``e`` is reproducible from (seed, e, i)."""
 
     def __init__(
@@ -393,31 +429,15 @@ class NavShardDataset(torch.utils.data.Dataset):
         self.seed = seed
         self.epoch = 0
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
     def __len__(self) -> int:
         return len(self.index)
 
-    def __getitem__(self, i: int) -> NavSample:
+    def trajectory(self, i: int) -> Trajectory:
         r, j = self.index[i]
-        rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
-        return self.sample(self.readers[r][j], rng)
-
-    def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
-        """``traj`` as this dataset samples it (observation layout, stride, context)."""
-        return make_sample(
-            traj,
-            self.max_observations,
-            self.max_action_labels,
-            rng,
-            self.stride,
-            self.context,
-            self.end_cut_probability,
-        )
+        return self.readers[r][j]
 
 
-class InMemoryNavDataset(torch.utils.data.Dataset):
+class InMemoryNavDataset(_SamplingDataset):
     """Samples over trajectories held in memory (tests, DAgger's online buffer)."""
 
     def __init__(
@@ -436,27 +456,11 @@ class InMemoryNavDataset(torch.utils.data.Dataset):
         self.max_observations, self.max_action_labels = max_observations, max_action_labels
         self.jitter, self.seed, self.epoch = jitter, seed, 0
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
     def __len__(self) -> int:
         return len(self.trajectories)
 
-    def __getitem__(self, i: int) -> NavSample:
-        rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
-        return self.sample(self.trajectories[i], rng)
-
-    def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
-        """``traj`` as this dataset samples it (observation layout, stride, context)."""
-        return make_sample(
-            traj,
-            self.max_observations,
-            self.max_action_labels,
-            rng,
-            self.stride,
-            self.context,
-            self.end_cut_probability,
-        )
+    def trajectory(self, i: int) -> Trajectory:
+        return self.trajectories[i]
 
 
 # -------------------------------------------------------------------------------------------- collator

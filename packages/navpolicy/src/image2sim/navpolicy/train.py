@@ -145,11 +145,7 @@ class PositionDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, position: int):
         epoch, i = self.locate(int(position))
-        if isinstance(self.base, NavShardDataset):
-            r, j = self.base.index[i]
-            traj = self.base.readers[r][j]
-        else:
-            traj = self.base.trajectories[i]
+        traj = self.base.trajectory(i)
         rng = np.random.default_rng([self.seed, epoch, i]) if self.base.jitter else None
         sample = self.base.sample(traj, rng)
         sample.episode_id = sample.episode_id or f"#{i}"
