@@ -295,6 +295,26 @@ def test_sigkill_and_resume_gives_the_uninterrupted_aggregate(scene, tmp_path):
     assert proto == PROTO and manifest["config"]["seed"] == 5 and "crc32" in manifest["seed_rule"]
 
 
+def test_a_resume_keeps_one_trajectory_line_per_episode(scene, tmp_path):
+    """Killed between an episode's trajectory line and its result line (and mid-write of another
+    line): the resume reruns that episode and leaves exactly the uninterrupted run's trajectories."""
+    root, _, episodes = scene
+    cfg = RunConfig(agent="random", seed=5)
+    run_nav(episodes, root, PROTO, cfg, tmp_path / "fresh", show_progress=False)
+    run_nav(episodes, root, PROTO, cfg, tmp_path / "killed", show_progress=False)
+    log = tmp_path / "killed" / "random" / "scene_000.jsonl"
+    traj = log.with_name(log.name + ".traj.jsonl")
+    fresh_traj = (tmp_path / "fresh" / "random" / traj.name).read_text()
+    lines = log.read_text().splitlines(keepends=True)
+    log.write_text("".join(lines[:-1]))  # the last episode's result never got written
+    with traj.open("a") as f:
+        f.write('{"episode_id": "torn')
+    run_nav(episodes, root, PROTO, cfg, tmp_path / "killed", show_progress=False)
+    ids = [json.loads(line)["episode_id"] for line in traj.read_text().splitlines()]
+    assert sorted(ids) == sorted(e.episode_id for e in episodes)
+    assert sorted(traj.read_text().splitlines()) == sorted(fresh_traj.splitlines())
+
+
 def test_resume_with_other_result_settings_is_refused(scene, tmp_path):
     """A second call into the same folder with another seed or agent option would skip every logged
     episode and report the old run's numbers as the new one's: it is refused, naming the field."""

@@ -166,27 +166,67 @@ def _record_losses(out_dir, cfg, ds, max_steps, resume=None):
     return losses, module
 
 
-def test_interrupted_and_resumed_training_reproduces_the_losses(tmp_path):
+def test_resume_from_every_step_reproduces_the_uninterrupted_run(tmp_path):
+    """A checkpoint after every step (stage 1, the stage-2 start that introduces the teacher, the
+    stage-3 freeze): resuming from each gives the uninterrupted losses and final weights exactly.
+
+    Resuming mid-epoch once replayed old batches: Lightning ends the restored epoch early and
+    iterates the sampler again, which then started where the loader had been made (issue 23)."""
     cfg, ds = train_cfg(), dataset()
     full, full_module = _record_losses(tmp_path / "full", cfg, ds, max_steps=6)
     assert sorted(full) == list(range(6)) and all(torch.isfinite(torch.tensor(v)) for v in full.values())
-    first, _ = _record_losses(tmp_path / "part", cfg, ds, max_steps=3)
-    ckpt = tmp_path / "part" / "checkpoints" / "last.ckpt"
-    assert ckpt.is_file()
-    rest, resumed = _record_losses(tmp_path / "part", cfg, ds, max_steps=6, resume=str(ckpt))
-    assert sorted(rest) == [3, 4, 5]
-    for step in range(3):
-        assert first[step] == pytest.approx(full[step], rel=1e-6, abs=1e-7)
-    for step in (3, 4, 5):
-        assert rest[step] == pytest.approx(full[step], rel=1e-5, abs=1e-6), (step, rest, full)
-    # The teacher was introduced at stage 2 and follows the student; the resumed one matches.
-    assert bool(resumed.teacher_started) and bool(full_module.teacher_started)
-    for a, b in zip(resumed.teacher.parameters(), full_module.teacher.parameters(), strict=False):
-        assert torch.allclose(a, b, atol=1e-6)
-    # Stage 3 froze the backbone in the resumed run as well.
-    assert not any(
-        p.requires_grad for n, p in resumed.renderer.named_parameters() if n.startswith("aligner.")
-    )
+    checkpoints = sorted((tmp_path / "full" / "checkpoints").glob("epoch=*-step=*.ckpt"))
+    steps = sorted(int(p.stem.split("step=")[1]) for p in checkpoints)
+    assert steps == [1, 2, 3, 4, 5, 6]
+    for step in range(1, 6):
+        ckpt = tmp_path / "full" / "checkpoints" / f"epoch=0-step={step}.ckpt"
+        rest, resumed = _record_losses(tmp_path / f"from{step}", cfg, ds, max_steps=6, resume=str(ckpt))
+        assert sorted(rest) == list(range(step, 6))
+        assert all(rest[s] == full[s] for s in rest), (step, rest, full)
+        for (name, a), b in zip(resumed.state_dict().items(), full_module.state_dict().values(), strict=True):
+            assert torch.equal(a, b), (step, name)
+        # The teacher was introduced at stage 2 and stage 3 froze the backbone in the resumed run too.
+        assert bool(resumed.teacher_started)
+        assert not any(
+            p.requires_grad for n, p in resumed.renderer.named_parameters() if n.startswith("aligner.")
+        )
+
+
+def _csv_rows(run_dir):
+    import csv
+
+    files = sorted((run_dir / "logs").glob("version_*/metrics.csv"))
+    return files, [row for f in files for row in csv.DictReader(f.open())]
+
+
+def test_a_resumed_run_continues_its_csv_log_without_gaps_or_duplicates(tmp_path):
+    """Killed after step 4 with its last checkpoint at step 2, then resumed: one log with every step
+    once, equal to the uninterrupted run's (the rows of steps 2-3 were logged twice before)."""
+    cfg, ds = train_cfg(), dataset()
+    _record_losses(tmp_path / "full", cfg, ds, max_steps=6)
+    _record_losses(tmp_path / "run", cfg, ds, max_steps=4)
+    for late in (3, 4):  # as if the process died before checkpointing them
+        (tmp_path / "run" / "checkpoints" / f"epoch=0-step={late}.ckpt").unlink()
+    with (tmp_path / "run" / "logs" / "version_0" / "metrics.csv").open("a") as f:
+        f.write("0.1,2")  # a row torn by the kill
+    resume = tmp_path / "run" / "checkpoints" / "epoch=0-step=2.ckpt"
+    _record_losses(tmp_path / "run", cfg, ds, max_steps=6, resume=str(resume))
+    files, rows = _csv_rows(tmp_path / "run")
+    _, full_rows = _csv_rows(tmp_path / "full")
+    assert [f.parent.name for f in files] == ["version_0"]
+    assert [int(r["step"]) for r in rows] == list(range(6))
+    assert [r["train/loss"] for r in rows] == [r["train/loss"] for r in full_rows]
+
+
+def test_trim_metrics_csv_keeps_the_rows_before_the_resumed_step(tmp_path):
+    from image2sim.simulator.tracking import trim_metrics_csv
+
+    f = tmp_path / "metrics.csv"
+    assert trim_metrics_csv(f, 3) == 0 and not f.exists()
+    f.write_text("loss,step\n0.5,0\n0.4,1\n0.3,2\n0.35,1\n0.2,3\n")
+    assert trim_metrics_csv(f, 2) == 2
+    assert f.read_text() == "loss,step\n0.5,0\n0.4,1\n0.35,1\n"
+    assert trim_metrics_csv(f, 2) == 0
 
 
 @pytest.mark.realdata

@@ -30,3 +30,16 @@ def test_index_of_maps_positions_and_bad_arguments_are_named():
         StepSampler(0, 1, rank=0, world_size=0)
     with pytest.raises(ValueError, match="start"):
         StepSampler(-1, 1)
+
+
+def test_a_trainer_sampler_starts_at_the_live_global_step_each_time_it_is_iterated():
+    """Lightning iterates a loader again when it ends a restored epoch early; the new pass must start
+    at the current step, not where the loader was made (the renderer's resume once replayed batches)."""
+    from types import SimpleNamespace
+
+    trainer = SimpleNamespace(global_step=2, global_rank=1, world_size=2)
+    sampler = StepSampler.for_trainer(trainer, 3, 12)
+    assert list(sampler) == list(StepSampler(6, 12, 1, 2)) and len(sampler) == 6
+    trainer.global_step = 3
+    assert list(sampler) == list(StepSampler(9, 12, 1, 2)) and len(sampler) == 3
+    assert list(StepSampler.for_trainer(None, 3, 4)) == [0, 1, 2, 3]

@@ -807,6 +807,30 @@ def _append_jsonl(path: Path, obj: Any) -> None:
         os.fsync(f.fileno())
 
 
+def _keep_trajectories_of(traj_path: Path, done: set[str]) -> None:
+    """Rewrite ``traj_path`` (atomically, only when needed) to one line per logged episode.
+
+    The trajectory line is appended just before the episode's result; a kill between the two left a
+    line for an episode the resume runs again, and so a duplicate (issue 23). Torn lines go too."""
+    if not traj_path.is_file():
+        return
+    kept, seen, changed = [], set(), False
+    for line in traj_path.read_text(encoding="utf-8").splitlines(keepends=True):
+        try:
+            episode_id = json.loads(line)["episode_id"] if line.endswith("\n") else None
+        except (json.JSONDecodeError, KeyError, TypeError):
+            episode_id = None
+        if episode_id in done and episode_id not in seen:
+            kept.append(line)
+            seen.add(episode_id)
+        else:
+            changed = True
+    if changed:
+        from image2sim.simulator.io.atomic import write_text_atomic
+
+        write_text_atomic(traj_path, "".join(kept))
+
+
 def run_scene(
     backend: Any,
     episodes: Sequence[NavEpisode],
@@ -824,6 +848,7 @@ def run_scene(
     log = EpisodeLog(log_path, protocol)
     done = log.done_ids()
     traj_path = Path(str(log_path) + ".traj.jsonl")
+    _keep_trajectories_of(traj_path, done)
     agent = agent if agent is not None else make_agent(AgentSpec(config.agent, config.agent_options))
     ran = 0
     for ep in episodes:

@@ -250,9 +250,7 @@ class NavBCModule(L.LightningModule):
                 **sample_options(self.cfg),
             )
         per_step = tc.batch_size * tc.accumulate_grad_batches
-        start = self.trainer.global_step * per_step
-        stop = tc.max_steps * per_step
-        sampler = StepSampler.for_trainer(self.trainer, start, stop)
+        sampler = StepSampler.for_trainer(self.trainer, per_step, tc.max_steps * per_step)
         # Sample ratios apply to the shards of data.shards (a DAgger buffer draws every trajectory).
         weights = self.cfg.data.shard_weights if isinstance(self.dataset, NavShardDataset) else None
         return torch.utils.data.DataLoader(
@@ -343,8 +341,8 @@ def train_bc(
             lets a test interrupt a run and resume it.
         policy: an already built policy (default: built from ``cfg`` with ``cfg.train.seed``).
     """
+    from image2sim.simulator.tracking import csv_logger
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import CSVLogger
 
     tc = cfg.train
     out = Path(out_dir)
@@ -357,7 +355,7 @@ def train_bc(
     policy = policy or build_policy(cfg, seed=tc.seed)
     policy.model.train()
     module = NavBCModule(policy, cfg, dataset)
-    loggers = [CSVLogger(str(out), name="logs")]  # version_N per (re)start: resumes never overwrite
+    loggers = [csv_logger(out, resume=resume is not None)]
     if tc.wandb:
         from image2sim.simulator.tracking import wandb_logger
 

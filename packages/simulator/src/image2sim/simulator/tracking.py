@@ -1,10 +1,12 @@
-"""Run metadata for experiment tracking, and the one W&B logger every training command uses.
+"""Run metadata for experiment tracking, and the CSV and W&B loggers every training command uses.
 
 Every tracked run carries the same metadata (issue: reproducible pipeline): the git commit, the DVC
 stage (``$DVC_STAGE``, which ``dvc repro`` sets), the params profile and the resolved configuration.
 :func:`run_metadata` builds it; :func:`wandb_logger` builds Lightning's ``WandbLogger`` with it,
 offline unless the user configured W&B, and never uploads checkpoints (``log_model=False``: DVC owns
-artifacts). Nothing here imports wandb or touches the network at import time.
+artifacts). :func:`csv_logger` writes ``logs/version_N/metrics.csv`` so that a resumed run continues
+its log without gaps or duplicate steps. Nothing here imports wandb or lightning, or touches the
+network, at import time.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["git_commit", "run_metadata", "wandb_logger"]
+__all__ = ["csv_logger", "git_commit", "run_metadata", "trim_metrics_csv", "wandb_logger"]
 
 
 def git_commit(cwd: str | Path | None = None) -> str | None:
@@ -88,3 +90,99 @@ def wandb_logger(save_dir: str | Path, project: str, config: Mapping[str, Any], 
         config=run_metadata(stage, config=config),
         save_code=False,
     )
+
+
+def trim_metrics_csv(path: str | Path, first_step: int) -> int:
+    """Drop the rows of a Lightning ``metrics.csv`` logged at ``step >= first_step`` (and a torn
+    last line), atomically; returns how many rows were dropped. A run killed after its last checkpoint
+    logged steps that the resumed run logs again."""
+    import csv
+    import io
+
+    from image2sim.simulator.io.atomic import write_text_atomic
+
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    text = path.read_text(encoding="utf-8")
+    lines = text.splitlines(keepends=True)
+    torn = bool(lines) and not lines[-1].endswith("\n")  # a kill mid-write
+    rows = list(csv.DictReader(io.StringIO("".join(lines[:-1] if torn else lines))))
+    if not rows:
+        return int(torn)
+    fields = list(rows[0].keys())
+
+    def before(row: dict) -> bool:
+        try:
+            return int(float(row.get("step") or -1)) < first_step
+        except ValueError:
+            return False
+
+    kept = [r for r in rows if before(r)]
+    dropped = len(rows) - len(kept) + int(torn)
+    if dropped:
+        out = io.StringIO()
+        writer = csv.DictWriter(out, fieldnames=fields, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(kept)
+        write_text_atomic(path, out.getvalue())
+    return dropped
+
+
+def _latest_version(logs: Path) -> int | None:
+    versions = [
+        int(p.name.split("_", 1)[1])
+        for p in logs.glob("version_*")
+        if p.is_dir() and p.name.split("_", 1)[1].isdigit()
+    ]
+    return max(versions) if versions else None
+
+
+def csv_logger(save_dir: str | Path, resume: bool, name: str = "logs"):
+    """Lightning ``CSVLogger`` at ``save_dir/name/version_N/metrics.csv``, flushed every step.
+
+    A fresh run starts a new ``version_N``; a resumed one (``resume=True``) continues the latest
+    version: its rows before the first step the resumed run logs are kept, the later ones (logged
+    after the last checkpoint by the interrupted run) are replaced. So a run interrupted and resumed
+    any number of times leaves one file with every step once, like an uninterrupted run.
+    """
+    from lightning.pytorch.loggers import CSVLogger
+    from lightning.pytorch.utilities import rank_zero_only
+
+    class _ResumableCSVLogger(CSVLogger):
+        def __init__(self) -> None:
+            version = _latest_version(Path(save_dir) / name) if resume else None
+            # Flushing every step: rows buffered since the last flush would be lost by a kill, and
+            # the resumed run restarts at the last checkpoint, after them (a gap).
+            super().__init__(str(save_dir), name=name, version=version, flush_logs_every_n_steps=1)
+            self._kept: Path | None = None
+            if resume and version is not None:
+                # Lightning's writer deletes an existing metrics.csv when it opens the folder: set the
+                # rows aside (a rename, so a kill before they are restored loses nothing).
+                log = Path(self.log_dir) / "metrics.csv"
+                kept = log.with_name("metrics.before_resume.csv")
+                if log.is_file():
+                    os.replace(log, kept)
+                self._kept = kept if kept.is_file() else None
+
+        def _restore(self, first_step: int) -> None:
+            if self._kept is None:
+                return
+            _ = self.experiment  # the writer exists (and has cleared the folder) before the restore
+            trim_metrics_csv(self._kept, first_step)
+            os.replace(self._kept, Path(self.log_dir) / "metrics.csv")
+            self._kept = None
+
+        @rank_zero_only
+        def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
+            self._restore(int(step) if step is not None else 0)
+            super().log_metrics(metrics, step)
+
+        @rank_zero_only
+        def finalize(self, status: str) -> None:
+            super().finalize(status)
+            if self._kept is not None and not (Path(self.log_dir) / "metrics.csv").exists():
+                os.replace(self._kept, Path(self.log_dir) / "metrics.csv")  # resumed with nothing to log
+                self._kept = None
+
+    return _ResumableCSVLogger()

@@ -102,25 +102,18 @@ def _collate(items: list[dict]) -> dict:
 
 
 class GeometryDataModule(L.LightningDataModule):
-    """Serves :class:`GeometryDataset` samples in step order (resumable: the start step is saved)."""
+    """Serves :class:`GeometryDataset` samples in step order from the trainer's global step (one
+    sample per step), so a resumed run continues with the next unseen sample."""
 
     def __init__(self, scenes: Sequence[Sequence[FrameInputs]], cfg: GaussianConfig) -> None:
         super().__init__()
         t = cfg.train
         self.dataset = GeometryDataset(scenes, t.num_sources, max(1, t.steps), t.seed)
-        self._start = 0
-
-    def state_dict(self) -> dict:
-        step = int(self.trainer.global_step) if self.trainer is not None else self._start
-        return {"start_step": step}
-
-    def load_state_dict(self, state: dict) -> None:
-        self._start = int(state.get("start_step", 0))
 
     def train_dataloader(self) -> DataLoader:
         from image2sim.simulator.sampling import StepSampler
 
-        order = StepSampler.for_trainer(self.trainer, self._start, len(self.dataset))
+        order = StepSampler.for_trainer(self.trainer, 1, len(self.dataset))
         return DataLoader(self.dataset, batch_size=1, sampler=order, collate_fn=_collate, num_workers=0)
 
 
@@ -248,8 +241,8 @@ def train_stage1(
     """Train (or resume) stage 1; writes checkpoints, CSV (+ W&B offline) logs, image grids and the
     final encoder (``encoder.safetensors`` + ``encoder.json``) under ``out_dir``. Returns a summary."""
     from image2sim.simulator.gaussians.build import save_encoder
+    from image2sim.simulator.tracking import csv_logger
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import CSVLogger
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -267,7 +260,8 @@ def train_stage1(
     L.seed_everything(cfg.train.seed, workers=True, verbose=False)
     module = GeometryModule(cfg, semantic_model, panoramic=panoramic, image_dir=str(out / "images"))
     data = GeometryDataModule(scenes, cfg)
-    loggers = [CSVLogger(str(out), name="logs")]
+    last = out / "checkpoints" / "last.ckpt"
+    loggers = [csv_logger(out, resume=resume and last.is_file())]
     if cfg.train.wandb:
         from image2sim.simulator.tracking import wandb_logger
 
@@ -292,7 +286,6 @@ def train_stage1(
         limit_val_batches=0,
         gradient_clip_val=1.0,
     )
-    last = out / "checkpoints" / "last.ckpt"
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume and last.is_file() else None)
     path = out / "encoder.safetensors"
     if trainer.is_global_zero:  # under DDP every rank gets here with the same weights

@@ -247,8 +247,8 @@ class RendererModule(L.LightningModule):
 
 
 class RendererDataModule(L.LightningDataModule):
-    """Serves a map-style dataset in :class:`StepSampler` order; remembers its position in
-    checkpoints so a resumed run continues with the next unseen batch."""
+    """Serves a map-style dataset in :class:`StepSampler` order from the trainer's global step, so a
+    resumed run (whose checkpoint restores the step) continues with the next unseen batch."""
 
     def __init__(
         self, dataset, batch_size: int, total_steps: int, seed: int = 0, num_workers: int = 0
@@ -259,14 +259,6 @@ class RendererDataModule(L.LightningDataModule):
         self.total_steps = int(total_steps)
         self.seed = int(seed)
         self.num_workers = int(num_workers)
-        self._start_step = 0
-
-    def state_dict(self) -> dict:
-        step = int(self.trainer.global_step) if self.trainer is not None else self._start_step
-        return {"position_step": step}
-
-    def load_state_dict(self, state: dict) -> None:
-        self._start_step = int(state.get("position_step", 0))
 
     def train_dataloader(self):
         import functools
@@ -277,7 +269,7 @@ class RendererDataModule(L.LightningDataModule):
 
         sampler = StepSampler.for_trainer(
             self.trainer,
-            self._start_step * self.batch_size,
+            self.batch_size,
             self.total_steps * self.batch_size,
             index_of=functools.partial(permuted_index, length=len(self.dataset), seed=self.seed),
         )
@@ -326,9 +318,9 @@ def fit(
 
         log = wandb_logger(out, "image2sim-renderer", dataclasses.asdict(cfg))
     else:
-        from lightning.pytorch.loggers import CSVLogger
+        from image2sim.simulator.tracking import csv_logger
 
-        log = CSVLogger(str(out), name="logs")
+        log = csv_logger(out, resume=resume is not None)
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True, save_top_k=-1
     )
