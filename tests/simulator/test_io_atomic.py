@@ -71,3 +71,58 @@ def test_atomic_files_get_the_mode_a_plain_open_would_give(tmp_path):
         assert stat.S_IMODE(write_text_atomic(tmp_path / "private.txt", "x").stat().st_mode) == 0o600
     finally:
         os.umask(old)
+
+
+def _killed_mid_write(target) -> None:
+    """A child process opens an atomic write of ``target`` and is SIGKILLed inside it."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = (
+        "import sys, time\n"
+        "from image2sim.simulator.io.atomic import atomic_open\n"
+        "with atomic_open(sys.argv[1], 'wb') as f:\n"
+        "    f.write(b'half'); f.flush(); print('ready', flush=True); time.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    time.sleep(0.01)
+
+
+def test_a_killed_writers_temp_is_swept_by_the_next_write_of_the_target(tmp_path):
+    """SIGKILL cannot clean up (a stale `.navgraph.npz.<random>.npz` stayed forever, issue 23): the
+    next write of the same target removes temps of writers that no longer run."""
+    from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
+
+    target = tmp_path / "navgraph.npz"
+    _killed_mid_write(target)
+    stale = [p for p in tmp_path.iterdir() if p.name.startswith(".navgraph.npz.")]
+    assert len(stale) == 1 and not target.exists()
+    live = temp_sibling(target, ".npz")  # this process's: a live writer, never touched
+    live.write_bytes(b"in progress")
+    other_host = tmp_path / ".navgraph.npz.00000000-1-deadbeef.npz"
+    other_host.write_bytes(b"another machine's writer")
+    unrelated = tmp_path / ".navgraph.npz.notes"
+    unrelated.write_text("not a temp")
+    write_text_atomic(target, "done")
+    assert target.read_text() == "done" and not stale[0].exists()
+    assert live.exists() and other_host.exists() and unrelated.exists()
+    assert sweep_stale_temps(target) == []
+
+
+def test_folder_writers_sweep_a_killed_writers_temp_folder(tmp_path):
+    import os
+
+    from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
+
+    target = tmp_path / "scene"
+    dead = temp_sibling(target, ".tmp")
+    pid = int(dead.name.split("-")[1])
+    assert pid == os.getpid()
+    dead = dead.with_name(dead.name.replace(f"-{pid}-", "-999999999-"))  # no such process
+    (dead / "frames").mkdir(parents=True)
+    assert sweep_stale_temps(target) == [dead] and not dead.exists()

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time
 import zlib
 from dataclasses import asdict, dataclass, field, replace
@@ -37,7 +36,7 @@ from image2sim.dataengine.rollout import (
 )
 from image2sim.dataengine.trajectories import SamplingConfig, bucket_of, episode_capacity, sample_plans
 from image2sim.simulator.config import config_from_dict
-from image2sim.simulator.io.atomic import write_bytes_atomic
+from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
 
 __all__ = [
     "EngineConfig",
@@ -327,8 +326,7 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     inputs = resolve_scene(scene_dir)
     out = Path(out_dir) / "scenes" / inputs.name
     out.mkdir(parents=True, exist_ok=True)
-    for stale in out.glob(".shard.*.tmp"):  # left by a killed earlier attempt of this scene
-        shutil.rmtree(stale, ignore_errors=True)
+    sweep_stale_temps(out / "shard")  # left by a killed earlier attempt of this scene
     navmap, graph = _navigation(inputs, out)
     objects = _objects(inputs, out, cfg)
     scfg = config_from_dict(SamplingConfig, cfg.sampling, "sampling")

@@ -13,12 +13,11 @@ import io
 import json
 import os
 import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
 from image2sim.simulator.conventions import Action
-from image2sim.simulator.io.atomic import write_bytes_atomic
+from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling, write_bytes_atomic
 
 __all__ = ["SHARD_FORMAT", "SHARD_VERSION", "SceneShardWriter"]
 
@@ -31,7 +30,8 @@ class SceneShardWriter:
 
     def __init__(self, root: str | Path, observation: dict | None = None) -> None:
         self.root = Path(root)
-        self.tmp = self.root.with_name(f".{self.root.name}.{uuid.uuid4().hex[:8]}.tmp")
+        sweep_stale_temps(self.root)
+        self.tmp = temp_sibling(self.root, ".tmp")
         (self.tmp / "frames").mkdir(parents=True)
         self.observation = dict(observation or {})
         self.lines: list[str] = []

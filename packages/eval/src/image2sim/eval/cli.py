@@ -133,12 +133,9 @@ def report_cmd(
 
 
 def _write_text(path: Path, text: str) -> Path:
-    """Atomic text write (temp file + rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
-    return path
+    from image2sim.simulator.io.atomic import write_text_atomic
+
+    return write_text_atomic(path, text)
 
 
 def _protocol(name_or_file: str):

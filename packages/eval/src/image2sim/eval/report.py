@@ -16,6 +16,7 @@ from image2sim.eval.metrics.nav import AggregateReport, MetricSummary
 from image2sim.eval.protocols import Protocol
 from image2sim.eval.render_scores import RenderCell
 from image2sim.eval.results import read_result_file, write_aggregate, write_json_atomic
+from image2sim.simulator.io.atomic import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -53,8 +54,9 @@ def format_cell(summary: MetricSummary | None, total: int, column: Column) -> st
     return value if summary.count == total else f"{value} (n={summary.count})"
 
 
-def nav_table_markdown(rows: Sequence[tuple[str, AggregateReport]],
-                       columns: Sequence[Column] = NAV_COLUMNS) -> str:
+def nav_table_markdown(
+    rows: Sequence[tuple[str, AggregateReport]], columns: Sequence[Column] = NAV_COLUMNS
+) -> str:
     """A Markdown table with one row per ``(label, report)``; rates in percent, distances in metres."""
     header = ["", *[c.header for c in columns], "Episodes", "Protocol"]
     lines = ["| " + " | ".join(header) + " |", "|---" + "|---:" * (len(header) - 2) + "|---|"]
@@ -70,10 +72,12 @@ def nav_table_markdown(rows: Sequence[tuple[str, AggregateReport]],
 def describe_protocol(p: Protocol) -> str:
     """One-line human summary of a protocol."""
     cam = p.camera
-    return (f"{p.max_steps} steps, {p.turn_angle_deg:g}° turns, {p.forward_step_m:g} m forward, "
-            f"{cam.width}×{cam.height} {cam.kind} at {cam.hfov_deg:g}° HFOV, "
-            f"sliding {'on' if p.allow_sliding else 'off'}, success < {p.success_distance_m:g} m, "
-            f"{p.dtw} DTW")
+    return (
+        f"{p.max_steps} steps, {p.turn_angle_deg:g}° turns, {p.forward_step_m:g} m forward, "
+        f"{cam.width}×{cam.height} {cam.kind} at {cam.hfov_deg:g}° HFOV, "
+        f"sliding {'on' if p.allow_sliding else 'off'}, success < {p.success_distance_m:g} m, "
+        f"{p.dtw} DTW"
+    )
 
 
 def dvc_metrics(report: AggregateReport) -> dict[str, Any]:
@@ -86,19 +90,16 @@ def dvc_metrics(report: AggregateReport) -> dict[str, Any]:
     return out
 
 
-def write_nav_report(out_dir: str | Path, label: str, report: AggregateReport,
-                     extra: Mapping[str, Any] | None = None) -> dict[str, Path]:
+def write_nav_report(
+    out_dir: str | Path, label: str, report: AggregateReport, extra: Mapping[str, Any] | None = None
+) -> dict[str, Path]:
     """Write ``aggregate.json`` (result file with protocol), ``metrics.json`` (DVC) and ``table.md``."""
     out = Path(out_dir)
     paths = {
         "aggregate": write_aggregate(out / "aggregate.json", report, {"label": label, **(extra or {})}),
         "metrics": write_json_atomic(out / "metrics.json", dvc_metrics(report)),
     }
-    table = out / "table.md"
-    tmp = table.with_name(f".{table.name}.tmp")
-    tmp.write_text(nav_table_markdown([(label, report)]), encoding="utf-8")
-    tmp.replace(table)
-    paths["table"] = table
+    paths["table"] = write_text_atomic(out / "table.md", nav_table_markdown([(label, report)]))
     return paths
 
 

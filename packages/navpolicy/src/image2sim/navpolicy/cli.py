@@ -519,12 +519,11 @@ def compare_cmd(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     rec = {"model": model, "scene_seeds": seeds, "success_distance": success_distance, "agents": summary}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(rec, indent=2))
-    tmp.replace(out)
+    from image2sim.simulator.io.atomic import write_json_atomic, write_text_atomic
+
+    write_json_atomic(out, rec)
     md = comparison_markdown(summary)
-    out.with_suffix(".md").write_text(md)
+    write_text_atomic(out.with_suffix(".md"), md)
     typer.echo(md)
 
 
@@ -569,8 +568,7 @@ def replay_cmd(
                 "fallbacks": sum(s.fallback for s in agent.history),
             }
         )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(out.suffix + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2))
-    tmp.replace(out)
+    from image2sim.simulator.io.atomic import write_json_atomic
+
+    write_json_atomic(out, report)
     typer.echo(json.dumps(report, indent=2))

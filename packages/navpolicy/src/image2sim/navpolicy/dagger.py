@@ -39,7 +39,7 @@ import numpy as np
 from image2sim.navpolicy.config import DaggerConfig, NavPolicyConfig, ObservationConfig
 from image2sim.navpolicy.data import Trajectory
 from image2sim.simulator.conventions import Action
-from image2sim.simulator.io.atomic import write_text_atomic
+from image2sim.simulator.io.atomic import atomic_path, write_text_atomic
 
 MODEL, ORACLE = "model", "oracle"
 
@@ -732,9 +732,8 @@ def run_dagger(
             state["seen"].append([i for batch in res.module.seen for i in batch])
             weights = out / "checkpoints" / f"round_{r:02d}.safetensors"
             weights.parent.mkdir(parents=True, exist_ok=True)
-            tmp = weights.with_name(f".{weights.name}.tmp")
-            save_model(policy.model, str(tmp))
-            tmp.replace(weights)
+            with atomic_path(weights) as tmp:
+                save_model(policy.model, str(tmp))
             state["weights"] = str(weights.relative_to(out))
         else:
             state["losses"].append([])

@@ -30,7 +30,6 @@ import json
 import math
 import os
 import shutil
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +37,7 @@ import numpy as np
 from image2sim.navpolicy.config import ObservationConfig
 from image2sim.navpolicy.data import ShardWriter, Trajectory
 from image2sim.simulator.conventions import Action
-from image2sim.simulator.io.atomic import write_text_atomic
+from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling, write_text_atomic
 
 __all__ = ["SKIP_REASONS", "ReferenceRollout", "follow_reference", "shard_from_episodes"]
 
@@ -315,7 +314,8 @@ def shard_from_episodes(
 
     opts = _Options(source, dataset, obs, int(frame_stride), int(max_steps), end_tolerance, follower_config)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
+    sweep_stale_temps(out)
+    tmp = temp_sibling(out, ".tmp")
     try:
         writer = ShardWriter(tmp, {**obs.__dict__})
         with Progress(transient=True, disable=not progress) as bar_display:

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.fusion import fuse, level_histogram, prune
 from image2sim.simulator.gaussians.primitives import GaussianSet
 from image2sim.simulator.geometry.cameras import Camera, camera_from_dict
+from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
 
 __all__ = ["GaussianScene", "SceneError", "SCENE_FORMAT", "SH_C0"]
 
@@ -167,7 +167,8 @@ class GaussianScene:
         if self.gaussians is None:
             raise SceneError(f"{folder}: refusing to save an empty scene")
         folder.parent.mkdir(parents=True, exist_ok=True)
-        tmp = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:8]}.tmp")
+        sweep_stale_temps(folder)
+        tmp = temp_sibling(folder, ".tmp")
         tmp.mkdir()
         try:
             tensors = {k: getattr(self.gaussians, k).contiguous() for k in _TENSORS}
@@ -177,7 +178,7 @@ class GaussianScene:
                 child.chmod(0o644)
             tmp.chmod(0o755)
             if folder.exists():
-                old = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:8]}.old")
+                old = temp_sibling(folder, ".old")
                 os.replace(folder, old)
                 os.replace(tmp, folder)
                 shutil.rmtree(old, ignore_errors=True)

@@ -6,19 +6,29 @@ either the old file or the complete new one. The temp file lives in the same fol
 ``os.replace`` is atomic only within one filesystem; it is removed when the write fails. There is no
 fsync: the guarantee is against killed jobs (the case resumable stages meet), not power loss, and
 shard writers create thousands of small files.
+
+A SIGKILL cannot clean up, so temp names carry their writer (:func:`temp_sibling`: host tag and
+pid) and the next write of the same target removes the temps of writers that no longer run
+(:func:`sweep_stale_temps`); a live writer's temp is never touched. Folder writers (scenes,
+captures, shards) use the same two functions.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
+import re
+import secrets
+import socket
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
 __all__ = [
+    "sweep_stale_temps",
+    "temp_sibling",
     "atomic_path",
     "atomic_open",
     "write_bytes_atomic",
@@ -46,6 +56,49 @@ def _default_file_mode() -> int:
     return 0o666 & ~process_umask()
 
 
+def _host_tag() -> str:
+    return f"{zlib.crc32(socket.gethostname().encode()):08x}"
+
+
+def temp_sibling(path: str | os.PathLike, suffix: str = "") -> Path:
+    """A fresh name beside ``path`` for a temp file or folder:
+    ``.<name>.<host tag>-<pid>-<random><suffix>`` (the writer is recorded for the sweep)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{_host_tag()}-{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+
+
+def _pid_running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def sweep_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Remove the temp siblings of ``path`` (see :func:`temp_sibling`) whose writer ran on this host and
+    no longer runs: leftovers of a killed write. Returns what was removed."""
+    import shutil
+
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(?P<host>[0-9a-f]{{8}})-(?P<pid>\d+)-[0-9a-f]{{8}}")
+    host, removed = _host_tag(), []
+    for candidate in path.parent.iterdir():
+        m = pattern.match(candidate.name)
+        if m is None or m["host"] != host or _pid_running(int(m["pid"])):
+            continue
+        if candidate.is_dir() and not candidate.is_symlink():
+            shutil.rmtree(candidate, ignore_errors=True)
+        else:
+            candidate.unlink(missing_ok=True)
+        removed.append(candidate)
+    return removed
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temp path beside ``path``; on a clean exit it is renamed to ``path``.
@@ -56,15 +109,11 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(
-        dir=path.parent, prefix=f".{path.name}.", suffix=(path.suffix if suffix is None else suffix) + ".tmp"
-    )
-    os.close(fd)
-    os.chmod(tmp_name, _default_file_mode())  # mkstemp's 0600 would make outputs private to the writer
-    tmp = Path(tmp_name)
-    # mkstemp's ".tmp" ending would hide the real suffix from format-sniffing writers: drop it.
-    final_tmp = tmp.with_name(tmp.name[: -len(".tmp")])
-    tmp.replace(final_tmp)
+    sweep_stale_temps(path)
+    # The target's suffix last: some writers pick the format from it.
+    final_tmp = temp_sibling(path, path.suffix if suffix is None else suffix)
+    # 0666 less the umask, as open(..., "w") gives (mkstemp's 0600 made outputs private to the writer).
+    os.close(os.open(final_tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
     try:
         yield final_tmp
         os.replace(final_tmp, path)

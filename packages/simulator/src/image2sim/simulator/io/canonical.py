@@ -21,13 +21,13 @@ import json
 import os
 import re
 import shutil
-import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 from image2sim.simulator.conventions import DEPTH_PNG_SCALE
 from image2sim.simulator.geometry.cameras import camera_from_dict
+from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
 from image2sim.simulator.io.images import (
     read_depth_uint16,
     read_rgb,
@@ -170,7 +170,8 @@ def write_capture(
     except (TypeError, ValueError) as err:
         raise CaptureError(f"metadata for {out_dir} is not JSON-serialisable: {err}") from None
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
+    sweep_stale_temps(out_dir)
+    tmp = temp_sibling(out_dir, ".tmp")
     tmp.mkdir()
     try:
         (tmp / "frames").mkdir()
@@ -228,7 +229,7 @@ def _move_into_place(tmp: Path, out_dir: Path, overwrite: bool) -> None:
     if out_dir.exists():
         if not overwrite:
             raise FileExistsError(f"{out_dir}: appeared while writing (pass overwrite=True to replace it)")
-        trash = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
+        trash = temp_sibling(out_dir, ".old")
         os.replace(out_dir, trash)
         try:
             os.replace(tmp, out_dir)
