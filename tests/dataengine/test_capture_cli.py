@@ -110,12 +110,14 @@ def test_inspect_reports_truthful_numbers(tmp_path: Path) -> None:
     assert "00002" in result.output and "64x32" in result.output
 
 
-def test_inspect_lists_skipped(tmp_path: Path) -> None:
+def test_inspect_lists_skipped_and_exits_2(tmp_path: Path) -> None:
+    """The report is printed in full, then the exit status says the capture is bad (it was 0)."""
     src = write_pinhole_fixture(tmp_path / "src", n=3)
     (src / "pose" / "1.txt").write_text("\n".join(["nan nan nan nan"] * 4))
     result = runner.invoke(app, ["inspect", str(src)], env={"COLUMNS": "200"})
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 2, result.output
     assert "1 skipped" in result.output and "non-finite" in result.output
+    assert "1 of 3 frames" in result.output and "unreadable" in result.output
 
 
 def test_fuse_writes_a_cloud_on_the_walls(tmp_path: Path) -> None:

@@ -89,7 +89,10 @@ def inspect(
     ] = 12,
     half_pixel: Annotated[str | None, typer.Option("--half-pixel", help=_HALF_PIXEL_HELP)] = None,
 ) -> None:
-    """Print a capture's frames, sizes, depth range and pose bounds."""
+    """Print a capture's frames, sizes, depth range and pose bounds.
+
+    Exits 2 (bad input) after the report when a frame was skipped while indexing or could not be
+    read: every other command reads captures strictly and would refuse it."""
     import numpy as np
     from image2sim.simulator.io import CaptureError
     from rich.console import Console
@@ -158,8 +161,16 @@ def inspect(
             *(f"{c:.3f}" for c in s["position"]),
         )
     console.print(table)
-    for fid, reason in list(cap.skipped) + errors:
+    bad = list(cap.skipped) + errors
+    for fid, reason in bad:
         console.print(f"[yellow]skipped[/] {fid}: {reason}", highlight=False, soft_wrap=True)
+    if bad:
+        typer.echo(
+            f"error: {len(bad)} of {len(cap.skipped) + len(cap)} frames of {cap.root} are unreadable "
+            "(listed above); other commands refuse this capture (`sim navmap --skip-bad` leaves them out)",
+            err=True,
+        )
+        raise typer.Exit(2)
 
 
 @app.command()
