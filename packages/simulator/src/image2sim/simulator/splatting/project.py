@@ -11,11 +11,16 @@ rotation and ``J`` the 2x3 pixel Jacobian of the camera at the camera-frame mean
 * Pinhole: ``J`` is :meth:`PinholeCamera.pixel_jacobian` (perspective Jacobian).
 * Equirect: ``J`` is the analytic Jacobian of (longitude, latitude) scaled to pixels; it equals
   :meth:`EquirectCamera.pixel_jacobian` away from the poles but is written in the (lon, lat)
-  tangent basis so it stays defined *at* the poles (where lon = atan2(0, 0) := 0). The longitude
-  row grows like 1/cos(lat); after dilation the u-standard deviation is clamped so that the
-  3.5-sigma footprint spans at most the full image width (half-width W/2), shrinking the u row and
-  column of ``Sigma_2D`` by the same factor, which keeps it positive definite. That clamp is also
-  what makes the wrapped horizontal offset of a pixel unique (see :func:`wrap_offset`).
+  tangent basis so it stays defined *at* the poles (within cos(lat) <= 1e-9 the longitude is set
+  to 0 with no gradient). The longitude row grows like 1/cos(lat): near a pole the u-variance is
+  huge, the profile nearly flat across the width, as the true projection of a Gaussian on the pole
+  is. Pixels take the wrapped horizontal offset (see :func:`wrap_offset`) and footprint boxes are at
+  most the full width. Within cos(lat) < :data:`POLE_BLEND_COS` the v-variance and the cross term
+  are blended towards their longitude average (:func:`_pole_blend`), so that nothing depends on the
+  mean's longitude at the pole and the gradients of the means stay bounded there.
+
+Every backend (the compiled kernel's fused inference projection too) follows these rules, so they
+agree at the poles, the seam and extreme scales.
 """
 
 from __future__ import annotations
@@ -52,8 +57,14 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 """A pixel is finished once its transmittance drops below this (the last Gaussian still counts)."""
 
-_COS_LAT_MIN = 1e-9  # keeps 1/cos(lat) finite exactly at the poles; the width clamp does the rest
-_RHO_MIN = 1e-30  # below this horizontal distance the longitude is undefined and set to 0
+POLE_BLEND_COS = 0.1
+"""Within this cos(latitude) of a pole (about 5.7 degrees) an equirect screen covariance is blended
+towards its longitude average (see :func:`_pole_blend`)."""
+_POLE_COS = 1e-9
+"""Within this cos(latitude) (= rho / r) of a pole the longitude is undefined: it is set to 0 with no
+gradient, and 1/cos(lat) is capped there. Relative, not absolute: a float32 mean resolves about
+1e-7 of its range, and the longitude's gradient (1/rho) times the rounding left in the other terms
+grew without bound below this (issue 23)."""
 
 
 @dataclass
@@ -133,7 +144,7 @@ def equirect_jacobian(points: torch.Tensor, camera: EquirectCamera) -> tuple[tor
     """
     x, y, z = points.unbind(-1)
     rho2 = x * x + z * z
-    at_pole = rho2 < _RHO_MIN * _RHO_MIN
+    at_pole = rho2 <= (_POLE_COS * _POLE_COS) * (rho2 + y * y)
     xs = torch.where(at_pole, torch.zeros_like(x), x)
     zs = torch.where(at_pole, torch.ones_like(z), z)
     lon = torch.atan2(xs, zs)
@@ -146,11 +157,34 @@ def equirect_jacobian(points: torch.Tensor, camera: EquirectCamera) -> tuple[tor
     cl, sl = torch.cos(lat), torch.sin(lat)
     co, so = torch.cos(lon), torch.sin(lon)
     zero = torch.zeros_like(x)
-    ju = torch.stack((co, zero, -so), dim=-1) * (su / (r * cl.clamp_min(_COS_LAT_MIN))).unsqueeze(-1)
+    ju = torch.stack((co, zero, -so), dim=-1) * (su / (r * cl.clamp_min(_POLE_COS))).unsqueeze(-1)
     jv = torch.stack((-sl * so, -cl, -sl * co), dim=-1) * (sv / r).unsqueeze(-1)
     u = torch.remainder((lon + math.pi) * su, float(camera.width))
     v = (0.5 * math.pi - lat) * (camera.height / math.pi)
     return torch.stack((u, v), dim=-1), torch.stack((ju, jv), dim=-2)
+
+
+def _pole_blend(
+    points: torch.Tensor, m_cam: torch.Tensor, b: torch.Tensor, c: torch.Tensor, camera: EquirectCamera
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Near a pole, the EWA screen covariance's (b, c) blended towards their longitude average.
+
+    At the pole the v-variance c of an anisotropic Gaussian is its spread along the meridian of the
+    mean's longitude, an arbitrary direction there: the image jumps with the longitude, whose gradient
+    is 1/rho, so float32 gradients of the means grew without bound (issue 23). Within cos(lat) <
+    :data:`POLE_BLEND_COS`, c moves to its average over longitudes, ``(H/pi)^2 / r^2 (sin^2 lat (Sxx +
+    Szz) / 2 + cos^2 lat Syy)``, and b to 0, with weight ``1 - cos^2(lat) / POLE_BLEND_COS^2``: the
+    longitude's influence vanishes like rho^2 and the gradient stays bounded. Isotropic Gaussians are
+    unchanged (their c does not depend on the longitude), and with ``t <= 1`` the blend keeps the
+    covariance positive semi-definite (``a c' - b'^2 >= t (a c - b^2)``). ``m_cam`` is the
+    camera-frame ``R S`` (so Sigma_cam = m_cam m_cam^T)."""
+    x, y, z = points.unbind(-1)
+    r2 = (points * points).sum(-1)
+    cos2 = (x * x + z * z) / r2
+    t = torch.clamp(cos2 / (POLE_BLEND_COS * POLE_BLEND_COS), max=1.0)
+    sxx, syy, szz = ((m_cam * m_cam).sum(-1)).unbind(-1)
+    c_avg = (camera.height / math.pi) ** 2 / r2 * ((1.0 - cos2) * 0.5 * (sxx + szz) + cos2 * syy)
+    return b * t, c_avg + t * (c - c_avg)
 
 
 def wrap_offset(du: torch.Tensor, wrap_width: float) -> torch.Tensor:
@@ -215,15 +249,11 @@ def project_gaussians(
     cov2 = torch.stack(
         ((el[:, 0] * el[:, 0]).sum(-1), (el[:, 0] * el[:, 1]).sum(-1), (el[:, 1] * el[:, 1]).sum(-1)), dim=-1
     )
-    a = cov2[:, 0] + DILATION
-    b = cov2[:, 1]
-    c = cov2[:, 2] + DILATION
+    b, c = cov2[:, 1], cov2[:, 2]
     if equirect:
-        # Clamp the u extent to the full width: 3.5 * sigma_u <= W / 2 (scale u row/col by k).
-        max_sigma_u = 0.5 * camera.width / CUTOFF_SIGMA
-        shrink = torch.clamp(max_sigma_u / torch.sqrt(a.clamp_min(1e-300)), max=1.0)
-        a = a * shrink * shrink
-        b = b * shrink
+        b, c = _pole_blend(p_s, rot_wc.transpose(0, 1) @ rs, b, c, camera)
+    a = cov2[:, 0] + DILATION
+    c = c + DILATION
     det = a * c - b * b
     ok = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c) & (det > 0)
     valid = valid & ok
@@ -236,6 +266,8 @@ def project_gaussians(
     conics = torch.stack((c / det, -b / det, a / det), dim=-1)
     cov2d = torch.stack((a, b, c), dim=-1)
     radii = CUTOFF_SIGMA * torch.sqrt(torch.stack((a, c), dim=-1).detach())
+    if equirect:  # a box wider than the panorama covers every column: no wider is needed
+        radii = torch.stack((radii[:, 0].clamp(max=float(camera.width)), radii[:, 1]), dim=-1)
 
     # Footprint boxes that miss the image are culled (rows always; columns only for pinhole).
     uvd = uv.detach()

@@ -196,8 +196,11 @@ struct RowRange {
 inline RowRange row_range(const Grid& g, const TileView& tv, const Rec& r) {
   RowRange rr;
   rr.dy0 = tv.y0 + 0.5 - r.mv;
-  rr.j0 = std::max<int64_t>(0, (int64_t)std::ceil(-r.rv - rr.dy0));
-  rr.j1 = std::min<int64_t>(tv.h, (int64_t)std::floor(r.rv - rr.dy0) + 1);
+  // Clamp in double before the integer cast: a footprint of >= 9.2e18 px (scales ~1e18 m) overflowed
+  // int64 and the Gaussian touched no row, while the torch and reference backends rendered it.
+  const double h = static_cast<double>(tv.h);
+  rr.j0 = static_cast<int64_t>(std::clamp(std::ceil(-r.rv - rr.dy0), 0.0, h));
+  rr.j1 = static_cast<int64_t>(std::clamp(std::floor(r.rv - rr.dy0) + 1.0, 0.0, h));
   rr.dx0 = wrap_dx(tv.x0 + 0.5 - r.mu, g.wrap);
   return rr;
 }
@@ -544,6 +547,8 @@ std::vector<int64_t> sort_valid_by_depth(const scalar_t* depth, const bool* vali
 // Fused inference-only projection (no autograd): the same math as project.py, in double, one
 // Gaussian per iteration, OpenMP over Gaussians. Used when no input needs a gradient; project.py
 // stays the differentiable ground truth and the tests compare the two.
+constexpr double kPoleBlendCos = 0.1;  // project.py's POLE_BLEND_COS
+
 struct CamParams {
   bool equirect;
   double fx, fy, cx, cy;
@@ -572,7 +577,7 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
         const double x = p[0], y = p[1], z = p[2];
         if (cam.equirect) {
           const double rho2 = x * x + z * z;
-          const bool pole = rho2 < 1e-60;
+          const bool pole = rho2 <= 1e-18 * (rho2 + y * y);  // cos(lat) <= 1e-9: project.py's _POLE_COS
           const double lon = pole ? 0.0 : std::atan2(x, z);
           const double rho = pole ? 0.0 : std::sqrt(rho2);
           const double lat = std::atan2(-y, rho);
@@ -607,19 +612,28 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
           for (int k = 0; k < 3; ++k) L[r][k] = (K[r][0] * G[0][k] + K[r][1] * G[1][k] + K[r][2] * G[2][k]) * s[k];
         a = L[0][0] * L[0][0] + L[0][1] * L[0][1] + L[0][2] * L[0][2] + 0.3;
         b = L[0][0] * L[1][0] + L[0][1] * L[1][1] + L[0][2] * L[1][2];
-        c = L[1][0] * L[1][0] + L[1][1] * L[1][1] + L[1][2] * L[1][2] + 0.3;
-        if (cam.equirect) {
-          const double max_sigma_u = 0.5 * cam.W / 3.5;
-          const double shrink = std::min(1.0, max_sigma_u / std::sqrt(std::max(a, 1e-300)));
-          a *= shrink * shrink;
-          b *= shrink;
+        c = L[1][0] * L[1][0] + L[1][1] * L[1][1] + L[1][2] * L[1][2];
+        if (cam.equirect) {  // project.py's _pole_blend: (b, c) towards their longitude average near a pole
+          double S[3] = {0, 0, 0};  // diagonal of the camera-frame covariance (R^T G diag(s))(...)^T
+          for (int i3 = 0; i3 < 3; ++i3)
+            for (int k = 0; k < 3; ++k) {
+              const double mk = (R[0][i3] * G[0][k] + R[1][i3] * G[1][k] + R[2][i3] * G[2][k]) * s[k];
+              S[i3] += mk * mk;
+            }
+          const double r2 = x * x + y * y + z * z, cos2 = (x * x + z * z) / r2;
+          const double tb = std::min(1.0, cos2 / (kPoleBlendCos * kPoleBlendCos));
+          const double c_avg = (cam.H / kPi) * (cam.H / kPi) / r2 * ((1.0 - cos2) * 0.5 * (S[0] + S[2]) + cos2 * S[1]);
+          b *= tb;
+          c = c_avg + tb * (c - c_avg);
         }
+        c += 0.3;
         const double det = a * c - b * b;
         valid = std::isfinite(a) && std::isfinite(b) && std::isfinite(c) && det > 0;
         if (!valid) { a = 1; b = 0; c = 1; }
       }
       const double det = a * c - b * b;
-      const double ru = 3.5 * std::sqrt(a), rv = 3.5 * std::sqrt(c);
+      const double ru = cam.equirect ? std::min(3.5 * std::sqrt(a), (double)cam.W) : 3.5 * std::sqrt(a);
+      const double rv = 3.5 * std::sqrt(c);
       if (valid) {
         bool on = (v + rv > 0) && (v - rv < cam.H) && std::isfinite(u) && std::isfinite(v);
         if (!cam.equirect) on = on && (u + ru > 0) && (u - ru < cam.W);
