@@ -503,3 +503,17 @@ def test_client_sends_base64_json_and_multipart_alike(factory, frames):
         ra = http.post(f"/v1/sessions/{a}/step", json={"image_b64": base64.b64encode(png).decode()})
         rb = http.post(f"/v1/sessions/{b}/step", files={"image": ("x.png", png, "image/png")})
     assert ra.status_code == rb.status_code == 200 and ra.json() == rb.json()
+
+
+def test_listening_socket_sets_tcp_nodelay_for_keep_alive_latency():
+    """Without it, keep-alive responses (headers and body written separately) wait ~40 ms for the
+    client's delayed ACK (measured: 44 ms per /healthz instead of ~1 ms)."""
+    import socket
+
+    from image2sim.navpolicy.serve import bind_socket
+
+    sock = bind_socket("127.0.0.1", 0)
+    try:
+        assert sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+    finally:
+        sock.close()
