@@ -682,6 +682,7 @@ def drive_cmd(
         raise typer.BadParameter(f"must be neural or exact, got {backend!r}", param_hint="--backend")
     if not scene.is_dir():
         raise typer.BadParameter(f"{scene}: no such folder", param_hint="--scene")
+    scene = scene.resolve()  # its name is the episodes' scene name, also for `--scene .`
     try:
         proto = load_protocol(protocol)
     except ProtocolError as exc:
