@@ -96,3 +96,19 @@ def test_guard_refuses_mixing() -> None:
         ensure_same_protocol([VLNCE, {"metrics": {}}])
     with pytest.raises(ProtocolError, match="no results"):
         ensure_same_protocol([])
+
+
+def test_load_protocol_by_name_or_file(tmp_path) -> None:
+    from image2sim.eval.protocols import load_protocol
+
+    assert load_protocol("vlnce") == VLNCE
+    tweaked = dataclasses.replace(VLNCE, name="mine", success_distance_m=0.5)
+    bare, wrapped = tmp_path / "bare.json", tmp_path / "result.json"
+    bare.write_text(json.dumps(tweaked.to_dict()))
+    wrapped.write_text(json.dumps({"protocol": tweaked.to_dict(), "metrics": {}}))
+    assert load_protocol(bare) == load_protocol(str(wrapped)) == tweaked
+    with pytest.raises(ProtocolError, match="'nope' is neither a protocol name"):
+        load_protocol("nope")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ProtocolError, match="invalid JSON"):
+        load_protocol(tmp_path / "bad.json")

@@ -140,17 +140,12 @@ def _write_text(path: Path, text: str) -> Path:
 
 def _protocol(name_or_file: str):
     """A built-in protocol name or a JSON file holding a protocol record."""
-    from image2sim.eval.protocols import PROTOCOLS, Protocol, get_protocol
+    from image2sim.eval.protocols import ProtocolError, load_protocol
 
-    if name_or_file in PROTOCOLS:
-        return get_protocol(name_or_file)
-    path = Path(name_or_file)
-    if not path.is_file():
-        raise typer.BadParameter(
-            f"{name_or_file!r} is neither a protocol name {sorted(PROTOCOLS)} nor a file"
-        )
-    doc = json.loads(path.read_text(encoding="utf-8"))
-    return Protocol.from_dict(doc.get("protocol", doc), str(path))
+    try:
+        return load_protocol(name_or_file)
+    except ProtocolError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--protocol") from exc
 
 
 @app.command("nav")

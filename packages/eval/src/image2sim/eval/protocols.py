@@ -21,9 +21,11 @@ Built-in protocols
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 CameraKind = Literal["pinhole", "equirect"]
@@ -245,6 +247,25 @@ def get_protocol(name: str) -> Protocol:
         return PROTOCOLS[name]
     except KeyError:
         raise ProtocolError(f"unknown protocol {name!r}; known: {sorted(PROTOCOLS)}") from None
+
+
+def load_protocol(name_or_file: str | Path) -> Protocol:
+    """A built-in protocol by name, or the protocol record in a JSON file (bare, or under the
+    ``protocol`` key of a result file); the error names the value and the known names."""
+    if str(name_or_file) in PROTOCOLS:
+        return PROTOCOLS[str(name_or_file)]
+    path = Path(name_or_file)
+    if not path.is_file():
+        raise ProtocolError(
+            f"{str(name_or_file)!r} is neither a protocol name {sorted(PROTOCOLS)} nor a file"
+        )
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise ProtocolError(f"{path}: invalid JSON ({exc})") from None
+    if not isinstance(doc, Mapping):
+        raise ProtocolError(f"{path}: expected a JSON object holding a protocol record")
+    return Protocol.from_dict(doc.get(PROTOCOL_KEY, doc), str(path))
 
 
 def protocol_of(record: Protocol | Mapping[str, Any], where: str = "result") -> Protocol:

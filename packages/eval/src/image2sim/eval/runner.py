@@ -7,7 +7,8 @@ Pieces (small and separately testable):
   geodesic distance to the goal.
 * **Agents**: the baselines ``random`` (VLN-CE's random action distribution), ``forward`` (N forward
   steps then STOP), ``oracle`` (the shortest-path follower of :mod:`image2sim.simulator.navigation`)
-  and ``image2nav`` (navpolicy's streaming agent, imported lazily inside the adapter).
+  and ``image2nav`` (navpolicy's streaming agent, imported lazily inside the adapter);
+  ``image2nav_http`` is the same adapter driving a policy server (``image2sim nav serve``).
 * :func:`run_episode` scores one episode with the protocol's measures
   (:mod:`image2sim.eval.metrics.nav`); :func:`run_scene` appends every finished episode to a per-scene
   JSONL :class:`~image2sim.eval.results.EpisodeLog` (a killed run resumes by skipping the episode ids
@@ -62,6 +63,7 @@ __all__ = [
     "ForwardAgent",
     "HabitatBackend",
     "Image2NavAdapter",
+    "Image2NavHttpAdapter",
     "NavAgent",
     "NeuralSimBackend",
     "OracleAgent",
@@ -663,6 +665,40 @@ class Image2NavAdapter:
         return not self._queue
 
 
+class Image2NavHttpAdapter(Image2NavAdapter):
+    """Image2Nav behind a policy server (``image2sim nav serve``): the same two-action adapter, its
+    streaming agent a :class:`~image2sim.navpolicy.client.RemoteAgent` (one server session per
+    episode). ``token_env`` names the environment variable holding the bearer token (never the token
+    itself, so run records do not hold it)."""
+
+    needs_images = True
+
+    def __init__(self, server: str, token_env: str = "", timeout_s: float = 60.0) -> None:
+        self._init(_remote_agent(server, token_env, timeout_s))
+
+    @staticmethod
+    def observation_size(options: Mapping[str, Any]) -> tuple[int, int] | None:
+        """The served policy's pinhole input size (height, width), asked from the server."""
+        client = _remote_agent(options["server"], options.get("token_env", ""), 60.0).client
+        try:
+            obs = client.info()["observation"]
+        finally:
+            client.close()
+        return (int(obs["height"]), int(obs["width"])) if obs.get("camera") == "pinhole" else None
+
+
+def _remote_agent(server: str, token_env: str, timeout_s: float) -> Any:
+    try:
+        from image2sim.navpolicy.client import PolicyClient, RemoteAgent, token_from_env
+    except ImportError as exc:
+        raise RunnerError(f"the image2nav_http agent needs image2sim-navpolicy installed ({exc})") from exc
+    try:
+        token = token_from_env(token_env)
+    except ValueError as exc:
+        raise RunnerError(str(exc)) from exc
+    return RemoteAgent(PolicyClient(server, token=token, timeout_s=timeout_s))
+
+
 @dataclass(frozen=True)
 class AgentSpec:
     """A picklable agent description: registry name + constructor options."""
@@ -678,6 +714,7 @@ AGENTS: dict[str, Callable[..., Any]] = {
     "forward": ForwardAgent,
     "oracle": OracleAgent,
     "image2nav": Image2NavAdapter,
+    "image2nav_http": Image2NavHttpAdapter,
 }
 """Agent registry."""
 
@@ -765,7 +802,7 @@ class RunConfig:
     """One navigation evaluation run (one agent, one protocol, many scenes)."""
 
     agent: str = "oracle"
-    """Agent registry name: random, forward, oracle, image2nav."""
+    """Agent registry name: random, forward, oracle, image2nav, image2nav_http."""
     agent_options: dict = field(default_factory=dict)
     """Agent constructor options (e.g. {"forward_steps": 20})."""
     seed: int = 0
@@ -887,7 +924,7 @@ def _scene_task(task: dict) -> tuple[str, int]:
         finally:
             backend.close()
         return task["scene"], n
-    render = AGENTS[config.agent] is Image2NavAdapter
+    render = bool(getattr(AGENTS[config.agent], "needs_images", False))
     load = load_exact_backend if config.backend == "exact" else load_scene_backend
     backend = load(task["scene_dir"], protocol, render=render)
     backend.render_at(observation_size(config))

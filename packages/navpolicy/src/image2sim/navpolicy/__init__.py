@@ -6,7 +6,7 @@ Modules (imported on demand; transformers is heavy): ``actions`` (action words <
 (trajectories, shard format, samples, collator), ``train`` (Lightning BC + DeepSpeed ZeRO-2),
 ``agent`` (streaming KV-cache agent, batched agent), ``dagger`` (online DAgger), ``baselines``
 (forward-then-turn; random/forward/oracle re-exported from eval), ``act`` (``nav act``/``nav compare``),
-``cli`` (``image2sim nav ...``).
+``serve`` (``nav serve``: HTTP policy server), ``client`` (its httpx client), ``cli`` (``image2sim nav ...``).
 """
 
 __version__ = "0.1.0"

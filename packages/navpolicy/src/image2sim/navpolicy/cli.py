@@ -572,3 +572,160 @@ def replay_cmd(
 
     write_json_atomic(out, report)
     typer.echo(json.dumps(report, indent=2))
+
+
+@app.command("serve")
+def serve_cmd(
+    model: Annotated[str, typer.Option(help="Exported policy folder, or 'tiny' (untrained).")] = "tiny",
+    config: Annotated[str, typer.Option(help="Preset or YAML (agent and observation settings).")] = "tiny",
+    host: Annotated[
+        str, typer.Option(help="Address to bind; anything but loopback needs --token-env.")
+    ] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port (0: any free port; the URL is printed).")] = 8000,
+    token_env: Annotated[
+        str,
+        typer.Option(help="Name of the environment variable holding the bearer token clients must send."),
+    ] = "",
+    max_sessions: Annotated[int, typer.Option(help="Open sessions at most (one more: 429).")] = 8,
+    session_ttl: Annotated[float, typer.Option(help="Seconds an idle session lives.")] = 600.0,
+    max_body_mb: Annotated[float, typer.Option(help="Largest request body in MiB (larger: 413).")] = 8.0,
+    max_image_pixels: Annotated[
+        int, typer.Option(help="Largest image (width x height), checked from its header.")
+    ] = 4096 * 4096,
+    threads: Annotated[int, typer.Option(help="torch threads (0 = torch default; tiny prefers 1).")] = 0,
+) -> None:
+    """Serve the policy over HTTP: a session per robot episode, streaming context with KV-cache reuse
+    (the in-process agent's actions for the same observations). API: docs/navpolicy.md."""
+    import dataclasses
+    import os
+
+    from image2sim.navpolicy.serve import ServeSettings, bind_error, create_app, policy_agent_factory, serve
+
+    problem = bind_error(host, token_env or None, dict(os.environ))
+    if problem:
+        typer.echo(f"error: {problem}", err=True)
+        raise typer.Exit(2)
+    try:
+        settings = ServeSettings(
+            max_sessions=max_sessions,
+            session_ttl_s=session_ttl,
+            max_body_bytes=int(max_body_mb * 1024 * 1024),
+            max_image_pixels=max_image_pixels,
+            token=os.environ[token_env] if token_env else None,
+            model_name=model,
+        )
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    cfg = _config(config, {"model": {"source": model}} if model != "tiny" else None)
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    o = cfg.observation
+    try:
+        factory = policy_agent_factory(cfg)
+    except FileNotFoundError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    settings = dataclasses.replace(
+        settings, observation={"camera": o.camera, "height": o.height, "width": o.width}
+    )
+    auth = f"bearer token from ${token_env}" if token_env else "no token (loopback only)"
+    serve(
+        create_app(factory, settings),
+        host,
+        port,
+        on_ready=lambda url: typer.echo(f"Image2Nav policy server on {url} (model {model}; {auth})"),
+    )
+
+
+@app.command("drive")
+def drive_cmd(
+    server: Annotated[str, typer.Option(help="Policy server URL (image2sim nav serve).")],
+    scene: Annotated[
+        Path,
+        typer.Option(help="Scene folder (navmap.npz, navgraph.npz, Gaussians) named as the episodes' scene."),
+    ],
+    episodes: Annotated[
+        Path, typer.Option(help="Episode file (.json.gz, VLN-CE schema); its _gt beside it.")
+    ],
+    token_env: Annotated[
+        str, typer.Option(help="Name of the environment variable holding the server's bearer token.")
+    ] = "",
+    protocol: Annotated[
+        str, typer.Option(help="Protocol name or JSON file with a protocol record.")
+    ] = "image2sim",
+    backend: Annotated[
+        str, typer.Option(help="neural (built scene folder) or exact (procedural capture rendered exactly).")
+    ] = "neural",
+    max_episodes: Annotated[int, typer.Option(help="At most this many episodes (0: all).")] = 0,
+    seed: Annotated[int, typer.Option(help="Run seed (episode seeds derive from it).")] = 0,
+    out: Annotated[Path, typer.Option(help="Run folder (per-scene JSONL logs; resumable).")] = Path(
+        "runs/nav_drive"
+    ),
+    metrics: Annotated[Path, typer.Option(help="Headline metrics file to update.")] = Path(
+        "metrics/nav_drive.json"
+    ),
+) -> None:
+    """Drive a simulated robot through a policy server: the episodes run in the scene's NeuralSimulator
+    through the evaluation runner (agent ``image2nav_http``), with ``eval nav``'s metrics and reports."""
+    from image2sim.eval.datasets import EpisodeFileError, load_image2sim_episodes
+    from image2sim.eval.metrics.nav import aggregate
+    from image2sim.eval.protocols import ProtocolError, load_protocol
+    from image2sim.eval.report import nav_table_markdown, write_nav_report
+    from image2sim.eval.runner import RunConfig, nav_summary, run_nav_results, update_nav_metrics
+
+    if backend not in ("neural", "exact"):
+        raise typer.BadParameter(f"must be neural or exact, got {backend!r}", param_hint="--backend")
+    if not scene.is_dir():
+        raise typer.BadParameter(f"{scene}: no such folder", param_hint="--scene")
+    scene = scene.resolve()  # its name is the episodes' scene name, also for `--scene .`
+    try:
+        proto = load_protocol(protocol)
+    except ProtocolError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--protocol") from exc
+    gt = episodes.with_name(episodes.name.replace(".json.gz", "_gt.json.gz"))
+    try:
+        eps = list(
+            load_image2sim_episodes(episodes, gt if gt != episodes and gt.is_file() else None).episodes
+        )
+    except (EpisodeFileError, FileNotFoundError, ValueError) as exc:
+        raise typer.BadParameter(str(exc), param_hint="--episodes") from exc
+    mine = [e for e in eps if e.scene_name == scene.name]
+    if not mine:
+        names = sorted({e.scene_name for e in eps})
+        raise typer.BadParameter(
+            f"{episodes}: no episode of scene {scene.name!r} (its episodes name {names})",
+            param_hint="--scene",
+        )
+    if len(mine) < len(eps):
+        typer.echo(f"{len(eps) - len(mine)} episode(s) of other scenes skipped", err=True)
+    import httpx
+    from image2sim.navpolicy.client import PolicyClient, ServerError, token_from_env
+
+    try:
+        with PolicyClient(server, token=token_from_env(token_env or None), timeout_s=30) as client:
+            client.info()  # fail fast: unreachable server, wrong token
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--token-env") from exc
+    except ServerError as exc:
+        typer.echo(f"error: policy server {server}: {exc}", err=True)
+        raise typer.Exit(2 if exc.status in (401, 403, 404) else 1) from exc
+    except httpx.HTTPError as exc:  # connection refused, timeout
+        typer.echo(f"error: cannot reach the policy server at {server} ({exc})", err=True)
+        raise typer.Exit(1) from exc
+    name = "image2nav_http"
+    cfg = RunConfig(
+        agent=name,
+        agent_options={"server": server, "token_env": token_env},
+        seed=seed,
+        max_episodes_per_scene=max_episodes or None,
+        backend=backend,
+    )
+    results = run_nav_results(mine, scene.parent, proto, cfg, out)
+    report = aggregate(results)
+    update_nav_metrics(metrics, proto, name, nav_summary(results, ci_seed=seed))
+    write_nav_report(out / name / "report", name, report, {"source": str(out / name), "server": server})
+    typer.echo(nav_table_markdown([(name, report)]))
+    typer.echo(f"updated {metrics}")
