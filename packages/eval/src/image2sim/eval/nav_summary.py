@@ -1,0 +1,148 @@
+"""Headline numbers of a navigation run: ``metrics/nav.json`` records with 95 % intervals (Wilson for
+SR, percentile bootstrap for SPL) and their Markdown table (habitat-lab's *benchmark* summary)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from image2sim.eval.metrics.nav import (
+    EpisodeResult,
+    aggregate,
+)
+from image2sim.eval.nav_env import RunnerError
+from image2sim.eval.protocols import Protocol
+from image2sim.eval.results import read_result_file, write_result_file
+
+__all__ = [
+    "bootstrap_ci",
+    "nav_markdown",
+    "nav_summary",
+    "update_nav_metrics",
+    "wilson_interval",
+]
+
+
+# ------------------------------------------------------------------------------------------ summaries
+
+
+def wilson_interval(successes: float, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (95 % by default); (0, 1) for n = 0."""
+    if n <= 0:
+        return (0.0, 1.0)
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    # At p = 0 / p = 1 the bound is exactly 0 / 1; rounding would put it a hair inside.
+    lo = 0.0 if successes <= 0 else max(0.0, centre - half)
+    hi = 1.0 if successes >= n else min(1.0, centre + half)
+    return (lo, hi)
+
+
+def bootstrap_ci(
+    values: Sequence[float], n_boot: int = 2000, seed: int = 0, level: float = 0.95
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean (seeded, so it is reproducible)."""
+    x = np.asarray(values, dtype=np.float64)
+    if len(x) == 0:
+        raise ValueError("bootstrap_ci: no values")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("bootstrap_ci: non-finite values")
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(x), size=(n_boot, len(x)))
+    means = x[idx].mean(axis=1)
+    a = (1.0 - level) / 2.0
+    return (float(np.quantile(means, a)), float(np.quantile(means, 1.0 - a)))
+
+
+def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str, Any]:
+    """Headline record of one agent for ``metrics/nav.json``.
+
+    ``sr``, ``spl``, ``ne``, ``osr``, ``ndtw`` (None when no episode has a reference path), ``sdtw``,
+    ``path_length``, ``steps``, ``n_episodes``, ``sr_ci`` (Wilson 95 %) and ``spl_ci`` (bootstrap 95 %).
+    """
+    report = aggregate(results)
+    m = report.metrics
+
+    def mean(k: str) -> float | None:
+        s = m.get(k)
+        return None if s is None or s.mean is None else float(s.mean)
+
+    sr_vals = [float(r.metrics["success"]) for r in results]
+    spl_vals = [float(r.metrics["spl"]) for r in results]
+    return {
+        "sr": mean("success"),
+        "spl": mean("spl"),
+        "ne": mean("distance_to_goal"),
+        "osr": mean("oracle_success"),
+        "ndtw": mean("ndtw"),
+        "sdtw": mean("sdtw"),
+        "path_length": mean("path_length"),
+        "steps": mean("steps"),
+        "n_episodes": report.num_episodes,
+        "ne_approximate": mean("ne_approximate"),
+        "sr_ci": list(wilson_interval(sum(sr_vals), len(sr_vals))),
+        "spl_ci": list(bootstrap_ci(spl_vals, seed=ci_seed)),
+        "ci_method": {"sr_ci": "wilson 95%", "spl_ci": "percentile bootstrap 95%, 2000 resamples"},
+    }
+
+
+def update_nav_metrics(path: str | Path, protocol: Protocol, agent: str, summary: Mapping[str, Any]) -> Path:
+    """Insert/replace one agent's summary in ``metrics/nav.json`` (atomic; same protocol enforced)."""
+    from image2sim.eval.protocols import ProtocolMismatchError
+
+    path = Path(path)
+    agents: dict[str, Any] = {}
+    if path.is_file():
+        existing, payload = read_result_file(path)
+        if existing != protocol:
+            raise ProtocolMismatchError(
+                f"{path}: holds results of protocol {existing.name!r}; refusing to add {agent!r} under "
+                f"{protocol.name!r} (write to another file)"
+            )
+        agents = dict(payload.get("agents", {}))
+    agents[agent] = dict(summary)
+    return write_result_file(path, protocol, {"agents": agents})
+
+
+def nav_markdown(doc: Mapping[str, Any]) -> str:
+    """Table-2 layout of a nav.json document: one row per agent, rates in percent with 95 % CIs."""
+    agents = doc.get("agents") or {}
+    if not agents:
+        raise RunnerError("navigation metrics document has no 'agents'")
+
+    def pct(v: Any) -> str:
+        return "n/a" if v is None else f"{100 * v:.1f}"
+
+    def ci(v: Any) -> str:
+        return "" if not v else f" [{100 * v[0]:.1f}, {100 * v[1]:.1f}]"
+
+    lines = [
+        "| Agent | NE↓ | OSR↑ | SR↑ (95% CI) | SPL↑ (95% CI) | nDTW↑ | Episodes |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, a in agents.items():
+        ne = "n/a" if a.get("ne") is None else f"{a['ne']:.2f}"
+        lines.append(
+            f"| {name} | {ne} | {pct(a.get('osr'))} | {pct(a.get('sr'))}{ci(a.get('sr_ci'))} | "
+            f"{pct(a.get('spl'))}{ci(a.get('spl_ci'))} | {pct(a.get('ndtw'))} | {a.get('n_episodes')} |"
+        )
+    proto = doc.get("protocol") or {}
+    text = "\n".join(lines) + "\n"
+    approx = {n: a["ne_approximate"] for n, a in agents.items() if a.get("ne_approximate")}
+    if approx:
+        shares = ", ".join(f"{n} {100 * v:.1f}%" for n, v in approx.items())
+        text += (
+            f"\nEpisodes ending where the navigation graph does not reach the goal ({shares}) use the "
+            "planner's estimate (nearest goal-connected node + straight offset) for NE and success.\n"
+        )
+    if proto:
+        from image2sim.eval.report import describe_protocol
+
+        p = Protocol.from_dict(proto)
+        text += f"\nProtocol `{p.name}`: {describe_protocol(p)}\n"
+    return text
