@@ -58,7 +58,7 @@ def test_ingest_bad_frame_fails_cleanly_then_skip_bad(tmp_path: Path) -> None:
     out = tmp_path / "canon"
 
     result = _run("ingest", src, "--out", out)
-    assert result.exit_code == 1
+    assert result.exit_code == 2
     assert "00003_pose.txt: quaternion norm is 5" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]  # nothing written, no temp folder
 
@@ -77,7 +77,7 @@ def test_ingest_refuses_existing_output_and_all_bad(tmp_path: Path) -> None:
     out = tmp_path / "canon"
     out.mkdir()
     result = _run("ingest", src, "--out", out)
-    assert result.exit_code == 1 and "already exists" in result.output
+    assert result.exit_code == 2 and "already exists" in result.output
     assert _run("ingest", src, "--out", out, "--overwrite").exit_code == 0
     # The first frame's colour (used to size the camera) is broken: --skip-bad still ingests frame 1.
     (src / "00000_rgb.png").write_bytes(b"junk")
@@ -85,7 +85,7 @@ def test_ingest_refuses_existing_output_and_all_bad(tmp_path: Path) -> None:
     assert result.exit_code == 0 and "ingested 1 frames" in result.output and "skipped 00000" in result.output
     (src / "00001_rgb.png").write_bytes(b"junk")
     result = _run("ingest", src, "--out", tmp_path / "c3", "--skip-bad")
-    assert result.exit_code == 1 and "no readable colour image among 2 frames" in result.output
+    assert result.exit_code == 2 and "no readable colour image among 2 frames" in result.output
     assert "00001_rgb.png: cannot decode" in result.output and not (tmp_path / "c3").exists()
 
 
@@ -93,7 +93,7 @@ def test_unknown_format_is_a_clear_error(tmp_path: Path) -> None:
     (tmp_path / "x").mkdir()
     for cmd in (["inspect", tmp_path / "x"], ["fuse", tmp_path / "x", "--out", tmp_path / "c.ply"]):
         result = _run(*cmd)
-        assert result.exit_code == 1 and "unknown capture format" in result.output
+        assert result.exit_code == 2 and "unknown capture format" in result.output
 
 
 def test_inspect_reports_truthful_numbers(tmp_path: Path) -> None:
@@ -158,4 +158,4 @@ def test_half_pixel_flag_reaches_the_realsee_reader(tmp_path: Path) -> None:
     default = _run("inspect", write_realsee_fixture(tmp_path / "centred"))
     assert default.exit_code == 0, default.output
     bad = _run("inspect", write_hm3d_fixture(tmp_path / "hm3d"), "--half-pixel", "resample")
-    assert bad.exit_code == 1 and "half_pixel" in bad.output
+    assert bad.exit_code == 2 and "half_pixel" in bad.output

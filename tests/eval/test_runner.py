@@ -575,8 +575,8 @@ def test_ultra_wide_observation_is_the_centred_180_by_118_degree_crop(scene):
     import math
 
     import torch
-    from image2sim.eval.protocols import PROTOCOLS
     from image2sim.eval.nav_env import equirect_crop
+    from image2sim.eval.protocols import PROTOCOLS
     from image2sim.simulator.sim import NeuralSimulator
 
     wide = PROTOCOLS["image2sim-180"]

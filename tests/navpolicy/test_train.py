@@ -125,3 +125,20 @@ def test_deepspeed_zero2_on_cpu_matches_plain_adamw(tiny_cfg, trajs, tmp_path):
     assert "DeepSpeed" in type(strategy).__name__ and strategy.config["zero_optimization"]["stage"] == 2
     assert (tmp_path / "ds" / "checkpoints" / "last.ckpt").is_dir()
     assert (ds.export_dir / "model.safetensors").is_file()
+
+
+@pytest.mark.parametrize("kind", ["missing", "garbage", "not_lightning"])
+def test_a_bad_resume_checkpoint_is_refused_before_the_run_writes_anything(tiny_cfg, tmp_path, kind):
+    import torch
+    from image2sim.simulator.trainer import CheckpointError
+
+    path = tmp_path / f"{kind}.ckpt"
+    if kind == "garbage":
+        path.write_bytes(b"garbage")
+    elif kind == "not_lightning":
+        torch.save({"weight": torch.zeros(2)}, path)
+    expected = {"missing": "not found", "garbage": "not a readable", "not_lightning": "not from Lightning"}
+    expected = expected[kind]
+    with pytest.raises(CheckpointError, match=expected):
+        train_bc(tiny_cfg, tmp_path / "run", dataset=None, resume=str(path))
+    assert not (tmp_path / "run").exists()

@@ -16,10 +16,12 @@ _FORMAT_HELP = "Capture format (image2sim, hm3d_360, realsee, pinhole_dir, ...);
 
 
 def _fail(message: str) -> None:
+    """One error line and exit status 2: every caller reports bad input (an unreadable or unknown
+    capture, an existing output), as the CLI's error boundary does (docs/architecture.md)."""
     from rich.console import Console
 
     Console(stderr=True).print(f"[bold red]error:[/] {message}", markup=True, highlight=False, soft_wrap=True)
-    raise typer.Exit(code=1)
+    raise typer.Exit(code=2)
 
 
 _HALF_PIXEL_HELP = (

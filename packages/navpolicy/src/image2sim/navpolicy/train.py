@@ -342,10 +342,12 @@ def train_bc(
         policy: an already built policy (default: built from ``cfg`` with ``cfg.train.seed``).
     """
     from image2sim.simulator.tracking import csv_logger
+    from image2sim.simulator.trainer import resume_checkpoint
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     tc = cfg.train
     out = Path(out_dir)
+    ckpt_path = resume_checkpoint(resume, out)  # checked before anything is written
     out.mkdir(parents=True, exist_ok=True)
     from image2sim.simulator.config import save_config
 
@@ -387,11 +389,6 @@ def train_bc(
         use_distributed_sampler=False,  # StepSampler already splits positions across ranks
         default_root_dir=str(out),
     )
-    ckpt_path = None
-    if resume is not None:
-        ckpt_path = str(out / "checkpoints" / "last.ckpt") if str(resume) == "last" else str(resume)
-        if not Path(ckpt_path).exists():
-            raise FileNotFoundError(f"resume checkpoint {ckpt_path} not found")
     trainer.fit(module, ckpt_path=ckpt_path)
     last = out / "checkpoints" / "last.ckpt"
     export_dir = None

@@ -8,9 +8,50 @@ Both stages read their data in a step-indexed order split over ranks by
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-__all__ = ["TrainerConfig", "check_trainer_config", "lightning_trainer_args", "with_overrides"]
+__all__ = [
+    "CheckpointError",
+    "TrainerConfig",
+    "check_trainer_config",
+    "lightning_trainer_args",
+    "resume_checkpoint",
+    "with_overrides",
+]
+
+
+class CheckpointError(ValueError):
+    """A resume checkpoint is missing or unreadable (bad input: the CLI answers with exit status 2)."""
+
+    cli_exit_code = 2
+
+
+def resume_checkpoint(resume: str | Path | None, out_dir: str | Path) -> str | None:
+    """The checkpoint a run resumes from (``"last"`` = ``out_dir/checkpoints/last.ckpt``), checked
+    before the run writes anything: it exists and loads with ``torch.load(weights_only=True)``
+    (memory-mapped, so the tensors are not read). A corrupt file is one clear error, not Lightning's
+    unpickling traceback after the output folder was made."""
+    if resume is None or str(resume) == "":
+        return None
+    path = Path(out_dir) / "checkpoints" / "last.ckpt" if str(resume) == "last" else Path(resume)
+    if not path.is_file():
+        raise CheckpointError(f"resume checkpoint {path}: not found")
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as err:  # zip, pickle or weights_only refusal: all mean "not our checkpoint"
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(
+            f"resume checkpoint {path}: not a readable Lightning checkpoint ({first})"
+        ) from None
+    if not isinstance(state, dict) or "state_dict" not in state or "global_step" not in state:
+        raise CheckpointError(
+            f"resume checkpoint {path}: no 'state_dict' or 'global_step' (not from Lightning)"
+        )
+    return str(path)
+
 
 STRATEGIES = ("auto", "ddp")
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")

@@ -242,6 +242,7 @@ def train_stage1(
     final encoder (``encoder.safetensors`` + ``encoder.json``) under ``out_dir``. Returns a summary."""
     from image2sim.simulator.gaussians.build import save_encoder
     from image2sim.simulator.tracking import csv_logger
+    from image2sim.simulator.trainer import resume_checkpoint
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     out = Path(out_dir)
@@ -261,7 +262,8 @@ def train_stage1(
     module = GeometryModule(cfg, semantic_model, panoramic=panoramic, image_dir=str(out / "images"))
     data = GeometryDataModule(scenes, cfg)
     last = out / "checkpoints" / "last.ckpt"
-    loggers = [csv_logger(out, resume=resume and last.is_file())]
+    ckpt_path = resume_checkpoint("last", out) if resume and last.is_file() else None
+    loggers = [csv_logger(out, resume=ckpt_path is not None)]
     if cfg.train.wandb:
         from image2sim.simulator.tracking import wandb_logger
 
@@ -286,7 +288,7 @@ def train_stage1(
         limit_val_batches=0,
         gradient_clip_val=1.0,
     )
-    trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume and last.is_file() else None)
+    trainer.fit(module, datamodule=data, ckpt_path=ckpt_path)
     path = out / "encoder.safetensors"
     if trainer.is_global_zero:  # under DDP every rank gets here with the same weights
         save_encoder(module.encoder, path)

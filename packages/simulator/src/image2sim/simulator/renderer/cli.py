@@ -92,6 +92,9 @@ def train_command(
         raise typer.BadParameter(str(exc)) from exc
     if condition_source not in ("splat", "degraded"):
         raise typer.BadParameter(f"--condition-source must be splat or degraded, got {condition_source!r}")
+    from image2sim.simulator.trainer import resume_checkpoint
+
+    ckpt = resume_checkpoint(resume, out)  # checked before anything is written
     if condition_source == "splat" and not data:
         typer.echo("no --data given: splat conditions need captures, using degraded conditions instead")
         condition_source = "degraded"
@@ -123,7 +126,6 @@ def train_command(
         typer.echo(f"{len(train)} training / {len(held)} held-out panoramas at {cfg.height}x{cfg.width}")
         ds = DegradedPanoramaDataset(train, cfg.curriculum.total_steps * cfg.curriculum.batch_size)
         write_training_record(out, {"condition_source": "degraded", "captures": [str(d) for d in data]})
-    ckpt = str(out / "checkpoints" / "last.ckpt") if resume == "last" else (resume or None)
     fit(
         cfg,
         ds,
