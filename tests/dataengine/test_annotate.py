@@ -339,7 +339,7 @@ def test_concurrency_cap_and_order(server_factory):
 _IMPERATIVE_VERBS = {
     "walk", "go", "head", "continue", "move", "turn", "make", "rotate", "face", "curve", "veer", "take",
     "pause", "bear", "stop", "wait", "halt", "find", "check", "inspect", "locate", "get", "bring", "grab",
-    "fetch",
+    "fetch", "climb", "pass",
 }  # fmt: skip
 _MOVEMENTS = [
     "walk forward", "turn left", "turn right", "walk forward while turning left",

@@ -126,6 +126,11 @@ def test_schema_validator_rejects_broken_documents(full_run):
     bad_gt[first]["actions"] = bad_gt[first]["actions"][:-1] + [1]
     with pytest.raises(EpisodeSchemaError, match="STOP"):
         validate_episode_doc(doc, bad_gt)
+    # Too short for the run's minimum path length (it would start inside the success radius).
+    shortest = min(e["info"]["geodesic_distance"] for e in doc["episodes"])
+    validate_episode_doc(doc, gt, min_geodesic=shortest)
+    with pytest.raises(EpisodeSchemaError, match="below the minimum path length"):
+        validate_episode_doc(doc, gt, min_geodesic=shortest + 0.5)
 
 
 def test_navpolicy_dataset_reads_the_shards(full_run):

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from image2sim.simulator.conventions import Action
 
-__all__ = ["MacroStep", "ChunkConfig", "macro_steps", "movement_text"]
+__all__ = ["MacroStep", "ChunkConfig", "PathFeatureConfig", "macro_steps", "movement_text", "path_features"]
 
 
 @dataclass(frozen=True)
@@ -107,4 +107,62 @@ def macro_steps(
                 s, len(acts), dist, math.degrees(net), False, movement_text(dist, math.degrees(net), cfg)
             )
         )
+    return out
+
+
+@dataclass(frozen=True)
+class PathFeatureConfig:
+    """What counts as a doorway or a staircase along a path (landmark-free instructions)."""
+
+    stairs_rise: float = 0.25
+    """A macro-step whose feet height changes by more than this (metres) goes up or down stairs."""
+    doorway_clearance: float = 0.5
+    """A doorway: the clearance to the nearest obstacle drops below this (a passage under 1 m wide)..."""
+    open_clearance: float = 0.8
+    """...between states within ``flank`` metres before and after it where it is above this."""
+    flank: float = 1.5
+
+
+def path_features(
+    steps: list[MacroStep],
+    positions: np.ndarray,
+    clearance: np.ndarray,
+    config: PathFeatureConfig | None = None,
+) -> list[list[str]]:
+    """Per macro-step: ``stairs_up`` / ``stairs_down`` (feet height change) and ``doorway`` (a narrow
+    point flanked by open space, from the clearance of every state, in metres). Each doorway is given
+    to the macro-step where the path is narrowest."""
+    cfg = config or PathFeatureConfig()
+    pos = np.asarray(positions, dtype=np.float64)
+    clear = np.asarray(clearance, dtype=np.float64)
+    out: list[list[str]] = [[] for _ in steps]
+    for k, m in enumerate(steps):
+        rise = float(pos[m.end, 2] - pos[m.start, 2])
+        if rise > cfg.stairs_rise:
+            out[k].append("stairs_up")
+        elif rise < -cfg.stairs_rise:
+            out[k].append("stairs_down")
+    along = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(pos[:, :2], axis=0), axis=1))))
+    narrow = clear < cfg.doorway_clearance
+    t = 0
+    while t < len(clear):
+        if not narrow[t]:
+            t += 1
+            continue
+        run_end = t
+        while run_end + 1 < len(clear) and narrow[run_end + 1]:
+            run_end += 1
+        before = (along >= along[t] - cfg.flank) & (np.arange(len(clear)) < t)
+        after = (along <= along[run_end] + cfg.flank) & (np.arange(len(clear)) > run_end)
+        wide_before = before.any() and clear[before].max() > cfg.open_clearance
+        wide_after = after.any() and clear[after].max() > cfg.open_clearance
+        short = along[run_end] - along[t] <= cfg.flank  # a corridor is not a doorway
+        if wide_before and wide_after and short:
+            tightest = t + int(np.argmin(clear[t : run_end + 1]))
+            for k, m in enumerate(steps):
+                if m.start <= tightest < max(m.end, m.start + 1) and not m.stop:
+                    if "doorway" not in out[k]:
+                        out[k].append("doorway")
+                    break
+        t = run_end + 1
     return out

@@ -52,16 +52,38 @@ class RunError(RuntimeError):
     """The run cannot start (bad inputs or a conflicting earlier run in the output folder)."""
 
 
+def _is_scene(path: Path) -> bool:
+    """A canonical capture or built scene (``manifest.json``), or a capture of any readable format."""
+    if (path / "manifest.json").is_file():
+        return True
+    from image2sim.simulator.io.records import CaptureError
+    from image2sim.simulator.io.registry import detect_format
+
+    try:
+        detect_format(path)
+    except CaptureError:
+        return False
+    return True
+
+
 def find_scenes(root: str | Path) -> list[Path]:
-    """Scene folders under ``root``: sub-folders with a ``manifest.json`` (or ``root`` itself)."""
+    """Scene folders under ``root``: ``root`` itself when it is a scene, else its sub-folders that are.
+    A scene is a canonical capture, a built scene folder, or a capture of any format the readers
+    detect (HM3D panoramas, RealSee3D, ScanNet-style exports), read in place."""
     root = Path(root)
     if not root.is_dir():
         raise RunError(f"{root}: scenes folder not found")
-    if (root / "manifest.json").is_file():
+    if _is_scene(root):
         return [root]
-    found = sorted(p for p in root.iterdir() if p.is_dir() and (p / "manifest.json").is_file())
+    found = sorted(p for p in root.iterdir() if p.is_dir() and _is_scene(p))
     if not found:
-        raise RunError(f"{root}: no scene folders (sub-folders with manifest.json)")
+        from image2sim.simulator.io.registry import available_formats
+
+        raise RunError(
+            f"{root}: neither a capture nor a folder of captures (no sub-folder has a manifest.json or "
+            f"a layout of a known format: {', '.join(available_formats())}). "
+            "`image2sim data inspect <folder>` tells why a capture is not recognised"
+        )
     names = [p.name for p in found]
     if len(set(names)) != len(names):
         raise RunError(f"{root}: duplicate scene names")
@@ -261,7 +283,11 @@ def _run_locked(
     finally:
         if bar is not None:
             bar.stop()
-    merged = merge_outputs(out_dir, [s.name for s in scenes], config.split)
+    from image2sim.dataengine.trajectories import SamplingConfig
+    from image2sim.simulator.config import config_from_dict
+
+    min_geodesic = config_from_dict(SamplingConfig, config.sampling, "sampling").min_path_length
+    merged = merge_outputs(out_dir, [s.name for s in scenes], config.split, min_geodesic)
     return {
         "scenes": len(scenes),
         "skipped": skipped,
@@ -272,8 +298,11 @@ def _run_locked(
     }
 
 
-def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -> dict:
-    """Rebuild ``{out}/{split}/{split}.json.gz`` (+ gt) and the shard list from finished scenes."""
+def merge_outputs(
+    out_dir: str | Path, scene_names: Sequence[str], split: str, min_geodesic: float = 0.0
+) -> dict:
+    """Rebuild ``{out}/{split}/{split}.json.gz`` (+ gt) and the shard list from finished scenes; every
+    episode is checked as it is written (schema, gt, geodesic >= ``min_geodesic``)."""
     out_dir = Path(out_dir)
     episodes, gt, shards, done, per_scene = [], {}, [], [], {}
     for name in sorted(scene_names):
@@ -287,7 +316,7 @@ def merge_outputs(out_dir: str | Path, scene_names: Sequence[str], split: str) -
         done.append(name)
         if (folder / "shard" / "manifest.json").is_file():
             shards.append(str((folder / "shard").resolve()))
-    main, gt_path = write_episode_files(out_dir, split, episodes, gt)
+    main, gt_path = write_episode_files(out_dir, split, episodes, gt, min_geodesic)
     write_bytes_atomic(out_dir / "shards.json", json.dumps({"shards": shards}, indent=1).encode())
     return {
         "episodes": len(episodes),

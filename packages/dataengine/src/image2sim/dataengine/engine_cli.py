@@ -104,6 +104,22 @@ def episodes_command(
     workers: int = typer.Option(2, "--workers", min=1, help="Parallel scene workers (processes)."),
     address: str | None = typer.Option(None, "--address", help="Join a Ray cluster at this address."),
     min_steps: int | None = typer.Option(None, "--min-steps", help="Drop episodes with fewer actions."),
+    detector: str = typer.Option(
+        "gt",
+        "--detector",
+        help="Goal objects: gt (a procedural capture's ground truth), yolo-world (local --detector-weights), "
+        "annotations (an objects file, see --objects) or none (no objects: landmark-free path instructions "
+        "between navigable points; any capture).",
+    ),
+    detector_weights: Path | None = typer.Option(
+        None, "--detector-weights", help="yolo-world: local YOLO-World weights."
+    ),
+    objects: Path | None = typer.Option(
+        None,
+        "--objects",
+        help="annotations: the objects file (one scene) or a folder of <scene>.json "
+        "(default <capture>/objects_annotations.json); format in docs/dataengine.md.",
+    ),
     sampling: list[str] = typer.Option(
         None,
         "--sampling",
@@ -136,6 +152,9 @@ def episodes_command(
             renderer=None if renderer is None else str(renderer),
             rollout={} if min_steps is None else {"min_steps": min_steps},
             sampling=_parse_options(sampling),
+            detector=detector,
+            detector_weights=None if detector_weights is None else str(detector_weights),
+            objects=None if objects is None else str(objects),
         )
         summary = run_engine(scenes, out, cfg, executor=executor, workers=workers, address=address)
     except (RunError, ValueError) as err:

@@ -105,9 +105,10 @@ def _gz(obj) -> bytes:
 
 
 def write_episode_files(
-    out_dir: str | Path, split: str, episodes: Sequence[dict], gt: dict
+    out_dir: str | Path, split: str, episodes: Sequence[dict], gt: dict, min_geodesic: float = 0.0
 ) -> tuple[Path, Path]:
-    """Tokenise, validate, write ``{out}/{split}/{split}.json.gz`` + ``{split}_gt.json.gz`` atomically."""
+    """Tokenise, validate (see :func:`validate_episode_doc`), write ``{out}/{split}/{split}.json.gz`` +
+    ``{split}_gt.json.gz`` atomically."""
     vocab = build_vocab(e["instruction"]["instruction_text"] for e in episodes)
     index = {w: i for i, w in enumerate(vocab)}
     eps = []
@@ -124,7 +125,7 @@ def write_episode_files(
         "episodes": eps,
         "instruction_vocab": {"word_list": vocab, "num_vocab": len(vocab), "PAD_INDEX": 0, "UNK_INDEX": 1},
     }
-    validate_episode_doc(doc, gt)
+    validate_episode_doc(doc, gt, min_geodesic)
     d = Path(out_dir) / split
     main, gt_path = d / f"{split}.json.gz", d / f"{split}_gt.json.gz"
     write_bytes_atomic(gt_path, _gz(gt))
@@ -140,8 +141,11 @@ def _num_list(v, n: int | None = None) -> bool:
     )
 
 
-def validate_episode_doc(doc: dict, gt: dict | None = None) -> None:
-    """Check the schema above; raises :class:`EpisodeSchemaError` at the first problem."""
+def validate_episode_doc(doc: dict, gt: dict | None = None, min_geodesic: float = 0.0) -> None:
+    """Check the schema above; raises :class:`EpisodeSchemaError` at the first problem.
+
+    ``min_geodesic``: no episode may be shorter (the sampling config's ``min_path_length``): a shorter
+    one starts inside the evaluation's success radius and is solved by stopping at once."""
     if doc.get("frame") != FRAME or doc.get("quaternion_order") != QUATERNION_ORDER:
         raise EpisodeSchemaError(f"top level: frame/quaternion_order must be {FRAME!r}/{QUATERNION_ORDER!r}")
     if not isinstance(doc.get("episodes"), list):
@@ -191,6 +195,10 @@ def validate_episode_doc(doc: dict, gt: dict | None = None) -> None:
         geo = e.get("info", {}).get("geodesic_distance")
         if not (isinstance(geo, (int, float)) and math.isfinite(geo) and geo >= 0):
             raise bad("info.geodesic_distance", "must be a finite non-negative number")
+        if geo < min_geodesic - 1e-6:
+            raise bad(
+                "info.geodesic_distance", f"{geo:.2f} m is below the minimum path length ({min_geodesic} m)"
+            )
         if gt is not None:
             g = gt.get(eid)
             if g is None:

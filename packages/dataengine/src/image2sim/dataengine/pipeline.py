@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from image2sim.dataengine.chunking import ChunkConfig, macro_steps
+from image2sim.dataengine.chunking import ChunkConfig, macro_steps, path_features
 from image2sim.dataengine.episodes import episode_record
 from image2sim.dataengine.mining import MiningConfig
 from image2sim.dataengine.rollout import (
@@ -34,7 +34,13 @@ from image2sim.dataengine.rollout import (
     rollout_plan,
     truncate_rollout,
 )
-from image2sim.dataengine.trajectories import SamplingConfig, bucket_of, episode_capacity, sample_plans
+from image2sim.dataengine.trajectories import (
+    SamplingConfig,
+    bucket_of,
+    episode_capacity,
+    sample_path_plans,
+    sample_plans,
+)
 from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
 
@@ -51,6 +57,7 @@ __all__ = [
 DONE_FILE = "done.json"
 EPISODES_FILE = "episodes.json"
 RENDER_MODES = ("auto", "procedural", "gaussians", "none")
+DETECTORS = ("gt", "yolo-world", "annotations", "none")
 
 
 @dataclass
@@ -81,9 +88,14 @@ class EngineConfig:
     """Local pixel-flow renderer weights (``save_renderer`` safetensors or a Lightning checkpoint) applied
     after splatting (the simulator's ``PixelFlowRenderFn``); needs render=gaussians (or auto)."""
     detector: str = "gt"
-    """Object detector: gt or yolo-world."""
+    """Where goal objects come from: gt (a procedural capture's ground truth), yolo-world (mined with
+    local weights), annotations (a person's objects file, :mod:`.objects_file`) or none (no objects:
+    landmark-free path episodes between navigable points, so any capture yields episodes)."""
     detector_weights: str | None = None
     """Local YOLO-World weights (yolo-world only)."""
+    objects: str | None = None
+    """annotations: the objects file (one scene) or a folder of ``<scene name>.json``; default
+    ``<capture>/objects_annotations.json``."""
     seed: int = 0
     """Base seed; each scene uses a stream derived from (seed, scene name)."""
     split: str = "train"
@@ -113,6 +125,13 @@ class EngineConfig:
             raise ValueError(f"EngineConfig.frame_stride must be >= 1, got {self.frame_stride}")
         if self.obs_height < 8:
             raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
+        if self.detector not in DETECTORS:
+            raise ValueError(f"EngineConfig.detector must be one of {DETECTORS}, got {self.detector!r}")
+        if self.detector == "none" and self.annotator != "template":
+            raise ValueError(
+                "detector none makes landmark-free path episodes, which only the template annotator "
+                "describes (VLM prompts ask about a goal object): use --annotator template"
+            )
         if self.renderer is not None and self.render not in ("auto", "gaussians"):
             raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
 
@@ -147,8 +166,11 @@ def resolve_scene(path: str | Path) -> SceneInputs:
     """Identify a capture folder or a built scene folder (see the module docstring)."""
     path = Path(path)
     man_path = path / "manifest.json"
-    if not man_path.is_file():
-        raise FileNotFoundError(f"{path}: no manifest.json (neither a capture nor a built scene folder)")
+    if not man_path.is_file():  # a capture of another format, read in place
+        from image2sim.simulator.io.registry import open_capture
+
+        cap = open_capture(path)  # raises CaptureError naming the folder when no reader knows it
+        return SceneInputs(path.name, str(cap.scene_id or path.name), path, path, False, None)
     man = json.loads(man_path.read_text())
     gaussian_dir = None
     if (path / "gaussians.safetensors").is_file():
@@ -197,6 +219,14 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
                 if folder == inputs.scene_dir:
                     continue  # a foreign objects.json (e.g. a GT file): mine our own
                 raise
+    if cfg.detector == "none":
+        return []
+    if cfg.detector == "annotations":
+        from image2sim.dataengine.objects_file import load_objects_file, objects_file_for
+
+        objs = load_objects_file(objects_file_for(cfg.objects, inputs.name, inputs.capture_dir))
+        mining.save_objects(cache / "objects.json", objs, {"detector": "annotations"})
+        return objs
     from image2sim.simulator.io.registry import open_capture
 
     mcfg = config_from_dict(MiningConfig, cfg.mining, "mining")
@@ -215,7 +245,7 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
             vocab, small = list(mining.DEFAULT_VOCABULARY), set(mining.DEFAULT_SMALL)
         det = mining.YoloWorldDetector(cfg.detector_weights, vocab)
     else:
-        raise ValueError(f"unknown detector {cfg.detector!r} (gt or yolo-world)")
+        raise ValueError(f"unknown detector {cfg.detector!r}; known: {DETECTORS}")
     objs, stats = mining.mine_capture(cap, det, mcfg, small)
     mining.attach_gt_metadata(objs, inputs.capture_dir)
     mining.save_objects(
@@ -263,7 +293,10 @@ def _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg):
     the object than its closest approach) stops at the closest approach instead; the episode's goal and
     length follow. Dropped (reason ``overshoot_too_short``) when the cut path is no longer a valid
     episode (shorter than the sampling config allows, or than ``rcfg.min_steps``)."""
-    target = navmap.to_map(np.asarray(plan.goal_object["position"], dtype=np.float64).reshape(1, 3))[0]
+    if plan.goal_object:
+        target = navmap.to_map(np.asarray(plan.goal_object["position"], dtype=np.float64).reshape(1, 3))[0]
+    else:  # a path episode: its goal is a point
+        target = np.asarray(plan.goal, dtype=np.float64)
     k = closest_approach_cut(r.positions, target, rcfg.overshoot)
     if k is None:
         return r, plan
@@ -336,10 +369,16 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
     rng = _rng(cfg.seed, inputs.name)
     sim = NeuralSimulator(navmap, graph)
     follower = OracleFollower(sim.planner)
-    plans, plan_stats = sample_plans(graph, sim.planner, objects, n, scfg, rng, navmap.to_map)
+    n_plans = int(math.ceil(n * scfg.plan_oversample))
+    if cfg.detector == "none":
+        plans, plan_stats = sample_path_plans(graph, n_plans, scfg, rng)
+    else:
+        plans, plan_stats = sample_plans(graph, sim.planner, objects, n_plans, scfg, rng, navmap.to_map)
     drops: dict[str, int] = {}
     kept = []
     for plan in plans:
+        if len(kept) >= n:
+            break
         r = rollout_plan(sim, follower, plan, rcfg)
         if r.ok:
             r, plan = _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg)
@@ -385,9 +424,16 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         ]
         rooms = [_room_at(objects, world[m.start]) for m in steps]
         style, structure, tone = route_style(rng)
-        gid = int(plan.goal_object["object_id"])
-        if gid not in near_of:
-            near_of[gid] = near_categories(index_of[gid], objects, obj_map, occupancy)
+        near: list[str] = []
+        if plan.goal_object:
+            gid = int(plan.goal_object["object_id"])
+            if gid not in near_of:
+                near_of[gid] = near_categories(index_of[gid], objects, obj_map, occupancy)
+            near = near_of[gid]
+        else:
+            style = "r2r"  # a path instruction (no goal object to ask for)
+        node, _ = graph.snap(np.asarray(r.positions, dtype=np.float64))
+        clearance = np.where(node >= 0, graph.clearance[np.maximum(node, 0)], 0.0)
         images = []
         if vlm:
             images = [_annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
@@ -403,7 +449,10 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
                 structure,
                 tone,
                 seed=int(rng.integers(2**31)),
-                near=near_of[gid],
+                near=near,
+                distances=[float(m.distance) for m in steps],
+                turns=[float(m.net_turn_deg) for m in steps],
+                features=path_features(steps, r.positions, clearance),
             )
         )
         chunks.append(steps)

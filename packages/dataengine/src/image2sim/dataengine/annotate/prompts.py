@@ -54,6 +54,13 @@ class AnnotationRequest:
     """Categories of objects near the goal (same storey, within a stated distance, mutually visible;
     :func:`image2sim.dataengine.visibility.near_categories`): the only ones "the goal near the X" may
     name."""
+    distances: list[float] = field(default_factory=list)
+    """Metres walked in each macro-step (landmark-free path instructions give distances)."""
+    turns: list[float] = field(default_factory=list)
+    """Signed net heading change of each macro-step in degrees (positive = left)."""
+    features: list[list[str]] = field(default_factory=list)
+    """Path features of each macro-step: ``doorway``, ``stairs_up``, ``stairs_down``
+    (:func:`image2sim.dataengine.chunking.path_features`)."""
 
     @property
     def allowed_objects(self) -> set[str]:

@@ -3,6 +3,8 @@
 Three styles (R2R, REVERIE, Demand) with structure and tone variants and synonym choices drawn from a
 per-episode seed, so instructions vary lexically but the same request always gives the same text.
 Only objects of the request's allow-list (visible at a macro-step start, or the goal) are named.
+A request without a goal object (``data episodes --detector none``) gets a landmark-free R2R-style
+path instruction: turns, distances, doorways and stairs (:func:`compose_path`).
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from image2sim.dataengine.annotate.prompts import Annotation, AnnotationRequest
 
-__all__ = ["TemplateAnnotator", "compose"]
+__all__ = ["TemplateAnnotator", "compose", "compose_path"]
 
 _VERB_SYNONYMS = {
     "walk forward": ["walk forward", "go straight", "head straight ahead", "continue forward", "move ahead"],
@@ -110,6 +112,114 @@ def _imperative(rng: np.random.Generator, text: str, tone: str) -> str:
     return _sentence(text)
 
 
+_WALK_DISTANCE = [
+    "walk forward about {n} meters",
+    "go straight for about {n} meters",
+    "continue ahead for about {n} meters",
+    "head straight on for roughly {n} meters",
+]
+_WALK_SHORT = ["take a few steps forward", "walk forward a little", "move ahead a short way"]
+_DOORWAY = ["go through the doorway", "pass through the doorway", "walk through the door"]
+_STAIRS = {
+    "stairs_up": ["go up the stairs", "walk up the stairs", "climb the stairs"],
+    "stairs_down": ["go down the stairs", "walk down the stairs", "take the stairs down"],
+}
+_PATH_STOP = ["stop", "stop there", "wait there", "stop and wait"]
+
+
+_TURN_CLAUSE = {
+    "left": ["turn left", "make a left", "go left"],
+    "right": ["turn right", "make a right", "go right"],
+    "around": ["turn around", "turn all the way around"],
+}
+_TURN_MIN_DEG = 30.0
+"""Net turns below this (in place, or accumulated while walking) are not mentioned."""
+_CURVE_DEG = 60.0
+"""Heading change accumulated while walking that closes the walk with a turn clause."""
+
+
+def _turn_words(deg: float) -> str | None:
+    if abs(deg) < _TURN_MIN_DEG:
+        return None
+    if abs(deg) >= 135.0:
+        return "around"
+    return "left" if deg > 0 else "right"
+
+
+def compose_path(req: AnnotationRequest) -> str:
+    """A landmark-free R2R-style instruction from the macro-steps alone (no goal object).
+
+    Turns in place are summed into one clause ("turn left", "turn around"); walking steps are summed
+    into one distance ("walk forward about 4 meters") until the heading has drifted by 60 degrees, a
+    doorway or stairs come, or a turn in place; turns under 30 degrees are not mentioned. Every clause
+    is an imperative verb phrase joined like :func:`compose`'s R2R style, so the tones apply unchanged
+    (the ``compact`` structure keeps every clause: without landmarks each one is needed)."""
+    rng = np.random.default_rng([req.seed, 11])
+    clauses: list[str] = []
+    walk, drift, turn = 0.0, 0.0, 0.0
+
+    def say(clause: str) -> None:
+        if not clauses or clauses[-1] != clause:
+            clauses.append(clause)
+
+    def flush_walk(merge_drift: bool = False) -> None:
+        """Say the walk; its heading drift is said as a turn, or added to the pending turn in place
+        (a curve to the right and a turn right read as one "turn right")."""
+        nonlocal walk, drift, turn
+        if walk >= 1.5:
+            say(_pick(rng, _WALK_DISTANCE).format(n=int(round(walk))))
+        elif walk > 0.2:
+            say(_pick(rng, _WALK_SHORT))
+        side = None if merge_drift else _turn_words(drift)
+        if merge_drift:
+            turn += drift
+        walk, drift = 0.0, 0.0
+        if side is not None:
+            say(_pick(rng, _TURN_CLAUSE[side]))
+
+    def flush_turn() -> None:
+        nonlocal turn
+        side = _turn_words(turn)
+        turn = 0.0
+        if side is not None:
+            say(_pick(rng, _TURN_CLAUSE[side]))
+
+    for i, move in enumerate(req.movements):
+        if move == "stop":
+            break
+        features = req.features[i] if i < len(req.features) else []
+        dist = req.distances[i] if i < len(req.distances) else 0.0
+        deg = req.turns[i] if i < len(req.turns) else 0.0
+        stairs = [f for f in features if f in _STAIRS]
+        if stairs:
+            flush_walk(merge_drift=_turn_words(turn) is not None)
+            flush_turn()
+            say(_pick(rng, _STAIRS[stairs[0]]))
+            continue
+        if dist < 0.2:  # a turn in place: said when the walk resumes, if large enough
+            turn += deg
+            continue
+        if _turn_words(turn) is not None:
+            flush_walk(merge_drift=True)
+            flush_turn()
+        else:  # too small to mention: part of the walk's drift
+            drift, turn = drift + turn, 0.0
+        walk += dist
+        drift += deg
+        if "doorway" in features:
+            flush_walk()
+            say(_pick(rng, _DOORWAY))
+        elif abs(drift) >= _CURVE_DEG:
+            flush_walk()
+    flush_walk(merge_drift=_turn_words(turn) is not None)
+    flush_turn()
+    # No "compact" cut here: without landmarks every turn and distance is needed to follow the path.
+    joins = [", " if req.tone == "terse" else f", {_pick(rng, _JOIN)} " for _ in clauses[1:]]
+    body = clauses[0] + "".join(j + c for j, c in zip(joins, clauses[1:], strict=True)) if clauses else ""
+    stop = _pick(rng, _PATH_STOP)
+    return _imperative(rng, (body + ", and " + stop) if body else stop, req.tone)
+
+
 def compose(req: AnnotationRequest) -> str:
     """The instruction text of one request (deterministic in ``req.seed``).
 
@@ -118,6 +228,8 @@ def compose(req: AnnotationRequest) -> str:
     painting ... needs to be checked.") stand alone. "Near" names only ``req.near`` (objects that are
     near the goal in the geometry).
     """
+    if not req.goal.get("category"):
+        return compose_path(req)
     rng = np.random.default_rng([req.seed, 7])
     goal = _name(req.goal.get("category", "object"))
     room = _room(req.goal.get("room_type"))

@@ -46,8 +46,14 @@ def build_scene_command(
     overwrite: bool = typer.Option(False, help="Replace an existing scene folder."),
     threads: int = typer.Option(0, help="torch threads (0 = torch default)."),
     fuse_every: int = typer.Option(8, help="Frames fused into memory per pass (1 = strictly incremental)."),
+    navigation: bool = typer.Option(
+        True,
+        "--navigation/--no-navigation",
+        help="Also extract navmap.npz + navgraph.npz from the capture (as `sim navmap` does), so "
+        "`eval nav` and `data episodes` can use the scene folder.",
+    ),
 ) -> None:
-    """Encode a capture's frames into a persistent feature-Gaussian scene."""
+    """Encode a capture's frames into a persistent feature-Gaussian scene (+ its navigation map)."""
     import dataclasses
     import time
 
@@ -81,19 +87,38 @@ def build_scene_command(
                 f"{capture}: no Gaussian survived fusion (every pixel invalid or outside the depth range "
                 f"{cfg.fusion.min_range:g}..{cfg.fusion.max_range:g} m); nothing written"
             )
+        nav = _navigation(capture) if navigation else None
         scene.save(out, overwrite=overwrite)
         if ply:
             scene.export_ply(out / "gaussians.ply")
+        if nav is not None:
+            nav[0].save(out / "navmap.npz")
+            nav[1].save(out / "navgraph.npz")
     except (ConfigError, SceneError, CaptureError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     manifest = scene.manifest()
     counts = manifest["counts"]
     typer.echo(_encoding_statement(manifest, config, encoder))
+    if nav is not None:
+        typer.echo(
+            f"navigation: {nav[0].navigable_area():.1f} m^2 navigable, {nav[1].num_nodes} graph nodes "
+            "(navmap.npz, navgraph.npz)"
+        )
     typer.echo(
         f"{out}: {counts['gaussians']} Gaussians from {counts['frames']} frames in {elapsed:.2f} s "
         f"({counts['frames'] / max(elapsed, 1e-9):.2f} frames/s); per voxel size {counts['per_voxel_size']}"
     )
+
+
+def _navigation(capture: Path):
+    """Navigable map and graph of a capture at the default embodiment and configs (``sim navmap``'s)."""
+    from image2sim.simulator.io import open_capture
+    from image2sim.simulator.navigation.graph import NavGraph
+    from image2sim.simulator.navigation.navmap import extract_navmap
+
+    navmap = extract_navmap(open_capture(capture), progress=True)
+    return navmap, NavGraph.build(navmap, progress=True)
 
 
 def _encoding_statement(manifest: dict, config: str, encoder: str) -> str:
