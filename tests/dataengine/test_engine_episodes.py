@@ -163,11 +163,11 @@ def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_ru
     real = dist.process_scene
     calls = []
 
-    def flaky(scene, out_dir, config):
+    def flaky(scene, out_dir, config, **kw):
         calls.append(Path(scene).name)
         if Path(scene).name == "scene_001":
             raise KeyboardInterrupt("killed")
-        return real(scene, out_dir, config)
+        return real(scene, out_dir, config, **kw)
 
     monkeypatch.setattr(dist, "process_scene", flaky)
     with pytest.raises(KeyboardInterrupt):  # in-process (workers=1): the patch reaches the scene task
@@ -176,7 +176,9 @@ def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_ru
     assert not (out / "scenes" / "scene_001" / "done.json").is_file()
     # Restart with the same arguments: only the unfinished scene runs.
     calls.clear()
-    monkeypatch.setattr(dist, "process_scene", lambda s, o, c: (calls.append(Path(s).name), real(s, o, c))[1])
+    monkeypatch.setattr(
+        dist, "process_scene", lambda s, o, c, **kw: (calls.append(Path(s).name), real(s, o, c, **kw))[1]
+    )
     summary = run_engine(scenes_root, out, cfg, executor="local", progress=False)
     assert calls == ["scene_001"] and summary["skipped"] == 1
     got = _read(out / "train" / "train.json.gz")["episodes"]

@@ -33,19 +33,12 @@ from pathlib import Path
 
 from image2sim.dataengine.episodes import write_episode_files
 from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig, process_scene
+from image2sim.dataengine.workers import WORKER_ENV, spawn_pool
 from image2sim.simulator.io.atomic import write_bytes_atomic
 
 __all__ = ["find_scenes", "pending_scenes", "run_engine", "merge_outputs", "RunError"]
 
 RUN_FILE = "run.json"
-
-WORKER_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-}
-"""Environment of the Ray workers: one thread per BLAS/OpenMP pool (one task = one core)."""
 
 
 class RunError(RuntimeError):
@@ -113,21 +106,15 @@ def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable
     """In this process (``workers == 1``), else in a pool of ``workers`` spawned processes that end
     with this one (no network, no daemon: the default executor)."""
     if workers <= 1 or len(todo) <= 1:
-        for s in todo:
+        for s in todo:  # one scene at a time; its episodes render over the workers (parallel inside it)
             try:
-                on_done(s, process_scene(s, out_dir, cfg), None)
+                on_done(s, process_scene(s, out_dir, cfg, render_workers=workers), None)
             except Exception as err:  # noqa: BLE001 - a scene failure must not stop the run
                 on_done(s, None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
-    with ProcessPoolExecutor(
-        min(workers, len(todo)),
-        mp_context=mp.get_context("spawn"),  # torch and OpenMP do not survive fork reliably
-        initializer=_pool_worker_init,
-        initargs=(os.getpid(),),
-    ) as pool:
+    with spawn_pool(min(workers, len(todo))) as pool:
         futures = {pool.submit(_scene_task, str(s), str(out_dir), cfg): s for s in todo}
         for fut in as_completed(futures):
             try:
@@ -135,13 +122,6 @@ def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable
             except Exception as exc:  # noqa: BLE001 - e.g. the worker process died: report, go on
                 summary, err = None, f"{type(exc).__name__}: {exc}"
             on_done(futures[fut], summary, err)
-
-
-def _pool_worker_init(parent_pid: int) -> None:
-    from image2sim.simulator.lifetime import die_with_parent
-
-    die_with_parent(parent_pid)
-    os.environ.update(WORKER_ENV)
 
 
 @contextmanager

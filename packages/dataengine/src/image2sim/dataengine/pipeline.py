@@ -348,8 +348,14 @@ def _observation_spec(cfg: EngineConfig, pano_height: int):
 # ---------------------------------------------------------------------------------------- the task
 
 
-def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConfig | dict) -> dict:
-    """Run the whole engine on one scene; returns the scene summary (also written to ``done.json``)."""
+def process_scene(
+    scene_dir: str | Path, out_dir: str | Path, config: EngineConfig | dict, render_workers: int = 1
+) -> dict:
+    """Run the whole engine on one scene; returns the scene summary (also written to ``done.json``).
+
+    ``render_workers`` > 1 renders the episodes' observations in that many spawned processes (the
+    local executor passes its ``--workers`` when it runs one scene at a time); the shard is the same
+    as with one."""
     from image2sim.dataengine.annotate import AnnotationRequest, build_annotator, route_style
     from image2sim.simulator.navigation.follower import OracleFollower
     from image2sim.simulator.sim import NeuralSimulator
@@ -468,6 +474,12 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         writer = SceneShardWriter(
             out / "shard", {"view": cfg.view, "height": cfg.obs_height, "render": render_mode}
         )
+    accepted = [(plan, r) for (plan, r), ann in zip(kept, annotations, strict=True) if ann.accepted]
+    rendered = (
+        _rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
+        if writer is not None
+        else iter(())
+    )
     try:
         for (plan, r), steps, req, ann in zip(kept, chunks, requests, annotations, strict=True):
             if not ann.accepted:
@@ -507,7 +519,7 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
                 "forward_steps": r.forward_steps,
             }
             if writer is not None:
-                frames, frame_steps = _render_rollout(sim, render_fn, plan, r, cfg)
+                frames, frame_steps = next(rendered)
                 writer.add(
                     req.episode_id,
                     inputs.name,
@@ -527,6 +539,10 @@ def process_scene(scene_dir: str | Path, out_dir: str | Path, config: EngineConf
         if writer is not None:
             writer.abort()
         raise
+    finally:
+        close = getattr(rendered, "close", None)
+        if close is not None:
+            close()  # ends the render pool, if any
     summary = {
         "scene": inputs.name,
         "scene_id": inputs.scene_id,
@@ -584,6 +600,44 @@ def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> tuple[np.ndar
     finally:
         sim.render_fn = None
     return np.stack(frames), steps
+
+
+_RENDER_STATE: dict = {}
+"""A render worker's simulator and render function (built once per process by :func:`_render_setup`)."""
+
+
+def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
+    from image2sim.simulator.sim import NeuralSimulator
+
+    config = EngineConfig.from_dict(cfg)
+    inputs = resolve_scene(scene_dir)
+    navmap, graph = _navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
+    render_fn, _ = _render_fn(inputs, Path(out), config.render, config.renderer)
+    _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
+
+
+def _render_task(job) -> tuple[np.ndarray, list[int]]:
+    plan, r = job
+    st = _RENDER_STATE
+    return _render_rollout(st["sim"], st["render_fn"], plan, r, st["cfg"])
+
+
+def _rendered_frames(jobs, sim, render_fn, inputs: SceneInputs, out: Path, cfg: EngineConfig, workers: int):
+    """(frames, frame steps) of each (plan, rollout) in order: here, or over ``workers`` spawned
+    processes (each loads the scene's cached navigation and Gaussians once). Rendering is deterministic
+    per rollout, so the frames do not depend on where they were made."""
+    if workers <= 1 or len(jobs) < 2:
+        for plan, r in jobs:
+            yield _render_rollout(sim, render_fn, plan, r, cfg)
+        return
+    from image2sim.dataengine.workers import spawn_pool
+
+    args = (str(inputs.scene_dir), str(out), cfg.to_dict())
+    pool = spawn_pool(min(workers, len(jobs)), _render_setup, *args)
+    try:
+        yield from pool.map(_render_task, jobs, chunksize=1)
+    finally:  # on an error here, pending renders are cancelled rather than awaited
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _annotation_view(sim, render_fn, plan, r, state: int, cfg: EngineConfig) -> np.ndarray:
