@@ -84,7 +84,8 @@ def test_every_episode_replays_to_its_recorded_end_without_collision(full_run):
 
 
 def test_episode_file_schema_and_loader_round_trip(full_run):
-    from image2sim.eval.datasets import load_image2sim_episodes, world_heading
+    from image2sim.eval.datasets import load_image2sim_episodes
+    from image2sim.simulator.geometry.habitat import world_heading
 
     out, _ = full_run
     doc = _read(out / "train" / "train.json.gz")

@@ -16,16 +16,18 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from image2sim.eval.datasets import (
-    HABITAT_TO_WORLD,
     EpisodeFileError,
-    habitat_heading,
-    habitat_quaternion_to_world,
-    habitat_rotation_for_heading,
-    habitat_to_world,
     load_image2sim_episodes,
     load_r2r_ce,
     load_reverie_ce,
     load_rxr_ce,
+)
+from image2sim.simulator.geometry.habitat import (
+    HABITAT_TO_WORLD,
+    habitat_heading,
+    habitat_quaternion_to_world,
+    habitat_rotation_for_heading,
+    habitat_to_world,
     world_to_habitat,
 )
 from image2sim.simulator.geometry.se3 import quat_to_matrix

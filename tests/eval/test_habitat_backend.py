@@ -16,7 +16,7 @@ import types
 
 import numpy as np
 import pytest
-from image2sim.eval.datasets import Instruction, NavEpisode, world_to_habitat
+from image2sim.eval.datasets import Instruction, NavEpisode
 from image2sim.eval.protocols import RXR_HABITAT, VLNCE
 from image2sim.eval.runner import (
     BackendUnavailable,
@@ -28,6 +28,7 @@ from image2sim.eval.runner import (
     run_nav_results,
 )
 from image2sim.simulator.conventions import Action
+from image2sim.simulator.geometry.habitat import world_to_habitat
 
 HALF = 4.0
 

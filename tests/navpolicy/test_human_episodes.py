@@ -24,7 +24,7 @@ UNREACHABLE_ID = 99
 def _r2r_record(sim, eid: int, path_map: np.ndarray, heading: float, text: str) -> dict:
     """A published-layout R2R-CE episode (Habitat frame, Y-up, [x, y, z, w]) whose reference path is
     ``path_map`` (map frame) taken to our world frame and then to Habitat's."""
-    from image2sim.eval.datasets import habitat_rotation_for_heading, world_to_habitat
+    from image2sim.simulator.geometry.habitat import habitat_rotation_for_heading, world_to_habitat
 
     hab = world_to_habitat(sim.navmap.to_world(np.asarray(path_map, float)))
     return _r2r_episode(

@@ -20,15 +20,15 @@ from typing import Any
 from typing import Protocol as TypingProtocol
 
 import numpy as np
-from image2sim.eval.datasets import (
-    NavEpisode,
+from image2sim.eval.datasets import NavEpisode
+from image2sim.eval.protocols import Protocol
+from image2sim.simulator.conventions import Action
+from image2sim.simulator.geometry.habitat import (
     habitat_heading,
     habitat_rotation_for_heading,
     habitat_to_world,
     world_to_habitat,
 )
-from image2sim.eval.protocols import Protocol
-from image2sim.simulator.conventions import Action
 
 __all__ = [
     "BackendUnavailable",
@@ -278,7 +278,8 @@ class HabitatBackend:
     ``turn_left`` / ``turn_right`` by ``turn_angle_deg``) and one RGB sensor ``"rgb"`` at the
     protocol's camera (pinhole: resolution and HFOV; equirect: ``EquirectangularSensorSpec``) at the
     agent's height. Episodes are in our Z-up world and are converted to Habitat's Y-up frame
-    (:func:`~image2sim.eval.datasets.world_to_habitat`; the start rotation is the upright one of the
+    (:func:`~image2sim.simulator.geometry.habitat.world_to_habitat`;
+    the start rotation is the upright one of the
     episode's heading); positions and headings come back the same way. The geodesic distance is the
     pathfinder's shortest path length (``habitat_sim.ShortestPath``); inf with a reason when none.
     """
@@ -386,7 +387,7 @@ class HabitatBackend:
 
 
 def habitat_to_world_point(p: Any) -> np.ndarray:
-    """One Habitat-frame point as a (3,) world point (:func:`~image2sim.eval.datasets.habitat_to_world`)."""
+    """One Habitat-frame point as a (3,) world point (:func:`habitat_to_world`)."""
     return habitat_to_world(np.asarray(p, dtype=np.float64).reshape(3))
 
 
