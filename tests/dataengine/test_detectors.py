@@ -13,6 +13,7 @@ from image2sim.dataengine.annotate.prompts import STRUCTURES, TONES, AnnotationR
 from image2sim.dataengine.annotate.template import compose, compose_path
 from image2sim.dataengine.chunking import MacroStep, path_features
 from image2sim.dataengine.distributed import RunError, find_scenes, run_engine
+from image2sim.dataengine.episodes import read_extras
 from image2sim.dataengine.objects_file import ObjectsFileError, load_objects_file
 from image2sim.dataengine.pipeline import EngineConfig
 
@@ -189,8 +190,9 @@ def test_detector_none_makes_path_episodes_that_replay_and_stay_valid(house, tmp
     summary = run_engine(house.parent, out, cfg, progress=False)
     assert summary["episodes"] >= 6, summary
     eps = _episodes(out)
+    extras = read_extras(out / "train" / "train.json.gz")
     for e in eps:
-        assert e["goal_object"] == {} and e["info"]["geodesic_distance"] >= 3.0
+        assert extras[e["episode_id"]]["goal_object"] == {} and e["info"]["geodesic_distance"] >= 3.0
         assert e["goals"][0]["radius"] == 3.0
         text = e["instruction"]["instruction_text"]
         assert "stop" in text or "wait" in text
@@ -218,8 +220,9 @@ def test_detector_annotations_names_the_annotated_objects(house, tmp_path):
     summary = run_engine(house.parent, out, cfg, progress=False)
     assert summary["episodes"] >= 3, summary
     names = {o["category"] for o in chosen}
+    extras = read_extras(out / "train" / "train.json.gz")
     for e in _episodes(out):
-        assert e["goal_object"]["category"] in names
+        assert extras[e["episode_id"]]["goal_object"]["category"] in names
 
 
 def test_detector_none_refuses_vlm_annotators():

@@ -84,30 +84,92 @@ def test_every_episode_replays_to_its_recorded_end_without_collision(full_run):
 
 
 def test_episode_file_schema_and_loader_round_trip(full_run):
+    from image2sim.dataengine.episodes import read_extras
     from image2sim.eval.datasets import load_image2sim_episodes
-    from image2sim.simulator.geometry.habitat import world_heading
+    from image2sim.simulator.geometry.habitat import habitat_heading, habitat_to_world
 
     out, _ = full_run
     doc = _read(out / "train" / "train.json.gz")
     gt = _read(out / "train" / "train_gt.json.gz")
+    extras = read_extras(out / "train" / "train.json.gz")
     validate_episode_doc(doc, gt)
-    assert doc["frame"] == "image2sim-z-up" and doc["quaternion_order"] == "wxyz"
+    assert doc["frame"] == "habitat-y-up" and doc["quaternion_order"] == "xyzw"
+    assert not (out / "train" / "train_extras.json.gz").exists()  # tools glob *.json.gz: not a sidecar
     ds = load_image2sim_episodes(out / "train" / "train.json.gz", out / "train" / "train_gt.json.gz")
-    assert len(ds) == len(doc["episodes"])
+    assert len(ds) == len(doc["episodes"]) == len(extras)
     vocab = doc["instruction_vocab"]["word_list"]
     for raw, ep in zip(doc["episodes"], ds.episodes, strict=True):
         assert ep.episode_id == raw["episode_id"]
-        np.testing.assert_allclose(ep.start_position, raw["start_position"])
-        np.testing.assert_allclose(ep.goal_position, raw["goals"][0]["position"])
-        q = raw["start_rotation"]
-        assert math.isclose(ep.start_heading, world_heading(np.array(q)), abs_tol=1e-9)
+        np.testing.assert_allclose(ep.start_position, habitat_to_world(raw["start_position"]), atol=1e-9)
+        np.testing.assert_allclose(ep.goal_position, habitat_to_world(raw["goals"][0]["position"]), atol=1e-9)
+        assert math.isclose(ep.start_heading, habitat_heading(raw["start_rotation"]), abs_tol=1e-9)
         assert ep.instruction.text == raw["instruction"]["instruction_text"]
-        words = [vocab[t] for t in ep.instruction.tokens]
+        tokens = raw["instruction"]["instruction_tokens"]
+        assert len(tokens) == 200 and tokens[-1] == 0  # padded like R2R-CE
+        words = [vocab[t] for t in tokens if t != 0]
         assert "".join(words) == "".join(raw["instruction"]["instruction_text"].lower().split())
-        assert raw["style"] in ("r2r", "reverie", "demand")
+        assert extras[raw["episode_id"]]["style"] in ("r2r", "reverie", "demand")
         assert gt[raw["episode_id"]]["forward_steps"] == sum(
             1 for a in gt[raw["episode_id"]]["actions"] if a == 1
         )
+
+
+# An independent replica of how VLN-CE reads an episode file (``VLNCEDatasetV1.from_json``): every
+# record is passed as keyword arguments to its episode class (habitat's Episode + NavigationEpisode +
+# VLNExtendedEpisode), the instruction to ExtendedInstructionData, each goal to NavigationGoal.
+_VLNCE_EPISODE = dict.fromkeys(
+    "episode_id scene_id scene_dataset_config additional_obj_config_paths start_position start_rotation "
+    "info goals start_room shortest_paths reference_path instruction trajectory_id".split()
+)
+_VLNCE_INSTRUCTION = dict.fromkeys(
+    "instruction_text instruction_id language annotator_id edit_distance timed_instruction "
+    "instruction_tokens split".split()
+)
+
+
+def _vlnce_kwargs(template: dict, record: dict, what: str) -> dict:
+    unexpected = set(record) - set(template)
+    if unexpected:
+        raise TypeError(f"{what}.__init__() got an unexpected keyword argument {sorted(unexpected)[0]!r}")
+    return {**template, **record}
+
+
+def _vlnce_from_json(text: str, scenes_dir: str) -> list[dict]:
+    import os
+
+    doc = json.loads(text)
+    word_list = doc["instruction_vocab"]["word_list"]
+    assert isinstance(word_list, list)
+    episodes = []
+    for raw in doc["episodes"]:
+        ep = _vlnce_kwargs(_VLNCE_EPISODE, raw, "VLNExtendedEpisode")
+        ep["scene_id"] = os.path.join(scenes_dir, ep["scene_id"])
+        ep["instruction"] = _vlnce_kwargs(_VLNCE_INSTRUCTION, ep["instruction"], "ExtendedInstructionData")
+        goal = {"position": None, "radius": None}
+        ep["goals"] = [_vlnce_kwargs(goal, g, "NavigationGoal") for g in ep["goals"]]
+        episodes.append(ep)
+    return episodes
+
+
+def test_vlnce_reads_the_engine_files_and_the_agent_stands_upright_on_the_floor(full_run):
+    from image2sim.simulator.geometry.habitat import habitat_to_world
+    from image2sim.simulator.navigation import NavMap
+    from image2sim.simulator.navigation.graph import NavGraph
+
+    out, _ = full_run
+    with gzip.open(out / "train" / "train.json.gz", "rt") as fh:
+        episodes = _vlnce_from_json(fh.read(), str(out / "scenes"))
+    assert episodes
+    for ep in episodes:
+        scene = Path(ep["scene_id"])
+        assert (scene / "navmap.npz").is_file()  # `<scenes dir>/<scene_id>` is the engine's scene folder
+        x, y, z, w = ep["start_rotation"]
+        assert abs(x) < 1e-9 and abs(z) < 1e-9 and math.isclose(y * y + w * w, 1.0)  # a yaw about +Y
+        navmap, graph = NavMap.load(scene / "navmap.npz"), NavGraph.load(scene / "navgraph.npz")
+        start = navmap.to_map(habitat_to_world(ep["start_position"]))
+        node, offset = graph.snap(np.asarray(start)[None])
+        assert node[0] >= 0 and offset[0] < 0.3  # on the navigable floor
+        assert len(ep["instruction"]["instruction_tokens"]) == 200
 
 
 def test_schema_validator_rejects_broken_documents(full_run):
@@ -117,6 +179,14 @@ def test_schema_validator_rejects_broken_documents(full_run):
     bad = json.loads(json.dumps(doc))
     bad["episodes"][0]["start_rotation"] = [1.0, 1.0, 0.0, 0.0]
     with pytest.raises(EpisodeSchemaError, match="start_rotation"):
+        validate_episode_doc(bad, gt)
+    bad = json.loads(json.dumps(doc))
+    bad["episodes"][0]["start_rotation"] = [0.6, 0.0, 0.0, 0.8]  # unit, but the agent lies on its side
+    with pytest.raises(EpisodeSchemaError, match="upright"):
+        validate_episode_doc(bad, gt)
+    bad = json.loads(json.dumps(doc))
+    bad["episodes"][0]["style"] = "r2r"  # VLN-CE's loader: TypeError: unexpected keyword argument 'style'
+    with pytest.raises(EpisodeSchemaError, match="sidecar"):
         validate_episode_doc(bad, gt)
     bad = json.loads(json.dumps(doc))
     bad["episodes"][1]["episode_id"] = bad["episodes"][0]["episode_id"]

@@ -12,7 +12,7 @@ from image2sim.eval.figure import FigureError, pick_episode, topdown_image
 @pytest.fixture(scope="module")
 def outputs(tmp_path_factory):
     """Pipeline-shaped outputs of one tiny scene: capture, scene folder (navmap), episode file."""
-    from image2sim.dataengine.episodes import episode_record, write_episode_files
+    from image2sim.dataengine.episodes import episode_record, gt_record, write_episode_files
     from image2sim.dataengine.procedural import generate_scene, preset, write_scene
     from image2sim.eval.runner import sample_point_goal_episodes
     from image2sim.simulator.io.registry import open_capture
@@ -41,14 +41,10 @@ def outputs(tmp_path_factory):
             e.reference_path,
             "Go to the goal.",
             e.geodesic_distance,
-            {},
         )
         for e in eps
     ]
-    gt = {
-        e.episode_id: {"locations": e.reference_path.tolist(), "actions": [0], "forward_steps": 0}
-        for e in eps
-    }
+    gt = {e.episode_id: gt_record(e.reference_path, [0], 0) for e in eps}
     write_episode_files(root / "episodes", "train", records, gt)
     return {"root": root, "capture": capture, "scene": scene, "navmap": navmap, "episodes": eps}
 

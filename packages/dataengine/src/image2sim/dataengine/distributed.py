@@ -284,7 +284,7 @@ def merge_outputs(
     """Rebuild ``{out}/{split}/{split}.json.gz`` (+ gt) and the shard list from finished scenes; every
     episode is checked as it is written (schema, gt, geodesic >= ``min_geodesic``)."""
     out_dir = Path(out_dir)
-    episodes, gt, shards, done, per_scene = [], {}, [], [], {}
+    episodes, gt, extras, shards, done, per_scene = [], {}, {}, [], [], {}
     for name in sorted(scene_names):
         folder = out_dir / "scenes" / name
         if not (folder / DONE_FILE).is_file():
@@ -293,10 +293,11 @@ def merge_outputs(
         per_scene[name] = _scene_outcome(json.loads((folder / DONE_FILE).read_text()), len(doc["episodes"]))
         episodes += doc["episodes"]
         gt.update(doc["gt"])
+        extras.update(doc.get("extras", {}))
         done.append(name)
         if (folder / "shard" / "manifest.json").is_file():
             shards.append(str((folder / "shard").resolve()))
-    main, gt_path = write_episode_files(out_dir, split, episodes, gt, min_geodesic)
+    main, gt_path = write_episode_files(out_dir, split, episodes, gt, min_geodesic, extras)
     write_bytes_atomic(out_dir / "shards.json", json.dumps({"shards": shards}, indent=1).encode())
     return {
         "episodes": len(episodes),

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps, path_features
-from image2sim.dataengine.episodes import episode_record
+from image2sim.dataengine.episodes import episode_record, gt_record
 from image2sim.dataengine.mining import MiningConfig
 from image2sim.dataengine.rollout import (
     RolloutConfig,
@@ -465,8 +465,8 @@ def process_scene(
     vocab = sorted({o.category for o in objects})
     annotator = build_annotator(cfg.annotator, vocabulary=vocab, **cfg.annotator_options)
     annotations = annotator.annotate(requests) if requests else []
-    # Episodes, gt and shard.
-    episodes, gt = [], {}
+    # Episodes, gt (Habitat frame, VLN-CE's fields only), their extras and the shard.
+    episodes, gt, extras = [], {}, {}
     writer = None
     if render_fn is not None:
         from image2sim.dataengine.shards import SceneShardWriter
@@ -510,14 +510,10 @@ def process_scene(
                 world[ref_idx],
                 ann.text,
                 plan.geodesic_distance,
-                extra,
             )
             episodes.append(rec)
-            gt[req.episode_id] = {
-                "locations": [[float(v) for v in p] for p in world],
-                "actions": list(r.actions),
-                "forward_steps": r.forward_steps,
-            }
+            extras[req.episode_id] = extra
+            gt[req.episode_id] = gt_record(world, r.actions, r.forward_steps)
             if writer is not None:
                 frames, frame_steps = next(rendered)
                 writer.add(
@@ -529,8 +525,8 @@ def process_scene(
                     frame_steps,
                     {
                         "style": ann.style,
-                        "start_position": rec["start_position"],
-                        "start_rotation": rec["start_rotation"],
+                        "start_world": [float(v) for v in world[0]],  # z up, metres
+                        "heading_world": float(heading_w),  # about +z, 0 = +x
                     },
                 )
         if writer is not None:
@@ -558,7 +554,8 @@ def process_scene(
         "render": render_mode,
         "seconds": time.perf_counter() - t0,
     }
-    write_bytes_atomic(out / EPISODES_FILE, json.dumps({"episodes": episodes, "gt": gt}).encode())
+    doc = {"episodes": episodes, "gt": gt, "extras": extras}
+    write_bytes_atomic(out / EPISODES_FILE, json.dumps(doc).encode())
     write_bytes_atomic(out / DONE_FILE, json.dumps(summary, indent=1).encode())
     return summary
 

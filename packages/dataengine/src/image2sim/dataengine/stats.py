@@ -33,8 +33,12 @@ def _summary(values) -> dict:
     }
 
 
-def episode_stats(episodes: list[dict], gt: dict | None = None) -> dict:
-    """Statistics of a list of episode records (the ``episodes`` of a written file)."""
+def episode_stats(episodes: list[dict], gt: dict | None = None, extras: dict | None = None) -> dict:
+    """Statistics of a list of episode records (the ``episodes`` of a written file); the engine's own
+    fields (style, bucket, goal object, path length, steps) come from ``extras`` by episode id (the
+    ``{split}_extras.json`` sidecar), or from the records themselves in files written before it."""
+    extras = extras or {}
+    episodes = [{**e, **extras.get(e["episode_id"], {})} for e in episodes]
     words = [len(e["instruction"]["instruction_text"].split()) for e in episodes]
     lengths = [float(e.get("path_length", e["info"]["geodesic_distance"])) for e in episodes]
     steps = [
@@ -72,7 +76,9 @@ def write_stats(episode_file: str | Path, out_dir: str | Path, gt_file: str | Pa
     if gt_file is not None and Path(gt_file).is_file():
         with gzip.open(gt_file, "rt", encoding="utf-8") as fh:
             gt = json.load(fh)
-    stats = episode_stats(doc["episodes"], gt)
+    from image2sim.dataengine.episodes import read_extras
+
+    stats = episode_stats(doc["episodes"], gt, read_extras(episode_file))
     stats["source"] = str(episode_file)
     out = Path(out_dir)
     write_bytes_atomic(out / "stats.json", json.dumps(stats, indent=1).encode())
