@@ -133,8 +133,8 @@ def test_compare_counts_an_unreachable_end_as_a_named_failure(tiny_cfg, monkeypa
 
     real = runner.run_episode
 
-    def flaky(backend, agent, ep, proto, seed):
-        res = real(backend, agent, ep, proto, seed)
+    def flaky(backend, agent, ep, proto, seed, poses=None):
+        res = real(backend, agent, ep, proto, seed, poses)
         if ep.episode_id.endswith("0001"):
             raise runner.RunnerError(
                 f"episode {ep.episode_id}: the agent ends at world position [0, 0, 0] ..."

@@ -206,6 +206,14 @@ def nav_cmd(
     wandb: Annotated[
         bool, typer.Option(help="Also log the headline metrics to W&B (offline by default).")
     ] = False,
+    submission: Annotated[
+        Path | None,
+        typer.Option(help="Also write a leaderboard predictions file of the (single) agent's run."),
+    ] = None,
+    submission_format: Annotated[
+        str,
+        typer.Option(help="r2r-ce (EvalAI predictions JSON) or rxr-ce (RxR-Habitat jsonl)."),
+    ] = "r2r-ce",
 ) -> None:
     """Run agents on navigation episodes (resumes an interrupted run) and update metrics/nav.json."""
     from image2sim.eval.metrics.nav import aggregate
@@ -221,6 +229,17 @@ def nav_cmd(
     )
 
     proto = _protocol(protocol)
+    if submission is not None:
+        from image2sim.eval.submission import SUBMISSION_FORMATS
+
+        if len(agent) != 1:
+            raise typer.BadParameter(
+                "a submission is one agent's run: give one --agent", param_hint="--submission"
+            )
+        if submission_format not in SUBMISSION_FORMATS:
+            raise typer.BadParameter(
+                f"expected one of {SUBMISSION_FORMATS}", param_hint="--submission-format"
+            )
     if backend == "habitat" and episodes is None and dataset == "none":
         raise typer.BadParameter(
             "--backend habitat needs --episodes or --dataset (point goals are sampled on our graphs)"
@@ -284,6 +303,14 @@ def nav_cmd(
         rows.append((name, report))
     typer.echo(nav_table_markdown(rows))
     typer.echo(f"updated {metrics}")
+    if submission is not None:
+        from image2sim.eval.submission import read_run_trajectories, write_submission
+
+        ids = {e.episode_id: getattr(e.instruction, "instruction_id", None) for e in eps}
+        path = write_submission(
+            submission, submission_format, read_run_trajectories(out / agent[0]), list(ids), ids
+        )
+        typer.echo(f"wrote {submission_format} predictions of {len(ids)} episodes to {path}")
     if wandb:
         from image2sim.eval.tracking import log_metrics_wandb
 

@@ -119,9 +119,12 @@ def episode_seed(run_seed: int, episode_id: str) -> int:
 
 
 def run_episode(
-    backend: Any, agent: Any, episode: NavEpisode, protocol: Protocol, seed: int
+    backend: Any, agent: Any, episode: NavEpisode, protocol: Protocol, seed: int, poses: list | None = None
 ) -> tuple[EpisodeResult, list[int]]:
-    """Run one episode to STOP or the protocol's step limit; returns its result and the actions."""
+    """Run one episode to STOP or the protocol's step limit; returns its result and the actions.
+
+    ``poses``, when given, receives the agent's ``(position, heading)`` (world frame) at the start and
+    after every action, STOP included: what leaderboard submissions report per step."""
     ms = Measurements(protocol, DEFAULT_MEASURES)
     wants = (lambda: getattr(agent, "wants_image", True)) if agent.needs_images else (lambda: False)
     try:
@@ -136,6 +139,12 @@ def run_episode(
         )
     agent.reset(episode, backend, seed)
     ms.reset(episode.metric_spec(), AgentState(obs.position, obs.distance_to_goal))
+
+    def record(o: StepObservation) -> None:
+        if poses is not None:
+            poses.append((np.asarray(o.position, dtype=np.float64).copy(), float(o.heading)))
+
+    record(obs)
     actions: list[int] = []
     for _ in range(protocol.max_steps):
         a = int(agent.act(obs))
@@ -144,9 +153,11 @@ def run_episode(
         actions.append(a)
         if a == int(Action.STOP):
             ms.update(a, AgentState(obs.position, obs.distance_to_goal))
+            record(obs)
             break
         obs = backend.step(a, observe=bool(agent.needs_images and wants()))
         ms.update(a, AgentState(obs.position, obs.distance_to_goal))
+        record(obs)
     _require_finite_distance(obs, episode, "ends")
     values = dict(ms.values())
     # Recorded per episode (0/1) so the share of estimated final distances is reported, never hidden.
@@ -266,8 +277,12 @@ def run_scene(
         if ep.episode_id in done:
             continue
         seed = episode_seed(config.seed, ep.episode_id)
-        result, actions = run_episode(backend, agent, ep, protocol, seed)
-        _append_jsonl(traj_path, {"episode_id": ep.episode_id, "seed": seed, "actions": actions})
+        poses: list = []
+        result, actions = run_episode(backend, agent, ep, protocol, seed, poses)
+        line = {"episode_id": ep.episode_id, "seed": seed, "actions": actions}
+        line["positions"] = [[round(float(v), 5) for v in p] for p, _ in poses]  # world, z up
+        line["headings"] = [round(h, 6) for _, h in poses]  # radians about +z, 0 = +x
+        _append_jsonl(traj_path, line)
         log.append(result)
         done.add(ep.episode_id)
         ran += 1
