@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny sim2real
+.PHONY: setup lock test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny sim2real
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -28,10 +28,13 @@ $(STAMP): $(SETUP_INPUTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade "pip>=24"
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q $(addprefix -e ,$(PACKAGES)) -r requirements-dev.txt -r requirements-pipeline.txt
+	$(PIP) install -q $(addprefix -e ,$(PACKAGES)) -r requirements-dev.txt -r requirements-pipeline.txt $(if $(LOCKED),-c requirements.lock)
 	$(PY) -c "import importlib.util as u, sys; sys.exit(u.find_spec('torchvision') is not None)" \
 	  || (echo "torchvision got installed: it breaks transformers on this CPU stack" && exit 1)
 	touch $(STAMP)
+
+lock:  ## re-pin requirements.lock from the current .venv (`make setup LOCKED=1` installs exactly those)
+	$(PIP) freeze --exclude-editable | grep -v '^-e\|^image2sim' > requirements.lock
 
 test: setup  ## fast test suite (CPU, a few minutes)
 	$(PY) -m pytest -q -m "not slow"

@@ -152,7 +152,13 @@ def run_lock(out_dir: Path):
 def _run_ray(
     todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, workers: int, address: str | None
 ) -> None:
-    import ray
+    try:
+        import ray
+    except ImportError:
+        raise RunError(
+            "--executor ray needs Ray: pip install 'image2sim-dataengine[ray]' "
+            "(the default --executor local needs nothing)"
+        ) from None
 
     started = False
     if not ray.is_initialized():

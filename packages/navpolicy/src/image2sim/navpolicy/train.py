@@ -186,6 +186,13 @@ def make_strategy(tc: TrainConfig):
     """The Lightning strategy object/name for ``tc``."""
     if tc.strategy != "deepspeed_zero2":
         return tc.strategy
+    import importlib.util
+
+    if importlib.util.find_spec("deepspeed") is None:
+        raise ValueError(
+            "train.strategy deepspeed_zero2 needs DeepSpeed: pip install 'image2sim-navpolicy[deepspeed]' "
+            "(or train with strategy auto / ddp)"
+        )
     path = Path(tc.deepspeed_config)
     if not path.is_absolute():
         path = REPO_ROOT / path
