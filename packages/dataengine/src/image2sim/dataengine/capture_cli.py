@@ -1,7 +1,8 @@
 """``image2sim data inspect|fuse|ingest``: look at, fuse and convert captures.
 
-Registered on the ``data`` Typer app from :mod:`image2sim.dataengine.cli`. Heavy modules (torch,
-OpenCV, the readers) are imported inside the commands so ``image2sim --help`` stays fast.
+Gathered into the ``data`` Typer app by :mod:`image2sim.dataengine.cli` (this module does not import
+it back). Heavy modules (torch, OpenCV, the readers) are imported inside the commands so
+``image2sim --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from image2sim.dataengine.cli import app
+
+app = typer.Typer()
+"""This module's commands; :mod:`image2sim.dataengine.cli` gathers them into ``image2sim data``."""
 
 _FORMAT_HELP = "Capture format (image2sim, hm3d_360, realsee, pinhole_dir, ...); auto-detected when omitted."
 

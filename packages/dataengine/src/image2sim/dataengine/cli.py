@@ -1,14 +1,17 @@
-"""``image2sim data``: capture inspection, fusion, ingest and procedural synthesis."""
+"""``image2sim data``: capture inspection, fusion, ingest, procedural synthesis and the data engine.
+
+Each command module keeps its own small Typer registry; this module gathers their commands into one
+group. The command modules never import this one, so there is no import cycle.
+"""
 
 from __future__ import annotations
 
 import typer
+from image2sim.dataengine import capture_cli, engine_cli
+from image2sim.dataengine.procedural import cli as procedural_cli
 
 app = typer.Typer(
     help="Data: inspect, fuse and ingest captures; synthesise procedural scenes.", no_args_is_help=True
 )
-
-# Capture commands (inspect, fuse, ingest) register themselves on `app`; imported last to avoid a cycle.
-from image2sim.dataengine import capture_cli  # noqa: E402,F401
-from image2sim.dataengine import engine_cli as _engine_cli  # noqa: E402,F401
-from image2sim.dataengine.procedural import cli as _procedural_cli  # noqa: E402,F401
+for _module in (capture_cli, engine_cli, procedural_cli):
+    app.registered_commands.extend(_module.app.registered_commands)

@@ -7,7 +7,9 @@ import json
 from pathlib import Path
 
 import typer
-from image2sim.dataengine.cli import app
+
+app = typer.Typer()
+"""This module's commands; :mod:`image2sim.dataengine.cli` gathers them into ``image2sim data``."""
 
 
 def _parse_options(items: list[str] | None) -> dict:

@@ -5,7 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from image2sim.dataengine.cli import app
+
+app = typer.Typer()
+"""This module's commands; :mod:`image2sim.dataengine.cli` gathers them into ``image2sim data``."""
 
 
 @app.command("synth")
