@@ -303,3 +303,30 @@ def test_rendering_a_scene_over_two_workers_gives_the_same_shard(tmp_path):
         with np.load(shard_one / "frames" / name) as a, np.load(shard_two / "frames" / name) as b:
             assert np.array_equal(a["rgb"], b["rgb"])
     assert (shard_one / "trajectories.jsonl").read_text() == (shard_two / "trajectories.jsonl").read_text()
+
+
+def test_a_second_run_copies_scene_assets_from_the_content_keyed_cache(tmp_path, monkeypatch):
+    """`--cache`: the first run builds the map, graph and Gaussians and stores them by the capture's
+    content; a run into another folder copies them (nothing rebuilt) and writes the same episodes;
+    an edited capture gets a new key."""
+    import image2sim.dataengine.procedural.exact as exact
+    from image2sim.dataengine.asset_cache import content_key
+    from image2sim.dataengine.procedural import preset, synthesize
+
+    root = tmp_path / "caps"
+    cap = synthesize(preset("tiny"), root, scenes=1, seed=0, progress=False)[0]
+    cfg = EngineConfig(per_scene=3, obs_height=24, seed=3, render="gaussians", sampling=SHORT)
+    cache = tmp_path / "assets"
+    run_engine(root, tmp_path / "a", cfg, progress=False, asset_cache=cache, workers=1)
+    assert len(list(cache.iterdir())) == 2  # navigation + gaussians entries
+    built = []
+    real = exact.capture_navigation
+    monkeypatch.setattr(exact, "capture_navigation", lambda *a, **k: (built.append(1), real(*a, **k))[1])
+    run_engine(root, tmp_path / "b", cfg, progress=False, asset_cache=cache, workers=1)
+    assert built == []  # copied, not rebuilt
+    assert (tmp_path / "a" / "train" / "train.json.gz").read_bytes() == (
+        tmp_path / "b" / "train" / "train.json.gz"
+    ).read_bytes()
+    key = content_key(cap, "navigation", "procedural=True")
+    (cap / "frames" / "00000_pose.json").write_text((cap / "frames" / "00000_pose.json").read_text() + " ")
+    assert content_key(cap, "navigation", "procedural=True") != key

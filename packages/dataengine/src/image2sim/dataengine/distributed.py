@@ -102,20 +102,27 @@ def _check_run_manifest(out_dir: Path, config: EngineConfig) -> None:
         write_bytes_atomic(path, json.dumps({"config": cfg}, indent=1).encode())
 
 
-def _run_local(todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, workers: int = 1) -> None:
+def _run_local(
+    todo: Sequence[Path],
+    out_dir: Path,
+    cfg: dict,
+    on_done: Callable,
+    workers: int = 1,
+    assets: str | None = None,
+) -> None:
     """In this process (``workers == 1``), else in a pool of ``workers`` spawned processes that end
     with this one (no network, no daemon: the default executor)."""
     if workers <= 1 or len(todo) <= 1:
         for s in todo:  # one scene at a time; its episodes render over the workers (parallel inside it)
             try:
-                on_done(s, process_scene(s, out_dir, cfg, render_workers=workers), None)
+                on_done(s, process_scene(s, out_dir, cfg, render_workers=workers, asset_cache=assets), None)
             except Exception as err:  # noqa: BLE001 - a scene failure must not stop the run
                 on_done(s, None, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}")
         return
     from concurrent.futures import as_completed
 
     with spawn_pool(min(workers, len(todo))) as pool:
-        futures = {pool.submit(_scene_task, str(s), str(out_dir), cfg): s for s in todo}
+        futures = {pool.submit(_scene_task, str(s), str(out_dir), cfg, assets): s for s in todo}
         for fut in as_completed(futures):
             try:
                 summary, err = fut.result()
@@ -150,7 +157,13 @@ def run_lock(out_dir: Path):
 
 
 def _run_ray(
-    todo: Sequence[Path], out_dir: Path, cfg: dict, on_done: Callable, workers: int, address: str | None
+    todo: Sequence[Path],
+    out_dir: Path,
+    cfg: dict,
+    on_done: Callable,
+    workers: int,
+    address: str | None,
+    assets: str | None = None,
 ) -> None:
     try:
         import ray
@@ -176,7 +189,7 @@ def _run_ray(
         while queue or refs:
             while queue and len(refs) < cap:
                 s = queue.pop(0)
-                refs[task.remote(str(s), str(out_dir), cfg)] = s
+                refs[task.remote(str(s), str(out_dir), cfg, assets)] = s
             done, _ = ray.wait(list(refs), num_returns=1)
             for ref in done:
                 try:
@@ -189,14 +202,14 @@ def _run_ray(
             ray.shutdown()
 
 
-def _scene_task(scene: str, out_dir: str, cfg: dict):
+def _scene_task(scene: str, out_dir: str, cfg: dict, assets: str | None = None):
     """One scene in a Ray worker: torch at one thread; the summary gains the task's wall/CPU seconds."""
     import torch
 
     torch.set_num_threads(1)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        summary = process_scene(scene, out_dir, cfg)
+        summary = process_scene(scene, out_dir, cfg, asset_cache=assets)
         summary["task"] = {
             "pid": os.getpid(),
             "wall_s": time.perf_counter() - t0,
@@ -218,9 +231,12 @@ def run_engine(
     address: str | None = None,
     progress: bool = True,
     limit: int | None = None,
+    asset_cache: str | Path | None = None,
 ) -> dict:
     """Process every unfinished scene, then rebuild the merged outputs. Returns the run summary.
 
+    ``asset_cache``: scene assets (maps, Gaussians) shared across runs, keyed by each capture's content
+    (:mod:`.asset_cache`); not part of the run's config (it changes no output).
     ``limit`` processes at most that many pending scenes (used to simulate interruptions in tests).
     ``tasks`` in the result maps each scene run through Ray to its worker pid, wall and CPU seconds.
     """
@@ -230,11 +246,12 @@ def run_engine(
     scenes = find_scenes(scenes_root)
     out_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(out_dir):
-        return _run_locked(scenes, out_dir, config, executor, workers, address, progress, limit)
+        assets = None if asset_cache is None else str(Path(asset_cache).resolve())
+        return _run_locked(scenes, out_dir, config, executor, workers, address, progress, limit, assets)
 
 
 def _run_locked(
-    scenes, out_dir: Path, config: EngineConfig, executor, workers, address, progress, limit
+    scenes, out_dir: Path, config: EngineConfig, executor, workers, address, progress, limit, assets
 ) -> dict:
     _check_run_manifest(out_dir, config)
     todo = pending_scenes(scenes, out_dir)
@@ -263,9 +280,9 @@ def _run_locked(
 
     try:
         if executor == "local":
-            _run_local(todo, out_dir, config.to_dict(), on_done, workers)
+            _run_local(todo, out_dir, config.to_dict(), on_done, workers, assets)
         else:
-            _run_ray(todo, out_dir, config.to_dict(), on_done, workers, address)
+            _run_ray(todo, out_dir, config.to_dict(), on_done, workers, address, assets)
     finally:
         if bar is not None:
             bar.stop()

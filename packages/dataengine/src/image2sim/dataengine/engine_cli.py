@@ -122,6 +122,12 @@ def episodes_command(
         help="annotations: the objects file (one scene) or a folder of <scene>.json "
         "(default <capture>/objects_annotations.json); format in docs/dataengine.md.",
     ),
+    cache: Path | None = typer.Option(
+        None,
+        "--cache",
+        help="Folder of scene assets (navigation maps, Gaussians) shared across runs, keyed by each "
+        "capture's content: a second run on the same capture copies them instead of rebuilding.",
+    ),
     sampling: list[str] = typer.Option(
         None,
         "--sampling",
@@ -158,7 +164,9 @@ def episodes_command(
             detector_weights=None if detector_weights is None else str(detector_weights),
             objects=None if objects is None else str(objects),
         )
-        summary = run_engine(scenes, out, cfg, executor=executor, workers=workers, address=address)
+        summary = run_engine(
+            scenes, out, cfg, executor=executor, workers=workers, address=address, asset_cache=cache
+        )
     except (RunError, ValueError) as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None

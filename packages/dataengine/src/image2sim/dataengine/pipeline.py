@@ -193,19 +193,29 @@ def resolve_scene(path: str | Path) -> SceneInputs:
 # ---------------------------------------------------------------------------------------- assets
 
 
-def _navigation(inputs: SceneInputs, cache: Path):
+def _navigation(inputs: SceneInputs, cache: Path, asset_cache: str | None = None):
+    """The scene's map and graph: a built scene's own, else this run's (``cache``), else copied from
+    the content-keyed ``asset_cache``, else extracted from the capture (and stored in both)."""
+    from image2sim.dataengine.asset_cache import cached, content_key
     from image2sim.simulator.navigation import NavMap
     from image2sim.simulator.navigation.graph import NavGraph
 
-    for folder in (inputs.scene_dir, cache):
-        if (folder / "navmap.npz").is_file() and (folder / "navgraph.npz").is_file():
-            return NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz")
-    from image2sim.dataengine.procedural.exact import capture_navigation
+    folder = inputs.scene_dir
+    if (folder / "navmap.npz").is_file() and (folder / "navgraph.npz").is_file():
+        return NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz")
 
-    navmap, graph = capture_navigation(inputs.capture_dir, inputs.procedural)
-    navmap.save(cache / "navmap.npz")
-    graph.save(cache / "navgraph.npz")
-    return navmap, graph
+    def build() -> None:
+        from image2sim.dataengine.procedural.exact import capture_navigation
+
+        navmap, graph = capture_navigation(inputs.capture_dir, inputs.procedural)
+        navmap.save(cache / "navmap.npz")
+        graph.save(cache / "navgraph.npz")
+
+    def key() -> str:
+        return content_key(inputs.capture_dir, "navigation", f"procedural={inputs.procedural}")
+
+    cached(asset_cache, key, ["navmap.npz", "navgraph.npz"], cache, build)
+    return NavMap.load(cache / "navmap.npz"), NavGraph.load(cache / "navgraph.npz")
 
 
 def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
@@ -254,7 +264,9 @@ def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
     return objs
 
 
-def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None = None):
+def _render_fn(
+    inputs: SceneInputs, cache: Path, mode: str, renderer: str | None = None, asset_cache: str | None = None
+):
     """(render function or None, mode actually used)."""
     if renderer is not None and mode == "auto":
         mode = "gaussians"
@@ -271,9 +283,18 @@ def _render_fn(inputs: SceneInputs, cache: Path, mode: str, renderer: str | None
     from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
     from image2sim.simulator.sim import GaussianRenderFn
 
-    folder = inputs.gaussian_dir or cache / "gaussians"
-    if not (folder / "gaussians.safetensors").is_file():
-        build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True)
+    folder = inputs.gaussian_dir
+    if folder is None:
+        from image2sim.dataengine.asset_cache import cached, content_key
+
+        folder = cache / "gaussians"
+        cached(
+            asset_cache,
+            lambda: content_key(inputs.capture_dir, "gaussians", "tiny identity"),
+            ["gaussians"],
+            cache,
+            lambda: build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True),
+        )
     g = GaussianScene.load(folder).gaussians
     tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
     if renderer is not None:
@@ -349,13 +370,18 @@ def _observation_spec(cfg: EngineConfig, pano_height: int):
 
 
 def process_scene(
-    scene_dir: str | Path, out_dir: str | Path, config: EngineConfig | dict, render_workers: int = 1
+    scene_dir: str | Path,
+    out_dir: str | Path,
+    config: EngineConfig | dict,
+    render_workers: int = 1,
+    asset_cache: str | None = None,
 ) -> dict:
     """Run the whole engine on one scene; returns the scene summary (also written to ``done.json``).
 
     ``render_workers`` > 1 renders the episodes' observations in that many spawned processes (the
     local executor passes its ``--workers`` when it runs one scene at a time); the shard is the same
-    as with one."""
+    as with one. ``asset_cache``: a folder of scene assets shared across runs, keyed by the capture's
+    content (:mod:`.asset_cache`)."""
     from image2sim.dataengine.annotate import AnnotationRequest, build_annotator, route_style
     from image2sim.simulator.navigation.follower import OracleFollower
     from image2sim.simulator.sim import NeuralSimulator
@@ -366,7 +392,7 @@ def process_scene(
     out = Path(out_dir) / "scenes" / inputs.name
     out.mkdir(parents=True, exist_ok=True)
     sweep_stale_temps(out / "shard")  # left by a killed earlier attempt of this scene
-    navmap, graph = _navigation(inputs, out)
+    navmap, graph = _navigation(inputs, out, asset_cache)
     objects = _objects(inputs, out, cfg)
     scfg = config_from_dict(SamplingConfig, cfg.sampling, "sampling")
     rcfg = config_from_dict(RolloutConfig, cfg.rollout, "rollout")
@@ -399,7 +425,9 @@ def process_scene(
     # Annotation requests.
     vlm = cfg.annotator != "template"
     render_fn, render_mode = (
-        (None, "none") if cfg.render == "none" else _render_fn(inputs, out, cfg.render, cfg.renderer)
+        (None, "none")
+        if cfg.render == "none"
+        else _render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache)
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
