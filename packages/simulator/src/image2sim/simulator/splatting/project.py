@@ -165,7 +165,12 @@ def equirect_jacobian(points: torch.Tensor, camera: EquirectCamera) -> tuple[tor
 
 
 def _pole_blend(
-    points: torch.Tensor, m_cam: torch.Tensor, b: torch.Tensor, c: torch.Tensor, camera: EquirectCamera
+    points: torch.Tensor,
+    rot_wc: torch.Tensor,
+    rs: torch.Tensor,
+    b: torch.Tensor,
+    c: torch.Tensor,
+    camera: EquirectCamera,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Near a pole, the EWA screen covariance's (b, c) blended towards their longitude average.
 
@@ -176,15 +181,23 @@ def _pole_blend(
     Szz) / 2 + cos^2 lat Syy)``, and b to 0, with weight ``1 - cos^2(lat) / POLE_BLEND_COS^2``: the
     longitude's influence vanishes like rho^2 and the gradient stays bounded. Isotropic Gaussians are
     unchanged (their c does not depend on the longitude), and with ``t <= 1`` the blend keeps the
-    covariance positive semi-definite (``a c' - b'^2 >= t (a c - b^2)``). ``m_cam`` is the
-    camera-frame ``R S`` (so Sigma_cam = m_cam m_cam^T)."""
+    covariance positive semi-definite (``a c' - b'^2 >= t (a c - b^2)``). The camera-frame ``R S``
+    (Sigma_cam = its square) is formed only for the Gaussians inside the cap, the few of a panorama.
+    """
     x, y, z = points.unbind(-1)
     r2 = (points * points).sum(-1)
     cos2 = (x * x + z * z) / r2
-    t = torch.clamp(cos2 / (POLE_BLEND_COS * POLE_BLEND_COS), max=1.0)
+    near = torch.nonzero(cos2 < POLE_BLEND_COS * POLE_BLEND_COS).squeeze(-1)
+    if near.numel() == 0:
+        return b, c
+    cos2_n, r2_n = cos2[near], r2[near]
+    t = cos2_n / (POLE_BLEND_COS * POLE_BLEND_COS)
+    m_cam = rot_wc.transpose(0, 1) @ rs[near]
     sxx, syy, szz = ((m_cam * m_cam).sum(-1)).unbind(-1)
-    c_avg = (camera.height / math.pi) ** 2 / r2 * ((1.0 - cos2) * 0.5 * (sxx + szz) + cos2 * syy)
-    return b * t, c_avg + t * (c - c_avg)
+    c_avg = (camera.height / math.pi) ** 2 / r2_n * ((1.0 - cos2_n) * 0.5 * (sxx + szz) + cos2_n * syy)
+    b = b.index_copy(0, near, b[near] * t)
+    c = c.index_copy(0, near, c_avg + t * (c[near] - c_avg))
+    return b, c
 
 
 def wrap_offset(du: torch.Tensor, wrap_width: float) -> torch.Tensor:
@@ -251,7 +264,7 @@ def project_gaussians(
     )
     b, c = cov2[:, 1], cov2[:, 2]
     if equirect:
-        b, c = _pole_blend(p_s, rot_wc.transpose(0, 1) @ rs, b, c, camera)
+        b, c = _pole_blend(p_s, rot_wc, rs, b, c, camera)
     a = cov2[:, 0] + DILATION
     c = c + DILATION
     det = a * c - b * b

@@ -613,15 +613,17 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
         a = L[0][0] * L[0][0] + L[0][1] * L[0][1] + L[0][2] * L[0][2] + 0.3;
         b = L[0][0] * L[1][0] + L[0][1] * L[1][1] + L[0][2] * L[1][2];
         c = L[1][0] * L[1][0] + L[1][1] * L[1][1] + L[1][2] * L[1][2];
-        if (cam.equirect) {  // project.py's _pole_blend: (b, c) towards their longitude average near a pole
+        const double r2 = x * x + y * y + z * z, cos2 = (x * x + z * z) / r2;
+        if (cam.equirect && cos2 < kPoleBlendCos * kPoleBlendCos) {
+          // project.py's _pole_blend (only inside the cap, where its weight is below 1): (b, c)
+          // towards their longitude average.
           double S[3] = {0, 0, 0};  // diagonal of the camera-frame covariance (R^T G diag(s))(...)^T
           for (int i3 = 0; i3 < 3; ++i3)
             for (int k = 0; k < 3; ++k) {
               const double mk = (R[0][i3] * G[0][k] + R[1][i3] * G[1][k] + R[2][i3] * G[2][k]) * s[k];
               S[i3] += mk * mk;
             }
-          const double r2 = x * x + y * y + z * z, cos2 = (x * x + z * z) / r2;
-          const double tb = std::min(1.0, cos2 / (kPoleBlendCos * kPoleBlendCos));
+          const double tb = cos2 / (kPoleBlendCos * kPoleBlendCos);
           const double c_avg = (cam.H / kPi) * (cam.H / kPi) / r2 * ((1.0 - cos2) * 0.5 * (S[0] + S[2]) + cos2 * S[1]);
           b *= tb;
           c = c_avg + tb * (c - c_avg);
