@@ -33,8 +33,8 @@ from pathlib import Path
 
 from image2sim.dataengine.episodes import write_episode_files
 from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig, process_scene
-from image2sim.dataengine.workers import WORKER_ENV, spawn_pool
 from image2sim.simulator.io.atomic import write_bytes_atomic
+from image2sim.simulator.lifetime import WORKER_ENV, spawn_pool
 
 __all__ = ["find_scenes", "pending_scenes", "run_engine", "merge_outputs", "RunError"]
 

@@ -655,7 +655,7 @@ def _rendered_frames(jobs, sim, render_fn, inputs: SceneInputs, out: Path, cfg: 
         for plan, r in jobs:
             yield _render_rollout(sim, render_fn, plan, r, cfg)
         return
-    from image2sim.dataengine.workers import spawn_pool
+    from image2sim.simulator.lifetime import spawn_pool
 
     args = (str(inputs.scene_dir), str(out), cfg.to_dict())
     pool = spawn_pool(min(workers, len(jobs)), _render_setup, *args)

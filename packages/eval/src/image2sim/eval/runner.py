@@ -25,7 +25,6 @@ import math
 import os
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -299,11 +298,8 @@ def observation_size(config: RunConfig) -> tuple[int, int] | None:
 
 
 def _scene_task(task: dict) -> tuple[str, int]:
-    """Worker entry point (top level so it pickles): load the scene and run its episodes."""
-    if task.get("worker"):
-        import torch
-
-        torch.set_num_threads(1)  # one process per core; never changes the caller's setting in-process
+    """Worker entry point (top level so it pickles): load the scene and run its episodes (in a pool
+    worker, :func:`~image2sim.simulator.lifetime.spawn_pool` has set torch to one thread)."""
     protocol = Protocol.from_dict(task["protocol"])
     config = RunConfig(**task["config"])
     if config.backend == "habitat":
@@ -428,18 +424,10 @@ def run_nav_results(
                 if bar is not None:
                     bar.advance(task_id)
         else:
-            import multiprocessing as mp
+            from image2sim.simulator.lifetime import spawn_pool
 
-            from image2sim.simulator.lifetime import die_with_parent
-
-            # spawn: torch and OpenMP do not survive fork reliably. Workers end with this process.
-            with ProcessPoolExecutor(
-                min(config.workers, len(tasks)),
-                mp_context=mp.get_context("spawn"),
-                initializer=die_with_parent,
-                initargs=(os.getpid(),),
-            ) as pool:
-                for _ in pool.map(_scene_task, [{**t, "worker": True} for t in tasks]):
+            with spawn_pool(min(config.workers, len(tasks))) as pool:
+                for _ in pool.map(_scene_task, tasks):
                     if bar is not None:
                         bar.advance(task_id)
     finally:

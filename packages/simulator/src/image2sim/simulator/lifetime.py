@@ -4,6 +4,11 @@ A worker pool's processes outlive a killed driver by default (SIGTERM or SIGKILL
 parent), and keep computing for nobody. :func:`die_with_parent` is a pool ``initializer``: on Linux
 it asks the kernel to send the worker SIGTERM when its parent dies (``PR_SET_PDEATHSIG``); elsewhere
 it does nothing. It is checked once after arming, since the parent may have died in between.
+
+:func:`spawn_pool` is the one worker pool every parallel job uses (the data engine's scenes and
+episode rendering, ``eval nav``'s scenes): spawned processes (torch and OpenMP do not survive
+``fork`` reliably) with one BLAS/OpenMP thread each (:data:`WORKER_ENV`, torch at one thread, so
+``n`` workers use ``n`` cores without oversubscribing them) that end with the process that made them.
 """
 
 from __future__ import annotations
@@ -11,8 +16,18 @@ from __future__ import annotations
 import os
 import signal
 import sys
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
 
-__all__ = ["die_with_parent"]
+__all__ = ["WORKER_ENV", "die_with_parent", "spawn_pool", "worker_init"]
+
+WORKER_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+}
+"""Environment of every worker (local or Ray): one thread per BLAS/OpenMP pool (one task = one core)."""
 
 _PR_SET_PDEATHSIG = 1
 
@@ -34,3 +49,27 @@ def die_with_parent(parent_pid: int | None = None) -> bool:
     if os.getppid() != parent:  # the parent died before the signal was armed
         os._exit(1)
     return True
+
+
+def worker_init(parent_pid: int, setup: Any = None, *setup_args: Any) -> None:
+    """Worker start: die with ``parent_pid``, one thread per pool, then ``setup(*setup_args)``."""
+    die_with_parent(parent_pid)
+    os.environ.update(WORKER_ENV)
+    import torch
+
+    torch.set_num_threads(1)
+    if setup is not None:
+        setup(*setup_args)
+
+
+def spawn_pool(workers: int, setup: Any = None, *setup_args: Any) -> ProcessPoolExecutor:
+    """A pool of ``workers`` spawned processes that end with this one; ``setup(*setup_args)`` runs once
+    in each (a top-level function, so it pickles)."""
+    import multiprocessing as mp
+
+    return ProcessPoolExecutor(
+        workers,
+        mp_context=mp.get_context("spawn"),
+        initializer=worker_init,
+        initargs=(os.getpid(), setup, *setup_args),
+    )
