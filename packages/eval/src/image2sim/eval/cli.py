@@ -87,6 +87,7 @@ def report_cmd(
     """Tables laid out like the paper's Table 2 (navigation) and Table 1 (rendering), the speed plot,
     and optionally the demo figure."""
     from image2sim.eval.report import nav_table_markdown, read_aggregate
+    from image2sim.simulator.io.atomic import write_text_atomic
 
     if not aggregates and nav is None and render is None and figure_scene is None:
         raise typer.BadParameter("give aggregate.json files, --nav, --render and/or --figure-scene")
@@ -96,14 +97,14 @@ def report_cmd(
         table = nav_table_markdown([read_aggregate(p) for p in aggregates])
         typer.echo(table)
         if out is not None:
-            _write_text(out, table)
+            write_text_atomic(out, table)
     if nav is not None:
         from image2sim.eval.runner import nav_markdown
 
         text = nav_markdown(json.loads(nav.read_text(encoding="utf-8")))
         typer.echo("## Navigation\n\n" + text)
         if out_dir is not None:
-            written = _write_text(out_dir / "nav.md", "# Navigation (Table 2 layout)\n\n" + text)
+            written = write_text_atomic(out_dir / "nav.md", "# Navigation (Table 2 layout)\n\n" + text)
             typer.echo(f"wrote {written}")
     if render is not None:
         from image2sim.eval.plots import plot_speed_vs_error
@@ -113,7 +114,7 @@ def report_cmd(
         text = render_markdown(doc)
         typer.echo("## Rendering\n\n" + text)
         if out_dir is not None:
-            written = _write_text(out_dir / "render.md", "# Rendering (Table 1 layout)\n\n" + text)
+            written = write_text_atomic(out_dir / "render.md", "# Rendering (Table 1 layout)\n\n" + text)
             typer.echo(f"wrote {written}")
             typer.echo(f"wrote {plot_speed_vs_error(doc, out_dir / 'render_speed.png')}")
     if figure_scene is not None:
@@ -130,12 +131,6 @@ def report_cmd(
             holdout_every=holdout_every,
         )
         typer.echo(f"wrote {out_dir / 'demo_figure.png'} ({json.dumps(shown)})")
-
-
-def _write_text(path: Path, text: str) -> Path:
-    from image2sim.simulator.io.atomic import write_text_atomic
-
-    return write_text_atomic(path, text)
 
 
 def _protocol(name_or_file: str):

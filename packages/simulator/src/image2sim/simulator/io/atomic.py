@@ -51,11 +51,6 @@ def process_umask() -> int:
     return mask
 
 
-def _default_file_mode() -> int:
-    """The mode ``open(..., "w")`` would give a new file: 0666 minus the process umask."""
-    return 0o666 & ~process_umask()
-
-
 def _host_tag() -> str:
     return f"{zlib.crc32(socket.gethostname().encode()):08x}"
 
