@@ -231,18 +231,10 @@ def sample_plans(
     idf = idf_weights([o.category for o, _, _ in obj_info])
     w = np.array([idf[o.category] for o, _, _ in obj_info])
     w = w / w.sum()
-    max_len = max(b.max_length for b in config.buckets)
 
-    def propose(start, bucket, goals):
+    def targets(start):
         k = int(rng.choice(len(obj_info), p=w))
         obj, radius, stand = obj_info[k]
-        s_node = int(graph.snap(start[None])[0][0])
-        dist = dijkstra(graph.length_matrix, directed=True, indices=s_node, limit=max_len)[stand]
-        picked = _pick_goal(start, nodes[stand], dist, bucket, config, goals, rng, stats)
-        if picked is None:
-            return None
-        goal, geo, bname = picked
-        heading = float(rng.uniform(-math.pi, math.pi))
         rec = {
             "object_id": int(obj.object_id),
             "category": obj.category,
@@ -251,9 +243,9 @@ def sample_plans(
             "radius": radius,
             "room_type": obj.room_type,
         }
-        return EpisodePlan(start.copy(), heading, goal.copy(), rec, radius, bname, float(geo))
+        return stand, rec, radius
 
-    return _draw_plans(n, config, rng, nodes, in_main, propose, stats), dict(stats)
+    return _draw_plans(n, graph, config, rng, in_main, targets, stats), dict(stats)
 
 
 def sample_path_plans(
@@ -263,7 +255,6 @@ def sample_path_plans(
     largest connected component, the goal at a geodesic distance in the drawn bucket (farthest-point
     spread over earlier starts and goals, as :func:`sample_plans`). The goal radius is
     ``large_radius`` (3 m, VLN-CE's success distance); ``goal_object`` is empty."""
-    from scipy.sparse.csgraph import dijkstra
 
     stats = Counter()
     if graph.num_nodes == 0:
@@ -277,29 +268,23 @@ def sample_path_plans(
     else:
         stats["no_clear_endpoints"] += 1
         return [], dict(stats)
-    nodes = graph.nodes
-    max_len = max(b.max_length for b in config.buckets)
-
-    def propose(start, bucket, goals):
-        s_node = int(graph.snap(start[None])[0][0])
-        dist = dijkstra(graph.length_matrix, directed=True, indices=s_node, limit=max_len)[in_main]
-        picked = _pick_goal(start, nodes[in_main], dist, bucket, config, goals, rng, stats)
-        if picked is None:
-            return None
-        goal, geo, bname = picked
-        heading = float(rng.uniform(-math.pi, math.pi))
-        return EpisodePlan(start.copy(), heading, goal.copy(), {}, config.large_radius, bname, float(geo))
-
-    return _draw_plans(n, config, rng, nodes, in_main, propose, stats), dict(stats)
+    return _draw_plans(
+        n, graph, config, rng, in_main, lambda start: (in_main, {}, config.large_radius), stats
+    ), dict(stats)
 
 
-def _draw_plans(n: int, config: SamplingConfig, rng, nodes, in_main, propose, stats) -> list[EpisodePlan]:
+def _draw_plans(n: int, graph, config: SamplingConfig, rng, in_main, targets, stats) -> list[EpisodePlan]:
     """Up to ``n`` plans: per plan a bucket, then up to ``max_attempts`` starts (the best-covering of
-    ``start_candidates`` random nodes, farthest-point over earlier starts), each given to
-    ``propose(start, bucket, goals)`` -> plan or None.
+    ``start_candidates`` random nodes of ``in_main``, farthest-point over earlier starts). For each,
+    ``targets(start) -> (goal node ids, goal object record, goal radius)``; the goal is the target
+    whose geodesic distance from the start falls in the bucket (:func:`_pick_goal`).
 
     One bucket draw per plan: plan i depends only on plans 0..i-1, so asking for more plans (the
     pipeline's ``plan_oversample``) keeps the first ones and only adds."""
+    from scipy.sparse.csgraph import dijkstra
+
+    nodes = graph.nodes
+    max_len = max(b.max_length for b in config.buckets)
     starts: list[np.ndarray] = []
     goals: list[np.ndarray] = []
     plans: list[EpisodePlan] = []
@@ -309,9 +294,16 @@ def _draw_plans(n: int, config: SamplingConfig, rng, nodes, in_main, propose, st
         for _ in range(config.max_attempts):
             cand = nodes[rng.choice(in_main, size=min(config.start_candidates, len(in_main)), replace=False)]
             start = cand[farthest_point(cand, np.array(starts).reshape(-1, 3))]
-            plan = propose(start, bucket, goals)
-            if plan is not None:
-                break
+            ids, goal_object, radius = targets(start)
+            s_node = int(graph.snap(start[None])[0][0])
+            dist = dijkstra(graph.length_matrix, directed=True, indices=s_node, limit=max_len)[ids]
+            picked = _pick_goal(start, nodes[ids], dist, bucket, config, goals, rng, stats)
+            if picked is None:
+                continue
+            goal, geo, bname = picked
+            heading = float(rng.uniform(-math.pi, math.pi))
+            plan = EpisodePlan(start.copy(), heading, goal.copy(), goal_object, radius, bname, float(geo))
+            break
         if plan is None:
             stats["episode_given_up"] += 1
             continue
