@@ -76,16 +76,20 @@ def closure(modules: set[str]) -> set[Path]:
     return files
 
 
+@cache
+def _root_command():
+    import typer
+    from image2sim.simulator.cli import build_app
+
+    return typer.main.get_command(build_app())
+
+
 def callback_entry(group: str, command: str) -> set[str]:
     """Modules an ``image2sim <group> <command>`` call starts from (see the module docstring)."""
     import inspect
     import textwrap
 
-    import typer
-    from image2sim.simulator.cli import build_app
-
-    root = typer.main.get_command(build_app())
-    cmd = root.commands[group]
+    cmd = _root_command().commands[group]
     cmd = cmd.commands[command] if hasattr(cmd, "commands") else cmd
     fn = cmd.callback
     module = fn.__module__

@@ -503,11 +503,8 @@ def process_scene(
             out / "shard", {"view": cfg.view, "height": cfg.obs_height, "render": render_mode}
         )
     accepted = [(plan, r) for (plan, r), ann in zip(kept, annotations, strict=True) if ann.accepted]
-    rendered = (
-        _rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
-        if writer is not None
-        else iter(())
-    )
+    # A generator: nothing renders (and no pool starts) until the first frame is asked for.
+    rendered = _rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
     try:
         for (plan, r), steps, req, ann in zip(kept, chunks, requests, annotations, strict=True):
             if not ann.accepted:
@@ -564,9 +561,7 @@ def process_scene(
             writer.abort()
         raise
     finally:
-        close = getattr(rendered, "close", None)
-        if close is not None:
-            close()  # ends the render pool, if any
+        rendered.close()  # ends the render pool, if one started
     summary = {
         "scene": inputs.name,
         "scene_id": inputs.scene_id,

@@ -278,10 +278,10 @@ class HabitatBackend:
     ``turn_left`` / ``turn_right`` by ``turn_angle_deg``) and one RGB sensor ``"rgb"`` at the
     protocol's camera (pinhole: resolution and HFOV; equirect: ``EquirectangularSensorSpec``) at the
     agent's height. Episodes are in our Z-up world and are converted to Habitat's Y-up frame
-    (:func:`~image2sim.simulator.geometry.habitat.world_to_habitat`;
-    the start rotation is the upright one of the
-    episode's heading); positions and headings come back the same way. The geodesic distance is the
-    pathfinder's shortest path length (``habitat_sim.ShortestPath``); inf with a reason when none.
+    (:func:`~image2sim.simulator.geometry.habitat.world_to_habitat`; the start rotation is the
+    upright one of the episode's heading); positions and headings come back the same way. The
+    geodesic distance is the pathfinder's shortest path length (``habitat_sim.ShortestPath``); inf
+    with a reason when none.
     """
 
     ACTIONS = {
