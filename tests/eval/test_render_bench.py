@@ -21,6 +21,9 @@ from image2sim.eval.render_bench import (
     method_record,
     run_render_bench,
 )
+from image2sim.eval.results import read_metrics_file
+
+from .test_metrics_files import assert_metrics_only
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +185,7 @@ def test_speed_points_and_plot(tmp_path):
 def test_run_render_bench_writes_headline_methods(tmp_path):
     bench = RenderBenchConfig(holdout_every=8, max_views=1, tiers=["middle"], warmup=1, runs=2)
     doc = run_render_bench(bench, tmp_path / "metrics" / "render.json", show_progress=False)
-    on_disk = json.loads((tmp_path / "metrics" / "render.json").read_text())
+    on_disk = read_metrics_file(tmp_path / "metrics" / "render.json")
     assert on_disk == json.loads(json.dumps(doc))
     for m in HEADLINE_METHODS:
         rec = on_disk["methods"][m]
@@ -220,7 +223,8 @@ def test_cli_render_then_report(tmp_path):
         ],
     )
     assert res.exit_code == 0, res.output
-    doc = json.loads(out.read_text())
+    assert_metrics_only(out)  # render.json: numbers only, the protocol in render.protocol.json
+    doc = read_metrics_file(out)
     assert set(doc["methods"]) == {"splat_only", "splat_fill", "flow_1step"}
     assert doc["protocol"]["not_evaluated"] == ["flow_2step", "flow_4step", "flow_8step"]
     assert (tmp_path / "speed.png").stat().st_size > 0

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 import torch
@@ -15,6 +13,7 @@ from image2sim.eval.render_bench import (
     run_render_bench,
     splat_samples,
 )
+from image2sim.eval.results import read_metrics_file
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +105,7 @@ def test_cli_render_with_pinhole_inputs(procedural, tmp_path):
     args += ["--warmup", "0", "--runs", "1", "--out", str(out), "--plot", str(tmp_path / "speed.png")]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
-    doc = json.loads(out.read_text())
+    doc = read_metrics_file(out)
     assert doc["protocol"]["input_views"] == "pinhole6"
     assert "six 90° pinhole views" in doc["protocol"]["condition_source"]
     assert doc["protocol"]["held_out_views"] == 1

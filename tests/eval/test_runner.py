@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from image2sim.eval.metrics.nav import aggregate
 from image2sim.eval.protocols import IMAGE2SIM, VLNCE, ProtocolMismatchError
-from image2sim.eval.results import read_episode_log, read_result_file
+from image2sim.eval.results import read_episode_log, read_metrics_file, read_result_file
 from image2sim.eval.runner import (
     AgentSpec,
     BackendUnavailable,
@@ -226,7 +226,7 @@ def test_nav_metrics_file_keys_and_protocol_guard(tmp_path, scene):
     path = update_nav_metrics(tmp_path / "nav.json", PROTO, "oracle", s)
     _, r = _summaries(scene, "random")
     update_nav_metrics(path, PROTO, "random", r)
-    doc = json.loads(path.read_text())
+    doc = read_metrics_file(path)
     assert doc["protocol"]["name"] == "tiny-test"
     assert set(doc["agents"]) == {"oracle", "random"}
     for agent in doc["agents"].values():

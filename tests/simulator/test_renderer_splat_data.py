@@ -224,7 +224,6 @@ def test_renderer_eval_scores_splatted_conditions_like_eval_render(box_capture, 
     """`sim renderer-eval` (default) runs the render benchmark on Gaussian-splat conditions, not on
     synthetic degradations: its numbers are those of `eval render --condition-source gaussians`."""
     pytest.importorskip("image2sim.eval.render_bench")
-    import json
 
     from image2sim.eval.render_bench import RenderBenchConfig, run_render_bench
     from image2sim.simulator.cli import sim_app
@@ -240,7 +239,9 @@ def test_renderer_eval_scores_splatted_conditions_like_eval_render(box_capture, 
     args = ["renderer-eval", str(weights), "--data", str(box_capture), "--holdout-every", "4", "--steps", "1"]
     result = CliRunner().invoke(sim_app, [*args, "--report", str(tmp_path / "rep")])
     assert result.exit_code == 0, result.output
-    doc = json.loads((tmp_path / "rep.json").read_text())
+    from image2sim.eval.results import read_metrics_file
+
+    doc = read_metrics_file(tmp_path / "rep.json")
     assert doc["protocol"]["condition_source"].startswith("gaussians")
     assert doc["protocol"]["held_out_views"] == 1  # frame 3; frames 0-2 build the Gaussians
     assert set(doc["methods"]) == {"splat_only", "splat_fill", "flow_1step"}

@@ -87,6 +87,7 @@ def report_cmd(
     """Tables laid out like the paper's Table 2 (navigation) and Table 1 (rendering), the speed plot,
     and optionally the demo figure."""
     from image2sim.eval.report import nav_table_markdown, read_aggregate
+    from image2sim.eval.results import read_metrics_file
     from image2sim.simulator.io.atomic import write_text_atomic
 
     if not aggregates and nav is None and render is None and figure_scene is None:
@@ -101,7 +102,7 @@ def report_cmd(
     if nav is not None:
         from image2sim.eval.runner import nav_markdown
 
-        text = nav_markdown(json.loads(nav.read_text(encoding="utf-8")))
+        text = nav_markdown(read_metrics_file(nav))
         typer.echo("## Navigation\n\n" + text)
         if out_dir is not None:
             written = write_text_atomic(out_dir / "nav.md", "# Navigation (Table 2 layout)\n\n" + text)
@@ -110,7 +111,7 @@ def report_cmd(
         from image2sim.eval.plots import plot_speed_vs_error
         from image2sim.eval.render_bench import render_markdown
 
-        doc = json.loads(render.read_text(encoding="utf-8"))
+        doc = read_metrics_file(render)
         text = render_markdown(doc)
         typer.echo("## Rendering\n\n" + text)
         if out_dir is not None:
@@ -307,6 +308,7 @@ def nav_cmd(
         )
         typer.echo(f"wrote {submission_format} predictions of {len(ids)} episodes to {path}")
     if wandb:
+        from image2sim.eval.results import read_metrics_file
         from image2sim.eval.tracking import log_metrics_wandb
 
         command = {
@@ -323,7 +325,7 @@ def nav_cmd(
             "scenes": str(scenes),
             "backend": backend,
         }
-        run_dir = log_metrics_wandb(json.loads(metrics.read_text()), "nav", stage="eval_nav", config=command)
+        run_dir = log_metrics_wandb(read_metrics_file(metrics), "nav", stage="eval_nav", config=command)
         typer.echo(f"W&B run: {run_dir}")
 
 

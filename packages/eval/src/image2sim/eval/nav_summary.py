@@ -15,7 +15,7 @@ from image2sim.eval.metrics.nav import (
 )
 from image2sim.eval.nav_env import RunnerError
 from image2sim.eval.protocols import Protocol
-from image2sim.eval.results import read_result_file, write_result_file
+from image2sim.eval.results import read_result_file, result_document, write_metrics_file
 
 __all__ = [
     "bootstrap_ci",
@@ -92,7 +92,10 @@ def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str,
 
 
 def update_nav_metrics(path: str | Path, protocol: Protocol, agent: str, summary: Mapping[str, Any]) -> Path:
-    """Insert/replace one agent's summary in ``metrics/nav.json`` (atomic; same protocol enforced)."""
+    """Insert/replace one agent's summary in ``metrics/nav.json`` (atomic; same protocol enforced).
+
+    The file holds the numbers only; the protocol and the format header are in ``nav.protocol.json``
+    beside it (:func:`~image2sim.eval.results.write_metrics_file`)."""
     from image2sim.eval.protocols import ProtocolMismatchError
 
     path = Path(path)
@@ -106,7 +109,7 @@ def update_nav_metrics(path: str | Path, protocol: Protocol, agent: str, summary
             )
         agents = dict(payload.get("agents", {}))
     agents[agent] = dict(summary)
-    return write_result_file(path, protocol, {"agents": agents})
+    return write_metrics_file(path, result_document(protocol, {"agents": agents}, path))
 
 
 def nav_markdown(doc: Mapping[str, Any]) -> str:

@@ -42,7 +42,7 @@ import torch
 from image2sim.eval.metrics.lpips import LPIPS
 from image2sim.eval.metrics.timing import hardware_string, measure_fps
 from image2sim.eval.render_scores import RenderCell, score_views, summarize_views
-from image2sim.eval.results import write_json_atomic
+from image2sim.eval.results import write_metrics_file
 from image2sim.simulator.config import ConfigError, config_from_dict
 
 logger = logging.getLogger(__name__)
@@ -583,7 +583,8 @@ def _training_protocol(bench: RenderBenchConfig) -> dict[str, Any] | None:
 def run_render_bench(
     bench: RenderBenchConfig, out_json: str | Path, show_progress: bool = True
 ) -> dict[str, Any]:
-    """Run the benchmark and write ``metrics/render.json`` (atomic); returns the document."""
+    """Run the benchmark and write ``metrics/render.json`` (numbers only) and ``render.protocol.json``
+    (protocol and configuration) beside it, atomically; returns the whole document."""
     from image2sim.simulator.renderer.cli import _split, _targets  # the renderer's own split and sources
     from image2sim.simulator.renderer.config import config_to_dict, load_renderer_config
 
@@ -707,7 +708,7 @@ def run_render_bench(
     missing = [m for m in HEADLINE_METHODS if m not in doc["methods"]]
     if missing:
         doc["protocol"]["not_evaluated"] = missing
-    write_json_atomic(out_json, doc)
+    write_metrics_file(out_json, doc)
     return doc
 
 

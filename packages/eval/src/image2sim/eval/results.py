@@ -6,6 +6,10 @@
   one finished episode, flushed and fsynced as it is appended, so a killed run can resume from the
   episodes already on disk. A torn last line (the process died mid-write) is dropped with a
   warning; a corrupt line anywhere else is an error naming the line.
+* :func:`write_metrics_file` / :func:`read_metrics_file`: a headline metrics file (``metrics/*.json``,
+  which DVC lists under ``metrics:``) holds measured numbers only; its protocol, configuration and
+  labels go to ``<name>.protocol.json`` beside it (:func:`split_metrics`), and reading joins the two
+  back into one document (a file without the sidecar, written before the split, reads as it is).
 """
 
 from __future__ import annotations
@@ -52,25 +56,142 @@ def write_json_atomic(path: str | Path, obj: Any) -> Path:
     return atomic.write_json_atomic(path, obj, default=_json_default)
 
 
-def write_result_file(path: str | Path, protocol: Protocol, payload: Mapping[str, Any]) -> Path:
-    """Write ``payload`` with the format header and the full protocol record, atomically."""
+CONTEXT_KEYS = ("format", "version", PROTOCOL_KEY, "header", "policies")
+"""Top-level keys of a metrics document that are never metrics (whatever their values)."""
+_MISSING = object()
+
+
+def protocol_path(path: str | Path) -> Path:
+    """The sidecar of a metrics file: ``metrics/render.json`` -> ``metrics/render.protocol.json``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.protocol.json")
+
+
+def _is_number(value: Any) -> bool:
+    """A metric leaf: a number (bool included: a measured yes/no) or null (not measured)."""
+    return value is None or isinstance(value, (int, float))
+
+
+def _all_numbers(value: Any) -> bool:
+    if isinstance(value, Mapping):
+        return all(_all_numbers(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_all_numbers(v) for v in value)
+    return _is_number(value)
+
+
+def _split(value: Any) -> tuple[Any, Any]:
+    """``(numbers, the rest)`` of one value, ``_MISSING`` where a side is empty. Mappings split key
+    by key; a list goes whole to the side of its leaves (to the rest if any leaf is not a number)."""
+    if isinstance(value, Mapping):
+        if not value:
+            return dict(value), _MISSING
+        numbers, rest = {}, {}
+        for key, item in value.items():
+            n, r = _split(item)
+            if n is not _MISSING:
+                numbers[key] = n
+            if r is not _MISSING:
+                rest[key] = r
+        return (numbers or _MISSING), (rest or _MISSING)
+    if _all_numbers(value):
+        return value, _MISSING
+    return _MISSING, value
+
+
+def split_metrics(doc: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Split a metrics document into ``(metrics, context)``.
+
+    ``metrics`` keeps the measured numbers (every leaf a number or null); ``context`` gets the
+    :data:`CONTEXT_KEYS` sections whole (protocol, configuration, format header, labels) and every
+    other non-numeric leaf (method notes, names), at the same place in the tree. :func:`join_metrics`
+    inverts it.
+    """
+    metrics: dict[str, Any] = {}
+    context: dict[str, Any] = {}
+    for key, value in doc.items():
+        n, r = (_MISSING, value) if key in CONTEXT_KEYS else _split(value)
+        if n is not _MISSING:
+            metrics[key] = n
+        if r is not _MISSING:
+            context[key] = r
+    return metrics, context
+
+
+def join_metrics(metrics: Mapping[str, Any], context: Mapping[str, Any]) -> dict[str, Any]:
+    """One document from :func:`split_metrics`'s two halves (context keys first at the top level)."""
+    out: dict[str, Any] = {k: v for k, v in context.items() if k not in metrics}
+    for key, value in metrics.items():
+        extra = context.get(key)
+        if isinstance(value, Mapping) and isinstance(extra, Mapping):
+            out[key] = join_metrics(value, extra)
+        else:
+            out[key] = value
+    return out
+
+
+def write_metrics_file(path: str | Path, doc: Mapping[str, Any]) -> Path:
+    """Write a headline metrics document as ``path`` (numbers only, what DVC lists as metrics) and
+    ``<name>.protocol.json`` beside it (protocol, configuration, labels), each atomically; returns
+    ``path``."""
+    metrics, context = split_metrics(json.loads(_dumps(doc)))  # numpy scalars become numbers first
+    write_json_atomic(protocol_path(path), context)
+    return write_json_atomic(path, metrics)
+
+
+def read_metrics_file(path: str | Path) -> dict[str, Any]:
+    """The document :func:`write_metrics_file` wrote (a file without its sidecar reads as it is).
+
+    Raises ``FileNotFoundError`` / ``ResultFileError`` naming the file that is missing or broken.
+    """
+    path = Path(path)
+    doc = _read_json(path)
+    sidecar = protocol_path(path)
+    if not sidecar.is_file():
+        return doc
+    return join_metrics(doc, _read_json(sidecar))
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    """A JSON object from ``path``; a clear error naming the file otherwise."""
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"{path}: no such file") from exc
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ResultFileError(f"{path}: cannot read JSON ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise ResultFileError(f"{path}: top level is not an object")
+    return doc
+
+
+def result_document(protocol: Protocol, payload: Mapping[str, Any], where: str | Path = "") -> dict[str, Any]:
+    """``payload`` under the format header and the full protocol record."""
     reserved = {"format", "version", PROTOCOL_KEY} & set(payload)
     if reserved:
-        raise ValueError(f"{path}: payload may not contain the reserved key(s) {sorted(reserved)}")
-    doc = {"format": RESULT_FORMAT, "version": FORMAT_VERSION, PROTOCOL_KEY: protocol.to_dict(), **payload}
-    return write_json_atomic(path, doc)
+        raise ValueError(f"{where}: payload may not contain the reserved key(s) {sorted(reserved)}")
+    return {"format": RESULT_FORMAT, "version": FORMAT_VERSION, PROTOCOL_KEY: protocol.to_dict(), **payload}
+
+
+def write_result_file(path: str | Path, protocol: Protocol, payload: Mapping[str, Any]) -> Path:
+    """Write ``payload`` with the format header and the full protocol record, atomically."""
+    return write_json_atomic(path, result_document(protocol, payload, path))
 
 
 def read_result_file(path: str | Path) -> tuple[Protocol, dict[str, Any]]:
-    """Read a result file: its protocol and the payload (without the header keys)."""
+    """Read a result file: its protocol and the payload (without the header keys). A headline metrics
+    file (:func:`write_metrics_file`) is read joined with its ``.protocol.json``."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
+        doc = read_metrics_file(path)
+    except (OSError, ResultFileError) as exc:
         raise ResultFileError(f"{path}: cannot read result file ({exc})") from exc
     if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
-        raise ResultFileError(f"{path}: not an {RESULT_FORMAT!r} file (format={doc.get('format')!r})"
-                              if isinstance(doc, dict) else f"{path}: top level is not an object")
+        raise ResultFileError(
+            f"{path}: not an {RESULT_FORMAT!r} file (format={doc.get('format')!r})"
+            if isinstance(doc, dict)
+            else f"{path}: top level is not an object"
+        )
     if doc.get("version") != FORMAT_VERSION:
         version = doc.get("version")
         raise ResultFileError(f"{path}: unsupported version {version!r} (expected {FORMAT_VERSION})")
@@ -146,8 +267,10 @@ class EpisodeLog:
         metrics = {}
         for k, v in result.metrics.items():
             if v is not None and not math.isfinite(v):
-                raise ValueError(f"{self.path}: episode {result.episode_id}: metric {k!r} is {v}; "
-                                 "non-finite values are errors")
+                raise ValueError(
+                    f"{self.path}: episode {result.episode_id}: metric {k!r} is {v}; "
+                    "non-finite values are errors"
+                )
             metrics[k] = None if v is None else float(v)
         self._append_line({"episode_id": result.episode_id, "metrics": metrics})
 

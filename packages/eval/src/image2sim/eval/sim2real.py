@@ -21,7 +21,6 @@ Markdown report and the scaling plot atomically.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -299,12 +298,14 @@ def plot_scaling(doc: Mapping[str, Any], path: str | Path) -> Path:
 def write_outputs(
     doc: Mapping[str, Any], metrics: str | Path, report: str | Path, plot: str | Path | None
 ) -> None:
-    """``metrics`` (JSON), ``report`` (Markdown) and the scaling ``plot`` (PNG), each atomically."""
-    from image2sim.simulator.io.atomic import write_json_atomic, write_text_atomic
+    """``metrics`` (JSON: numbers only, the rest in its ``.protocol.json``), ``report`` (Markdown) and
+    the scaling ``plot`` (PNG), each atomically."""
+    from image2sim.eval.results import write_metrics_file
+    from image2sim.simulator.io.atomic import write_text_atomic
 
     metrics, report = Path(metrics), Path(report)
     metrics.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(metrics, doc)
+    write_metrics_file(metrics, doc)
     name = None
     if plot is not None and doc.get("scaling"):
         plot = Path(plot)
@@ -335,10 +336,8 @@ def policy_parameters(folder: str | Path) -> int | None:
 
 
 def load_json(path: str | Path) -> dict:
-    p = Path(path)
-    try:
-        return json.loads(p.read_text())
-    except FileNotFoundError as exc:
-        raise FileNotFoundError(f"{p}: no such file") from exc
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{p}: not valid JSON ({exc})") from exc
+    """A JSON document; a metrics file is joined with its ``.protocol.json`` (``read_metrics_file``).
+    ``FileNotFoundError`` / ``ValueError`` name the file."""
+    from image2sim.eval.results import read_metrics_file
+
+    return read_metrics_file(path)
