@@ -17,7 +17,7 @@ PACKAGES := packages/simulator packages/dataengine packages/navpolicy packages/e
 STAMP := $(VENV)/.image2sim-setup
 SETUP_INPUTS := constraints.txt requirements-dev.txt requirements-pipeline.txt $(addsuffix /pyproject.toml,$(PACKAGES))
 
-.PHONY: setup lock test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny sim2real
+.PHONY: setup lock test test-slow pipeline-ci demo lint bench clean help profile train-sim-tiny train-nav-tiny sim2real push pull
 
 help:  ## list targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -51,6 +51,18 @@ demo: setup  ## the main job: `dvc repro` on the active profile (params.yaml), t
 sim2real: setup  ## train in neural simulators, evaluate in exact held-out houses + scaling curve (pipelines/sim2real, <= 60 min)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/dvc repro pipelines/sim2real/dvc.yaml
 	@cat reports/sim2real.md
+
+# DVC remote for the pipelines' outputs: `local` (.dvc/config) is a directory beside the checkout,
+# ../image2sim-dvc-store. DVC_STORE=<dir or URL> points it elsewhere on this machine (written to
+# .dvc/config.local, not committed); DVC_REMOTE=<name> picks another configured remote.
+DVC_REMOTE ?= local
+DVC_STORE ?=
+DVC_STORE_SET = $(if $(DVC_STORE),$(VENV)/bin/dvc remote modify --local $(DVC_REMOTE) url "$(if $(findstring ://,$(DVC_STORE)),$(DVC_STORE),$(abspath $(DVC_STORE)))" &&)
+push: setup  ## upload the cached outputs of both pipelines to the DVC remote (default ../image2sim-dvc-store)
+	$(DVC_STORE_SET) $(VENV)/bin/dvc push -r $(DVC_REMOTE)
+
+pull: setup  ## fetch the pipelines' outputs from the DVC remote into the workspace (then `dvc status` is clean)
+	$(DVC_STORE_SET) $(VENV)/bin/dvc pull -r $(DVC_REMOTE)
 
 bench: setup  ## run the benchmarks in benchmarks/ (JSON + Markdown into reports/)
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
