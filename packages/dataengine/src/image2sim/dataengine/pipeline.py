@@ -85,8 +85,9 @@ class EngineConfig:
     annotation_view_height: int = 168
     """Height of the 180 degree views given to VLM annotators (width = 2 x height x 180 / 118)."""
     renderer: str | None = None
-    """Local pixel-flow renderer weights (``save_renderer`` safetensors or a Lightning checkpoint) applied
-    after splatting (the simulator's ``PixelFlowRenderFn``); needs render=gaussians (or auto)."""
+    """Local pixel-flow renderer weights (an ``export-renderer`` folder, ``save_renderer`` safetensors
+    or a Lightning checkpoint) applied after splatting (the simulator's ``PixelFlowRenderFn``); needs
+    render=gaussians (or auto)."""
     detector: str = "gt"
     """Where goal objects come from: gt (a procedural capture's ground truth), yolo-world (mined with
     local weights), annotations (a person's objects file, :mod:`.objects_file`) or none (no objects:

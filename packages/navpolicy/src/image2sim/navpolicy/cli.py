@@ -163,7 +163,9 @@ def train_cmd(
     ] = "neural",
     renderer: Annotated[
         Path | None,
-        typer.Option(help="dagger, source neural: pixel-flow renderer weights (.safetensors/.ckpt)."),
+        typer.Option(
+            help="dagger, source neural: pixel-flow renderer (export folder, .safetensors or .ckpt)."
+        ),
     ] = None,
 ) -> None:
     """Train the policy. Writes config.yaml, CSV/W&B logs, checkpoints and a merged export.
@@ -370,7 +372,8 @@ def from_episodes_cmd(
         ),
     ] = "neural",
     renderer: Annotated[
-        Path | None, typer.Option(help="source neural: pixel-flow renderer weights (.safetensors/.ckpt).")
+        Path | None,
+        typer.Option(help="source neural: pixel-flow renderer (export folder, .safetensors or .ckpt)."),
     ] = None,
     config: Annotated[
         str, typer.Option(help="Policy preset or YAML: its observation section sets the frames.")
@@ -408,8 +411,8 @@ def from_episodes_cmd(
             "or --source splat_only / exact",
             param_hint="--renderer",
         )
-    if renderer is not None and not renderer.is_file():
-        raise typer.BadParameter(f"{renderer}: no such file", param_hint="--renderer")
+    if renderer is not None and not renderer.exists():
+        raise typer.BadParameter(f"{renderer}: no such file or folder", param_hint="--renderer")
     if not sim_scenes.is_dir():
         raise typer.BadParameter(f"{sim_scenes}: no such folder", param_hint="--sim-scenes")
     if (episodes is None) == (dataset == "none"):

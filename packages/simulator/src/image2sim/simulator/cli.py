@@ -34,6 +34,7 @@ def _register_renderer_commands() -> None:
 
     sim_app.command("train")(renderer_cli.train_command)
     sim_app.command("renderer-eval")(renderer_cli.eval_command)
+    sim_app.command("export-renderer")(renderer_cli.export_command)
 
 
 _register_renderer_commands()

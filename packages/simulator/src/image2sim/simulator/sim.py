@@ -301,12 +301,12 @@ class NeuralSimulator:
         """Open a scene folder: ``gaussians.safetensors`` (+ ``navmap.npz`` / ``navgraph.npz`` when
         present; otherwise the map is extracted from the Gaussians).
 
-        ``renderer``: None = splat-only observations; a path to pixel-flow renderer weights
-        (``.safetensors`` from ``save_renderer`` or a Lightning ``.ckpt``, read by
-        :func:`~image2sim.simulator.renderer.model.load_renderer`) or a ``PixelFlowRenderer`` module =
-        panoramas rendered by :class:`PixelFlowRenderFn` in ``steps`` network evaluations with noise
-        seeded by the pose and ``seed``; any other callable ``renderer(splat_output) -> rgb`` is
-        applied after splatting (:class:`GaussianRenderFn`).
+        ``renderer``: None = splat-only observations; a path to pixel-flow renderer weights (a
+        ``sim export-renderer`` folder, ``.safetensors`` from ``save_renderer`` or a Lightning
+        ``.ckpt``, read by :func:`~image2sim.simulator.renderer.model.load_renderer`) or a
+        ``PixelFlowRenderer`` module = panoramas rendered by :class:`PixelFlowRenderFn` in ``steps``
+        network evaluations with noise seeded by the pose and ``seed``; any other callable
+        ``renderer(splat_output) -> rgb`` is applied after splatting (:class:`GaussianRenderFn`).
         """
         from pathlib import Path
 

@@ -180,7 +180,7 @@ def render_command(
     renderer: Path = typer.Option(
         None,
         "--renderer",
-        help="Pixel-flow renderer weights (.safetensors / .ckpt): RGB-D from the renderer.",
+        help="Pixel-flow renderer (export folder, .safetensors or .ckpt): RGB-D from the renderer.",
     ),
     steps: int = typer.Option(1, "--steps", help="Pixel-flow network evaluations (with --renderer)."),
 ) -> None:

@@ -16,8 +16,6 @@ common Gaussian viewers open; :meth:`from_ply` reads it back.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,7 +26,7 @@ from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.fusion import fuse, level_histogram, prune
 from image2sim.simulator.gaussians.primitives import GaussianSet
 from image2sim.simulator.geometry.cameras import Camera, camera_from_dict
-from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
+from image2sim.simulator.io.atomic import atomic_dir
 
 __all__ = ["GaussianScene", "SceneError", "SCENE_FORMAT", "SH_C0"]
 
@@ -166,27 +164,13 @@ class GaussianScene:
             raise SceneError(f"{folder}: already exists (pass overwrite=True to replace it)")
         if self.gaussians is None:
             raise SceneError(f"{folder}: refusing to save an empty scene")
-        folder.parent.mkdir(parents=True, exist_ok=True)
-        sweep_stale_temps(folder)
-        tmp = temp_sibling(folder, ".tmp")
-        tmp.mkdir()
-        try:
+        with atomic_dir(folder) as tmp:
             tensors = {k: getattr(self.gaussians, k).contiguous() for k in _TENSORS}
             save_file(tensors, str(tmp / "gaussians.safetensors"), metadata={"format": SCENE_FORMAT})
             (tmp / "manifest.json").write_text(json.dumps(self.manifest(), indent=2))
             for child in tmp.iterdir():  # safetensors creates its file 0600; scenes are shared artifacts
                 child.chmod(0o644)
             tmp.chmod(0o755)
-            if folder.exists():
-                old = temp_sibling(folder, ".old")
-                os.replace(folder, old)
-                os.replace(tmp, folder)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, folder)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         return folder
 
     @classmethod

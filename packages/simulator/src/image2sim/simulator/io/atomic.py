@@ -30,6 +30,7 @@ __all__ = [
     "sweep_stale_temps",
     "temp_sibling",
     "atomic_path",
+    "atomic_dir",
     "atomic_open",
     "write_bytes_atomic",
     "write_text_atomic",
@@ -114,6 +115,36 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         os.replace(final_tmp, path)
     except BaseException:
         final_tmp.unlink(missing_ok=True)
+        raise
+
+
+@contextmanager
+def atomic_dir(folder: str | os.PathLike) -> Iterator[Path]:
+    """Yield an empty temp folder beside ``folder``; on a clean exit it replaces ``folder`` whole.
+
+    For outputs that are several files read together (exports: weights + config + card). An old
+    ``folder`` is moved aside, the new one renamed in and the old one removed, so a killed writer
+    leaves the old folder or the complete new one (plus temps the next write sweeps). The folder
+    gets a plain ``mkdir``'s mode (``mkdtemp``'s 0700 would make an export private).
+    """
+    import shutil
+
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    sweep_stale_temps(folder)
+    tmp = temp_sibling(folder, ".tmp")
+    tmp.mkdir()  # 0777 less the umask, as a plain mkdir
+    try:
+        yield tmp
+        if folder.exists():
+            old = temp_sibling(folder, ".old")
+            os.replace(folder, old)
+            os.replace(tmp, folder)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 

@@ -1,4 +1,5 @@
-"""``image2sim sim train`` / ``image2sim sim renderer-eval``: train and measure the pixel-flow renderer.
+"""``image2sim sim train`` / ``renderer-eval`` / ``export-renderer``: train, measure and export the
+pixel-flow renderer.
 
 Training samples (``--condition-source``): ``splat`` (default) pairs every training frame with the
 splat of the identity Gaussians of the capture's OTHER training frames at its pose
@@ -16,7 +17,7 @@ from pathlib import Path
 import typer
 from image2sim.simulator.io.atomic import write_text_atomic
 
-__all__ = ["train_command", "eval_command"]
+__all__ = ["train_command", "eval_command", "export_command"]
 
 
 def _targets(data: list[Path], height: int, width: int, max_frames: int | None):
@@ -275,3 +276,22 @@ def _eval_degraded(model, checkpoint, data, holdout_every, max_frames, steps, re
         )
     write_text_atomic(report.with_suffix(".md"), "\n".join(lines) + "\n")
     typer.echo("\n".join(lines))
+
+
+def export_command(
+    checkpoint: Path = typer.Argument(
+        ..., help="Renderer weights: a Lightning checkpoint of `sim train` (or a .safetensors file)."
+    ),
+    out: Path = typer.Option(..., "--out", help="Folder to write (replaced whole if it exists)."),
+) -> None:
+    """Export renderer weights as renderer.safetensors + renderer.json (read by load_renderer)."""
+    from image2sim.simulator.renderer.model import export_renderer, load_renderer
+    from image2sim.simulator.renderer.splat_data import find_training_record
+
+    if checkpoint.resolve() == out.resolve():
+        raise ValueError(f"{out}: --out must differ from the checkpoint it exports")
+    model = load_renderer(checkpoint)
+    record = find_training_record(checkpoint)
+    export_renderer(model, out, extra={"source": checkpoint.name}, training_record=record)
+    n = sum(p.numel() for p in model.parameters())
+    typer.echo(f"wrote {out} ({model.cfg.name}, {n:,} parameters" + (", training record)" if record else ")"))

@@ -21,7 +21,7 @@ from image2sim.simulator.renderer.distill import distillation_loss
 from image2sim.simulator.renderer.losses import reconstruction_loss, relative_depth_error, saturation_penalty
 from torch import nn
 
-__all__ = ["RenderOutput", "PixelFlowRenderer", "save_renderer", "load_renderer"]
+__all__ = ["RenderOutput", "PixelFlowRenderer", "save_renderer", "export_renderer", "load_renderer"]
 
 
 @dataclass
@@ -221,9 +221,13 @@ class PixelFlowRenderer(nn.Module):
             (rgb.float() - target_rgb.float()).pow(2).flatten(1).mean(1), cfg.loss.pixel_norm_c
         ).mean()
         if cfg.loss.pixel_depth_weight > 0:
-            pixel = pixel + cfg.loss.pixel_depth_weight * mf.adaptive_normalise(
-                relative_depth_error(depth, target_depth), cfg.loss.pixel_norm_c
-            ).mean()
+            pixel = (
+                pixel
+                + cfg.loss.pixel_depth_weight
+                * mf.adaptive_normalise(
+                    relative_depth_error(depth, target_depth), cfg.loss.pixel_norm_c
+                ).mean()
+            )
         perc = zero
         if perceptual is not None:
             perc = perceptual(rgb.float(), target_rgb.float()).mean()
@@ -239,22 +243,63 @@ class PixelFlowRenderer(nn.Module):
         }
 
 
+RENDERER_FORMAT = "image2sim-renderer-v1"
+"""Format tag of saved renderer weights (safetensors metadata and ``renderer.json``)."""
+
+RENDERER_WEIGHTS, RENDERER_CONFIG = "renderer.safetensors", "renderer.json"
+"""File names inside an exported renderer folder (:func:`export_renderer`)."""
+
+
+def _state_tensors(model: PixelFlowRenderer) -> dict[str, torch.Tensor]:
+    """The inference weights as contiguous CPU tensors (what safetensors stores)."""
+    return {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+
+
 def save_renderer(model: PixelFlowRenderer, path) -> None:
     """Inference weights as one ``.safetensors`` file; the resolved config rides in its metadata
     (JSON), so :func:`load_renderer` needs nothing else. Written atomically (temp + rename)."""
     import json
-    from dataclasses import asdict
 
     from image2sim.simulator.io.atomic import atomic_path
+    from image2sim.simulator.renderer.config import config_to_dict
     from safetensors.torch import save_file
 
-    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     with atomic_path(path) as tmp:
         save_file(
-            tensors,
+            _state_tensors(model),
             str(tmp),
-            metadata={"format": "image2sim-renderer-v1", "config": json.dumps(asdict(model.cfg))},
+            metadata={"format": RENDERER_FORMAT, "config": json.dumps(config_to_dict(model.cfg))},
         )
+
+
+def export_renderer(
+    model: PixelFlowRenderer, out_dir, extra: dict | None = None, training_record: dict | None = None
+):
+    """The renderer as a folder: ``renderer.safetensors`` (weights, no pickle) and ``renderer.json``
+    (``format``, the resolved ``config``, plus ``extra`` such as the source checkpoint); with
+    ``training_record`` also the run's ``training_data.json``, so evaluations of the folder compare
+    their conditions with the training ones as they do for the checkpoint.
+
+    :func:`load_renderer` reads the folder back; the folder is written whole (temp folder + rename,
+    :func:`~image2sim.simulator.io.atomic.atomic_dir`). Returns the folder.
+    """
+    import json
+    from pathlib import Path
+
+    from image2sim.simulator.io.atomic import atomic_dir
+    from image2sim.simulator.renderer.config import config_to_dict
+    from safetensors.torch import save_file
+
+    doc = {"format": RENDERER_FORMAT, "config": config_to_dict(model.cfg), **(extra or {})}
+    with atomic_dir(out_dir) as tmp:
+        save_file(_state_tensors(model), str(tmp / RENDERER_WEIGHTS), metadata={"format": RENDERER_FORMAT})
+        (tmp / RENDERER_WEIGHTS).chmod(0o644)  # safetensors creates 0600; exports are shared artifacts
+        (tmp / RENDERER_CONFIG).write_text(json.dumps(doc, indent=2) + "\n")
+        if training_record is not None:
+            from image2sim.simulator.renderer.splat_data import TRAINING_RECORD
+
+            (tmp / TRAINING_RECORD).write_text(json.dumps(training_record, indent=2) + "\n")
+    return Path(out_dir)
 
 
 def _saved_config(data: dict) -> dict:
@@ -267,37 +312,72 @@ def _saved_config(data: dict) -> dict:
     return data
 
 
-def load_renderer(path, map_location: str = "cpu") -> PixelFlowRenderer:
-    """Inverse of :func:`save_renderer`; also accepts a Lightning checkpoint of ``RendererModule``
-    (read with ``weights_only=True``)."""
+def _read_weights_file(path, map_location: str) -> tuple[dict, dict]:
+    """(config dict, state) of a :func:`save_renderer` file (config in the safetensors metadata)."""
     import json
+
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+    if meta.get("format") != RENDERER_FORMAT or "config" not in meta:
+        raise ValueError(f"{path}: not an image2sim renderer file (metadata format {meta.get('format')!r})")
+    return json.loads(meta["config"]), load_file(str(path), device=map_location)
+
+
+def _read_export_folder(folder, map_location: str) -> tuple[dict, dict]:
+    """(config dict, state) of an :func:`export_renderer` folder."""
+    import json
+
+    from safetensors.torch import load_file
+
+    weights, config = folder / RENDERER_WEIGHTS, folder / RENDERER_CONFIG
+    for p in (weights, config):
+        if not p.is_file():
+            raise FileNotFoundError(
+                f"{p} not found: a renderer folder holds {RENDERER_WEIGHTS} and {RENDERER_CONFIG}"
+            )
+    try:
+        doc = json.loads(config.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{config}: not valid JSON ({exc})") from exc
+    if not isinstance(doc, dict) or doc.get("format") != RENDERER_FORMAT or "config" not in doc:
+        fmt = doc.get("format") if isinstance(doc, dict) else None
+        raise ValueError(f"{config}: not an image2sim renderer config (format {fmt!r}, needs 'config')")
+    return doc["config"], load_file(str(weights), device=map_location)
+
+
+def _read_lightning_checkpoint(path, map_location: str) -> tuple[dict, dict]:
+    """(config dict, state) of a Lightning checkpoint of ``RendererModule`` (``weights_only=True``)."""
+    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    try:
+        config = ckpt["hyper_parameters"]["config"]
+        state_dict = ckpt["state_dict"]
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: checkpoint has no renderer config in hyper_parameters") from exc
+    prefix = "renderer."
+    return config, {k[len(prefix) :]: v for k, v in state_dict.items() if k.startswith(prefix)}
+
+
+def load_renderer(path, map_location: str = "cpu") -> PixelFlowRenderer:
+    """A renderer in eval mode from any of its saved forms: an :func:`export_renderer` folder
+    (``renderer.safetensors`` + ``renderer.json``), a :func:`save_renderer` ``.safetensors`` file, or a
+    Lightning checkpoint of ``RendererModule`` (read with ``weights_only=True``)."""
     from pathlib import Path
 
     from image2sim.simulator.renderer.config import renderer_config_from_dict
 
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        data, state = _read_export_folder(path, map_location)
+    elif not path.is_file():
         raise FileNotFoundError(f"renderer weights {path} do not exist")
-    if path.suffix == ".safetensors":
-        from safetensors import safe_open
-        from safetensors.torch import load_file
-
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-        if meta.get("format") != "image2sim-renderer-v1" or "config" not in meta:
-            raise ValueError(
-                f"{path}: not an image2sim renderer file (metadata format {meta.get('format')!r})"
-            )
-        cfg = renderer_config_from_dict(_saved_config(json.loads(meta["config"])))
-        state = load_file(str(path), device=map_location)
+    elif path.suffix == ".safetensors":
+        data, state = _read_weights_file(path, map_location)
     else:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-        try:
-            cfg = renderer_config_from_dict(_saved_config(ckpt["hyper_parameters"]["config"]))
-        except KeyError as exc:
-            raise ValueError(f"{path}: checkpoint has no renderer config in hyper_parameters") from exc
-        state = {k[len("renderer.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("renderer.")}
-    model = PixelFlowRenderer(cfg)
+        data, state = _read_lightning_checkpoint(path, map_location)
+    model = PixelFlowRenderer(renderer_config_from_dict(_saved_config(data)))
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise ValueError(

@@ -434,9 +434,10 @@ def write_training_record(run_dir: str | Path, record: dict[str, Any]) -> Path:
 
 def find_training_record(checkpoint: str | Path) -> dict[str, Any] | None:
     """The training record of the run a checkpoint belongs to (``<run>/checkpoints/x.ckpt`` or
-    ``<run>/x``), or None when there is none (older runs, exported weights)."""
+    ``<run>/x``; an exported renderer folder carries its own), or None when there is none (older
+    runs, weights saved without it)."""
     ckpt = Path(checkpoint)
-    for folder in (ckpt.parent, ckpt.parent.parent):
+    for folder in ((ckpt,) if ckpt.is_dir() else ()) + (ckpt.parent, ckpt.parent.parent):
         path = folder / TRAINING_RECORD
         if path.is_file():
             try:
