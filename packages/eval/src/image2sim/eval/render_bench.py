@@ -98,7 +98,8 @@ class RenderBenchConfig:
     renderer_config: str = "tiny"
     """Renderer preset name or YAML file (the one the checkpoint was trained with)."""
     checkpoint: str | None = None
-    """Lightning checkpoint of the renderer; None = an untrained model (recorded as ``trained: false``)."""
+    """Renderer weights (Lightning checkpoint, ``save_renderer`` file or ``export-renderer`` folder);
+    None = an untrained model (recorded as ``trained: false``)."""
     data: list[str] = field(default_factory=list)
     """Capture folders with target panoramas; empty = the renderer's procedural box-room panoramas."""
     holdout_every: int = 8
@@ -193,26 +194,22 @@ class RenderBenchConfig:
 
 
 def load_renderer(cfg: Any, checkpoint: str | Path | None):
-    """A :class:`PixelFlowRenderer` in eval mode; weights from a Lightning checkpoint of ``sim train``."""
+    """A :class:`PixelFlowRenderer` of ``cfg`` in eval mode; weights from any form the simulator's
+    ``load_renderer`` reads: a Lightning checkpoint of ``sim train``, a ``save_renderer`` file or an
+    ``export-renderer`` folder."""
     from image2sim.simulator.renderer.model import PixelFlowRenderer
+    from image2sim.simulator.renderer.model import load_renderer as load_weights
 
     model = PixelFlowRenderer(cfg)
     if checkpoint is not None:
         path = Path(checkpoint)
-        if not path.is_file():
+        if not path.exists():
             raise RenderBenchError(f"checkpoint {path}: file not found")
-        if path.suffix == ".safetensors":  # weights of `save_renderer` (config in the metadata)
-            from image2sim.simulator.renderer.model import load_renderer as load_weights
-
-            model.load_state_dict(load_weights(path).state_dict())
-            return model.eval()
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        if "state_dict" not in state:
-            raise RenderBenchError(f"checkpoint {path}: no 'state_dict' (not a `sim train` checkpoint)")
-        sd = {k[len("renderer.") :]: v for k, v in state["state_dict"].items() if k.startswith("renderer.")}
-        if not sd:
-            raise RenderBenchError(f"checkpoint {path}: no 'renderer.*' weights")
-        model.load_state_dict(sd)
+        try:
+            state = load_weights(path).state_dict()
+        except (ValueError, OSError) as exc:
+            raise RenderBenchError(f"checkpoint {path}: {exc}") from exc
+        model.load_state_dict(state)
     return model.eval()
 
 
