@@ -35,3 +35,45 @@ def test_training_logger_run_holds_commit_stage_profile_and_config_and_no_model(
     assert config["git_commit"] == expected["git_commit"] and config["git_commit"]
     assert config["resolved_config"] == {"command": {"name": "tiny", "height": 128}, "params": {"steps": 300}}
     assert not {"artifact", "use_artifact", "link_artifact"} & {k for k, _ in records}
+
+
+def _lightning_csv(run: Path, rows: str, version: int = 0) -> None:
+    """A ``logs/version_N/metrics.csv`` as Lightning's CSV logger writes it (blank unlogged cells)."""
+    log = run / "logs" / f"version_{version}"
+    log.mkdir(parents=True)
+    (log / "metrics.csv").write_text("epoch,step,train/action_acc,train/loss\n" + rows, encoding="utf-8")
+
+
+def test_loss_curve_joins_runs_in_order_with_plain_column_names(tmp_path):
+    from image2sim.simulator.tracking import write_loss_curve
+
+    _lightning_csv(tmp_path / "bc", "0,0,0.5,2.0\n0,1,,1.5\n0,2,0.7,\n")
+    _lightning_csv(tmp_path / "round_00", "0,0,0.8,1.2\n0,1,0.9,1.0\n")
+    _lightning_csv(tmp_path / "round_00", "0,0,0.8,0.9\n", version=1)  # a later version wins
+    out = write_loss_curve([tmp_path / "bc", tmp_path / "round_00"], tmp_path / "plots" / "loss.csv")
+    lines = out.read_text().splitlines()
+    assert lines[0] == "step,run,train_loss"  # "/" is not a plain field name for DVC's templates
+    assert lines[1:] == ["0,0,2.0", "1,0,1.5", "2,1,0.9"]  # the round continues after BC's last step
+
+
+def test_loss_curve_errors_name_the_run(tmp_path):
+    from image2sim.simulator.tracking import write_loss_curve
+
+    with pytest.raises(FileNotFoundError, match="nothing: no logs"):
+        write_loss_curve([tmp_path / "nothing"], tmp_path / "x.csv")
+    (tmp_path / "r" / "logs" / "version_0").mkdir(parents=True)
+    (tmp_path / "r" / "logs" / "version_0" / "metrics.csv").write_text("step,acc\n0,1\n")
+    with pytest.raises(ValueError, match="no column ending in 'loss'"):
+        write_loss_curve([tmp_path / "r"], tmp_path / "x.csv")
+
+
+def test_loss_curve_script_exits_2_on_a_missing_log(tmp_path, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "loss_curve", Path(__file__).parents[2] / "scripts/loss_curve.py"
+    )
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.main(["--out", str(tmp_path / "c.csv"), str(tmp_path / "none")]) == 2
+    assert "none: no logs" in capsys.readouterr().err

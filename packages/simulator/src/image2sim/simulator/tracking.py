@@ -5,8 +5,9 @@ stage (``$DVC_STAGE``, which ``dvc repro`` sets), the params profile and the res
 :func:`run_metadata` builds it; :func:`wandb_logger` builds Lightning's ``WandbLogger`` with it,
 offline unless the user configured W&B, and never uploads checkpoints (``log_model=False``: DVC owns
 artifacts). :func:`csv_logger` writes ``logs/version_N/metrics.csv`` so that a resumed run continues
-its log without gaps or duplicate steps. Nothing here imports wandb or lightning, or touches the
-network, at import time.
+its log without gaps or duplicate steps; :func:`write_loss_curve` turns the logs of one or more runs
+into the tidy ``step,<loss columns>`` CSV that the pipelines declare as DVC ``plots:``. Nothing here
+imports wandb or lightning, or touches the network, at import time.
 """
 
 from __future__ import annotations
@@ -17,7 +18,15 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["csv_logger", "git_commit", "run_metadata", "trim_metrics_csv", "wandb_logger"]
+__all__ = [
+    "csv_logger",
+    "git_commit",
+    "latest_metrics_csv",
+    "run_metadata",
+    "trim_metrics_csv",
+    "wandb_logger",
+    "write_loss_curve",
+]
 
 
 def git_commit(cwd: str | Path | None = None) -> str | None:
@@ -186,3 +195,70 @@ def csv_logger(save_dir: str | Path, resume: bool, name: str = "logs"):
                 self._kept = None
 
     return _ResumableCSVLogger()
+
+
+def latest_metrics_csv(run_dir: str | Path, name: str = "logs") -> Path:
+    """``run_dir/logs/version_N/metrics.csv`` of the latest version (what :func:`csv_logger` wrote)."""
+    logs = Path(run_dir) / name
+    version = _latest_version(logs)
+    path = logs / f"version_{version}" / "metrics.csv"
+    if version is None or not path.is_file():
+        raise FileNotFoundError(
+            f"{run_dir}: no {name}/version_N/metrics.csv (was the run trained with the CSV logger?)"
+        )
+    return path
+
+
+def _curve_rows(path: Path, suffix: str) -> tuple[list[str], list[dict[str, float]]]:
+    """The ``step`` and ``*<suffix>`` columns of one ``metrics.csv``, rows where a loss was logged."""
+    import csv
+
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    columns = [c for c in (rows[0] if rows else {}) if c.endswith(suffix)]
+    if not columns:
+        raise ValueError(f"{path}: no column ending in {suffix!r}")
+    out = []
+    for row in rows:
+        if row.get("step") in (None, "") or all(row[c] in (None, "") for c in columns):
+            continue
+        out.append(
+            {
+                "step": int(float(row["step"])),
+                **{c: float(row[c]) for c in columns if row[c] not in (None, "")},
+            }
+        )
+    return columns, out
+
+
+def write_loss_curve(run_dirs: list[str | Path], out_csv: str | Path, suffix: str = "loss") -> Path:
+    """Write the loss curve of ``run_dirs`` (trained one after the other) as one CSV, atomically.
+
+    Columns: ``step`` (the runs' steps, each run's shifted to start after the previous run's last
+    step, so DAgger rounds continue BC), ``run`` (the run's index) and every logged column ending in
+    ``suffix`` with ``/`` written ``_`` (``train/loss`` -> ``train_loss``, a plain field name for DVC's
+    plot templates). DVC declares it under ``plots:`` with ``x: step``.
+    """
+    import csv
+    import io
+
+    from image2sim.simulator.io.atomic import write_text_atomic
+
+    if not run_dirs:
+        raise ValueError("write_loss_curve: no run folders given")
+    columns: list[str] = []
+    rows: list[dict[str, float]] = []
+    offset = 0
+    for index, run in enumerate(run_dirs):
+        cols, run_rows = _curve_rows(latest_metrics_csv(run), suffix)
+        columns += [c for c in cols if c not in columns]
+        first = min((r["step"] for r in run_rows), default=0)
+        for r in run_rows:
+            rows.append({**r, "step": r["step"] - first + offset, "run": index})
+        offset = max((r["step"] for r in rows), default=offset - 1) + 1
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=["step", "run", *columns], lineterminator="\n")
+    writer.writerow({c: c.replace("/", "_") for c in writer.fieldnames})  # the header, plain names
+    writer.writerows(rows)
+    Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
+    return write_text_atomic(out_csv, buf.getvalue())
