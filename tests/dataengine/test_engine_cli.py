@@ -59,7 +59,9 @@ def test_cli_episodes_then_stats(scenes_root, tmp_path):
     png = (out / "train" / "stats" / "stats.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     # Ultra-wide frames keep the 512:336 aspect.
-    shard = json.loads((out / "shards.json").read_text())["shards"][0]
+    from image2sim.dataengine.distributed import read_shard_list
+
+    shard = read_shard_list(out / "shards.json")[0]
     with np.load(f"{shard}/frames/000000.npz") as z:
         assert z["rgb"].shape[1:] == (24, 37, 3)
 

@@ -208,8 +208,12 @@ def test_navpolicy_dataset_reads_the_shards(full_run):
     from image2sim.navpolicy.data import NavShardDataset
 
     out, summary = full_run
-    shards = json.loads((out / "shards.json").read_text())["shards"]
-    assert len(shards) == 2
+    from image2sim.dataengine.distributed import read_shard_list
+
+    stored = json.loads((out / "shards.json").read_text())["shards"]
+    assert stored == ["scenes/scene_000/shard", "scenes/scene_001/shard"]  # relative to shards.json
+    shards = read_shard_list(out)
+    assert len(shards) == 2 and all((s / "manifest.json").is_file() for s in shards)
     ds = NavShardDataset(shards, max_observations=8, max_action_labels=16, jitter=False)
     assert len(ds) == summary["episodes"]
     gt = _read(out / "train" / "train_gt.json.gz")

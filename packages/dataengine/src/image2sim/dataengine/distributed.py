@@ -9,7 +9,9 @@
     :func:`~image2sim.dataengine.pipeline.process_scene`), and finished scenes are skipped on restart;
   * per-scene failures are recorded in ``{out}/failures.json`` and do not stop other scenes;
   * the final episode files are rebuilt from the finished scenes' ``episodes.json`` in sorted scene
-    order, so a killed-and-restarted run yields the same files with no duplicates and nothing lost.
+    order, so a killed-and-restarted run yields the same files with no duplicates and nothing lost;
+  * ``{out}/shards.json`` lists the training shards relative to itself (``scenes/<name>/shard``), so
+    the output folder can be moved; :func:`read_shard_list` resolves them (older absolute lists too).
 
 ``local`` (the default) runs the scenes in this process (``workers=1``) or in a pool of ``workers``
 spawned processes that die with the driver: no network, nothing left behind by a killed run.
@@ -34,11 +36,32 @@ from pathlib import Path
 from image2sim.dataengine.episodes import write_episode_files
 from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig, process_scene
 from image2sim.simulator.io.atomic import write_bytes_atomic
+from image2sim.simulator.io.paths import relative_to_file, resolve_from_file
 from image2sim.simulator.lifetime import WORKER_ENV, spawn_pool
 
-__all__ = ["find_scenes", "pending_scenes", "run_engine", "merge_outputs", "RunError"]
+__all__ = ["find_scenes", "pending_scenes", "read_shard_list", "run_engine", "merge_outputs", "RunError"]
 
 RUN_FILE = "run.json"
+SHARD_LIST = "shards.json"
+"""The output folder's list of training shards, ``{"shards": [path relative to this file, ...]}``."""
+
+
+def read_shard_list(path: str | Path) -> list[Path]:
+    """The shard folders a ``shards.json`` lists (or the one in the output folder ``path``), resolved
+    relative to the file; absolute entries (files written before the paths were relative) as they are."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / SHARD_LIST
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"{path}: no such shard list (run `image2sim data episodes` first)") from exc
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    shards = doc.get("shards") if isinstance(doc, dict) else None
+    if not isinstance(shards, list) or not all(isinstance(s, str) for s in shards):
+        raise ValueError(f"{path}: expected {{'shards': [path, ...]}}")
+    return [resolve_from_file(s, path) for s in shards]
 
 
 class RunError(RuntimeError):
@@ -319,9 +342,9 @@ def merge_outputs(
         extras.update(doc.get("extras", {}))
         done.append(name)
         if (folder / "shard" / "manifest.json").is_file():
-            shards.append(str((folder / "shard").resolve()))
+            shards.append(relative_to_file(folder / "shard", out_dir / SHARD_LIST))
     main, gt_path = write_episode_files(out_dir, split, episodes, gt, min_geodesic, extras)
-    write_bytes_atomic(out_dir / "shards.json", json.dumps({"shards": shards}, indent=1).encode())
+    write_bytes_atomic(out_dir / SHARD_LIST, json.dumps({"shards": shards}, indent=1).encode())
     return {
         "episodes": len(episodes),
         "scenes_done": len(done),

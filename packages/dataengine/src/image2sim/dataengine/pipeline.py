@@ -43,6 +43,7 @@ from image2sim.dataengine.trajectories import (
 )
 from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
+from image2sim.simulator.io.paths import resolve_from_file
 
 __all__ = [
     "EngineConfig",
@@ -176,11 +177,13 @@ def resolve_scene(path: str | Path) -> SceneInputs:
     gaussian_dir = None
     if (path / "gaussians.safetensors").is_file():
         src = (man.get("source") or {}).get("capture")
-        if not src or not (Path(src) / "manifest.json").is_file():
+        # Relative to the manifest (relocatable scene folders), or absolute (older scenes).
+        capture_dir = resolve_from_file(src, man_path) if src else None
+        if capture_dir is None or not (capture_dir / "manifest.json").is_file():
             raise FileNotFoundError(
                 f"{man_path}: field 'source.capture' ({src!r}) does not point at a capture"
             )
-        gaussian_dir, capture_dir = path, Path(src)
+        gaussian_dir = path
         man = json.loads((capture_dir / "manifest.json").read_text())
     else:
         capture_dir = path
