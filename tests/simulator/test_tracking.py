@@ -77,3 +77,65 @@ def test_loss_curve_script_exits_2_on_a_missing_log(tmp_path, capsys):
     spec.loader.exec_module(script)
     assert script.main(["--out", str(tmp_path / "c.csv"), str(tmp_path / "none")]) == 2
     assert "none: no logs" in capsys.readouterr().err
+
+
+def test_wandb_mode_from_params_never_goes_online_against_the_environment():
+    from image2sim.simulator.tracking import wandb_mode
+
+    assert wandb_mode("disabled", env="") is None
+    assert wandb_mode("offline", env="") == "offline"
+    assert wandb_mode("online", env="") == "online"
+    assert wandb_mode("online", env="offline") == "offline"  # `make` exports WANDB_MODE=offline
+    assert wandb_mode("offline", env="online") == "offline"  # the environment cannot add the network
+    assert wandb_mode("online", env="disabled") is None
+    with pytest.raises(ValueError, match="tracking.wandb: expected one of disabled, offline, online"):
+        wandb_mode("yes", env="")
+
+
+def test_wandb_logger_from_params_has_project_group_tags_and_stage_config(tmp_path, monkeypatch):
+    """``tracking.wandb: offline`` through a trainer's --wandb: the logger's project, group and tags."""
+    import lightning.pytorch.loggers as loggers
+    from image2sim.simulator.tracking import wandb_logger, wandb_mode
+
+    made = {}
+
+    class FakeWandbLogger:  # records what the real one would pass to wandb.init; no run, no network
+        def __init__(self, **kwargs):
+            made.update(kwargs)
+
+    monkeypatch.setattr(loggers, "WandbLogger", FakeWandbLogger)
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("DVC_STAGE", "train_nav")
+    monkeypatch.setenv("DVC_EXP_NAME", "exp-1234")
+    (tmp_path / "params.yaml").write_text("profile: ci\ntrain_nav:\n  dagger_scenes: 2\n", encoding="utf-8")
+    monkeypatch.chdir(tmp_path)
+    wandb_logger(tmp_path / "out", "image2sim", {"lr": 0.1}, mode=wandb_mode("offline"))
+    assert made["project"] == "image2sim" and made["offline"] is True and made["log_model"] is False
+    assert made["group"] == "exp-1234" and made["tags"] == ["train_nav"] and made["job_type"] == "train_nav"
+    assert made["config"]["resolved_config"]["params"] == {"dagger_scenes": 2}  # the stage's params
+    monkeypatch.delenv("DVC_EXP_NAME")
+    wandb_logger(tmp_path / "out", "image2sim", {}, stage="train_sim", mode="offline")
+    assert made["group"].startswith("commit-") or made["group"] == "local"
+    assert made["tags"] == ["train_sim"]
+
+
+def test_nav_train_wandb_option_sets_the_config(tmp_path):
+    from image2sim.navpolicy.cli import _tracking_overrides
+
+    assert _tracking_overrides("", "") == {}
+    assert _tracking_overrides("disabled", "p") == {
+        "wandb": False,
+        "wandb_mode": "offline",
+        "wandb_project": "p",
+    }
+    assert _tracking_overrides("offline", "") == {"wandb": True, "wandb_mode": "offline"}
+
+
+def test_tracking_does_not_import_wandb():
+    import subprocess
+    import sys
+
+    modules = "image2sim.simulator.tracking, image2sim.simulator.renderer.module, image2sim.navpolicy.train"
+    code = f"import sys, {modules}; print('wandb' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

@@ -103,6 +103,22 @@ def inspect_cmd(
     )
 
 
+def _tracking_overrides(wandb: str, project: str) -> dict:
+    """``train`` config overrides from ``--wandb MODE`` / ``--wandb-project`` (empty: keep the config's)."""
+    out: dict = {}
+    if wandb:
+        from image2sim.simulator.tracking import wandb_mode
+
+        try:
+            mode = wandb_mode(wandb)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--wandb") from exc
+        out = {"wandb": mode is not None, "wandb_mode": mode or "offline"}
+    if project:
+        out["wandb_project"] = project
+    return out
+
+
 @app.command("train")
 def train_cmd(
     stage: Annotated[str, typer.Option(help="bc (behaviour cloning) or dagger.")] = "bc",
@@ -167,12 +183,23 @@ def train_cmd(
             help="dagger, source neural: pixel-flow renderer (export folder, .safetensors or .ckpt)."
         ),
     ] = None,
+    wandb: Annotated[
+        str,
+        typer.Option(
+            help="W&B besides CSV: disabled | offline | online (params: tracking.wandb; '' = the config's "
+            "train.wandb)."
+        ),
+    ] = "",
+    wandb_project: Annotated[
+        str, typer.Option(help="W&B project (params: tracking.project; '' = train.wandb_project).")
+    ] = "",
 ) -> None:
     """Train the policy. Writes config.yaml, CSV/W&B logs, checkpoints and a merged export.
 
     ``--stage dagger`` runs online DAgger (``dagger`` section of the config) in NeuralSimulators on
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
     """
+    tracking = _tracking_overrides(wandb, wandb_project)
     if stage == "dagger":
         episode_source = None
         if episodes is not None:
@@ -197,11 +224,12 @@ def train_cmd(
             scene_seed,
             fresh,
             episode_source,
+            tracking,
         )
         return
     if stage != "bc":
         raise typer.BadParameter(f"unknown stage {stage!r}; use bc or dagger", param_hint="--stage")
-    overrides: dict = {}
+    overrides: dict = {"train": dict(tracking)} if tracking else {}
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if shard_weights:
@@ -275,10 +303,11 @@ def _train_dagger(
     scene_seed,
     fresh=False,
     episode_source=None,
+    tracking: dict | None = None,
 ) -> None:
     import torch
 
-    overrides: dict = {}
+    overrides: dict = {"train": dict(tracking)} if tracking else {}
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if max_steps:

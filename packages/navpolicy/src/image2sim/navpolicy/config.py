@@ -188,7 +188,9 @@ class TrainConfig:
     checkpoint_every: int = 10
     """Save a resumable checkpoint every N optimizer steps."""
     wandb: bool = False
-    """Log to Weights & Biases (offline unless WANDB_MODE says otherwise) besides CSV."""
+    """Log to Weights & Biases besides CSV (``wandb_mode``; ``nav train --wandb`` sets both)."""
+    wandb_mode: str = "offline"
+    """offline | online: online only when ``$WANDB_MODE`` allows it too (``tracking.wandb_mode``)."""
     wandb_project: str = "image2nav"
     """W&B project name."""
 

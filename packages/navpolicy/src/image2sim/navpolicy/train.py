@@ -366,9 +366,11 @@ def train_bc(
     module = NavBCModule(policy, cfg, dataset)
     loggers = [csv_logger(out, resume=resume is not None)]
     if tc.wandb:
-        from image2sim.simulator.tracking import wandb_logger
+        from image2sim.simulator.tracking import wandb_logger, wandb_mode
 
-        loggers.append(wandb_logger(out, tc.wandb_project, cfg.to_dict()))
+        mode = wandb_mode(tc.wandb_mode)
+        if mode is not None:
+            loggers.append(wandb_logger(out, tc.wandb_project, cfg.to_dict(), mode=mode))
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"),
         every_n_train_steps=tc.checkpoint_every,

@@ -23,8 +23,10 @@ __all__ = [
     "git_commit",
     "latest_metrics_csv",
     "run_metadata",
+    "run_group",
     "trim_metrics_csv",
     "wandb_logger",
+    "wandb_mode",
     "write_loss_curve",
 ]
 
@@ -82,22 +84,64 @@ def run_metadata(
     }
 
 
-def wandb_logger(save_dir: str | Path, project: str, config: Mapping[str, Any], stage: str | None = None):
+WANDB_MODES = ("disabled", "offline", "online")
+"""Values of ``tracking.wandb`` in ``params.yaml`` (and of the trainers' ``--wandb``)."""
+
+
+def wandb_mode(requested: str, env: str | None = None) -> str | None:
+    """The W&B mode a run uses: None (no W&B logger), ``"offline"`` or ``"online"``.
+
+    ``requested`` comes from the params (``tracking.wandb``); ``env`` (default ``$WANDB_MODE``) can
+    only make it more private: ``offline`` / ``disabled`` there win over ``online``, so the network
+    is used only when both the params and the environment allow it.
+    """
+    if requested not in WANDB_MODES:
+        raise ValueError(f"tracking.wandb: expected one of {', '.join(WANDB_MODES)}, got {requested!r}")
+    env = os.environ.get("WANDB_MODE") if env is None else env
+    if requested == "disabled" or env == "disabled":
+        return None
+    return "offline" if env in ("offline", "dryrun") else requested
+
+
+def run_group() -> str:
+    """The W&B group of this run: the DVC experiment (``$DVC_EXP_NAME``, set by ``dvc exp run``),
+    else ``commit-<short sha>``, else ``local``. Every stage of one experiment lands in one group."""
+    exp = os.environ.get("DVC_EXP_NAME")
+    if exp:
+        return exp
+    commit = git_commit(Path.cwd()) or git_commit(Path(__file__).resolve().parent)
+    return f"commit-{commit}" if commit else "local"
+
+
+def wandb_logger(
+    save_dir: str | Path,
+    project: str,
+    config: Mapping[str, Any],
+    stage: str | None = None,
+    mode: str | None = None,
+):
     """Lightning ``WandbLogger`` whose run config is :func:`run_metadata` of ``config``.
 
-    Offline unless ``WANDB_MODE`` says otherwise; ``log_model=False`` so no checkpoint is ever
-    uploaded (DVC owns them); no code snapshot.
+    ``mode`` is ``offline`` or ``online`` (:func:`wandb_mode`); None keeps ``$WANDB_MODE``, else
+    offline. The run is grouped by :func:`run_group` and tagged with the stage (``$DVC_STAGE`` by
+    default), its ``job_type``. ``log_model=False`` so no checkpoint is ever uploaded (DVC owns
+    them); no code snapshot. wandb is imported here, not when this module is.
     """
     from lightning.pytorch.loggers import WandbLogger
 
-    os.environ.setdefault("WANDB_MODE", "offline")
+    mode = mode or os.environ.get("WANDB_MODE") or "offline"
+    os.environ["WANDB_MODE"] = mode  # what wandb.init reads
+    stage = stage or os.environ.get("DVC_STAGE")
     return WandbLogger(
         save_dir=str(save_dir),
         project=project,
-        offline=os.environ["WANDB_MODE"] == "offline",
+        offline=mode == "offline",
         log_model=False,
         config=run_metadata(stage, config=config),
         save_code=False,
+        group=run_group(),
+        tags=[stage] if stage else None,
+        job_type=stage,
     )
 
 

@@ -58,7 +58,11 @@ def train_command(
     devices: int = typer.Option(0, help="Override trainer.devices (processes per node; >1 needs ddp)."),
     num_nodes: int = typer.Option(0, help="Override trainer.num_nodes."),
     strategy: str = typer.Option("", help="Override trainer.strategy: auto (one process) or ddp."),
-    logger: str = typer.Option("csv", help="csv or wandb (offline)."),
+    logger: str = typer.Option("csv", help="csv, or wandb (CSV and offline W&B; see --wandb)."),
+    wandb: str = typer.Option(
+        "", help="W&B besides CSV: disabled | offline | online (params: tracking.wandb; '' = --logger)."
+    ),
+    wandb_project: str = typer.Option("image2sim", help="W&B project (params: tracking.project)."),
     checkpoint_every: int = typer.Option(250, help="Checkpoint every n steps."),
     grid_every: int = typer.Option(250, help="Image grid (prior | one-step | target | alpha) every n steps."),
     condition_source: str = typer.Option(
@@ -93,6 +97,13 @@ def train_command(
         raise typer.BadParameter(str(exc)) from exc
     if condition_source not in ("splat", "degraded"):
         raise typer.BadParameter(f"--condition-source must be splat or degraded, got {condition_source!r}")
+    if wandb:
+        from image2sim.simulator.tracking import wandb_mode
+
+        try:
+            wandb_mode(wandb)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--wandb") from exc
     from image2sim.simulator.trainer import resume_checkpoint
 
     ckpt = resume_checkpoint(resume, out)  # checked before anything is written
@@ -138,6 +149,8 @@ def train_command(
         logger=logger,
         checkpoint_every=checkpoint_every,
         grid_every=grid_every,
+        wandb=wandb,
+        wandb_project=wandb_project,
     )
 
 

@@ -294,9 +294,14 @@ def fit(
     checkpoint_every: int = 500,
     grid_every: int = 0,
     progress: bool = True,
+    wandb: str = "",
+    wandb_project: str = "image2sim",
 ) -> RendererModule:
     """Train (or resume) the renderer; checkpoints and logs under ``out_dir``.
 
+    Logs go to CSV (``logs/version_N/metrics.csv``), and to W&B as well when ``wandb`` (the params'
+    ``tracking.wandb``: disabled | offline | online, see ``tracking.wandb_mode``) asks for it, in
+    project ``wandb_project``; ``logger="wandb"`` (the older switch) means offline W&B.
     Hardware and distribution come from ``cfg.trainer`` (``bf16=True`` overrides its precision).
     Under DDP every rank runs this function; each reads its own share of the step-indexed data
     order, rank 0 writes checkpoints, logs and image grids.
@@ -313,14 +318,12 @@ def fit(
     L.seed_everything(seed, workers=True, verbose=False)
     module = RendererModule(cfg, seed=seed, grid_every=grid_every)
     data = RendererDataModule(dataset, cfg.curriculum.batch_size, cfg.curriculum.total_steps, seed)
-    if logger == "wandb":
-        from image2sim.simulator.tracking import wandb_logger
+    from image2sim.simulator.tracking import csv_logger, wandb_logger, wandb_mode
 
-        log = wandb_logger(out, "image2sim-renderer", dataclasses.asdict(cfg))
-    else:
-        from image2sim.simulator.tracking import csv_logger
-
-        log = csv_logger(out, resume=resume is not None)
+    log = [csv_logger(out, resume=resume is not None)]  # always: the pipeline's loss curve reads it
+    mode = wandb_mode(wandb) if wandb else ("offline" if logger == "wandb" else None)
+    if mode is not None:
+        log.append(wandb_logger(out, wandb_project, dataclasses.asdict(cfg), mode=mode))
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"), every_n_train_steps=checkpoint_every, save_last=True, save_top_k=-1
     )
