@@ -90,7 +90,7 @@ def test_broken_folders_name_the_file_and_the_problem(run_checkpoint, tmp_path, 
     with pytest.raises(ValueError, match=rf"{RENDERER_CONFIG}: not an image2sim renderer config"):
         load_renderer(out)
     (out / RENDERER_CONFIG).write_text("{not json")
-    with pytest.raises(ValueError, match=rf"{RENDERER_CONFIG}: not valid JSON"):
+    with pytest.raises(ValueError, match=rf"{RENDERER_CONFIG}: cannot parse"):
         load_renderer(out)
     (out / RENDERER_CONFIG).unlink()
     with pytest.raises(FileNotFoundError, match=rf"{RENDERER_CONFIG} not found"):

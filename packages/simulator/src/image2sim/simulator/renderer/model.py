@@ -328,8 +328,7 @@ def _read_weights_file(path, map_location: str) -> tuple[dict, dict]:
 
 def _read_export_folder(folder, map_location: str) -> tuple[dict, dict]:
     """(config dict, state) of an :func:`export_renderer` folder."""
-    import json
-
+    from image2sim.simulator.config import read_mapping
     from safetensors.torch import load_file
 
     weights, config = folder / RENDERER_WEIGHTS, folder / RENDERER_CONFIG
@@ -338,13 +337,11 @@ def _read_export_folder(folder, map_location: str) -> tuple[dict, dict]:
             raise FileNotFoundError(
                 f"{p} not found: a renderer folder holds {RENDERER_WEIGHTS} and {RENDERER_CONFIG}"
             )
-    try:
-        doc = json.loads(config.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{config}: not valid JSON ({exc})") from exc
-    if not isinstance(doc, dict) or doc.get("format") != RENDERER_FORMAT or "config" not in doc:
-        fmt = doc.get("format") if isinstance(doc, dict) else None
-        raise ValueError(f"{config}: not an image2sim renderer config (format {fmt!r}, needs 'config')")
+    doc = read_mapping(config)
+    if doc.get("format") != RENDERER_FORMAT or "config" not in doc:
+        raise ValueError(
+            f"{config}: not an image2sim renderer config (format {doc.get('format')!r}, needs 'config')"
+        )
     return doc["config"], load_file(str(weights), device=map_location)
 
 
