@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 
-import numpy as np
 import pytest
 import torch
 from image2sim.navpolicy.config import ConfigError, load_config, paper_config
@@ -17,17 +16,6 @@ from image2sim.navpolicy.model import (
     trainable_summary,
 )
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
-
-
-@pytest.fixture(scope="module")
-def batch(tiny_policy, tiny_cfg):
-    trajs = synthetic_trajectories(2, min_len=8, max_len=30, seed=5)
-    samples = [make_sample(t, 6, 12, np.random.default_rng(i)) for i, t in enumerate(trajs)]
-    col = NavCollator(
-        PromptBuilder(tiny_policy.tokenizer, tiny_policy.codec, tiny_cfg.system_prompt),
-        tiny_policy.image_processor,
-    )
-    return col(samples)
 
 
 def _grads(model):

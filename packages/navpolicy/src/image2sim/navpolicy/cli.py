@@ -493,6 +493,22 @@ def from_episodes_cmd(
     typer.echo(json.dumps(shown, indent=2))
 
 
+@app.command("card")
+def card_cmd(
+    export: Annotated[Path, typer.Argument(help="A policy export folder (nav train's <out>/export).")],
+    metrics: Annotated[
+        Path | None, typer.Option(help="Metrics JSON to put in the card (e.g. metrics/nav.json).")
+    ] = None,
+    threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
+) -> None:
+    """Rewrite an export's model card (README.md), e.g. with the metrics of a later evaluation."""
+    import torch
+    from image2sim.navpolicy.card import update_model_card
+
+    torch.set_num_threads(threads)
+    typer.echo(f"wrote {update_model_card(export, metrics)}")
+
+
 @app.command("act")
 def act_cmd(
     agent: Annotated[

@@ -740,7 +740,8 @@ def run_dagger(
             state["seen"].append([])
         state["round"], state["phase"] = r + 1, "collect"
         commit()
-    export_dir = export_policy(policy, out / "export") if export else None
+    data = [*cfg.data.shards, *(out / rel for rel in state["shards"])]  # BC shards + the rounds'
+    export_dir = export_policy(policy, out / "export", cfg, data=data) if export else None
     sizes, losses = state["dataset_sizes"], state["losses"]
     summary = {"dataset_sizes": sizes, "losses": losses, "episodes": len(state["episodes"])}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))

@@ -11,9 +11,6 @@ unless ``train_merger`` is off.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +18,7 @@ import torch
 from image2sim.navpolicy.actions import ActionCodec
 from image2sim.navpolicy.config import ModelConfig, NavPolicyConfig, ObservationConfig
 from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
-from image2sim.simulator.io.atomic import process_umask
+from image2sim.simulator.io.atomic import atomic_dir
 
 MERGE_SIZE = 2
 """Qwen3-VL merges 2x2 patches into one language token."""
@@ -161,11 +158,21 @@ def base_qwen(model: torch.nn.Module):
     raise TypeError(f"{type(model).__name__} does not wrap a Qwen3VLForConditionalGeneration")
 
 
+def projector_modules(model: torch.nn.Module) -> list[str]:
+    """Names of the vision-language projectors (merger and DeepStack mergers), as peft's
+    ``modules_to_save`` matches them (a suffix of the module's full name)."""
+    visual = base_qwen(model).model.visual
+    names = ["visual.merger"]
+    names += [f"visual.deepstack_merger_list.{i}" for i in range(len(visual.deepstack_merger_list))]
+    return names
+
+
 def apply_lora(model: torch.nn.Module, cfg: ModelConfig) -> torch.nn.Module:
     """Wrap the language model's projections with LoRA; keep the projector trainable if asked.
 
-    peft freezes every non-adapter weight; the merger is re-enabled through ``modules_to_save``
-    semantics by simply flipping ``requires_grad`` back (it is saved with the full weights anyway).
+    peft freezes every non-adapter weight. The projectors train as peft ``modules_to_save`` (a
+    trainable copy beside the frozen original), so the saved adapter carries them and
+    ``PeftModel.from_pretrained(base, adapter)`` reproduces the trained policy.
     """
     from peft import LoraConfig, get_peft_model
 
@@ -175,13 +182,9 @@ def apply_lora(model: torch.nn.Module, cfg: ModelConfig) -> torch.nn.Module:
         lora_dropout=cfg.lora.dropout,
         target_modules=cfg.lora.target_modules,
         bias="none",
+        modules_to_save=projector_modules(model) if cfg.train_merger else None,
     )
-    peft_model = get_peft_model(model, lcfg)
-    if cfg.train_merger:
-        for name, p in base_qwen(peft_model).model.visual.named_parameters():
-            if name.startswith(_PROJECTOR_PREFIXES):
-                p.requires_grad_(True)
-    return peft_model
+    return get_peft_model(model, lcfg)
 
 
 def build_policy(cfg: NavPolicyConfig, seed: int | None = None) -> NavPolicy:
@@ -252,33 +255,44 @@ def merged_model(model: torch.nn.Module) -> torch.nn.Module:
     return model
 
 
-def export_policy(policy: NavPolicy, out_dir: str | Path) -> Path:
-    """Write merged weights (safetensors), config, tokenizer and image processor to ``out_dir``.
+ADAPTER_DIR = "adapter"
+"""Sub-folder of an export holding the unmerged LoRA adapter (peft ``save_pretrained``)."""
 
-    The folder reloads with ``build_policy`` (``model.source = out_dir``) or directly with
-    ``Qwen3VLForConditionalGeneration.from_pretrained``. Written to a temp folder and renamed, so a
-    crash never leaves a half-written export behind. LoRA adapters are merged in place (peft's
-    ``merge_and_unload``) and ``policy.model`` becomes the merged plain model: export at the end of
-    training.
+
+def export_policy(
+    policy: NavPolicy,
+    out_dir: str | Path,
+    cfg: NavPolicyConfig | None = None,
+    metrics: str | Path | None = None,
+    data: list[str | Path] | None = None,
+) -> Path:
+    """Write the policy as a Hugging Face folder: merged weights (safetensors) and config, tokenizer
+    with the policy's chat template, image processor and a model card (``README.md``).
+
+    The folder reloads with ``build_policy`` (``model.source = out_dir``) or with
+    ``AutoModelForImageTextToText.from_pretrained``. With LoRA the unmerged adapter is saved first to
+    ``<out_dir>/adapter`` (``PeftModel.from_pretrained(base, <out_dir>/adapter)``); then the adapters
+    are merged in place (peft's ``merge_and_unload``) and ``policy.model`` becomes the merged plain
+    model: export at the end of training. ``cfg`` (the run's config), ``data`` (the training shards
+    and files; default ``cfg.data.shards``) and ``metrics`` (a metrics JSON) go into the card. The
+    folder is written whole (temp folder + rename), so a crash never leaves a half-written export.
     """
-    out = Path(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    os.chmod(tmp, 0o777 & ~process_umask())  # mkdtemp's 0700 would make the export private
-    try:
-        model = merged_model(policy.model)
-        policy.model = model
-        model.save_pretrained(str(tmp), safe_serialization=True)
+    from image2sim.navpolicy.card import write_model_card
+    from image2sim.navpolicy.prompting import chat_template
+
+    with atomic_dir(out_dir) as tmp:
+        adapter = None
+        if hasattr(policy.model, "peft_config"):
+            adapter = tmp / ADAPTER_DIR
+            policy.model.save_pretrained(str(adapter), safe_serialization=True)
+        policy.model = merged_model(policy.model)
+        policy.model.save_pretrained(str(tmp), safe_serialization=True)
+        policy.tokenizer.chat_template = chat_template()
         policy.tokenizer.save_pretrained(str(tmp))
         # The processor object cannot save itself without a video processor; write its config alone.
         policy.image_processor.save_pretrained(str(tmp))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+        write_model_card(tmp, policy.model, cfg, metrics=metrics, adapter=adapter is not None, data=data)
+    return Path(out_dir)
 
 
 def make_processor(policy: NavPolicy):

@@ -10,14 +10,18 @@ Layout (Qwen chat format; ``<img>`` = ``<|vision_start|>`` + n x ``<|image_pad|>
     <|im_start|>user\\nExecuted: ...\\n<img><|im_end|>\\n<|im_start|>assistant\\n        <- generation prompt
 
 Each user turn carries one observation and the actions executed since the previous observation in
-the context; the assistant replies with the next two actions. Labels are set only on the tokens of
-the two action words of each reply (not on the image, prompt, ``<|im_end|>`` or separators outside
-action encodings). Building ids directly (instead of templating text and re-tokenizing) makes label
-positions exact and lets the agent compare contexts token by token for KV-cache reuse.
+the context; the assistant replies with the next two actions. The same layout as chat messages
+(:meth:`PromptBuilder.messages`) and a Jinja chat template (:func:`chat_template`, saved with every
+export) come from the same pieces below, so ``apply_chat_template`` reproduces the prompt. Labels
+are set only on the tokens of the two action words of each reply (not on the image, prompt,
+``<|im_end|>`` or separators outside action encodings). Building ids directly (instead of templating
+text and re-tokenizing) makes label positions exact and lets the agent compare contexts token by
+token for KV-cache reuse.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 
@@ -29,6 +33,38 @@ IGNORE_INDEX = -100
 
 TEXT_TOKEN, IMAGE_TOKEN = 0, 1
 """``mm_token_type_ids`` values (Qwen3-VL: 0 text, 1 image, 2 video)."""
+
+TURN_END = "<|im_end|>\n"
+"""Closes every turn."""
+
+IMAGE_OPEN, IMAGE_PAD, IMAGE_CLOSE = "<|vision_start|>", "<|image_pad|>", "<|vision_end|>"
+"""An image is ``IMAGE_OPEN`` + n x ``IMAGE_PAD`` + ``IMAGE_CLOSE`` (the processor expands one pad)."""
+
+
+def turn_start(role: str) -> str:
+    """Opens a turn of ``role`` (system, user, assistant)."""
+    return f"<|im_start|>{role}\n"
+
+
+def chat_template() -> str:
+    """The Jinja chat template of the policy's prompt, built from the same pieces as
+    :meth:`PromptBuilder.encode`: messages from :meth:`PromptBuilder.messages` (text items verbatim,
+    ``{"type": "image"}`` as one image placeholder) render to exactly the encoded prompt."""
+    q = json.dumps  # a JSON string literal is a valid Jinja string literal with the same escapes
+    image = q(IMAGE_OPEN + IMAGE_PAD + IMAGE_CLOSE)
+    return (
+        "{%- for message in messages -%}"
+        # turn_start itself, with the role filled in by Jinja
+        f"{{{{- {q(turn_start('@'))}.replace('@', message['role']) -}}}}"
+        "{%- if message['content'] is string -%}{{- message['content'] -}}"
+        "{%- else -%}{%- for item in message['content'] -%}"
+        f"{{%- if item['type'] == 'image' -%}}{{{{- {image} -}}}}"
+        "{%- elif item['type'] == 'text' -%}{{- item['text'] -}}{%- endif -%}"
+        "{%- endfor -%}{%- endif -%}"
+        f"{{{{- {q(TURN_END)} -}}}}"
+        "{%- endfor -%}"
+        f"{{%- if add_generation_prompt -%}}{{{{- {q(turn_start('assistant'))} -}}}}{{%- endif -%}}"
+    )
 
 
 @dataclass(frozen=True)
@@ -84,7 +120,7 @@ class PromptBuilder:
         self.codec = codec
         self.system_prompt = system_prompt
         ids = check_special_tokens(tokenizer)
-        self.image_pad_id = ids["<|image_pad|>"]
+        self.image_pad_id = ids[IMAGE_PAD]
         self.im_end_id = ids["<|im_end|>"]
         self._cache: dict[str, list[int]] = {}
 
@@ -99,6 +135,41 @@ class PromptBuilder:
         """The system turn's content."""
         return f"{self.system_prompt}\nInstruction: {instruction.strip()}"
 
+    def executed_text(self, executed: Sequence[int]) -> str:
+        """The user turn's text before its image: the actions executed since the previous one."""
+        return f"Executed: {actions_to_text(executed, self.codec.texts)}\n" if executed else ""
+
+    def _check_turn(self, k: int, turn: Turn, last: bool, add_generation_prompt: bool) -> None:
+        """Raise ``ValueError`` naming turn ``k`` when it cannot be part of the prompt."""
+        if turn.target is None and not (last and add_generation_prompt):
+            raise ValueError(
+                f"turn {k} has no target actions (only the last turn of a generation prompt may)"
+            )
+        if turn.target is not None and last and add_generation_prompt:
+            raise ValueError("the last turn of a generation prompt must not have a target")
+        if turn.num_image_tokens <= 0:
+            raise ValueError(f"turn {k}: num_image_tokens must be positive, got {turn.num_image_tokens}")
+        if turn.target is not None and len(turn.target) != ACTIONS_PER_STEP:
+            raise ValueError(f"turn {k}: target must hold {ACTIONS_PER_STEP} actions, got {turn.target}")
+
+    def messages(
+        self, instruction: str, turns: Sequence[Turn], add_generation_prompt: bool = False
+    ) -> list[dict]:
+        """The conversation as chat messages (``role`` + ``content`` items, images as
+        ``{"type": "image"}`` in the order of ``turns``): :func:`chat_template` renders them, with the
+        same ``add_generation_prompt``, to the text of :meth:`encode` (one pad per image)."""
+        if not turns:
+            raise ValueError("a navigation prompt needs at least one observation turn")
+        out = [{"role": "system", "content": [{"type": "text", "text": self.system_text(instruction)}]}]
+        for k, turn in enumerate(turns):
+            self._check_turn(k, turn, k == len(turns) - 1, add_generation_prompt)
+            user = [{"type": "text", "text": self.executed_text(turn.executed)}] if turn.executed else []
+            out.append({"role": "user", "content": [*user, {"type": "image"}]})
+            if turn.target is not None:
+                reply = actions_to_text(turn.target, self.codec.texts)
+                out.append({"role": "assistant", "content": [{"type": "text", "text": reply}]})
+        return out
+
     def encode(
         self, instruction: str, turns: Sequence[Turn], add_generation_prompt: bool = False
     ) -> EncodedPrompt:
@@ -107,30 +178,17 @@ class PromptBuilder:
         if not turns:
             raise ValueError("a navigation prompt needs at least one observation turn")
         out = EncodedPrompt()
-        out.extend_text(self._enc(f"<|im_start|>system\n{self.system_text(instruction)}<|im_end|>\n"))
+        out.extend_text(self._enc(turn_start("system") + self.system_text(instruction) + TURN_END))
         for k, turn in enumerate(turns):
-            last = k == len(turns) - 1
-            if turn.target is None and not (last and add_generation_prompt):
-                raise ValueError(
-                    f"turn {k} has no target actions (only the last turn of a generation prompt may)"
-                )
-            if turn.target is not None and last and add_generation_prompt:
-                raise ValueError("the last turn of a generation prompt must not have a target")
-            if turn.num_image_tokens <= 0:
-                raise ValueError(f"turn {k}: num_image_tokens must be positive, got {turn.num_image_tokens}")
-            head = "<|im_start|>user\n"
-            if turn.executed:
-                head += f"Executed: {actions_to_text(turn.executed, self.codec.texts)}\n"
-            out.extend_text(self._enc(head + "<|vision_start|>"))
+            self._check_turn(k, turn, k == len(turns) - 1, add_generation_prompt)
+            out.extend_text(self._enc(turn_start("user") + self.executed_text(turn.executed) + IMAGE_OPEN))
             out.extend_image(self.image_pad_id, turn.num_image_tokens, turn.frame_key)
-            out.extend_text(self._enc("<|vision_end|><|im_end|>\n<|im_start|>assistant\n"))
+            out.extend_text(self._enc(IMAGE_CLOSE + TURN_END + turn_start("assistant")))
             if turn.target is None:
                 break
-            if len(turn.target) != ACTIONS_PER_STEP:
-                raise ValueError(f"turn {k}: target must hold {ACTIONS_PER_STEP} actions, got {turn.target}")
             for piece in self.codec.encode(turn.target):
                 out.extend_text(piece, labelled=True)
-            out.extend_text(self._enc("<|im_end|>\n"))
+            out.extend_text(self._enc(TURN_END))
         return out
 
 

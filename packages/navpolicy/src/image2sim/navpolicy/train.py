@@ -324,7 +324,7 @@ class TrainResult:
     last_checkpoint: Path | None
     """Resumable checkpoint (file, or folder for DeepSpeed)."""
     export_dir: Path | None
-    """Merged weights for ``from_pretrained`` (when exported)."""
+    """The Hugging Face export (merged weights, adapter with LoRA, chat template, card), when exported."""
 
 
 def train_bc(
@@ -402,5 +402,5 @@ def train_bc(
     last = out / "checkpoints" / "last.ckpt"
     export_dir = None
     if export and trainer.is_global_zero:
-        export_dir = export_policy(policy, out / "export")
+        export_dir = export_policy(policy, out / "export", cfg)
     return TrainResult(out, module, int(trainer.global_step), last if last.exists() else None, export_dir)
