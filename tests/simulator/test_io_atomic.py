@@ -126,3 +126,19 @@ def test_folder_writers_sweep_a_killed_writers_temp_folder(tmp_path):
     dead = dead.with_name(dead.name.replace(f"-{pid}-", "-999999999-"))  # no such process
     (dead / "frames").mkdir(parents=True)
     assert sweep_stale_temps(target) == [dead] and not dead.exists()
+
+
+def test_atomic_dir_replaces_a_folder_whole_or_not_at_all(tmp_path):
+    from image2sim.simulator.io.atomic import atomic_dir
+
+    target = tmp_path / "export"
+    with atomic_dir(target) as tmp:
+        (tmp / "a.txt").write_text("old")
+    with pytest.raises(RuntimeError), atomic_dir(target) as tmp:
+        (tmp / "a.txt").write_text("half of the new")
+        raise RuntimeError("killed mid-write")
+    assert (target / "a.txt").read_text() == "old"
+    with atomic_dir(target) as tmp:
+        (tmp / "b.txt").write_text("new")
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]
