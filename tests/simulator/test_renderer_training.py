@@ -360,7 +360,12 @@ def test_wandb_offline_run_holds_losses_psnr_and_image_grids(tmp_path, monkeypat
         checkpoint_every=2,
         progress=False,
     )
-    run = module.logger.experiment
+    # W&B is added beside the CSV log (which every run keeps).
+    from lightning.pytorch.loggers import CSVLogger, WandbLogger
+
+    wandb_loggers = [lg for lg in module.loggers if isinstance(lg, WandbLogger)]
+    assert len(wandb_loggers) == 1 and any(isinstance(lg, CSVLogger) for lg in module.loggers)
+    run = wandb_loggers[0].experiment
     assert run.settings.mode in ("offline", "dryrun")  # dryrun: W&B's internal name for offline
     run_dir = Path(run.dir).parent
     run.finish()

@@ -222,7 +222,7 @@ class RendererModule(L.LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def _log_grid(self, cond: torch.Tensor, x: torch.Tensor, rgb: torch.Tensor, step: int) -> None:
-        """prior | one-step | target | alpha for the first sample, to the logger (W&B) or a PNG."""
+        """prior | one-step | target | alpha for the first sample, to W&B and as a PNG in the CSV log."""
         from image2sim.simulator.renderer.condition import ALPHA, RGB
 
         row = (
@@ -232,18 +232,20 @@ class RendererModule(L.LightningModule):
             .cpu()
         )
         image = (row.permute(1, 2, 0).numpy() * 255).round().astype("uint8")
-        logger = self.logger
-        if logger is not None and hasattr(logger, "log_image"):
-            logger.log_image(key="grid/prior|one_step|target|alpha", images=[image], step=step)
-        elif logger is not None and getattr(logger, "log_dir", None):
-            from pathlib import Path
+        # Loggers that take images get the grid (W&B, beside the CSV log); the CSV log's folder
+        # gets it as a PNG.
+        for logger in self.loggers:
+            if hasattr(logger, "log_image"):
+                logger.log_image(key="grid/prior|one_step|target|alpha", images=[image], step=step)
+            elif getattr(logger, "log_dir", None):
+                from pathlib import Path
 
-            from PIL import Image
+                from PIL import Image
 
-            out = Path(logger.log_dir) / "grids"
-            out.mkdir(parents=True, exist_ok=True)
-            with atomic_path(out / f"step_{step:07d}.png") as tmp:
-                Image.fromarray(image).save(tmp, format="PNG")
+                out = Path(logger.log_dir) / "grids"
+                out.mkdir(parents=True, exist_ok=True)
+                with atomic_path(out / f"step_{step:07d}.png") as tmp:
+                    Image.fromarray(image).save(tmp, format="PNG")
 
 
 class RendererDataModule(L.LightningDataModule):
