@@ -17,6 +17,7 @@ from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict,
 from image2sim.simulator.gaussians.encoder import GaussianEncoder, identity_gaussians
 from image2sim.simulator.gaussians.frames import prepare_frame
 from image2sim.simulator.gaussians.scene import GaussianScene, SceneError, _sha256
+from image2sim.simulator.gaussians.views import keep_best, view_map
 from image2sim.simulator.geometry.cameras import EquirectCamera
 
 __all__ = ["save_encoder", "load_encoder", "build_scene", "nearest_frames", "encode_frames"]
@@ -142,8 +143,15 @@ def build_scene(
         from rich.progress import track
 
         it = track(indices, description=f"encoding {len(indices)} frames at {w}x{h}")
+    views = None
+    if cfg.fusion.views == "best" and len(indices) > 1:
+        # First pass: every frame's depth and sampling intervals, so that each frame's Gaussians
+        # can be tested against all the others before anything is fused.
+        views = [
+            view_map(prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance), cfg.fusion) for i in indices
+        ]
     pending = []
-    for i in it:
+    for k, i in enumerate(it):
         frame = capture[i]
         source_camera = source_camera or frame.camera
         inputs = prepare_frame(frame, h, w, cfg.fusion.edge_tolerance)
@@ -152,7 +160,10 @@ def build_scene(
                 f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})"
             )
         camera = camera or inputs.camera
-        pending.append(encode_frames([inputs], cfg, net)[0])
+        g = encode_frames([inputs], cfg, net)[0]
+        if views is not None:
+            g = keep_best(g, k, views, cfg.fusion)
+        pending.append(g)
         scene.record_frame(inputs.frame_id, i, inputs.cam_to_world)
         if len(pending) >= fuse_every:
             scene.integrate_many(pending)

@@ -110,6 +110,25 @@ class FusionConfig:
     """``footprint``: each point is fused at a voxel size that follows its observed pixel footprint
     (range x angular pixel size), quantised to power-of-two levels of ``base_voxel``; where a finer
     level already models a cell, coarser observations of it are dropped. ``fixed``: one voxel size."""
+    views: Literal["best", "all"] = "best"
+    """Which frames model a surface point before voxel fusion. ``best``: only the frame that sees it
+    with the finest sampling interval (near and frontal; see :mod:`~image2sim.simulator.gaussians.views`),
+    so each region is represented once, as sharp as its best view; ``all``: every frame that sees it
+    (averaged per voxel: blurrier and nearer than the surface as views are added)."""
+    same_surface_tolerance: float = 0.02
+    """``views: best``: a frame sees the same surface point as a Gaussian when it looks at the side the
+    Gaussian faces and its depth there agrees with the Gaussian's distance within this fraction of
+    the depth (+ 2 sampling intervals)."""
+    interval_step: float = 1.5
+    """``views: best``: sampling intervals are compared in steps of this factor (log-quantised); views
+    within one step tie and the lower frame index wins, so ownership forms whole patches rather than
+    a noise-driven speckle with gaps between its pieces (1: exact comparison)."""
+    carve_views: int = 8
+    """``views: best``: each frame's Gaussians are also dropped where one of this many nearest frames
+    (by camera centre) saw empty space through them (silhouette halos, floaters); 0 disables."""
+    grazing_cos: float = 0.2
+    """``views: best``: viewing cosines below this count as this (a pixel's sampling interval is
+    footprint / max(cos, grazing_cos)); also used where the surface normal is unknown."""
     voxel_size: float = 0.05
     """Voxel edge of the ``fixed`` policy, metres."""
     base_voxel: float = 0.01
@@ -235,6 +254,15 @@ class GaussianConfig:
         if f.cover_factor < 0 or not 0 <= f.min_range < f.max_range or not 0 <= f.min_opacity < 1:
             raise ConfigError(
                 "fusion needs cover_factor >= 0, 0 <= min_range < max_range, 0 <= min_opacity < 1"
+            )
+        if f.carve_views < 0:
+            raise ConfigError(f"fusion.carve_views must be >= 0, got {f.carve_views}")
+        if f.views not in ("best", "all"):
+            raise ConfigError(f"fusion.views must be 'best' or 'all', got {f.views!r}")
+        if not (f.same_surface_tolerance > 0 and 0 < f.grazing_cos <= 1 and f.interval_step >= 1):
+            raise ConfigError(
+                "fusion needs same_surface_tolerance > 0, grazing_cos in (0, 1] and interval_step >= 1, "
+                f"got {f.same_surface_tolerance}, {f.grazing_cos}, {f.interval_step}"
             )
         if f.threads < 0:
             raise ConfigError(f"fusion.threads must be >= 0, got {f.threads}")

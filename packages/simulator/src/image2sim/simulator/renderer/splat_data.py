@@ -60,7 +60,7 @@ TRAINING_RECORD = "training_data.json"
 """File name of a run's record of its training conditions, next to ``config.json`` in the run
 folder (``sim train --out``)."""
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 """Bumped whenever the cached conditions would change for the same inputs."""
 
 
@@ -173,31 +173,45 @@ def gaussians_condition(gaussians: Any, camera: Any, cam_to_world: Any) -> torch
     )[0]
 
 
-def encode_capture(capture: Any, indices: Sequence[int], gcfg: Any) -> dict[int, Any]:
-    """Identity Gaussians of the given frames of an open capture, ``{frame index: GaussianSet}``."""
+def encode_capture(capture: Any, indices: Sequence[int], gcfg: Any) -> tuple[dict[int, Any], dict[int, Any]]:
+    """Identity Gaussians of the given frames of an open capture, ``{frame index: GaussianSet}``, and
+    with ``fusion.views: best`` their view maps (``{frame index: ViewMap}``; empty otherwise)."""
     from image2sim.simulator.gaussians.encoder import identity_gaussians
     from image2sim.simulator.gaussians.frames import prepare_frame
+    from image2sim.simulator.gaussians.views import view_map
 
     h, w = gcfg.encoder.height, gcfg.encoder.width
-    return {
-        int(i): identity_gaussians(prepare_frame(capture[i], h, w, gcfg.fusion.edge_tolerance), gcfg)
-        for i in indices
-    }
+    sets, views = {}, {}
+    for i in indices:
+        inputs = prepare_frame(capture[i], h, w, gcfg.fusion.edge_tolerance)
+        sets[int(i)] = identity_gaussians(inputs, gcfg)
+        if gcfg.fusion.views == "best":
+            views[int(i)] = view_map(inputs, gcfg.fusion)
+    return sets, views
 
 
 def leave_one_out_gaussians(
-    sets: dict[int, Any], sources: Sequence[int], fusion: Any, fuse_every: int
+    sets: dict[int, Any],
+    sources: Sequence[int],
+    fusion: Any,
+    fuse_every: int,
+    views: dict[int, Any] | None = None,
 ) -> Any:
     """Fuse ``sets[i]`` for ``i in sources`` (in that order, ``fuse_every`` per pass) into one scene
-    memory, exactly as ``build_scene(frames=sources, fuse_every=...)`` would; returns the fused set."""
+    memory, exactly as ``build_scene(frames=sources, fuse_every=...)`` would (with ``views``, each
+    source first keeps only what no other source sees better); returns the fused set."""
     from image2sim.simulator.gaussians.scene import GaussianScene
+    from image2sim.simulator.gaussians.views import select_best_views
 
     if not sources:
         raise SplatDataError("leave_one_out_gaussians: no source frames")
     scene = GaussianScene(fusion=fusion)
     order = list(sources)
+    chosen = [sets[i] for i in order]
+    if views and fusion.views == "best" and len(order) > 1:
+        chosen = select_best_views(chosen, [views[i] for i in order], fusion)
     for s in range(0, len(order), fuse_every):
-        scene.integrate_many([sets[i] for i in order[s : s + fuse_every]])
+        scene.integrate_many(chosen[s : s + fuse_every])
     if scene.gaussians is None or not len(scene.gaussians):
         raise SplatDataError(f"sources {order}: fusion left no Gaussians (all depth invalid?)")
     return scene.gaussians
@@ -298,7 +312,7 @@ def capture_conditions(
             if cond.shape != (len(train), 24, height, width):
                 raise SplatDataError(f"{cache_file}: cached conditions have shape {tuple(cond.shape)}")
             return cond, True
-    sets = encode_capture(capture, candidates, gcfg)
+    sets, views = encode_capture(capture, candidates, gcfg)
     camera = EquirectCamera(height, width)
     it = list(zip(train, sources, strict=True))
     if progress:
@@ -307,7 +321,7 @@ def capture_conditions(
         it = track(it, description=f"splatting {Path(capture_path).name} ({len(train)} targets)")
     conds = []
     for t, src in it:
-        g = leave_one_out_gaussians(sets, src, gcfg.fusion, cfg.fuse_every)
+        g = leave_one_out_gaussians(sets, src, gcfg.fusion, cfg.fuse_every, views)
         conds.append(gaussians_condition(g, camera, poses[t]))
     cond = torch.stack(conds).contiguous()
     if cache_file is not None:

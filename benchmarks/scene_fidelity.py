@@ -1,0 +1,190 @@
+"""Scene fidelity benchmark (issue 20): fused identity scenes against their best view, error against time.
+
+For each capture (the HM3D sample from ``../shared/data`` when present, and procedural houses with
+noise tier ``middle``) and each fusion variant:
+
+- **held-out**: every 8th frame is left out, the scene is built from the others
+  (``build_scene``, the ``tiny`` config at 256x128, the weights-free default path) and splatted at
+  the held-out poses: PSNR against the panorama, depth AbsRel on pixels with alpha > 0.5;
+- **own pose**: frames kept in the scene are rendered at their own pose, against the single-frame
+  scene of the same frame rendered there (the sharpest that frame can give), both scored on the
+  pixels the single-frame scene covers (depth holes leave it empty elsewhere);
+- **size**: Gaussians, Gaussians per frame, and Gaussians as frames are added (they must saturate);
+- **time**: scene build seconds (one run: the quality columns are the point; timings are indicative).
+
+Variants: ``all`` (every frame's Gaussians voxel-averaged: the earlier default), ``best`` (each surface
+point from the frame that sees it best, :mod:`image2sim.simulator.gaussians.views`), each with round
+or footprint-ellipse identity discs. No learned renderer is involved.
+
+Writes ``reports/scene_fidelity.json`` and ``reports/scene_fidelity.md``.
+Run: ``.venv/bin/python benchmarks/scene_fidelity.py [--houses 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from harness import hardware, load_average, utc_now, write_report
+from image2sim.simulator.gaussians import tiny
+from image2sim.simulator.gaussians.build import build_scene
+from image2sim.simulator.gaussians.frames import prepare_frame
+from image2sim.simulator.io.registry import open_capture
+
+ROOT = Path(__file__).resolve().parents[1]
+HM3D = (
+    Path(os.environ.get("IMAGE2SIM_SHARED_DATA", ROOT.parent / "shared" / "data"))
+    / "hm3d_360"
+    / "00000-kfPV7w3FaU5"
+)
+VARIANTS = {"all (before)": "all", "best (default)": "best"}
+
+
+def config_for(views: str):
+    cfg = tiny()
+    return dataclasses.replace(cfg, fusion=dataclasses.replace(cfg.fusion, views=views))
+
+
+def score(scene, capture, frames: list[int], cfg, masks=None) -> tuple[list[float], list[float], list]:
+    """PSNR (dB) and depth AbsRel of ``scene`` splatted at each frame's pose, against that frame,
+    and the covered pixels (alpha > 0.5). ``masks`` (one per frame) restricts the PSNR to them."""
+    h, w = cfg.encoder.height, cfg.encoder.width
+    psnrs, absrels, covered = [], [], []
+    for k, i in enumerate(frames):
+        inputs = prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance)
+        out = scene.render(inputs.camera, inputs.cam_to_world, background=0.0)
+        err = ((out.rgb[0].clamp(0, 1) - inputs.rgb[0]) ** 2).mean(0)
+        mse = float(err[masks[k]].mean()) if masks is not None else float(err.mean())
+        psnrs.append(-10 * math.log10(max(mse, 1e-12)))
+        depth = (out.depth / out.alpha.clamp_min(1e-6))[0, 0]
+        gt = inputs.depth[0, 0]
+        m = (gt > 0) & (out.alpha[0, 0] > 0.5)
+        absrels.append(float(((depth[m] - gt[m]).abs() / gt[m]).mean()) if bool(m.any()) else float("nan"))
+        covered.append(out.alpha[0, 0] > 0.5)
+    return psnrs, absrels, covered
+
+
+def surface_area(scene, cell: float = 0.05) -> float:
+    """Observed surface area, m^2: occupied cells of a ``cell``-metre grid x cell^2 (an estimate that
+    counts each surface once however many frames saw it; oblique surfaces count up to sqrt(3)x)."""
+    keys = torch.floor(scene.gaussians.means.double() / cell).to(torch.int64)
+    return max(1, torch.unique(keys, dim=0).shape[0]) * cell * cell
+
+
+def procedural_captures(tmp: Path, houses: int) -> list[tuple[str, Path]]:
+    from image2sim.dataengine.procedural import generate_scene, preset, write_scene
+
+    sc = preset("default")
+    sc = dataclasses.replace(sc, noise="middle")
+    out = []
+    for seed in range(houses):
+        path = tmp / f"house_{seed}"
+        write_scene(generate_scene(sc, seed=9000 + seed), path)
+        out.append((f"procedural middle, seed {9000 + seed}", path))
+    return out
+
+
+def run_capture(name: str, path: Path) -> list[dict]:
+    capture = open_capture(path)
+    n = len(capture)
+    held = list(range(0, n, 8))
+    sources = [i for i in range(n) if i not in held]
+    own = [i for i in sources if i % 8 == 3][:6]
+    rows = []
+    single_cfg = config_for("all")
+    # The single-frame scene of each own-pose frame, scored on the pixels it covers (a capture's depth
+    # holes leave it empty there); the fused scenes are scored on the same pixels.
+    single, masks = [], []
+    for i in own:
+        one = build_scene(path, single_cfg, frames=[i])
+        _, _, cov = score(one, capture, [i], single_cfg)
+        p, _, _ = score(one, capture, [i], single_cfg, cov)
+        single.append(p[0])
+        masks.append(cov[0])
+    for variant, views in VARIANTS.items():
+        cfg = config_for(views)
+        t0 = time.perf_counter()
+        scene = build_scene(path, cfg, frames=sources, fuse_every=8)
+        build_s = time.perf_counter() - t0
+        hp, ha, _ = score(scene, capture, held, cfg)
+        op, oa, _ = score(scene, capture, own, cfg, masks)
+        growth = []
+        for k in (len(sources) // 4, len(sources) // 2, len(sources)):
+            if k >= 1:
+                part = (
+                    scene if k == len(sources) else build_scene(path, cfg, frames=sources[:k], fuse_every=8)
+                )
+                growth.append((k, len(part), round(len(part) / surface_area(part), 1)))
+        rows.append(
+            {
+                "capture": name,
+                "variant": variant,
+                "frames": len(sources),
+                "gaussians": len(scene),
+                "gaussians_per_frame": round(len(scene) / len(sources)),
+                "growth": growth,
+                "build_s": round(build_s, 2),
+                "heldout_psnr": round(statistics.fmean(hp), 2),
+                "heldout_absrel": round(statistics.fmean(ha), 3),
+                "own_psnr": round(statistics.fmean(op), 2),
+                "own_absrel": round(statistics.fmean(oa), 3),
+                "single_frame_own_psnr": round(statistics.fmean(single), 2),
+                "own_gap_db": round(statistics.fmean(single) - statistics.fmean(op), 2),
+                "heldout_frames": held,
+            }
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--houses", type=int, default=2, help="procedural houses (noise tier middle)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    load = load_average()
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        captures = [("HM3D 00000-kfPV7w3FaU5 (86 panoramas)", HM3D)] if HM3D.is_dir() else []
+        captures += procedural_captures(Path(tmp), args.houses)
+        for name, path in captures:
+            rows.extend(run_capture(name, path))
+    lines = [
+        "# Scene fidelity: fused identity scenes against their best view (`benchmarks/scene_fidelity.py`)",
+        "",
+        f"- Hardware: {hardware()}; load average {load:.1f} at start; {utc_now()}",
+        "- Config `tiny` (encoding 256x128), `build_scene(..., fuse_every=8)`, identity encoder, splat only.",
+        "- Held-out: every 8th frame left out of the scene. Own pose: up to 6 frames of the scene, each",
+        "  against the single-frame scene of that frame at its pose, on the pixels that one covers.",
+        "- Growth: scenes of the first quarter, half and all source frames; Gaussians per m2 of observed",
+        "  surface (occupied 5 cm cells x 25 cm2). Build time: one run (indicative).",
+        "",
+        "| capture | variant | Gaussians (per frame) | growth: frames: Gaussians (per m² of surface) "
+        "| build s | held-out PSNR dB | held-out depth AbsRel | own-pose PSNR dB (single frame; gap) "
+        "| own-pose AbsRel |",
+        "|---|---|---|---|---:|---:|---:|---|---:|",
+    ]
+    for r in rows:
+        growth = ", ".join(f"{k}: {g} ({m})" for k, g, m in r["growth"])
+        lines.append(
+            f"| {r['capture']} | {r['variant']} | {r['gaussians']} ({r['gaussians_per_frame']}) | {growth} | "
+            f"{r['build_s']} | {r['heldout_psnr']} | {r['heldout_absrel']} | {r['own_psnr']} "
+            f"({r['single_frame_own_psnr']}; {r['own_gap_db']}) | {r['own_absrel']} |"
+        )
+    write_report(
+        "scene_fidelity",
+        rows,
+        {"statistic": "mean over frames; build time one run", "load_average": load},
+        markdown=lines,
+    )
+
+
+if __name__ == "__main__":
+    main()

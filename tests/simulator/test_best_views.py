@@ -1,0 +1,228 @@
+"""Best-view selection (gaussians.views): each surface point modelled once, by the frame that sees it best.
+
+Analytic scenes: pinhole frames looking at planes, where which frame sees what (and how finely) is
+known exactly; a slow per-point reference of the rule; the hard cases (thin walls seen from both
+sides, occlusion, identical views, invalid depth, panoramas across the seam).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from image2sim.simulator.gaussians import tiny
+from image2sim.simulator.gaussians.config import ConfigError
+from image2sim.simulator.gaussians.encoder import identity_gaussians
+from image2sim.simulator.gaussians.primitives import FrameInputs
+from image2sim.simulator.gaussians.scene import GaussianScene
+from image2sim.simulator.gaussians.views import (
+    _pixel_index,
+    best_view_mask,
+    keep_best,
+    own_geometry,
+    select_best_views,
+    view_map,
+)
+from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
+
+H = W = 32
+CAM = PinholeCamera.from_fov(90.0, 90.0, H, W)
+# Camera axes (columns) in the world for looking along +X and along -X, upright (world Z up).
+LOOK_PX = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+LOOK_NX = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+
+
+def pose(x: float, look: torch.Tensor, y: float = 0.0) -> torch.Tensor:
+    p = torch.eye(4, dtype=torch.float64)
+    p[:3, :3] = look
+    p[:3, 3] = torch.tensor([x, y, 0.0], dtype=torch.float64)
+    return p
+
+
+def plane_frame(x_cam: float, plane_x: float, look=LOOK_PX, y: float = 0.0, colour=0.5) -> FrameInputs:
+    """A pinhole frame at (x_cam, y, 0) looking along +-X at the plane x = plane_x (z-depth)."""
+    depth = torch.full((1, 1, H, W), abs(plane_x - x_cam), dtype=torch.float32)
+    rgb = torch.full((1, 3, H, W), colour, dtype=torch.float32)
+    return FrameInputs(rgb, depth, CAM, pose(x_cam, look, y), f"x{x_cam}")
+
+
+def cfg(**fusion):
+    c = tiny()
+    return dataclasses.replace(c, fusion=dataclasses.replace(c.fusion, **fusion))
+
+
+def select(frames, **fusion):
+    c = cfg(**fusion)
+    sets = [identity_gaussians(f, c) for f in frames]
+    views = [view_map(f, c.fusion) for f in frames]
+    return sets, select_best_views(sets, views, c.fusion)
+
+
+def test_the_nearer_view_keeps_the_shared_surface_and_the_farther_keeps_only_the_rest():
+    near, far = plane_frame(0.0, 2.0), plane_frame(-2.0, 2.0)
+    (n0, f0), (n1, f1) = select([near, far])
+    assert len(n1) == len(n0)  # nothing sees the near view's surface better
+    # The far view sees y, z in [-4, 4]; the near one only [-2, 2]: the far keeps the outer ring.
+    inner = (f1.means[:, 1].abs() < 1.9) & (f1.means[:, 2].abs() < 1.9)
+    assert len(f1) < len(f0) and not bool(inner.any())
+    assert bool(((f1.means[:, 1].abs() > 2.1) | (f1.means[:, 2].abs() > 2.1)).all())
+
+
+def test_the_two_sides_of_a_thin_wall_are_both_kept():
+    # Faces 2 cm apart, seen from opposite rooms: inside the depth tolerance of each other, but each
+    # faces only its own camera.
+    front, back = plane_frame(0.0, 2.0), plane_frame(4.0, 2.02, LOOK_NX)
+    (a0, b0), (a1, b1) = select([front, back], same_surface_tolerance=0.05)
+    assert len(a1) == len(a0) and len(b1) == len(b0)
+
+
+def test_a_surface_occluded_for_the_better_view_is_kept():
+    # The near camera sees a nearer box face (x = 1), not the plane at x = 2 behind it.
+    near = plane_frame(0.0, 1.0)
+    far = plane_frame(-2.0, 2.0)
+    (_, f0), (_, f1) = select([near, far])
+    assert len(f1) == len(f0)
+
+
+def test_identical_views_saturate_one_frame_keeps_everything():
+    frames = [plane_frame(0.0, 2.0) for _ in range(4)]
+    sets, kept = select(frames)
+    assert [len(k) for k in kept] == [len(sets[0]), 0, 0, 0]
+    c = cfg()
+    scene = GaussianScene(fusion=c.fusion)
+    scene.integrate_many(kept)
+    once = GaussianScene(fusion=c.fusion)
+    once.integrate_many([sets[0]])
+    assert len(scene) == len(once)
+
+
+def test_invalid_depth_in_the_better_view_replaces_nothing():
+    near, far = plane_frame(0.0, 2.0), plane_frame(-2.0, 2.0)
+    near.depth[..., : H // 2, :] = 0.0  # the top half has no depth
+    near.depth[..., H // 2, 0] = float("nan")
+    (_, f0), (_, f1) = select([near, far])
+    # The far view keeps the upper part of the shared region (world z > 0 is the image top).
+    assert bool(((f1.means[:, 2] > 0.2) & (f1.means[:, 1].abs() < 1.5)).any())
+    assert bool(torch.isfinite(f1.means).all())
+
+
+def test_panorama_points_across_the_seam_find_their_pixel():
+    cam = EquirectCamera(16, 32)
+    # A point straight behind the camera (longitude +-pi) projects onto the seam columns.
+    pts = torch.tensor([[0.0, 0.0, -1.0], [1e-9, 0.0, -1.0], [-1e-9, 0.0, -1.0], [0.0, -1.0, 1e-12]])
+    uv, _, ok = cam.project(pts.double())
+    row, col, inside = _pixel_index(cam, uv)
+    assert bool(ok.all() and inside.all())
+    assert int(col.min()) >= 0 and int(col.max()) <= 31 and int(row.max()) <= 15
+    assert set(col[:3].tolist()) <= {0, 31}
+
+
+def reference_mask(means, intervals, normals, own, views, tolerance, step):
+    """The rule point by point, in plain Python (the readable reference of best_view_mask)."""
+    keep = []
+    for p, q, nrm in zip(
+        means.double().tolist(), intervals.double().tolist(), normals.double().tolist(), strict=True
+    ):
+        facing = nrm
+        if all(v == 0 for v in facing):
+            c = views[own].centre.tolist()
+            d = [c[k] - p[k] for k in range(3)]
+            length = math.sqrt(sum(v * v for v in d)) or 1e-12
+            facing = [v / length for v in d]
+        dropped = False
+        for i, view in enumerate(views):
+            if i == own:
+                continue
+            c = view.centre.tolist()
+            off = [c[k] - p[k] for k in range(3)]
+            if sum(off[k] * facing[k] for k in range(3)) <= 0:
+                continue
+            if math.sqrt(sum(v * v for v in off)) * view.min_pixel_angle > q:
+                continue
+            R, t = view.world_to_cam[:3, :3], view.world_to_cam[:3, 3]
+            cam_pt = R @ torch.tensor(p, dtype=torch.float64) + t
+            uv, rng, ok = view.camera.project(cam_pt[None])
+            row, col, inside = _pixel_index(view.camera, uv)
+            if not (bool(ok[0]) and bool(inside[0])):
+                continue
+            d = float(view.depth[row[0], col[0]])
+            iv = float(view.interval[row[0], col[0]])
+            if not (d > 0 and abs(float(rng[0]) - d) <= tolerance * d + 2.0 * iv):
+                continue
+            mine = q
+            if step > 1.0:
+                iv, mine = (
+                    math.floor(math.log(iv) / math.log(step)),
+                    math.floor(math.log(mine) / math.log(step)),
+                )
+            if iv < mine or (iv == mine and i < own):
+                dropped = True
+                break
+        keep.append(not dropped)
+    return torch.tensor(keep)
+
+
+@pytest.mark.parametrize("step", [1.0, 1.5])
+def test_vectorised_rule_matches_the_reference(step):
+    g = torch.Generator().manual_seed(0)
+    frames = []
+    for k in range(4):
+        f = plane_frame(-0.5 * k, 2.0, y=0.3 * k)
+        f.depth += 0.05 * torch.rand(f.depth.shape, generator=g)  # a bumpy surface, noisy normals
+        frames.append(f)
+    frames.append(plane_frame(4.0, 2.01, LOOK_NX))
+    c = cfg(interval_step=step)
+    views = [view_map(f, c.fusion) for f in frames]
+    for own, f in enumerate(frames):
+        gs = identity_gaussians(f, c)
+        iv, nrm = own_geometry(gs.means, views[own])
+        fast = best_view_mask(gs.means, iv, nrm, own, views, c.fusion.same_surface_tolerance, step)
+        slow = reference_mask(gs.means, iv, nrm, own, views, c.fusion.same_surface_tolerance, step)
+        assert torch.equal(fast, slow)
+
+
+def test_keep_best_edge_cases():
+    c = cfg()
+    f = plane_frame(0.0, 2.0)
+    g = identity_gaussians(f, c)
+    v = view_map(f, c.fusion)
+    assert len(keep_best(g, 0, [v], c.fusion)) == len(g)  # one view: nothing to compare with
+    empty = g.index(torch.zeros(len(g), dtype=torch.bool))
+    assert len(keep_best(empty, 0, [v, v], c.fusion)) == 0
+    with pytest.raises(ValueError, match="2 Gaussian sets but 1 views"):
+        select_best_views([g, g], [v], c.fusion)
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("views", "some", "fusion.views"),
+        ("same_surface_tolerance", 0.0, "same_surface_tolerance"),
+        ("grazing_cos", 0.0, "grazing_cos"),
+        ("interval_step", 0.5, "interval_step"),
+    ],
+)
+def test_bad_best_view_config_is_refused(field, value, message):
+    with pytest.raises(ConfigError, match=message):
+        cfg(**{field: value}).validate()
+
+
+def test_points_another_view_saw_through_are_carved_and_silhouettes_are_not():
+    c = cfg(carve_views=1)
+    wall = plane_frame(0.0, 3.0)
+    views = [view_map(wall, c.fusion), view_map(plane_frame(-1.0, 3.0), c.fusion)]
+    # Frame 1's points: a floater 1 m in front of the wall on frame 0's central ray, a point on the
+    # wall, and one behind it (occluded for frame 0: kept).
+    pts = torch.tensor([[2.0, 0.01, 0.01], [3.0, 0.01, 0.01], [3.5, 0.01, 0.01]], dtype=torch.float64)
+    iv = torch.full((3,), 0.01, dtype=torch.float64)
+    normals = torch.tensor([[-1.0, 0.0, 0.0]] * 3, dtype=torch.float64)
+    keep = best_view_mask(pts, iv, normals, 1, views, c.fusion.same_surface_tolerance, 1.0, carve_views=1)
+    assert keep.tolist() == [False, True, True]
+    assert best_view_mask(pts, iv, normals, 1, views, 0.02, 1.0, carve_views=0).tolist() == [True, True, True]
+    # A view with a hole next to the ray does not vouch for the space there (silhouette rule).
+    holed = plane_frame(0.0, 3.0)
+    holed.depth[..., H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1] = 0.0
+    views[0] = view_map(holed, c.fusion)
+    assert best_view_mask(pts, iv, normals, 1, views, 0.02, 1.0, carve_views=1)[0]
