@@ -91,6 +91,7 @@ def test_render_default_for_scenes_without_a_recorded_source_camera(built, tmp_p
     shutil.copytree(scene, old)
     manifest = json.loads((old / "manifest.json").read_text())
     del manifest["source"]["camera"], manifest["encoding"]
+    manifest["source"]["capture"] = str(capture.resolve())  # such scenes stored absolute paths
     (old / "manifest.json").write_text(json.dumps(manifest))
     code, out = _invoke("render", old, "--frame", 0, "--out", tmp_path / "a.png")
     assert code == 0, out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -246,3 +247,27 @@ def test_scene_condition_for_the_renderer():
     assert torch.all(scene_condition(_scene(feat=0), cam, torch.eye(4), backend="torch")[:, FEATURES] == 0)
     with pytest.raises(SceneError, match="feature channels"):
         scene_condition(_scene(feat=3), cam, torch.eye(4), backend="torch")
+
+
+def test_scene_manifest_paths_are_relative_and_the_scene_moves(procedural_capture, tmp_path):
+    """The manifest names its source capture relative to itself (issue 22: relocatable outputs);
+    in memory, and after the folder and its capture move together, it resolves to the capture."""
+    import shutil
+
+    root = tmp_path / "work"
+    capture = root / "captures" / "scene_000"
+    shutil.copytree(procedural_capture, capture)
+    scene = build_scene(capture, tiny(), frames=[0, 1])
+    out = scene.save(root / "scenes" / "scene_000")
+    stored = json.loads((out / "manifest.json").read_text())["source"]["capture"]
+    assert stored == "../../captures/scene_000"
+    moved = tmp_path / "elsewhere"
+    shutil.move(str(root), str(moved))
+    loaded = GaussianScene.load(moved / "scenes" / "scene_000")
+    assert Path(loaded.info["source"]["capture"]).resolve() == (moved / "captures" / "scene_000").resolve()
+    # A manifest written before paths were relative (absolute) still reads as it is.
+    man = moved / "scenes" / "scene_000" / "manifest.json"
+    old = json.loads(man.read_text())
+    old["source"]["capture"] = "/somewhere/absolute"
+    man.write_text(json.dumps(old))
+    assert GaussianScene.load(man.parent).info["source"]["capture"] == "/somewhere/absolute"

@@ -27,6 +27,7 @@ from image2sim.simulator.gaussians.fusion import fuse, level_histogram, prune
 from image2sim.simulator.gaussians.primitives import GaussianSet
 from image2sim.simulator.geometry.cameras import Camera, camera_from_dict
 from image2sim.simulator.io.atomic import atomic_dir
+from image2sim.simulator.io.paths import relative_to_file, resolve_from_file
 
 __all__ = ["GaussianScene", "SceneError", "SCENE_FORMAT", "SH_C0"]
 
@@ -167,7 +168,8 @@ class GaussianScene:
         with atomic_dir(folder) as tmp:
             tensors = {k: getattr(self.gaussians, k).contiguous() for k in _TENSORS}
             save_file(tensors, str(tmp / "gaussians.safetensors"), metadata={"format": SCENE_FORMAT})
-            (tmp / "manifest.json").write_text(json.dumps(self.manifest(), indent=2))
+            manifest = _relocatable(self.manifest(), folder / "manifest.json", relative_to_file)
+            (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
             for child in tmp.iterdir():  # safetensors creates its file 0600; scenes are shared artifacts
                 child.chmod(0o644)
             tmp.chmod(0o755)
@@ -207,6 +209,7 @@ class GaussianScene:
             fusion = config_from_dict(FusionConfig, manifest.get("fusion", {}), "fusion")
         except ConfigError as exc:
             raise SceneError(f"{man_path}: {exc}") from None
+        manifest = _relocatable(manifest, man_path, lambda v, holder: str(resolve_from_file(v, holder)))
         info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "encoding", "config")}
         return cls(fusion=fusion, gaussians=gaussians, frames=list(manifest.get("frames", [])), info=info)
 
@@ -237,6 +240,20 @@ class GaussianScene:
             gaussians=read_gaussian_ply(path),
             info={"source": {"ply": str(path)}},
         )
+
+
+_STORED_PATHS = (("source", "capture"), ("encoder", "checkpoint"))
+"""Manifest paths stored relative to the manifest (relocatable outputs) and absolute in memory."""
+
+
+def _relocatable(manifest: dict, holder: Path, convert) -> dict:
+    """``manifest`` with the :data:`_STORED_PATHS` converted by ``convert(value, holder)``."""
+    out = dict(manifest)
+    for section, key in _STORED_PATHS:
+        part = out.get(section)
+        if isinstance(part, dict) and isinstance(part.get(key), str) and part[key]:
+            out[section] = {**part, key: convert(part[key], holder)}
+    return out
 
 
 def config_to_dict_fusion(cfg: FusionConfig) -> dict:
