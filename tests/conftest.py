@@ -54,3 +54,21 @@ def tiny_dinov3():
         return transformers.DINOv3ViTModel(config)
 
     return make
+
+
+@pytest.fixture
+def run_main(capsys):
+    """``run_main(args) -> (exit status, stdout + stderr)``: ``image2sim ARGS`` through ``main``, the
+    CLI's error boundary (one line and a status per error class, as a user sees it)."""
+    from image2sim.simulator.cli import main
+
+    def run(args: list[str]) -> tuple[int, str]:
+        try:
+            main(args)
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        captured = capsys.readouterr()
+        return code, captured.out + captured.err
+
+    return run

@@ -237,7 +237,8 @@ def _r2r_with(tmp_path: Path, episodes: list[Any], gt: Any = None) -> Path:
     ("mutate", "message"),
     [
         (lambda e: e.pop("goals"), r"episode 5: field 'goals': missing"),
-        (lambda e: e.update(goals=[]), r"episode 5: field 'goals': empty"),
+        (lambda e: e.update(goals={"position": [0, 0, 0]}), r"episode 5: field 'goals': expected a list"),
+        (lambda e: e.update(goals=[], reference_path=[[0, "x", 0]]), r"field 'reference_path\[0\]'"),
         (lambda e: e.update(start_position="here"), r"episode 5: field 'start_position': expected list"),
         (lambda e: e.update(start_position=[1, 2]), r"episode 5: field 'start_position': expected a list"),
         (lambda e: e.update(start_rotation=[0, 0, 0, 2]), r"episode 5: field 'start_rotation': .*norm"),
@@ -264,6 +265,27 @@ def test_malformed_episode_names_file_episode_and_field(tmp_path: Path, mutate: 
     root = _r2r_with(tmp_path, [ep])
     with pytest.raises(EpisodeFileError, match=rf"s.json.gz: .*{message}"):
         load_r2r_ce(root, "s")
+
+
+def test_test_splits_without_goals_load_with_the_goal_unknown(tmp_path: Path) -> None:
+    """R2R-CE / RxR-CE test splits: ``"goals": []``, no reference path, no gt file (issue 22)."""
+    root = tmp_path / "r2r"
+    test = [_r2r_episode(1, goals=[]), _r2r_episode(2, goals=None, reference_path=None)]
+    del test[0]["reference_path"], test[0]["info"]
+    _write(root / "test" / "test.json.gz", {"episodes": test, "instruction_vocab": VOCAB})
+    ds = load_r2r_ce(root, "test")
+    assert [e.has_goal for e in ds.episodes] == [False, False]
+    for e in ds.episodes:
+        assert e.goal_position is None and e.goal_radius is None and e.reference_path.shape == (0, 3)
+        assert e.ndtw_reference is None and e.metric_spec().reference_path is None
+    np.testing.assert_allclose(ds.episodes[0].start_position, [1.0, 2.0, 0.17])
+    assert ds.by_id["2"].geodesic_distance == 6.4
+    rxr = tmp_path / "rxr"
+    ep = _r2r_episode(3, goals=[], reference_path=[])
+    ep["instruction"] = {"instruction_text": "Go.", "instruction_id": 77, "language": "en-US"}
+    _write(rxr / "test_challenge" / "test_challenge_guide.json.gz", {"episodes": [ep]})
+    (e,) = load_rxr_ce(rxr, "test_challenge").episodes
+    assert not e.has_goal and e.instruction.instruction_id == "77" and e.role == "guide"
 
 
 def test_malformed_files(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 
@@ -94,3 +95,122 @@ def test_eval_nav_writes_an_r2r_ce_submission_of_its_run(tmp_path):
         assert steps[-1]["stop"] and not any(s["stop"] for s in steps[:-1])  # the oracle stops
     res = CliRunner().invoke(build_app(), [*args[:-2], "--agent", "random", "--submission", str(sub)])
     assert res.exit_code == 2 and "submission" in res.output
+
+
+# ----------------------------------------------------------------------- test splits without goals
+
+
+def _check_r2r_ce_submission(pred, episodes) -> None:
+    """The R2R-CE EvalAI predictions format (what VLN-CE's ``inference.py`` writes): one entry per
+    episode id of the split, each a non-empty list of ``{"position": [x, y, z], "heading": float,
+    "stop": bool}`` in the Habitat frame, starting at the episode's start, at most one stop (last)."""
+    assert isinstance(pred, dict) and sorted(pred) == sorted(str(e["episode_id"]) for e in episodes)
+    for ep in episodes:
+        steps = pred[str(ep["episode_id"])]
+        assert isinstance(steps, list) and steps
+        for s in steps:
+            assert set(s) == {"position", "heading", "stop"} and isinstance(s["stop"], bool)
+            assert len(s["position"]) == 3 and all(isinstance(v, float) for v in s["position"])
+            assert isinstance(s["heading"], float) and -math.pi <= s["heading"] <= math.pi
+        assert not any(s["stop"] for s in steps[:-1])
+        np.testing.assert_allclose(steps[0]["position"], ep["start_position"], atol=1e-4)
+
+
+def _goalless_test_split(tmp_path, n: int = 3):
+    """A procedural capture and an R2R-CE-style ``test`` split on it without goals, reference paths or
+    gt file, plus the same episodes as an RxR-CE ``test_challenge_guide`` file with instruction ids."""
+    from image2sim.dataengine.episodes import episode_record, vocab_block
+    from image2sim.dataengine.procedural import preset, synthesize
+    from image2sim.eval.protocols import get_protocol
+    from image2sim.eval.runner import load_exact_backend, sample_point_goal_episodes
+
+    synthesize(preset("tiny"), tmp_path / "caps", scenes=1, seed=0, progress=False)
+    (scene,) = sorted(p for p in (tmp_path / "caps").iterdir() if p.is_dir())
+    sim = load_exact_backend(scene, get_protocol("image2sim")).sim
+    episodes = []
+    for i, e in enumerate(sample_point_goal_episodes(sim, n, seed=1, min_distance=0.5, scene_id=scene.name)):
+        rec = episode_record(
+            str(i),
+            scene.name,
+            e.start_position,
+            e.start_heading,
+            e.goal_position,
+            3.0,
+            e.reference_path,
+            "Walk ahead and stop.",
+            1.0,
+        )
+        rec.update(
+            goals=[], instruction={"instruction_text": "Walk ahead and stop.", "instruction_tokens": [2, 3]}
+        )
+        del rec["reference_path"], rec["info"]
+        episodes.append(rec)
+    root = tmp_path / "data"
+    for name, doc in {
+        "test/test.json.gz": {
+            "episodes": episodes,
+            "instruction_vocab": vocab_block(["<PAD>", "<UNK>", "walk", "ahead"]),
+        },
+        "test_challenge/test_challenge_guide.json.gz": {
+            "episodes": [
+                {**e, "instruction": {**e["instruction"], "instruction_id": 100 - i, "language": "en-US"}}
+                for i, e in enumerate(episodes)
+            ]
+        },
+    }.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_bytes(gzip.compress(json.dumps(doc).encode()))
+    return scene.parent, root, episodes
+
+
+def test_eval_nav_submits_a_test_split_without_goals_and_refuses_the_oracle(tmp_path, run_main):
+    from image2sim.eval.results import read_metrics_file
+    from image2sim.simulator.cli import build_app
+    from typer.testing import CliRunner
+
+    scenes, root, episodes = _goalless_test_split(tmp_path)
+    base = ["eval", "nav", "--backend", "exact", "--scenes", str(scenes), "--dataset-root", str(root)]
+    sub, metrics = tmp_path / "predictions.json", tmp_path / "nav.json"
+    args = [*base, "--dataset", "r2r-ce", "--split", "test", "--agent", "forward", "--forward-steps", "3"]
+    args += ["--out", str(tmp_path / "run"), "--metrics", str(metrics), "--submission", str(sub)]
+    res = CliRunner().invoke(build_app(), args)
+    assert res.exit_code == 0, res.output
+    pred = json.loads(sub.read_text())
+    _check_r2r_ce_submission(pred, episodes)
+    assert all(len(steps) == 5 and steps[-1]["stop"] for steps in pred.values())  # start, 3 forward, STOP
+    text = metrics.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    row = read_metrics_file(metrics)["agents"]["forward"]
+    for key in ("sr", "spl", "ne", "osr", "ndtw", "sdtw", "sr_ci", "spl_ci", "ne_approximate"):
+        assert row[key] is None, key  # n/a, never 0
+    assert row["steps"] == 4.0 and row["path_length"] > 0 and row["n_episodes"] == len(episodes)
+    assert "n/a" in res.output and "no goal" in res.output
+
+    rxr = tmp_path / "rxr.jsonl"
+    args = [*base, "--dataset", "rxr-ce", "--split", "test_challenge", "--agent", "random"]
+    args += ["--out", str(tmp_path / "run_rxr"), "--metrics", str(tmp_path / "rxr.json")]
+    res = CliRunner().invoke(build_app(), [*args, "--submission", str(rxr), "--submission-format", "rxr-ce"])
+    assert res.exit_code == 0, res.output
+    lines = [json.loads(line) for line in rxr.read_text().splitlines()]
+    assert [d["instruction_id"] for d in lines] == sorted(100 - i for i in range(len(episodes)))
+    for d in lines:
+        assert set(d) == {"instruction_id", "path"} and all(len(p) == 3 for p in d["path"])
+
+    oracle = tmp_path / "oracle"
+    args = [
+        *base,
+        "--dataset",
+        "r2r-ce",
+        "--split",
+        "test",
+        "--agent",
+        "oracle",
+        "--out",
+        str(oracle / "run"),
+    ]
+    args += ["--metrics", str(oracle / "nav.json"), "--submission", str(oracle / "p.json")]
+    code, output = run_main(args)  # through the CLI's error boundary: one line, status 2
+    assert code == 2, output
+    assert "'oracle'" in output and "without a goal" in output and "shortest path" in output
+    assert "Traceback" not in output
+    assert not oracle.exists()  # refused before anything is written

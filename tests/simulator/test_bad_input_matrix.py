@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from image2sim.simulator.cli import main
 from PIL import Image
 
 FRAME = "00001"
@@ -134,30 +133,20 @@ def good_capture(tmp_path_factory):
     return synthesize(preset("tiny"), tmp_path_factory.mktemp("good"), scenes=1, seed=0, progress=False)[0]
 
 
-def _run(args: list[str], capsys) -> tuple[int, str]:
-    try:
-        main(args)
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    captured = capsys.readouterr()
-    return code, captured.out + captured.err
-
-
 @pytest.mark.parametrize("command", sorted(COMMANDS))
-def test_the_good_capture_passes(good_capture, tmp_path, command, capsys):
-    code, output = _run(COMMANDS[command](good_capture, tmp_path / "out"), capsys)
+def test_the_good_capture_passes(good_capture, tmp_path, command, run_main):
+    code, output = run_main(COMMANDS[command](good_capture, tmp_path / "out"))
     assert code == 0, output
 
 
 @pytest.mark.parametrize("defect", sorted(DEFECTS))
 @pytest.mark.parametrize("command", sorted(COMMANDS))
-def test_a_bad_capture_is_one_clear_error(good_capture, tmp_path, command, defect, capsys):
+def test_a_bad_capture_is_one_clear_error(good_capture, tmp_path, command, defect, run_main):
     cap = tmp_path / "cap"
     shutil.copytree(good_capture, cap)
     victim = DEFECTS[defect](cap)
     out = tmp_path / "out"
-    code, output = _run(COMMANDS[command](cap, out), capsys)
+    code, output = run_main(COMMANDS[command](cap, out))
     assert code == 2, f"{command} on {defect}: exit {code}\n{output[-3000:]}"
     assert "Traceback" not in output, output[-3000:]
     named = {victim.name, FRAME, "manifest"} if defect != "no_frames" else {"frame", "no "}
@@ -211,10 +200,10 @@ RUN_INPUTS = (
 
 
 @pytest.mark.parametrize("kind", RUN_INPUTS)
-def test_sim_train_refuses_a_bad_config_or_checkpoint_before_writing(tmp_path, kind, capsys):
+def test_sim_train_refuses_a_bad_config_or_checkpoint_before_writing(tmp_path, kind, run_main):
     path, expected = _write_input(kind, tmp_path)
     out = tmp_path / "run"
     flag = "--config" if kind.startswith("config") else "--resume"
-    code, output = _run(["sim", "train", flag, str(path), "--out", str(out), "--max-steps", "1"], capsys)
+    code, output = run_main(["sim", "train", flag, str(path), "--out", str(out), "--max-steps", "1"])
     assert code == 2 and expected in output, output[-3000:]
     assert "Traceback" not in output and not out.exists()

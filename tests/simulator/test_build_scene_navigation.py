@@ -5,42 +5,30 @@ from __future__ import annotations
 
 import json
 
-from image2sim.simulator.cli import main
 
-
-def _run(args, capsys) -> tuple[int, str]:
-    try:
-        main(args)
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out = capsys.readouterr()
-    return code, out.out + out.err
-
-
-def test_build_scene_output_runs_in_eval_nav(tmp_path, capsys):
+def test_build_scene_output_runs_in_eval_nav(tmp_path, run_main):
     from image2sim.dataengine.procedural import preset, synthesize
 
     capture = synthesize(preset("tiny"), tmp_path / "caps", scenes=1, seed=2, progress=False)[0]
     scene = tmp_path / "scenes" / "house"
-    code, output = _run(["sim", "build-scene", str(capture), "--out", str(scene), "--no-ply"], capsys)
+    code, output = run_main(["sim", "build-scene", str(capture), "--out", str(scene), "--no-ply"])
     assert code == 0, output
     assert (scene / "navmap.npz").is_file() and (scene / "navgraph.npz").is_file()
     assert "graph nodes" in output
     metrics = tmp_path / "nav.json"
     args = ["eval", "nav", "--scenes", str(scene.parent), "--point-goal", "3", "--min-distance", "0.5"]
     args += ["--agent", "random", "--out", str(tmp_path / "run"), "--metrics", str(metrics)]
-    code, output = _run(args, capsys)
+    code, output = run_main(args)
     assert code == 0, output[-3000:]
     doc = json.loads(metrics.read_text())
     assert "Traceback" not in output and doc  # the headline record exists
 
 
-def test_no_navigation_leaves_the_map_out(tmp_path, capsys):
+def test_no_navigation_leaves_the_map_out(tmp_path, run_main):
     from image2sim.dataengine.procedural import preset, synthesize
 
     capture = synthesize(preset("tiny"), tmp_path / "caps", scenes=1, seed=2, progress=False)[0]
     scene = tmp_path / "house"
-    code, output = _run(["sim", "build-scene", str(capture), "--out", str(scene), "--no-navigation"], capsys)
+    code, output = run_main(["sim", "build-scene", str(capture), "--out", str(scene), "--no-navigation"])
     assert code == 0, output
     assert (scene / "gaussians.safetensors").is_file() and not (scene / "navmap.npz").exists()

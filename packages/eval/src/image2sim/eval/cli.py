@@ -298,6 +298,12 @@ def nav_cmd(
         write_nav_report(out / name / "report", name, report, {"source": str(out / name)})
         rows.append((name, report))
     typer.echo(nav_table_markdown(rows))
+    goalless = sum(not e.has_goal for e in eps)
+    if goalless:
+        typer.echo(
+            f"{goalless} of {len(eps)} episodes have no goal (a test split): NE, OSR, SR, SPL and sDTW "
+            "are n/a there (null in the metrics file); the leaderboard scores the submission"
+        )
     typer.echo(f"updated {metrics}")
     if submission is not None:
         from image2sim.eval.submission import read_run_trajectories, write_submission

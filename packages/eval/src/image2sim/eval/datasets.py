@@ -14,6 +14,10 @@ everything returned here is in our world (Z-up, see :mod:`image2sim.simulator.co
 (written by the data engine) may state ``"frame": "image2sim-z-up"`` and
 ``"quaternion_order": "wxyz"`` at the top level; a file without these keys is read as Habitat's.
 
+Test splits list ``"goals": []`` (or ``null``) and have no ``_gt`` file: their episodes load with
+``goal_position=None`` (:attr:`NavEpisode.has_goal` is False) and an empty reference path, and the
+runner reports the goal's metrics as n/a (the leaderboard scores the submission).
+
 Malformed files fail with :class:`EpisodeFileError` naming the file, the episode id and the field.
 """
 
@@ -99,14 +103,15 @@ class NavEpisode:
     """(4,) start rotation (w, x, y, z) in our world."""
     start_heading: float
     """Start heading in radians (yaw about +Z, 0 = +X)."""
-    goal_position: np.ndarray
-    """(3,) position of the first goal, world metres."""
+    goal_position: np.ndarray | None
+    """(3,) position of the first goal, world metres; ``None`` when the goal is unknown (the test
+    splits of R2R-CE / RxR-CE list ``"goals": []``: the leaderboard scores them)."""
     goal_radius: float | None
     """Goal radius from the file (VLN-CE writes 3.0), if given. Success uses the protocol's radius."""
     geodesic_distance: float | None
     """``info.geodesic_distance`` (start to goal) if given."""
     reference_path: np.ndarray
-    """(K, 3) sparse reference path (the R2R viewpoints), world metres."""
+    """(K, 3) sparse reference path (the R2R viewpoints), world metres; (0, 3) on a test split."""
     instruction: Instruction
     """The instruction."""
     trajectory_id: str | None = None
@@ -124,9 +129,17 @@ class NavEpisode:
         return Path(self.scene_id).stem
 
     @property
-    def ndtw_reference(self) -> np.ndarray:
-        """The path nDTW should use: the dense ground truth if loaded, else the reference path."""
-        return self.gt_locations if self.gt_locations is not None else self.reference_path
+    def has_goal(self) -> bool:
+        """Whether the goal is known (False on test splits without goals)."""
+        return self.goal_position is not None
+
+    @property
+    def ndtw_reference(self) -> np.ndarray | None:
+        """The path nDTW should use: the dense ground truth if loaded, else the reference path;
+        ``None`` when there is neither (a test split)."""
+        if self.gt_locations is not None:
+            return self.gt_locations
+        return self.reference_path if len(self.reference_path) else None
 
     def metric_spec(self) -> EpisodeSpec:
         """The :class:`~image2sim.eval.metrics.nav.EpisodeSpec` the navigation measures need."""
@@ -275,6 +288,30 @@ def _parse_instruction(raw: Any, ctx: _Ctx) -> Instruction:
     )
 
 
+def _parse_goal(raw: Mapping[str, Any], ctx: _Ctx) -> tuple[np.ndarray | None, float | None]:
+    """The first goal's position and radius; ``(None, None)`` for ``"goals": []`` or ``null`` (a test
+    split: the goal is unknown). A record without the ``goals`` key is an error."""
+    if "goals" not in raw:
+        raise ctx.fail("goals", 'missing (a test split without goals lists "goals": [])')
+    goals = raw["goals"]
+    if goals is None or goals == []:
+        return None, None
+    if not isinstance(goals, list):
+        raise ctx.fail("goals", f"expected a list, got {type(goals).__name__}")
+    goal = ctx.vec(ctx.get(goals[0], "position", list, "goals[0]."), "goals[0].position", 3)
+    radius = goals[0].get("radius")
+    if radius is not None and not (_is_num(radius) and radius >= 0):
+        raise ctx.fail("goals[0].radius", f"expected a non-negative number, got {radius!r}")
+    return goal, None if radius is None else float(radius)
+
+
+def _parse_reference_path(raw: Mapping[str, Any], ctx: _Ctx, has_goal: bool) -> np.ndarray:
+    """The reference path; an episode without a goal may have none (absent, null or []: (0, 3))."""
+    if not has_goal and raw.get("reference_path") in (None, []):
+        return np.zeros((0, 3), dtype=np.float64)
+    return ctx.path_points(ctx.get(raw, "reference_path", list), "reference_path")
+
+
 def _parse_episode(raw: Any, path: Path, frame: Frame, order: str, role: str | None) -> NavEpisode:
     ctx = _Ctx(path)
     if not isinstance(raw, Mapping):
@@ -295,18 +332,12 @@ def _parse_episode(raw: Any, path: Path, frame: Frame, order: str, role: str | N
             heading = world_heading(q_world)
     except ValueError as exc:
         raise ctx.fail("start_rotation", str(exc)) from None
-    goals = ctx.get(raw, "goals", list)
-    if not goals:
-        raise ctx.fail("goals", "empty; at least one goal is needed")
-    goal = ctx.vec(ctx.get(goals[0], "position", list, "goals[0]."), "goals[0].position", 3)
-    radius = goals[0].get("radius")
-    if radius is not None and not (_is_num(radius) and radius >= 0):
-        raise ctx.fail("goals[0].radius", f"expected a non-negative number, got {radius!r}")
+    goal, radius = _parse_goal(raw, ctx)
     info = raw.get("info") or {}
     geo = info.get("geodesic_distance") if isinstance(info, Mapping) else None
     if geo is not None and not (_is_num(geo) and math.isfinite(geo) and geo >= 0):
         raise ctx.fail("info.geodesic_distance", f"expected a finite non-negative number, got {geo!r}")
-    ref = ctx.path_points(ctx.get(raw, "reference_path", list), "reference_path")
+    ref = _parse_reference_path(raw, ctx, goal is not None)
     instruction = _parse_instruction(ctx.get(raw, "instruction", dict), ctx)
     traj = raw.get("trajectory_id")
     return NavEpisode(
@@ -315,8 +346,8 @@ def _parse_episode(raw: Any, path: Path, frame: Frame, order: str, role: str | N
         start_position=_to_world_points(start, frame),
         start_rotation=q_world,
         start_heading=heading,
-        goal_position=_to_world_points(goal, frame),
-        goal_radius=None if radius is None else float(radius),
+        goal_position=None if goal is None else _to_world_points(goal, frame),
+        goal_radius=radius,
         geodesic_distance=None if geo is None else float(geo),
         reference_path=_to_world_points(ref, frame),
         instruction=instruction,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 from typing import Protocol as TypingProtocol
 
 import numpy as np
@@ -31,6 +31,7 @@ __all__ = [
     "OracleAgent",
     "RandomAgent",
     "make_agent",
+    "needs_goal",
 ]
 
 
@@ -101,10 +102,16 @@ class OracleAgent:
     follower: dict = field(default_factory=dict)
     """:class:`FollowerConfig` overrides (smoothing_window, lookahead, stop_radius, ...)."""
     needs_images: bool = False
+    goal_needed_for: ClassVar[str] = "it follows the planner's shortest path to the episode's goal"
+    """Why the agent needs the goal: it cannot run on a split without goals (:func:`needs_goal`)."""
 
     def reset(self, episode: NavEpisode, backend: Any, seed: int) -> None:
         from image2sim.simulator.navigation import FollowerConfig, OracleFollower
 
+        if not episode.has_goal:
+            raise RunnerError(
+                f"episode {episode.episode_id}: the oracle agent needs the goal ({self.goal_needed_for})"
+            )
         if not isinstance(backend, NeuralSimBackend):
             raise RunnerError("the oracle agent needs the NeuralSimulator backend (planner access)")
         self.backend = backend
@@ -248,6 +255,12 @@ def _forward_turn_agent(**options: Any) -> Any:
 
 
 AGENTS["forward_turn"] = _forward_turn_agent
+
+
+def needs_goal(agent: str) -> str | None:
+    """Why the registered agent needs each episode's goal (its ``goal_needed_for``), or None when it
+    runs on splits without goals (test splits: random, forward, image2nav...)."""
+    return getattr(AGENTS.get(agent), "goal_needed_for", None)
 
 
 def make_agent(spec: AgentSpec) -> Any:

@@ -67,8 +67,9 @@ class StepObservation:
     """(3,) feet position, world metres (Z-up)."""
     heading: float
     """Heading in radians (map frame yaw; equal to world yaw without gravity correction)."""
-    distance_to_goal: float
-    """Geodesic distance to the goal in metres (inf when off the graph / unreachable)."""
+    distance_to_goal: float | None
+    """Geodesic distance to the goal in metres (inf when off the graph / unreachable; None when the
+    episode has no goal, as on a test split)."""
     distance_reason: str = ""
     """Why ``distance_to_goal`` is inf or approximate ("" when it is an exact graph distance)."""
     distance_approximate: bool = False
@@ -210,7 +211,9 @@ class NeuralSimBackend:
             if self._crop is not None:
                 rgb = rgb[self._crop[0], self._crop[1]]
         # Turns do not move the agent: reuse the last distance instead of another graph snap.
-        if self._last_pos is None or not np.array_equal(pos_map, self._last_pos):
+        if self.field is None:  # no goal (test split): there is no distance to report
+            self._last_dist, self._last_reason = None, "the episode has no goal"
+        elif self._last_pos is None or not np.array_equal(pos_map, self._last_pos):
             self._last_pos = np.array(pos_map, dtype=np.float64)
             self._last_dist, self._last_reason = self.field.query(pos_map)
             self._last_approx = False
@@ -231,10 +234,11 @@ class NeuralSimBackend:
 
     def reset(self, episode: NavEpisode, observe: bool = False) -> StepObservation:
         start = np.asarray(self.sim.navmap.to_map(episode.start_position), dtype=np.float64).reshape(3)
-        goal = np.asarray(self.sim.navmap.to_map(episode.goal_position), dtype=np.float64).reshape(3)
-        self.goal_map = goal
-        self.field = self.sim.planner.distance_field(goal)
-        self.sim.set_goal(np.asarray(episode.goal_position, dtype=np.float64).reshape(3))
+        self.goal_map, self.field = None, None
+        if episode.has_goal:
+            self.goal_map = np.asarray(self.sim.navmap.to_map(episode.goal_position), np.float64).reshape(3)
+            self.field = self.sim.planner.distance_field(self.goal_map)
+        self.sim.set_goal(None if not episode.has_goal else np.asarray(episode.goal_position, np.float64))
         self._last_pos, self._last_dist, self._last_reason, self._last_approx = None, float("inf"), "", False
         _, info = self.sim.reset(
             start[None], np.array([self._heading_to_map(episode.start_heading)]), observe=False
@@ -301,7 +305,7 @@ class HabitatBackend:
             raise RunnerError(f"{scene}: habitat-sim loaded no navmesh (geodesic distances need one)")
         self.agent = self.sim.initialize_agent(0)
         self.goal_habitat: np.ndarray | None = None
-        self._last: tuple[np.ndarray, float, str] | None = None
+        self._last: tuple[np.ndarray, float | None, str] | None = None
 
     @staticmethod
     def configuration(hs: Any, scene: str | Path, protocol: Protocol, gpu_device_id: int = 0) -> Any:
@@ -350,7 +354,9 @@ class HabitatBackend:
     def _obs(self, observations: Mapping[str, Any] | None, collided: bool) -> StepObservation:
         state = self.agent.get_state()
         pos_h = np.asarray(state.position, dtype=np.float64).reshape(3)
-        if self._last is None or not np.array_equal(pos_h, self._last[0]):
+        if self.goal_habitat is None:  # no goal (test split)
+            self._last = (pos_h, None, "the episode has no goal")
+        elif self._last is None or not np.array_equal(pos_h, self._last[0]):
             self._last = (pos_h, *self.geodesic_distance(pos_h))
         rgb = None
         if observations is not None:
@@ -365,7 +371,7 @@ class HabitatBackend:
         )
 
     def reset(self, episode: NavEpisode, observe: bool = False) -> StepObservation:
-        self.goal_habitat = world_to_habitat(episode.goal_position)
+        self.goal_habitat = world_to_habitat(episode.goal_position) if episode.has_goal else None
         state = self.hs.AgentState()
         state.position = world_to_habitat(episode.start_position)
         # From the heading (the start_rotation of Habitat-file and of our own episodes differ in

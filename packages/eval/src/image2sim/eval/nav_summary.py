@@ -64,6 +64,7 @@ def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str,
 
     ``sr``, ``spl``, ``ne``, ``osr``, ``ndtw`` (None when no episode has a reference path), ``sdtw``,
     ``path_length``, ``steps``, ``n_episodes``, ``sr_ci`` (Wilson 95 %) and ``spl_ci`` (bootstrap 95 %).
+    On episodes without a goal (a test split) every goal metric and interval is None (n/a), never 0.
     """
     report = aggregate(results)
     m = report.metrics
@@ -72,8 +73,9 @@ def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str,
         s = m.get(k)
         return None if s is None or s.mean is None else float(s.mean)
 
-    sr_vals = [float(r.metrics["success"]) for r in results]
-    spl_vals = [float(r.metrics["spl"]) for r in results]
+    # Episodes without a goal (test splits) have no success or SPL: their intervals are n/a (None).
+    sr_vals = [float(r.metrics["success"]) for r in results if r.metrics.get("success") is not None]
+    spl_vals = [float(r.metrics["spl"]) for r in results if r.metrics.get("spl") is not None]
     return {
         "sr": mean("success"),
         "spl": mean("spl"),
@@ -85,8 +87,8 @@ def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str,
         "steps": mean("steps"),
         "n_episodes": report.num_episodes,
         "ne_approximate": mean("ne_approximate"),
-        "sr_ci": list(wilson_interval(sum(sr_vals), len(sr_vals))),
-        "spl_ci": list(bootstrap_ci(spl_vals, seed=ci_seed)),
+        "sr_ci": list(wilson_interval(sum(sr_vals), len(sr_vals))) if sr_vals else None,
+        "spl_ci": list(bootstrap_ci(spl_vals, seed=ci_seed)) if spl_vals else None,
         "ci_method": {"sr_ci": "wilson 95%", "spl_ci": "percentile bootstrap 95%, 2000 resamples"},
     }
 
@@ -142,6 +144,12 @@ def nav_markdown(doc: Mapping[str, Any]) -> str:
         text += (
             f"\nEpisodes ending where the navigation graph does not reach the goal ({shares}) use the "
             "planner's estimate (nearest goal-connected node + straight offset) for NE and success.\n"
+        )
+    no_goal = [n for n, a in agents.items() if a.get("sr") is None and a.get("n_episodes")]
+    if no_goal:
+        text += (
+            f"\nNE, OSR, SR and SPL are n/a for {', '.join(no_goal)}: the episodes have no goal (a test "
+            "split); the leaderboard scores the submission.\n"
         )
     if proto:
         from image2sim.eval.report import describe_protocol

@@ -33,6 +33,7 @@ import numpy as np
 from image2sim.eval.datasets import NavEpisode
 from image2sim.eval.metrics.nav import (
     DEFAULT_MEASURES,
+    GOAL_FREE_MEASURES,
     AgentState,
     AggregateReport,
     EpisodeResult,
@@ -49,6 +50,7 @@ from image2sim.eval.nav_agents import (
     OracleAgent,
     RandomAgent,
     make_agent,
+    needs_goal,
 )
 from image2sim.eval.nav_env import (
     BackendUnavailable,
@@ -96,6 +98,7 @@ __all__ = [
     "load_exact_backend",
     "make_agent",
     "nav_markdown",
+    "needs_goal",
     "nav_summary",
     "run_episode",
     "run_nav",
@@ -123,15 +126,18 @@ def run_episode(
     """Run one episode to STOP or the protocol's step limit; returns its result and the actions.
 
     ``poses``, when given, receives the agent's ``(position, heading)`` (world frame) at the start and
-    after every action, STOP included: what leaderboard submissions report per step."""
-    ms = Measurements(protocol, DEFAULT_MEASURES)
+    after every action, STOP included: what leaderboard submissions report per step.
+
+    An episode without a goal (a test split) runs the goal-free measures only; the others are n/a
+    (``None``) in its result, never 0."""
+    ms = Measurements(protocol, DEFAULT_MEASURES if episode.has_goal else GOAL_FREE_MEASURES)
     wants = (lambda: getattr(agent, "wants_image", True)) if agent.needs_images else (lambda: False)
     try:
         obs = backend.reset(episode, observe=bool(agent.needs_images))
     except ValueError as err:  # e.g. a start off the navigation map: name the episode and its scene
         raise RunnerError(f"episode {episode.episode_id} (scene {episode.scene_id}): {err}") from err
     _require_finite_distance(obs, episode, "starts")
-    if obs.distance_approximate:
+    if obs.distance_approximate and episode.has_goal:
         raise RunnerError(
             f"episode {episode.episode_id}: the start is not connected to the goal on the navigation graph "
             f"({obs.distance_reason}); fix the episode or the scene's navigation graph"
@@ -159,15 +165,18 @@ def run_episode(
         record(obs)
     _require_finite_distance(obs, episode, "ends")
     values = dict(ms.values())
+    if not episode.has_goal:  # the goal's measures are n/a (None), keeping every episode's keys
+        values = {m.uuid: values.get(m.uuid) for m in DEFAULT_MEASURES}
     # Recorded per episode (0/1) so the share of estimated final distances is reported, never hidden.
-    values["ne_approximate"] = float(obs.distance_approximate)
+    values["ne_approximate"] = float(obs.distance_approximate) if episode.has_goal else None
     return EpisodeResult(episode.episode_id, values, protocol), actions
 
 
 def _require_finite_distance(obs: StepObservation, episode: NavEpisode, when: str) -> None:
     """Raise :class:`RunnerError` naming the episode when the goal distance at its start / end is
-    undefined (NE would be infinite; the episode is never dropped silently from the averages)."""
-    if not math.isfinite(obs.distance_to_goal):
+    undefined (NE would be infinite; the episode is never dropped silently from the averages).
+    Episodes without a goal have no distance to check."""
+    if episode.has_goal and not math.isfinite(obs.distance_to_goal):
         raise RunnerError(
             f"episode {episode.episode_id}: the agent {when} at world position "
             f"{np.round(obs.position, 3).tolist()} where the geodesic distance to the goal is undefined "
@@ -342,6 +351,19 @@ def _refuse_resume_with_other_settings(out: Path, config: RunConfig) -> None:
         )
 
 
+def _refuse_goal_agent_without_goals(episodes: Sequence[NavEpisode], agent: str) -> None:
+    """Raise :class:`RunnerError` before anything is written when ``agent`` needs the goal and some
+    episodes have none (a test split)."""
+    why = needs_goal(agent)
+    goalless = [ep.episode_id for ep in episodes if not ep.has_goal]
+    if why and goalless:
+        raise RunnerError(
+            f"agent {agent!r} cannot run on episodes without a goal ({len(goalless)} of {len(episodes)}, "
+            f"e.g. episode {goalless[0]}: a test split): {why}; use an agent that does not see the goal "
+            "(random, forward, image2nav)"
+        )
+
+
 def _group_by_scene(episodes: Iterable[NavEpisode], limit: int | None) -> dict[str, list[NavEpisode]]:
     groups: dict[str, list[NavEpisode]] = {}
     for ep in episodes:
@@ -380,6 +402,7 @@ def run_nav_results(
     Returns the per-episode results of ``episodes`` read back from the logs, in scene order.
     """
     scenes_root, out = Path(scenes_root), Path(out_dir) / config.agent
+    _refuse_goal_agent_without_goals(episodes, config.agent)
     out.mkdir(parents=True, exist_ok=True)
     groups = _group_by_scene(episodes, config.max_episodes_per_scene)
     if not groups:

@@ -227,8 +227,9 @@ class AgentState:
 
     position: np.ndarray
     """Agent position (3,) in world metres (Z-up)."""
-    distance_to_goal: float
-    """Geodesic distance to the goal in metres (inf if unreachable)."""
+    distance_to_goal: float | None
+    """Geodesic distance to the goal in metres (inf if unreachable; None when the goal is unknown,
+    which only the goal-free measures of :data:`GOAL_FREE_MEASURES` accept)."""
 
 
 @dataclass(frozen=True)
@@ -254,6 +255,8 @@ class Measure(ABC):
     """Unique name; also the key in results."""
     dependencies: ClassVar[tuple[str, ...]] = ()
     """uuids of measures that must be updated before this one."""
+    needs_goal: ClassVar[bool] = True
+    """The measure reads the distance to the goal (n/a on episodes without a goal)."""
 
     def __init__(self, protocol: Protocol) -> None:
         self.protocol = protocol
@@ -290,6 +293,7 @@ class Steps(Measure):
     """Number of actions taken, STOP included."""
 
     uuid = "steps"
+    needs_goal = False
 
     def reset(self, episode: EpisodeSpec, state: AgentState, deps: Mapping[str, Measure]) -> None:
         self._value = 0.0
@@ -302,6 +306,7 @@ class PathLength(Measure):
     """Sum of Euclidean displacements between consecutive agent positions."""
 
     uuid = "path_length"
+    needs_goal = False
 
     def reset(self, episode: EpisodeSpec, state: AgentState, deps: Mapping[str, Measure]) -> None:
         self._last = np.asarray(state.position, dtype=np.float64)
@@ -372,6 +377,7 @@ class NDTW(Measure):
     """
 
     uuid = "ndtw"
+    needs_goal = False
 
     def reset(self, episode: EpisodeSpec, state: AgentState, deps: Mapping[str, Measure]) -> None:
         self._last = np.asarray(state.position, dtype=np.float64)
@@ -406,9 +412,20 @@ class SDTW(Measure):
 
 
 DEFAULT_MEASURES: tuple[type[Measure], ...] = (
-    DistanceToGoal, Steps, PathLength, OracleSuccess, Success, SPL, NDTW, SDTW,
+    DistanceToGoal,
+    Steps,
+    PathLength,
+    OracleSuccess,
+    Success,
+    SPL,
+    NDTW,
+    SDTW,
 )
 """The VLN-CE measure set, in any order (dependencies fix the update order)."""
+
+GOAL_FREE_MEASURES: tuple[type[Measure], ...] = tuple(m for m in DEFAULT_MEASURES if not m.needs_goal)
+"""The measures an episode without a goal (a test split) still has: steps, path length, nDTW
+(n/a without a reference path)."""
 
 
 def _dependency_order(measures: Sequence[Measure]) -> list[Measure]:
@@ -462,9 +479,13 @@ class Measurements:
         eid = self._episode.episode_id if self._episode else "?"
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             raise MeasureError(f"episode {eid}: position must be 3 finite numbers, got {state.position!r}")
-        if math.isnan(state.distance_to_goal) or state.distance_to_goal < 0:
-            raise MeasureError(f"episode {eid}: distance_to_goal must be >= 0 (inf allowed), "
-                               f"got {state.distance_to_goal!r}")
+        d = state.distance_to_goal
+        if d is None:
+            needy = [m.uuid for m in self._order if m.needs_goal]
+            if needy:
+                raise MeasureError(f"episode {eid}: the goal is unknown but measures {needy} need it")
+        elif math.isnan(d) or d < 0:
+            raise MeasureError(f"episode {eid}: distance_to_goal must be >= 0 (inf allowed), got {d!r}")
 
     def reset(self, episode: EpisodeSpec, state: AgentState) -> None:
         """Start ``episode`` at ``state``."""
@@ -486,8 +507,10 @@ class Measurements:
             raise MeasureError(f"episode {eid}: unknown action id {action!r}")
         self._steps += 1
         if self._steps > self.protocol.max_steps:
-            raise MeasureError(f"episode {eid}: more than max_steps={self.protocol.max_steps} actions "
-                               f"under protocol {self.protocol.name!r}")
+            raise MeasureError(
+                f"episode {eid}: more than max_steps={self.protocol.max_steps} actions "
+                f"under protocol {self.protocol.name!r}"
+            )
         self._check_state(state)
         for m in self._order:
             m.update(action, state, self._by_id)
@@ -530,8 +553,10 @@ def evaluate_episode(
     ``states[0]`` is the start state and ``states[t + 1]`` the state ``actions[t]`` led to.
     """
     if len(states) != len(actions) + 1:
-        raise ValueError(f"episode {episode.episode_id}: need len(states) == len(actions) + 1, "
-                         f"got {len(states)} states and {len(actions)} actions")
+        raise ValueError(
+            f"episode {episode.episode_id}: need len(states) == len(actions) + 1, "
+            f"got {len(states)} states and {len(actions)} actions"
+        )
     ms = Measurements(protocol, measures)
     ms.reset(episode, states[0])
     for action, state in zip(actions, states[1:], strict=True):
