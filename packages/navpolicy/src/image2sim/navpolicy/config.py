@@ -146,6 +146,10 @@ class DataConfig:
     final STOP) instead of at a uniform point; 0 leaves STOP as rare as in the trajectories."""
     num_workers: int = 0
     """DataLoader worker processes."""
+    cache_frames: bool = False
+    """Keep each trajectory's decoded frames in memory after its first read, instead of reading and
+    decompressing its frame file for every sample (the sim2real shards: ~150 MB of 64x64 frames;
+    each DataLoader worker keeps its own copy). Off by default: paper-scale shards do not fit."""
 
 
 @dataclass

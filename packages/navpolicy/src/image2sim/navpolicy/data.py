@@ -314,10 +314,12 @@ def write_shard(
 
 
 class ShardReader:
-    """Random access to the trajectories of one shard."""
+    """Random access to the trajectories of one shard (``cache_frames``: decoded frames kept in
+    memory after their first read)."""
 
-    def __init__(self, root: str | Path) -> None:
+    def __init__(self, root: str | Path, cache_frames: bool = False) -> None:
         self.root = Path(root)
+        self._frames: dict[int, np.ndarray] | None = {} if cache_frames else None
         mpath = self.root / "manifest.json"
         if not mpath.is_file():
             raise ShardError(f"{mpath}: missing (not a {SHARD_FORMAT} folder)")
@@ -344,14 +346,24 @@ class ShardReader:
     def __len__(self) -> int:
         return len(self.records)
 
-    def __getitem__(self, i: int) -> Trajectory:
-        rec = self.records[i]
-        fpath = self.root / rec["frames"]
+    def frames(self, i: int) -> np.ndarray:
+        """Trajectory ``i``'s frames (T, H, W, 3) uint8 (read-only when cached: samples share it)."""
+        if self._frames is not None and i in self._frames:
+            return self._frames[i]
+        fpath = self.root / self.records[i]["frames"]
         try:
             with np.load(fpath, allow_pickle=False) as z:
                 frames = z["rgb"]
         except (OSError, KeyError, ValueError) as exc:
             raise ShardError(f"{fpath}: cannot read frames ({exc})") from exc
+        if self._frames is not None:
+            frames.setflags(write=False)
+            self._frames[i] = frames
+        return frames
+
+    def __getitem__(self, i: int) -> Trajectory:
+        rec = self.records[i]
+        frames = self.frames(i)
         return Trajectory(
             instruction=rec["instruction"],
             actions=list(rec["actions"]),
@@ -413,11 +425,12 @@ class NavShardDataset(_SamplingDataset):
         context: tuple[int, int] | None = None,
         end_cut_probability: float = 0.0,
         max_trajectories: int | None = None,
+        cache_frames: bool = False,
     ) -> None:
         self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
         if not shards:
             raise ShardError("no shard folders given")
-        self.readers = [ShardReader(s) for s in shards]
+        self.readers = [ShardReader(s, cache_frames) for s in shards]
         self.index = [(r, i) for r in range(len(self.readers)) for i in range(len(self.readers[r]))]
         if max_trajectories is not None:
             if max_trajectories < 1:
@@ -471,6 +484,53 @@ def image_token_counts(image_grid_thw: torch.Tensor, merge_size: int = MERGE_SIZ
     return [int(v) for v in (image_grid_thw.prod(-1) // (merge_size**2)).tolist()]
 
 
+def patchify_batch(images: Sequence[np.ndarray], processor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The Qwen image processor's output for a batch of equal-sized frames, in one vectorised pass.
+
+    The processor handles one image at a time in Python (rescale, normalise, patchify): about 0.4 ms
+    per 64x64 frame, a fifth of a training step at batch 16. When every frame is an (H, W, 3) uint8
+    array of the same size that the processor would not resize (``smart_resize`` keeps it), this
+    computes the same ``pixel_values`` and ``image_grid_thw`` (the same arithmetic, so bit-equal:
+    tested against the processor). Returns None otherwise, and the caller uses the processor.
+    """
+    from transformers.models.qwen2_vl.image_processing_pil_qwen2_vl import smart_resize
+
+    if not images:
+        return None
+    first = np.asarray(images[0])
+    if first.dtype != np.uint8 or first.ndim != 3 or first.shape[2] != 3:
+        return None
+    if any(np.asarray(im).shape != first.shape or np.asarray(im).dtype != np.uint8 for im in images):
+        return None
+    p = processor
+    patch, merge, temporal = int(p.patch_size), int(p.merge_size), int(p.temporal_patch_size)
+    h, w = first.shape[:2]
+    size = p.size if isinstance(p.size, dict) else dict(p.size)
+    if not (p.do_rescale and p.do_normalize) or getattr(p, "do_convert_rgb", True) is False:
+        return None
+    if p.do_resize and smart_resize(
+        h, w, factor=patch * merge, min_pixels=size["shortest_edge"], max_pixels=size["longest_edge"]
+    ) != (h, w):
+        return None
+    if h % (patch * merge) or w % (patch * merge):
+        return None
+    # The processor's arithmetic: rescale in float64, cast to float32, normalise in float32.
+    x = (
+        torch.from_numpy(np.stack([np.asarray(im) for im in images])).double() * float(p.rescale_factor)
+    ).float()
+    mean = torch.tensor(np.asarray(p.image_mean, dtype=np.float32))
+    std = torch.tensor(np.asarray(p.image_std, dtype=np.float32))
+    x = ((x - mean) / std).permute(0, 3, 1, 2)
+    n, c = x.shape[:2]
+    gh, gw = h // patch, w // patch
+    x = x.reshape(n, c, gh // merge, merge, patch, gw // merge, merge, patch)
+    x = x.permute(0, 2, 5, 3, 6, 1, 4, 7)  # (N, gh/m, gw/m, m, m, C, p, p)
+    x = x[:, :, :, :, :, :, None].expand(*x.shape[:6], temporal, patch, patch)
+    pixel_values = x.reshape(n * gh * gw, c * temporal * patch * patch)
+    grid = torch.tensor([[1, gh, gw]], dtype=torch.int64).expand(n, 3).contiguous()
+    return pixel_values, grid
+
+
 class NavCollator:
     """Turns :class:`NavSample` lists into padded Qwen3-VL batches with action-only labels.
 
@@ -485,7 +545,11 @@ class NavCollator:
         self.pad_id = int(prompt_builder.tokenizer.pad_token_id)
 
     def process_images(self, images: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pixel patches and grids of ``images`` through the (PIL) Qwen image processor."""
+        """Pixel patches and grids of ``images``: :func:`patchify_batch` when it applies (equal-sized
+        uint8 frames the processor would not resize), else the (PIL) Qwen image processor."""
+        fast = patchify_batch(images, self.image_processor)
+        if fast is not None:
+            return fast
         out = self.image_processor(images=[np.asarray(im) for im in images], return_tensors="pt")
         return out["pixel_values"], out["image_grid_thw"]
 

@@ -254,6 +254,7 @@ class NavBCModule(L.LightningModule):
                 self.cfg.data.shards,
                 seed=tc.seed,
                 max_trajectories=self.cfg.data.max_trajectories,
+                cache_frames=self.cfg.data.cache_frames,
                 **sample_options(self.cfg),
             )
         per_step = tc.batch_size * tc.accumulate_grad_batches
