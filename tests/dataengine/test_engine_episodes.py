@@ -151,11 +151,23 @@ def _vlnce_from_json(text: str, scenes_dir: str) -> list[dict]:
     return episodes
 
 
-def test_vlnce_reads_the_engine_files_and_the_agent_stands_upright_on_the_floor(full_run):
+def _assert_upright_on_the_floor(ep: dict) -> None:
+    """A loaded record's start rotation is a yaw about Habitat's +Y and its start snaps onto the
+    navigation graph of ``<scene_id>`` (the engine's scene folder)."""
     from image2sim.simulator.geometry.habitat import habitat_to_world
     from image2sim.simulator.navigation import NavMap
     from image2sim.simulator.navigation.graph import NavGraph
 
+    scene = Path(ep["scene_id"])
+    x, y, z, w = ep["start_rotation"]
+    assert abs(x) < 1e-9 and abs(z) < 1e-9 and math.isclose(y * y + w * w, 1.0)  # a yaw about +Y
+    navmap, graph = NavMap.load(scene / "navmap.npz"), NavGraph.load(scene / "navgraph.npz")
+    start = navmap.to_map(habitat_to_world(ep["start_position"]))
+    node, offset = graph.snap(np.asarray(start)[None])
+    assert node[0] >= 0 and offset[0] < 0.3  # on the navigable floor
+
+
+def test_vlnce_reads_the_engine_files_and_the_agent_stands_upright_on_the_floor(full_run):
     out, _ = full_run
     with gzip.open(out / "train" / "train.json.gz", "rt") as fh:
         episodes = _vlnce_from_json(fh.read(), str(out / "scenes"))
@@ -163,13 +175,119 @@ def test_vlnce_reads_the_engine_files_and_the_agent_stands_upright_on_the_floor(
     for ep in episodes:
         scene = Path(ep["scene_id"])
         assert (scene / "navmap.npz").is_file()  # `<scenes dir>/<scene_id>` is the engine's scene folder
-        x, y, z, w = ep["start_rotation"]
-        assert abs(x) < 1e-9 and abs(z) < 1e-9 and math.isclose(y * y + w * w, 1.0)  # a yaw about +Y
-        navmap, graph = NavMap.load(scene / "navmap.npz"), NavGraph.load(scene / "navgraph.npz")
-        start = navmap.to_map(habitat_to_world(ep["start_position"]))
-        node, offset = graph.snap(np.asarray(start)[None])
-        assert node[0] >= 0 and offset[0] < 0.3  # on the navigable floor
+        _assert_upright_on_the_floor(ep)
         assert len(ep["instruction"]["instruction_tokens"]) == 200
+
+
+# An independent replica of VLN-CE's RxR-CE loader (``RxRVLNCEDatasetV1``): for each role of the
+# config, ``DATA_PATH.format(split=..., role=...)`` must exist and is read by ``from_json``, which
+# passes every record to VLNExtendedEpisode(**record) (no vocabulary is read), the instruction to
+# ExtendedInstructionData(**instruction) and sets its ``split``; episodes are then kept by
+# ``instruction.language``. VLNExtendedEpisode requires reference_path and instruction, habitat's
+# NavigationEpisode goals.
+_RXR_DATA_PATH = "{root}/{split}/{split}_{role}.json.gz"
+
+
+def _rxr_dataset(root: Path, split: str, roles: list[str], languages: list[str], scenes_dir: str) -> list:
+    paths = [_RXR_DATA_PATH.format(root=root, split=split, role=role) for role in roles]
+    assert set(roles) <= {"guide", "follower"}
+    if not all(os.path.exists(p) for p in paths):  # check_config_paths_exist
+        raise FileNotFoundError(f"RxR-CE: missing {[p for p in paths if not os.path.exists(p)]}")
+    episodes = []
+    for path in paths:
+        with gzip.open(path, "rt") as fh:
+            doc = json.loads(fh.read())
+        for raw in doc["episodes"]:
+            ep = _vlnce_kwargs(_VLNCE_EPISODE, raw, "VLNExtendedEpisode")
+            for required in ("reference_path", "instruction", "goals"):
+                assert ep[required] is not None, f"{required} must not be None"
+            ep["scene_id"] = os.path.join(scenes_dir, ep["scene_id"])
+            ep["instruction"] = _vlnce_kwargs(
+                _VLNCE_INSTRUCTION, ep["instruction"], "ExtendedInstructionData"
+            )
+            assert ep["instruction"]["instruction_text"] is not None
+            ep["instruction"]["split"] = split
+            ep["goals"] = [
+                _vlnce_kwargs({"position": None, "radius": None}, g, "NavigationGoal") for g in ep["goals"]
+            ]
+            episodes.append(ep)
+    return [ep for ep in episodes if ep["instruction"]["language"] in set(languages)]
+
+
+def test_rxr_ce_guide_files_are_read_by_the_rxr_loader_and_by_eval_nav(
+    full_run, scenes_root, tmp_path, run_main
+):
+    """`data episodes --format rxr-ce` (here merging a finished run again) writes the guide role's
+    files; RxR-CE's loader reads them unmodified, and so do our loader and `eval nav --dataset rxr-ce`."""
+    from image2sim.eval.datasets import load_rxr_ce
+
+    ref, _ = full_run
+    out = tmp_path / "out"
+    shutil.copytree(ref, out)
+    args = ["data", "episodes", "--scenes", str(scenes_root), "--out", str(out), "--per-scene", "6"]
+    args += ["--obs-height", "32", "--seed", "3", "--sampling", "min_path_length=1.0", "--workers", "1"]
+    code, output = run_main([*args, "--format", "rxr-ce", "--language", "en-IN"])
+    assert code == 0, output
+    assert '"skipped": 2' in output  # nothing re-ran: only the merge wrote the new layout
+    split = out / "train"
+    assert (split / "train_guide_gt.json.gz").is_file() and (split / "train_guide_extras.json").is_file()
+    r2r = _read(split / "train.json.gz")["episodes"]
+    doc, gt = _read(split / "train_guide.json.gz"), _read(split / "train_guide_gt.json.gz")
+    validate_episode_doc(doc, gt, fmt="rxr-ce")
+    assert "instruction_vocab" not in doc
+
+    episodes = _rxr_dataset(out, "train", ["guide"], ["en-IN"], str(out / "scenes"))
+    assert [e["episode_id"] for e in episodes] == [e["episode_id"] for e in r2r]
+    ids = [e["instruction"]["instruction_id"] for e in episodes]
+    assert all(i.isdigit() for i in ids) and len(set(ids)) == len(ids)
+    for ep, raw in zip(episodes, r2r, strict=True):
+        ins = ep["instruction"]
+        assert ins["language"] == "en-IN" and ins["annotator_id"] == "image2sim-template"
+        assert ins["instruction_text"] == raw["instruction"]["instruction_text"] and ins["split"] == "train"
+        assert ins["instruction_tokens"] is None and ep["start_rotation"] == raw["start_rotation"]
+        _assert_upright_on_the_floor(ep)
+    assert _rxr_dataset(out, "train", ["guide"], ["en-US"], str(out / "scenes")) == []
+    with pytest.raises(FileNotFoundError, match="train_follower"):
+        _rxr_dataset(out, "train", ["guide", "follower"], ["en-IN"], str(out / "scenes"))
+
+    ds = load_rxr_ce(out, "train", languages=["en-IN"])
+    assert len(ds) == len(episodes) and all(
+        e.role == "guide" and e.gt_locations is not None for e in ds.episodes
+    )
+    assert [e.instruction.instruction_id for e in ds.episodes] == ids
+    sub = tmp_path / "rxr.jsonl"
+    args = ["eval", "nav", "--scenes", str(out / "scenes"), "--dataset", "rxr-ce", "--dataset-root", str(out)]
+    args += ["--split", "train", "--language", "en-IN", "--agent", "oracle", "--out", str(tmp_path / "run")]
+    args += [
+        "--metrics",
+        str(tmp_path / "nav.json"),
+        "--submission",
+        str(sub),
+        "--submission-format",
+        "rxr-ce",
+    ]
+    code, output = run_main(args)
+    assert code == 0, output[-3000:]
+    nav = json.loads((tmp_path / "nav.json").read_text())["agents"]["oracle"]
+    assert nav["n_episodes"] == len(episodes) and nav["sr"] is not None
+    lines = [json.loads(line) for line in sub.read_text().splitlines()]
+    assert sorted(d["instruction_id"] for d in lines) == sorted(int(i) for i in ids)
+
+
+def test_rxr_ce_schema_refuses_r2r_fields_and_bad_layouts(full_run):
+    from image2sim.dataengine.episodes import check_episode_layout
+
+    out, _ = full_run
+    doc = _read(out / "train" / "train.json.gz")
+    with pytest.raises(EpisodeSchemaError, match="no vocabulary"):
+        validate_episode_doc(doc, fmt="rxr-ce")
+    del doc["instruction_vocab"]
+    with pytest.raises(EpisodeSchemaError, match="instruction_id"):
+        validate_episode_doc(doc, fmt="rxr-ce")
+    with pytest.raises(ValueError, match="episode format"):
+        check_episode_layout("rxr")
+    with pytest.raises(ValueError, match="language"):
+        check_episode_layout("rxr-ce", "english")
 
 
 def test_schema_validator_rejects_broken_documents(full_run):

@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from image2sim.dataengine.episodes import write_episode_files
+from image2sim.dataengine.episodes import check_episode_layout, write_episode_files
 from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig, process_scene
 from image2sim.simulator.io.atomic import write_bytes_atomic
 from image2sim.simulator.io.paths import relative_to_file, resolve_from_file
@@ -255,8 +255,14 @@ def run_engine(
     progress: bool = True,
     limit: int | None = None,
     asset_cache: str | Path | None = None,
+    episode_format: str = "r2r-ce",
+    language: str = "en-US",
 ) -> dict:
     """Process every unfinished scene, then rebuild the merged outputs. Returns the run summary.
+
+    ``episode_format`` (r2r-ce or rxr-ce, :func:`~image2sim.dataengine.episodes.write_episode_files`)
+    and ``language`` (rxr-ce) only shape the merged episode files, not the scenes' work, so they are
+    not part of the run's config: a finished run can be merged again in the other layout.
 
     ``asset_cache``: scene assets (maps, Gaussians) shared across runs, keyed by each capture's content
     (:mod:`.asset_cache`); not part of the run's config (it changes no output).
@@ -265,16 +271,20 @@ def run_engine(
     """
     if executor not in ("local", "ray"):
         raise RunError(f"executor must be local or ray, got {executor!r}")
+    layout = {"fmt": episode_format, "language": language, "annotator_id": f"image2sim-{config.annotator}"}
+    check_episode_layout(episode_format, language)  # fails before any work, not at the merge
     out_dir = Path(out_dir)
     scenes = find_scenes(scenes_root)
     out_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(out_dir):
         assets = None if asset_cache is None else str(Path(asset_cache).resolve())
-        return _run_locked(scenes, out_dir, config, executor, workers, address, progress, limit, assets)
+        return _run_locked(
+            scenes, out_dir, config, executor, workers, address, progress, limit, assets, layout
+        )
 
 
 def _run_locked(
-    scenes, out_dir: Path, config: EngineConfig, executor, workers, address, progress, limit, assets
+    scenes, out_dir: Path, config: EngineConfig, executor, workers, address, progress, limit, assets, layout
 ) -> dict:
     _check_run_manifest(out_dir, config)
     todo = pending_scenes(scenes, out_dir)
@@ -313,7 +323,7 @@ def _run_locked(
     from image2sim.simulator.config import config_from_dict
 
     min_geodesic = config_from_dict(SamplingConfig, config.sampling, "sampling").min_path_length
-    merged = merge_outputs(out_dir, [s.name for s in scenes], config.split, min_geodesic)
+    merged = merge_outputs(out_dir, [s.name for s in scenes], config.split, min_geodesic, **layout)
     return {
         "scenes": len(scenes),
         "skipped": skipped,
@@ -325,10 +335,17 @@ def _run_locked(
 
 
 def merge_outputs(
-    out_dir: str | Path, scene_names: Sequence[str], split: str, min_geodesic: float = 0.0
+    out_dir: str | Path,
+    scene_names: Sequence[str],
+    split: str,
+    min_geodesic: float = 0.0,
+    fmt: str = "r2r-ce",
+    language: str = "en-US",
+    annotator_id: str = "image2sim",
 ) -> dict:
-    """Rebuild ``{out}/{split}/{split}.json.gz`` (+ gt) and the shard list from finished scenes; every
-    episode is checked as it is written (schema, gt, geodesic >= ``min_geodesic``)."""
+    """Rebuild the split's episode files (``{out}/{split}/{split}.json.gz`` + gt, or with ``fmt``
+    rxr-ce ``{split}_guide.json.gz`` + gt) and the shard list from finished scenes; every episode is
+    checked as it is written (schema, gt, geodesic >= ``min_geodesic``)."""
     out_dir = Path(out_dir)
     episodes, gt, extras, shards, done, per_scene = [], {}, {}, [], [], {}
     for name in sorted(scene_names):
@@ -343,7 +360,9 @@ def merge_outputs(
         done.append(name)
         if (folder / "shard" / "manifest.json").is_file():
             shards.append(relative_to_file(folder / "shard", out_dir / SHARD_LIST))
-    main, gt_path = write_episode_files(out_dir, split, episodes, gt, min_geodesic, extras)
+    main, gt_path = write_episode_files(
+        out_dir, split, episodes, gt, min_geodesic, extras, fmt, language, annotator_id
+    )
     write_bytes_atomic(out_dir / SHARD_LIST, json.dumps({"shards": shards}, indent=1).encode())
     return {
         "episodes": len(episodes),

@@ -96,6 +96,13 @@ def episodes_command(
         help="Store the observation of every n-th step (2 = what the streaming policy sees).",
     ),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),
+    episode_format: str = typer.Option(
+        "r2r-ce",
+        "--format",
+        help="Episode files: r2r-ce (<split>/<split>.json.gz with the vocabulary) or rxr-ce "
+        "(<split>/<split>_guide.json.gz: instruction_id, language, annotator_id per instruction).",
+    ),
+    language: str = typer.Option("en-US", "--language", help="rxr-ce: the instructions' language tag."),
     seed: int = typer.Option(0, "--seed", help="Base seed."),
     executor: str = typer.Option(
         "local",
@@ -165,7 +172,15 @@ def episodes_command(
             objects=None if objects is None else str(objects),
         )
         summary = run_engine(
-            scenes, out, cfg, executor=executor, workers=workers, address=address, asset_cache=cache
+            scenes,
+            out,
+            cfg,
+            executor=executor,
+            workers=workers,
+            address=address,
+            asset_cache=cache,
+            episode_format=episode_format,
+            language=language,
         )
     except (RunError, ValueError) as err:
         typer.echo(f"error: {err}", err=True)

@@ -18,6 +18,15 @@ vocabulary block of R2R-CE::
     {split}_extras.json: {episode_id: {"style", "structure", "tone", "goal_object", "bucket",
                                        "path_length", "num_steps", "macro_steps", ...}}
 
+RxR-CE layout (``data episodes --format rxr-ce``): the engine's instructions are the *guide* role's
+(the annotator walked the path), so it writes ``{split}/{split}_guide.json.gz`` +
+``{split}_guide_gt.json.gz`` (+ ``{split}_guide_extras.json``), what VLN-CE's ``RxRVLNCEDatasetV1``
+reads for ``ROLES: [guide]``. Records are the same minus the R2R vocabulary: the instruction is
+``{"instruction_text", "instruction_id", "language", "annotator_id"}`` (``instruction_id`` a string of
+digits, unique in the file, as RxR's; ``annotator_id`` the annotator backend, ``image2sim-template``),
+and there is no ``instruction_vocab`` (RxR-CE has none; its models read text features by
+``instruction_id``). No follower file is written: nobody followed the instructions.
+
 The engine's own fields live in the sidecar ``{split}_extras.json`` (plain JSON, so tools that glob the
 split folder's ``*.json.gz`` never take it for an episode file). The two top-level ``frame`` and
 ``quaternion_order`` keys are ignored by VLN-CE and let our loader check the frame instead of guessing.
@@ -40,13 +49,16 @@ from image2sim.simulator.io.atomic import write_bytes_atomic, write_json_atomic
 
 __all__ = [
     "EPISODE_FIELDS",
+    "EPISODE_FORMATS",
     "FRAME",
     "MAX_TOKENS",
     "QUATERNION_ORDER",
     "tokenize",
     "build_vocab",
+    "check_episode_layout",
     "episode_record",
     "gt_record",
+    "episode_paths",
     "read_extras",
     "vocab_block",
     "write_episode_files",
@@ -59,6 +71,12 @@ QUATERNION_ORDER = "xyzw"
 PAD, UNK = "<PAD>", "<UNK>"
 MAX_TOKENS = 200
 """R2R-CE pads (and truncates) instruction tokens to this length."""
+EPISODE_FORMATS = ("r2r-ce", "rxr-ce")
+"""Episode file layouts :func:`write_episode_files` writes (module docstring)."""
+RXR_ROLE = "guide"
+"""The RxR-CE annotation role of the engine's instructions."""
+LANGUAGE_TAG = re.compile(r"^[a-z]{2,3}-[A-Z]{2}$")
+"""RxR-style language tags (en-US, en-IN, hi-IN, te-IN)."""
 EPISODE_FIELDS = {
     "episode_id",
     "scene_id",
@@ -165,16 +183,28 @@ def _gz(obj) -> bytes:
     return gzip.compress(json.dumps(obj, separators=(",", ":")).encode("utf-8"), mtime=0)
 
 
-def write_episode_files(
-    out_dir: str | Path,
-    split: str,
-    episodes: Sequence[dict],
-    gt: dict,
-    min_geodesic: float = 0.0,
-    extras: dict | None = None,
-) -> tuple[Path, Path]:
-    """Tokenise (padded to :data:`MAX_TOKENS`), validate (:func:`validate_episode_doc`), write
-    ``{out}/{split}/{split}.json.gz`` + ``{split}_gt.json.gz`` (+ ``{split}_extras.json``) atomically."""
+def episode_paths(out_dir: str | Path, split: str, fmt: str = "r2r-ce") -> tuple[Path, Path]:
+    """The episode file and its gt file of ``split`` in ``fmt``'s layout: ``{split}/{split}.json.gz``
+    (R2R-CE) or ``{split}/{split}_guide.json.gz`` (RxR-CE), and the ``_gt.json.gz`` beside it."""
+    check_episode_layout(fmt)
+    stem = split if fmt == "r2r-ce" else f"{split}_{RXR_ROLE}"
+    d = Path(out_dir) / split
+    return d / f"{stem}.json.gz", d / f"{stem}_gt.json.gz"
+
+
+def check_episode_layout(fmt: str, language: str = "en-US") -> None:
+    """Raise ``ValueError`` for an unknown episode format or (rxr-ce) a malformed language tag, so a
+    run fails before any scene is processed rather than at the merge."""
+    if fmt not in EPISODE_FORMATS:
+        raise ValueError(f"episode format must be one of {EPISODE_FORMATS}, got {fmt!r}")
+    if fmt == "rxr-ce" and not LANGUAGE_TAG.match(language):
+        raise ValueError(
+            f"language: expected a tag like en-US (RxR: en-US, en-IN, hi-IN, te-IN), got {language!r}"
+        )
+
+
+def _r2r_doc(episodes: Sequence[dict]) -> dict:
+    """R2R-CE: tokens padded to :data:`MAX_TOKENS` and the vocabulary block."""
     vocab = build_vocab(e["instruction"]["instruction_text"] for e in episodes)
     index = {w: i for i, w in enumerate(vocab)}
     eps = []
@@ -184,18 +214,47 @@ def write_episode_files(
         tokens = [index.get(w, 1) for w in tokenize(e["instruction"]["instruction_text"])][:MAX_TOKENS]
         e["instruction"]["instruction_tokens"] = tokens + [0] * (MAX_TOKENS - len(tokens))
         eps.append(e)
-    doc = {
+    return {
         "frame": FRAME,
         "quaternion_order": QUATERNION_ORDER,
         "episodes": eps,
         "instruction_vocab": vocab_block(vocab),
     }
-    validate_episode_doc(doc, gt, min_geodesic)
-    d = Path(out_dir) / split
-    main, gt_path = d / f"{split}.json.gz", d / f"{split}_gt.json.gz"
+
+
+def _rxr_doc(episodes: Sequence[dict], language: str, annotator_id: str) -> dict:
+    """RxR-CE guide file: ``instruction_id`` (file order), ``language`` and ``annotator_id`` per
+    instruction, no tokens and no vocabulary."""
+    check_episode_layout("rxr-ce", language)
+    eps = []
+    for i, e in enumerate(episodes):
+        ins = {"instruction_text": e["instruction"]["instruction_text"], "instruction_id": str(i)}
+        eps.append({**e, "instruction": {**ins, "language": language, "annotator_id": annotator_id}})
+    return {"frame": FRAME, "quaternion_order": QUATERNION_ORDER, "episodes": eps}
+
+
+def write_episode_files(
+    out_dir: str | Path,
+    split: str,
+    episodes: Sequence[dict],
+    gt: dict,
+    min_geodesic: float = 0.0,
+    extras: dict | None = None,
+    fmt: str = "r2r-ce",
+    language: str = "en-US",
+    annotator_id: str = "image2sim",
+) -> tuple[Path, Path]:
+    """Validate (:func:`validate_episode_doc`) and write the split in ``fmt``'s layout
+    (:func:`episode_paths`) with its gt file (+ the ``_extras.json`` sidecar) atomically.
+
+    ``r2r-ce``: tokens padded to :data:`MAX_TOKENS` and the vocabulary block; ``rxr-ce``: the guide
+    role's file, each instruction with ``instruction_id``, ``language`` and ``annotator_id``."""
+    main, gt_path = episode_paths(out_dir, split, fmt)
+    doc = _r2r_doc(episodes) if fmt == "r2r-ce" else _rxr_doc(episodes, language, annotator_id)
+    validate_episode_doc(doc, gt, min_geodesic, fmt)
     write_bytes_atomic(gt_path, _gz(gt))
     if extras is not None:
-        write_json_atomic(d / f"{split}_extras.json", extras, indent=None)
+        write_json_atomic(main.with_name(main.name.replace(".json.gz", "_extras.json")), extras, indent=None)
     write_bytes_atomic(main, _gz(doc))
     return main, gt_path
 
@@ -215,8 +274,11 @@ def _num_list(v, n: int | None = None) -> bool:
     )
 
 
-def validate_episode_doc(doc: dict, gt: dict | None = None, min_geodesic: float = 0.0) -> None:
-    """Check the schema above; raises :class:`EpisodeSchemaError` at the first problem.
+def validate_episode_doc(
+    doc: dict, gt: dict | None = None, min_geodesic: float = 0.0, fmt: str = "r2r-ce"
+) -> None:
+    """Check the schema above (``fmt``: r2r-ce or rxr-ce); raises :class:`EpisodeSchemaError` at the
+    first problem.
 
     ``min_geodesic``: no episode may be shorter (the sampling config's ``min_path_length``): a shorter
     one starts inside the evaluation's success radius and is solved by stopping at once."""
@@ -224,10 +286,8 @@ def validate_episode_doc(doc: dict, gt: dict | None = None, min_geodesic: float 
         raise EpisodeSchemaError(f"top level: frame/quaternion_order must be {FRAME!r}/{QUATERNION_ORDER!r}")
     if not isinstance(doc.get("episodes"), list):
         raise EpisodeSchemaError("top level: 'episodes' must be a list")
-    vocab = doc.get("instruction_vocab", {}).get("word_list")
-    if not isinstance(vocab, list) or not all(isinstance(w, str) for w in vocab):
-        raise EpisodeSchemaError("top level: instruction_vocab.word_list must be a list of strings")
-    seen = set()
+    vocab = _check_vocab(doc, fmt)
+    seen, instruction_ids = set(), set()
     for e in doc["episodes"]:
         eid = e.get("episode_id")
 
@@ -273,11 +333,10 @@ def validate_episode_doc(doc: dict, gt: dict | None = None, min_geodesic: float 
         ins = e.get("instruction", {})
         if not isinstance(ins.get("instruction_text"), str) or not ins["instruction_text"].strip():
             raise bad("instruction.instruction_text", "must be a non-empty string")
-        toks = ins.get("instruction_tokens")
-        if not (isinstance(toks, list) and all(isinstance(t, int) and 0 <= t < len(vocab) for t in toks)):
-            raise bad("instruction.instruction_tokens", "must be vocabulary indices")
-        if len(toks) != MAX_TOKENS:
-            raise bad("instruction.instruction_tokens", f"must be padded to {MAX_TOKENS}, got {len(toks)}")
+        if fmt == "r2r-ce":
+            _check_tokens(ins, vocab, bad)
+        else:
+            _check_rxr_instruction(ins, instruction_ids, bad)
         geo = e.get("info", {}).get("geodesic_distance")
         if not (isinstance(geo, (int, float)) and math.isfinite(geo) and geo >= 0):
             raise bad("info.geodesic_distance", "must be a finite non-negative number")
@@ -298,3 +357,40 @@ def validate_episode_doc(doc: dict, gt: dict | None = None, min_geodesic: float 
                 raise bad("gt.actions", "must be action ids ending with STOP (0)")
             if g.get("forward_steps") != sum(1 for a in acts if a == 1):
                 raise bad("gt.forward_steps", "must count the MOVE_FORWARD actions")
+
+
+def _check_vocab(doc: dict, fmt: str) -> list[str] | None:
+    """R2R-CE's vocabulary word list (required); RxR-CE files have none (None)."""
+    if fmt not in EPISODE_FORMATS:
+        raise EpisodeSchemaError(f"format must be one of {EPISODE_FORMATS}, got {fmt!r}")
+    if fmt == "rxr-ce":
+        if "instruction_vocab" in doc:
+            raise EpisodeSchemaError("top level: 'instruction_vocab': RxR-CE files have no vocabulary")
+        return None
+    vocab = doc.get("instruction_vocab", {}).get("word_list")
+    if not isinstance(vocab, list) or not all(isinstance(w, str) for w in vocab):
+        raise EpisodeSchemaError("top level: instruction_vocab.word_list must be a list of strings")
+    return vocab
+
+
+def _check_tokens(ins: dict, vocab: list[str], bad) -> None:
+    """R2R-CE: vocabulary indices padded to :data:`MAX_TOKENS`."""
+    toks = ins.get("instruction_tokens")
+    if not (isinstance(toks, list) and all(isinstance(t, int) and 0 <= t < len(vocab) for t in toks)):
+        raise bad("instruction.instruction_tokens", "must be vocabulary indices")
+    if len(toks) != MAX_TOKENS:
+        raise bad("instruction.instruction_tokens", f"must be padded to {MAX_TOKENS}, got {len(toks)}")
+
+
+def _check_rxr_instruction(ins: dict, seen: set, bad) -> None:
+    """RxR-CE: a unique ``instruction_id`` (digits), a ``language`` tag and an ``annotator_id``."""
+    iid = ins.get("instruction_id")
+    if not (isinstance(iid, str) and iid.isdigit()) or iid in seen:
+        raise bad("instruction.instruction_id", "must be a unique string of digits (RxR's ids are integers)")
+    seen.add(iid)
+    if not (isinstance(ins.get("language"), str) and LANGUAGE_TAG.match(ins["language"])):
+        raise bad("instruction.language", "must be a tag like en-US")
+    if not (isinstance(ins.get("annotator_id"), str) and ins["annotator_id"]):
+        raise bad("instruction.annotator_id", "must be a non-empty string")
+    if "instruction_tokens" in ins:
+        raise bad("instruction.instruction_tokens", "RxR-CE files carry no vocabulary tokens")
