@@ -36,6 +36,7 @@ echo "point clouds:  $(ls outputs/clouds/*.ply | tr '\n' ' ')"
 [ -d outputs/real ] && echo "real clouds:   $(ls outputs/real/*.ply | tr '\n' ' ')" || true
 echo "scenes:        outputs/scenes/ (Gaussians + navigation maps; top-down PNGs in outputs/navmaps/)"
 echo "episodes:      outputs/episodes/ ; renderer: outputs/renderer/ ; policy: outputs/nav/"
+echo "model card:    outputs/policy_card/README.md (the policy's card with metrics/nav.json)"
 echo "metrics:       metrics/render.json metrics/nav.json ; report: reports/pipeline/ ; plot: plots/render_speed.png"
 echo
 cat reports/pipeline/render.md

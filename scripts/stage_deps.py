@@ -158,6 +158,14 @@ def stage_commands(dvc_file: Path) -> dict[str, tuple[str, list[str]]]:
 
 
 def main(argv: list[str]) -> int:
+    """Print the covering code deps of every stage of the given dvc.yaml files (default dvc.yaml)."""
+    if {"-h", "--help"} & set(argv):
+        print(__doc__)
+        return 0
+    missing = [f for f in argv if not Path(f).is_file()]
+    if missing:
+        print(f"error: {missing[0]}: no such dvc.yaml (usage: python scripts/stage_deps.py [DVC_YAML ...])")
+        return 2
     for dvc_file in argv or ["dvc.yaml"]:
         for name, (cmd, _) in stage_commands(Path(dvc_file)).items():
             print(f"{dvc_file}:{name}")

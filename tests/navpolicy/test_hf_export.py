@@ -134,6 +134,15 @@ def test_model_card_front_matter_lineage_and_metrics(tiny_policy, tiny_cfg, tmp_
     assert info.value.code == 0
     again = (out / "README.md").read_text()
     assert "`agents.image2nav.spl` | 0.4" in again and digest[:16] in again
+    # --out: the card beside the export (the pipeline's policy_card stage), nulls shown as n/a.
+    metrics.write_text(json.dumps({"agents": {"image2nav": {"sr": None, "steps": 12.0}}}))
+    elsewhere = tmp_path / "policy_card" / "README.md"
+    with pytest.raises(SystemExit) as info:
+        cli.main(["nav", "card", str(out), "--metrics", str(metrics), "--out", str(elsewhere)])
+    assert info.value.code == 0
+    assert (out / "README.md").read_text() == again  # the export is left as it was
+    card = elsewhere.read_text()
+    assert "`agents.image2nav.sr` | n/a" in card and "`agents.image2nav.steps` | 12" in card
     with pytest.raises(FileNotFoundError, match="missing.json"):
         update_model_card(out, tmp_path / "missing.json")
     with pytest.raises(FileNotFoundError, match=RUN_FILE):

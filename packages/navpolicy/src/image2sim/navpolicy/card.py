@@ -75,11 +75,12 @@ def data_lineage(sources: Iterable[str | Path]) -> list[dict[str, Any]]:
     return out
 
 
-def metric_rows(path: str | Path) -> list[tuple[str, float]]:
-    """The numbers of a metrics JSON as ``(dotted key, value)`` rows (protocol and config sections,
-    strings and lists left out); at most 60 rows."""
+def metric_rows(path: str | Path) -> list[tuple[str, float | None]]:
+    """The numbers of a metrics JSON as ``(dotted key, value)`` rows, ``None`` for a metric that is
+    n/a (null, e.g. SR on a test split without goals); protocol and config sections, strings and
+    lists left out; at most 60 rows."""
     doc = _read_json_object(Path(path), "metrics file")
-    rows: list[tuple[str, float]] = []
+    rows: list[tuple[str, float | None]] = []
 
     def walk(node: Mapping, prefix: str) -> None:
         for key, value in node.items():
@@ -87,8 +88,8 @@ def metric_rows(path: str | Path) -> list[tuple[str, float]]:
                 continue
             if isinstance(value, Mapping):
                 walk(value, f"{prefix}{key}.")
-            elif isinstance(value, (int, float)) and not isinstance(value, bool):
-                rows.append((f"{prefix}{key}", float(value)))
+            elif value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)):
+                rows.append((f"{prefix}{key}", None if value is None else float(value)))
 
     walk(doc, "")
     return rows[:_MAX_METRIC_ROWS]
@@ -227,7 +228,7 @@ def _metrics_section(metrics: str | Path | None) -> list[str]:
             "None given (`image2sim nav card <folder> --metrics metrics/nav.json` adds them).",
             "",
         ]
-    rows = [(f"`{k}`", f"{v:.4g}") for k, v in metric_rows(metrics)]
+    rows = [(f"`{k}`", "n/a" if v is None else f"{v:.4g}") for k, v in metric_rows(metrics)]
     return ["## Metrics", "", f"From `{Path(metrics).name}`:", "", *_table(("metric", "value"), rows), ""]
 
 
@@ -283,9 +284,13 @@ def write_model_card(
     return write_text_atomic(Path(folder) / CARD_FILE, model_card(model, cfg, lineage, metrics, adapter))
 
 
-def update_model_card(folder: str | Path, metrics: str | Path | None = None) -> Path:
+def update_model_card(
+    folder: str | Path, metrics: str | Path | None = None, out: str | Path | None = None
+) -> Path:
     """Rewrite an export's card with ``metrics`` (e.g. after ``eval nav``): config, lineage and LoRA
-    come from its ``training_run.json``, sizes and parameter count from the saved model."""
+    come from its ``training_run.json``, sizes and parameter count from the saved model. ``out``
+    writes the card there instead of ``<folder>/README.md`` (a pipeline may not modify another
+    stage's output in place)."""
     from image2sim.navpolicy.config import from_dict
     from image2sim.simulator.io.atomic import write_text_atomic
     from transformers import AutoModelForImageTextToText
@@ -297,4 +302,4 @@ def update_model_card(folder: str | Path, metrics: str | Path | None = None) -> 
     cfg = from_dict(run["config"]) if run.get("config") else None
     model = AutoModelForImageTextToText.from_pretrained(str(folder), local_files_only=True)
     text = model_card(model, cfg, run.get("data") or [], metrics, bool(run.get("adapter")))
-    return write_text_atomic(folder / CARD_FILE, text)
+    return write_text_atomic(folder / CARD_FILE if out is None else Path(out), text)

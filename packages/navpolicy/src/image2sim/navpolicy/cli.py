@@ -499,6 +499,12 @@ def card_cmd(
     metrics: Annotated[
         Path | None, typer.Option(help="Metrics JSON to put in the card (e.g. metrics/nav.json).")
     ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the card to this file instead of <export>/README.md (a DVC stage's own output)."
+        ),
+    ] = None,
     threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
 ) -> None:
     """Rewrite an export's model card (README.md), e.g. with the metrics of a later evaluation."""
@@ -506,7 +512,7 @@ def card_cmd(
     from image2sim.navpolicy.card import update_model_card
 
     torch.set_num_threads(threads)
-    typer.echo(f"wrote {update_model_card(export, metrics)}")
+    typer.echo(f"wrote {update_model_card(export, metrics, out)}")
 
 
 @app.command("act")
