@@ -334,3 +334,34 @@ def test_sim_train_records_its_conditions_and_eval_render_flags_a_different_prot
     mismatches = doc["protocol"]["training_data"]["mismatches"]
     assert mismatches == ["source_every: trained 2, evaluated 1", "holdout_every: trained 0, evaluated 4"]
     assert "conditions differ from the checkpoint's training**: source_every" in render_markdown(doc)
+
+
+def test_learned_encoder_features_reach_the_condition(box_capture, tmp_path):
+    """With a stage-1 encoder checkpoint the conditions carry its 16 feature channels (identity
+    conditions carry zeros there), the cache key and the training record name the encoder, and a
+    missing checkpoint is an error naming it."""
+    from image2sim.simulator.gaussians.build import save_encoder
+    from image2sim.simulator.gaussians.encoder import GaussianEncoder
+    from image2sim.simulator.renderer.condition import FEATURES
+
+    torch.manual_seed(0)
+    encoder = GaussianEncoder(_gcfg(), None, panoramic=True)
+    ckpt = save_encoder(encoder, tmp_path / "encoder" / "encoder.safetensors")
+    base = sd.SplatDataConfig(holdout_every=0, cache_dir=str(tmp_path / "cache"))
+    identity = sd.SplatConditionDataset([box_capture], H, W, base, gaussian_config=_gcfg())
+    learned_cfg = dataclasses.replace(base, encoder=str(ckpt.parent))
+    learned = sd.SplatConditionDataset([box_capture], H, W, learned_cfg, gaussian_config=_gcfg())
+    covered = learned.conditions[:, ALPHA] > 0.5
+    assert float(identity.conditions[:, FEATURES].abs().max()) == 0.0
+    assert float(learned.conditions[:, FEATURES].abs().amax(dim=1, keepdim=True)[covered].min()) > 0
+    assert len(list((tmp_path / "cache").glob("*.safetensors"))) == 2  # two keys, two cache files
+    record = sd.training_record([box_capture], learned_cfg, _gcfg())
+    assert record["encoder_sha256"] == sd.encoder_digest(str(ckpt)) != "identity"
+    with pytest.raises(sd.SplatDataError, match="encoder checkpoint not found"):
+        sd.SplatConditionDataset(
+            [box_capture],
+            H,
+            W,
+            dataclasses.replace(base, encoder=str(tmp_path / "none")),
+            gaussian_config=_gcfg(),
+        )

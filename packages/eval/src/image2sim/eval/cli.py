@@ -460,6 +460,12 @@ def render_cmd(
         list[str], typer.Option(help="gaussians: TIER=CAPTURE (repeatable), captures at that noise tier.")
     ] = [],  # noqa: B006
     gaussian_config: Annotated[str, typer.Option(help="gaussians: Gaussian scene preset or file.")] = "tiny",
+    encoder: Annotated[
+        str,
+        typer.Option(
+            help="gaussians: identity, or a stage-1 encoder checkpoint (file or folder) building the scenes."
+        ),
+    ] = "identity",
     source_every: Annotated[
         int,
         typer.Option(help="gaussians: only every n-th training frame builds the Gaussians (see sim train)."),
@@ -508,6 +514,7 @@ def render_cmd(
         condition_source=condition_source,
         tier_data=tiers_data,
         gaussian_config=gaussian_config,
+        encoder=encoder,
         source_every=source_every,
         input_views=input_views,
         target=target,

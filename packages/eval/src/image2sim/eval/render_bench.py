@@ -123,6 +123,9 @@ class RenderBenchConfig:
     procedural ``--noise none/middle/high`` captures); empty = ``data`` as one tier ``capture``."""
     gaussian_config: str = "tiny"
     """``gaussians`` source: Gaussian scene preset or YAML/JSON."""
+    encoder: str = "identity"
+    """``gaussians`` source: ``identity`` or a stage-1 encoder checkpoint (file or folder) whose
+    feature Gaussians build the scenes (what a renderer trained with ``sim train --encoder`` saw)."""
     source_every: int = 1
     """``gaussians`` source: only every n-th training frame builds the Gaussians (1: all, a dense
     capture; n > 1: a sparse capture with holes). Same rule as ``sim train --source-every``."""
@@ -386,6 +389,7 @@ def splat_samples(
     gaussian_config: str = "tiny",
     max_views: int | None = None,
     start_index: int = 0,
+    encoder: str = "identity",
     target: str = "auto",
     input_views: str = "pano",
     source_every: int = 1,
@@ -399,7 +403,8 @@ def splat_samples(
 
     Frame ``k`` (counted over the captures in order, from ``start_index``) is held out when
     ``k % holdout_every == holdout_every - 1``: the split of ``sim train`` / ``sim renderer-eval``.
-    Each capture's Gaussians are built (identity encoder) from its own non-held-out frames only.
+    Each capture's Gaussians are built (``encoder``: identity or a stage-1 checkpoint) from its own
+    non-held-out frames only.
     Targets follow ``target`` (see :attr:`RenderBenchConfig.target`); each sample records its
     ``target_kind`` (``exact`` or ``capture``). With ``input_views="pinhole6"`` the Gaussians are
     built from six 90° pinhole views of each training panorama instead (:func:`pinhole_faces`).
@@ -430,7 +435,7 @@ def splat_samples(
         if input_views == "pinhole6":
             scene = _pinhole_input_scene(path, sources, gcfg)
         else:
-            scene = build_scene(path, gcfg, encoder="identity", frames=sources)
+            scene = build_scene(path, gcfg, encoder=encoder, frames=sources)
         capture = open_capture(path)
         exact = None
         if target != "capture":
@@ -612,6 +617,7 @@ def run_render_bench(
                 bench.holdout_every,
                 bench.gaussian_config,
                 bench.max_views,
+                encoder=bench.encoder,
                 target=bench.target,
                 input_views=bench.input_views,
                 source_every=bench.source_every,

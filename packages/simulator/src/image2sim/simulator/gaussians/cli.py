@@ -307,6 +307,10 @@ def train_geometry_command(
     devices: int = typer.Option(0, help="Override trainer.devices (processes per node; >1 needs ddp)."),
     num_nodes: int = typer.Option(0, help="Override trainer.num_nodes."),
     strategy: str = typer.Option("", help="Override trainer.strategy: auto (one process) or ddp."),
+    wandb: str = typer.Option(
+        "", help="W&B besides CSV: disabled | offline | online (params: tracking.wandb; '' = train.wandb)."
+    ),
+    wandb_project: str = typer.Option("image2sim", help="W&B project (params: tracking.project)."),
 ) -> None:
     """Stage-1 geometry training of the Gaussian encoder (Lightning; DDP by config or flags)."""
     import dataclasses
@@ -330,5 +334,14 @@ def train_geometry_command(
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
-    result = train_stage1(cfg, out, captures=list(data), resume=resume)
+    if wandb:
+        from image2sim.simulator.tracking import wandb_mode
+
+        try:
+            wandb_mode(wandb)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--wandb") from exc
+    result = train_stage1(
+        cfg, out, captures=list(data), resume=resume, wandb=wandb, wandb_project=wandb_project
+    )
     typer.echo(json.dumps(result, indent=2))

@@ -237,9 +237,13 @@ def train_stage1(
     semantic_model: torch.nn.Module | None = None,
     max_frames: int | None = None,
     progress: bool = True,
+    wandb: str = "",
+    wandb_project: str = "image2sim",
 ) -> dict:
-    """Train (or resume) stage 1; writes checkpoints, CSV (+ W&B offline) logs, image grids and the
-    final encoder (``encoder.safetensors`` + ``encoder.json``) under ``out_dir``. Returns a summary."""
+    """Train (or resume) stage 1; writes checkpoints, CSV logs, image grids and the final encoder
+    (``encoder.safetensors`` + ``encoder.json``) under ``out_dir``. Returns a summary. W&B is added
+    beside the CSV log when ``wandb`` (the params' ``tracking.wandb``: disabled | offline | online)
+    asks for it, in ``wandb_project``; without it, ``train.wandb`` means offline W&B."""
     from image2sim.simulator.gaussians.build import save_encoder
     from image2sim.simulator.tracking import csv_logger
     from image2sim.simulator.trainer import resume_checkpoint
@@ -264,10 +268,13 @@ def train_stage1(
     last = out / "checkpoints" / "last.ckpt"
     ckpt_path = resume_checkpoint("last", out) if resume and last.is_file() else None
     loggers = [csv_logger(out, resume=ckpt_path is not None)]
-    if cfg.train.wandb:
+    from image2sim.simulator.tracking import wandb_mode
+
+    mode = wandb_mode(wandb) if wandb else ("offline" if cfg.train.wandb else None)
+    if mode is not None:
         from image2sim.simulator.tracking import wandb_logger
 
-        loggers.append(wandb_logger(out, "image2sim-geometry", config_to_dict(cfg)))
+        loggers.append(wandb_logger(out, wandb_project, config_to_dict(cfg), mode=mode))
     ckpt = ModelCheckpoint(
         dirpath=str(out / "checkpoints"),
         every_n_train_steps=max(1, cfg.train.checkpoint_every),

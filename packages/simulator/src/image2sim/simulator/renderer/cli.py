@@ -71,6 +71,11 @@ def train_command(
         "degraded: synthetic degradations of the targets.",
     ),
     gaussian_config: str = typer.Option("tiny", help="Gaussian preset/YAML of the splat conditions."),
+    encoder: str = typer.Option(
+        "identity",
+        help="Gaussians of the splat conditions: identity, or a stage-1 encoder checkpoint (sim "
+        "train-geometry's encoder.safetensors or its folder): its 16 feature channels reach the renderer.",
+    ),
     splat_cache: Path = typer.Option(
         Path("outputs/cache/splat_conditions"), help="Cache folder of the splat conditions."
     ),
@@ -119,6 +124,7 @@ def train_command(
 
         scfg = SplatDataConfig(
             gaussian_config=gaussian_config,
+            encoder=encoder,
             holdout_every=holdout_every,
             source_every=source_every,
             degraded_fraction=degraded_fraction,

@@ -73,7 +73,11 @@ class SplatDataConfig:
     """How splatted training conditions are built."""
 
     gaussian_config: str = "tiny"
-    """Gaussian preset name or YAML file (identity encoder; fusion settings come from it)."""
+    """Gaussian preset name or YAML file (the identity encoder's sizes; fusion settings come from it)."""
+    encoder: str = "identity"
+    """``identity`` (pixel colours, no features) or a stage-1 encoder checkpoint (``sim
+    train-geometry``'s ``encoder.safetensors`` or its folder): its feature Gaussians, whose 16
+    feature channels reach the renderer's condition (the paper's semantic grounding path)."""
     holdout_every: int = 8
     """Every n-th frame (counted over all captures in order) is held out: never a target, never a
     source (0: none held out). Same split as ``sim train --holdout-every`` and ``eval render``."""
@@ -173,18 +177,22 @@ def gaussians_condition(gaussians: Any, camera: Any, cam_to_world: Any) -> torch
     )[0]
 
 
-def encode_capture(capture: Any, indices: Sequence[int], gcfg: Any) -> tuple[dict[int, Any], dict[int, Any]]:
-    """Identity Gaussians of the given frames of an open capture, ``{frame index: GaussianSet}``, and
-    with ``fusion.views: best`` their view maps (``{frame index: ViewMap}``; empty otherwise)."""
-    from image2sim.simulator.gaussians.encoder import identity_gaussians
+def encode_capture(
+    capture: Any, indices: Sequence[int], gcfg: Any, encoder: Any = None
+) -> tuple[dict[int, Any], dict[int, Any]]:
+    """Gaussians of the given frames of an open capture, ``{frame index: GaussianSet}`` (identity,
+    or ``encoder``'s feature Gaussians at its own resolution), and with ``fusion.views: best`` their
+    view maps (``{frame index: ViewMap}``; empty otherwise)."""
+    from image2sim.simulator.gaussians.build import encode_frames
     from image2sim.simulator.gaussians.frames import prepare_frame
     from image2sim.simulator.gaussians.views import view_map
 
-    h, w = gcfg.encoder.height, gcfg.encoder.width
+    ecfg = gcfg if encoder is None else dataclasses.replace(encoder.cfg, fusion=gcfg.fusion)
+    h, w = ecfg.encoder.height, ecfg.encoder.width
     sets, views = {}, {}
     for i in indices:
         inputs = prepare_frame(capture[i], h, w, gcfg.fusion.edge_tolerance)
-        sets[int(i)] = identity_gaussians(inputs, gcfg)
+        sets[int(i)] = encode_frames([inputs], ecfg, encoder)[0]
         if gcfg.fusion.views == "best":
             views[int(i)] = view_map(inputs, gcfg.fusion)
     return sets, views
@@ -239,8 +247,10 @@ def conditions_cache_key(
     target_list: Sequence[int],
     sources: Sequence[Sequence[int]],
     fuse_every: int,
+    encoder: str = "identity",
 ) -> str:
-    """Hex digest identifying one capture's conditions (content, config, resolution, targets)."""
+    """Hex digest identifying one capture's conditions (content, config, encoder, resolution,
+    targets); ``encoder`` is :func:`encoder_digest` of the encoder used."""
     h = hashlib.sha256()
     manifest = Path(capture_path) / "manifest.json"
     if manifest.is_file():
@@ -252,6 +262,7 @@ def conditions_cache_key(
         h.update(np.asarray(p, dtype=np.float64).tobytes())
     meta = {
         "version": CACHE_VERSION,
+        "encoder": encoder,
         "gaussians": gcfg_dict,
         "resolution": [int(height), int(width)],
         "targets": [int(t) for t in target_list],
@@ -260,6 +271,32 @@ def conditions_cache_key(
     }
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()[:24]
+
+
+def _encoder(spec: str):
+    """None for ``identity``, else the stage-1 encoder loaded from ``spec`` (a file or its folder)."""
+    if spec == "identity":
+        return None
+    from image2sim.simulator.gaussians.build import load_encoder
+
+    return load_encoder(spec)
+
+
+def encoder_digest(spec: str) -> str:
+    """``identity``, or the SHA-256 of the encoder's weights (cache keys and training records)."""
+    if spec == "identity":
+        return "identity"
+    from image2sim.simulator.gaussians.scene import _sha256
+
+    path = Path(spec)
+    if path.is_dir():
+        found = sorted(path.glob("*.safetensors"))
+        path = found[0] if len(found) == 1 else path
+    if not path.is_file():
+        raise SplatDataError(
+            f"{spec}: encoder checkpoint not found (expected a .safetensors file or its folder)"
+        )
+    return _sha256(path)
 
 
 def capture_conditions(
@@ -305,6 +342,7 @@ def capture_conditions(
             train,
             sources,
             cfg.fuse_every,
+            encoder_digest(cfg.encoder),
         )
         cache_file = Path(cfg.cache_dir) / f"{Path(capture_path).name}-{key}.safetensors"
         if cache_file.is_file():
@@ -312,7 +350,7 @@ def capture_conditions(
             if cond.shape != (len(train), 24, height, width):
                 raise SplatDataError(f"{cache_file}: cached conditions have shape {tuple(cond.shape)}")
             return cond, True
-    sets, views = encode_capture(capture, candidates, gcfg)
+    sets, views = encode_capture(capture, candidates, gcfg, _encoder(cfg.encoder))
     camera = EquirectCamera(height, width)
     it = list(zip(train, sources, strict=True))
     if progress:
@@ -434,6 +472,7 @@ def training_record(
         "captures": [str(c) for c in captures],
         "splat_data": dataclasses.asdict(cfg),
         "gaussians": config_to_dict(gaussian_config),
+        "encoder_sha256": encoder_digest(cfg.encoder),
     }
 
 
