@@ -135,6 +135,14 @@ def train_cmd(
             "trajectory equally likely.",
         ),
     ] = None,
+    val_shards: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--val-shard",
+            help="bc: validation shard(s) (overrides data.val_shards): val/loss and val/action_acc "
+            "every train.val_every steps.",
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option(help="Run folder.")] = Path("outputs/nav-bc"),
     resume: Annotated[
         str, typer.Option(help="Checkpoint to resume from ('last' = the run folder's last).")
@@ -234,6 +242,8 @@ def train_cmd(
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if shard_weights:
         overrides.setdefault("data", {})["shard_weights"] = [float(w) for w in shard_weights]
+    if val_shards:
+        overrides.setdefault("data", {})["val_shards"] = [str(s) for s in val_shards]
     if max_steps:
         overrides.setdefault("train", {})["max_steps"] = max_steps
     if max_trajectories:

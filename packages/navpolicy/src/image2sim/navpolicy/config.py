@@ -117,6 +117,11 @@ class DataConfig:
 
     shards: list[str] = field(default_factory=list)
     """Shard folders (see :mod:`image2sim.navpolicy.data` for the format)."""
+    val_shards: list[str] = field(default_factory=list)
+    """Validation shards (e.g. episodes of houses the policy never trains on): every
+    ``train.val_every`` steps the same ``train.val_batches`` batches of them (no jitter) are scored,
+    logged as ``val/loss`` and ``val/action_acc`` beside the training curves, so over- and
+    under-fitting show while the run goes. Empty: no validation."""
     shard_weights: list[float] = field(default_factory=list)
     """Sample ratios of the shards (e.g. human annotations : generated data). Empty: every trajectory
     of every shard is equally likely (the plain epoch order). Else one weight >= 0 per entry of
@@ -191,6 +196,10 @@ class TrainConfig:
     """Log every N steps."""
     checkpoint_every: int = 10
     """Save a resumable checkpoint every N optimizer steps."""
+    val_every: int = 100
+    """With ``data.val_shards``: validate every N optimizer steps."""
+    val_batches: int = 8
+    """With ``data.val_shards``: batches per validation (the same ones every time)."""
     wandb: bool = False
     """Log to Weights & Biases besides CSV (``wandb_mode``; ``nav train --wandb`` sets both)."""
     wandb_mode: str = "offline"
@@ -307,6 +316,11 @@ class NavPolicyConfig:
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
+        if self.train.val_every < 1 or self.train.val_batches < 1:
+            raise ConfigError(
+                f"train.val_every and train.val_batches must be >= 1, got {self.train.val_every}, "
+                f"{self.train.val_batches}"
+            )
         if self.data.sampling not in ("uniform", "streaming"):
             raise ConfigError(f"data.sampling must be uniform or streaming, not {self.data.sampling!r}")
         if self.data.max_trajectories is not None and (

@@ -269,6 +269,33 @@ class NavBCModule(L.LightningModule):
             num_workers=self.cfg.data.num_workers,
         )
 
+    def val_dataloader(self):
+        """``val_batches`` batches of ``data.val_shards``: a fixed draw of trajectories, each sampled
+        with the generator of (seed, epoch 0, index), so every validation scores the same samples and
+        the curve moves only with the weights."""
+        tc, shards = self.cfg.train, self.cfg.data.val_shards
+        if not shards:
+            return []
+        val = NavShardDataset(
+            shards, seed=tc.seed, cache_frames=self.cfg.data.cache_frames, **sample_options(self.cfg)
+        )
+        count = min(len(val), tc.val_batches * tc.batch_size)
+        order = epoch_permutation(len(val), tc.seed, 0)[:count]
+        return torch.utils.data.DataLoader(
+            torch.utils.data.Subset(val, order.tolist()),
+            batch_size=tc.batch_size,
+            shuffle=False,
+            collate_fn=self._collate,
+            num_workers=self.cfg.data.num_workers,
+        )
+
+    def validation_step(self, batch, batch_idx):
+        out = self(batch)
+        bsz = batch["input_ids"].shape[0]
+        self.log("val/loss", out.loss, batch_size=bsz, on_epoch=True, on_step=False)
+        acc = action_accuracy(out.logits.detach(), batch["labels"])
+        self.log("val/action_acc", acc, batch_size=bsz, on_epoch=True, on_step=False)
+
     def _collate(self, samples):
         batch = self.collator(samples)
         batch["episode_ids"] = [s.episode_id for s in samples]
@@ -396,6 +423,9 @@ def train_bc(
         enable_progress_bar=True,
         enable_model_summary=False,
         num_sanity_val_steps=0,
+        limit_val_batches=tc.val_batches if cfg.data.val_shards else 0,
+        val_check_interval=tc.val_every if cfg.data.val_shards else None,
+        check_val_every_n_epoch=None if cfg.data.val_shards else 1,
         use_distributed_sampler=False,  # StepSampler already splits positions across ranks
         default_root_dir=str(out),
     )
