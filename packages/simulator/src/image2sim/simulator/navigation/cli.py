@@ -101,13 +101,21 @@ def navmap_command(
     summary = navmap.summary()
     if graph:
         from image2sim.simulator.navigation.embodiment import GraphConfig
-        from image2sim.simulator.navigation.graph import NavGraph
+        from image2sim.simulator.navigation.graph import NavGraph, joined_storeys
 
         g = NavGraph.build(
             navmap, GraphConfig.from_dict(cfg.get("graph"), where="--config graph"), progress=True
         )
         g.save(out.with_name("navgraph.npz"))
-        summary["graph"] = {"nodes": g.num_nodes, "edges": g.num_edges}
+        joined = joined_storeys(g, navmap.level_heights, navmap.config.level_tolerance)
+        summary["graph"] = {"nodes": g.num_nodes, "edges": g.num_edges, "storeys_joined": joined}
+        if navmap.num_levels > 1 and not joined:
+            # Say why and what to do: a new user otherwise sees two storeys and no path between them.
+            summary["notes"].append(
+                f"no path joins the storeys: their stairs have steps taller than max_step_height "
+                f"{navmap.embodiment.max_step_height} m (or none were captured); a body that climbs "
+                "them: --config configs/navigation/climb_0.25.yaml"
+            )
     typer.echo(json.dumps({"navmap": str(out), "png": str(png), **summary}, indent=2))
 
 

@@ -28,7 +28,7 @@ from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-__all__ = ["NavGraph", "edge_costs", "nearest_bin", "ray_march_free"]
+__all__ = ["NavGraph", "edge_costs", "joined_storeys", "nearest_bin", "ray_march_free"]
 
 GRAPH_FORMAT_VERSION = 1
 
@@ -85,6 +85,27 @@ def ray_march_free(
     blocked = np.ones_like(inside)
     blocked[inside] = masks[kb[inside], i[inside], j[inside]]
     return ~blocked.any(axis=1)
+
+
+def joined_storeys(graph: NavGraph, level_heights: np.ndarray, tolerance: float) -> list[tuple[int, int]]:
+    """Pairs (a, b), a < b, of storeys that one graph component reaches both of.
+
+    A storey is reached through its nodes within ``tolerance`` of its height (its floor plane), not
+    through the nodes merely labelled with it: the lower treads of a flight cut off from the lower
+    storey carry that storey's label, yet reach nothing there.
+    """
+    heights = np.asarray(level_heights, dtype=np.float64).reshape(-1)
+    if graph.num_nodes == 0 or len(heights) < 2:
+        return []
+    on = np.abs(graph.nodes[:, 2, None] - heights[None, :]) <= tolerance  # (V, L)
+    comp = graph.components
+    # reached[c, l]: component c holds a node on storey l.
+    reached = np.zeros((int(comp.max()) + 1, len(heights)), dtype=bool)
+    rows, cols = np.nonzero(on)
+    reached[comp[rows], cols] = True
+    together = reached.T.astype(np.int64) @ reached.astype(np.int64)  # (L, L) shared components
+    a, b = np.nonzero(np.triu(together, k=1))
+    return [(int(i), int(j)) for i, j in zip(a, b, strict=True)]
 
 
 @dataclass
