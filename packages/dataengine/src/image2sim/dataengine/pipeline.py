@@ -290,11 +290,15 @@ def _render_fn(
     folder = inputs.gaussian_dir
     if folder is None:
         from image2sim.dataengine.asset_cache import cached, content_key
+        from image2sim.simulator.gaussians.config import config_to_dict
 
         folder = cache / "gaussians"
+        # The key names the whole Gaussian config, so a cache built under other fusion settings
+        # (e.g. before best-view selection) is never reused.
+        config = json.dumps(config_to_dict(tiny()), sort_keys=True)
         cached(
             asset_cache,
-            lambda: content_key(inputs.capture_dir, "gaussians", "tiny identity"),
+            lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}"),
             ["gaussians"],
             cache,
             lambda: build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True),

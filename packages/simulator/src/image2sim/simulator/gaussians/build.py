@@ -95,7 +95,7 @@ def build_scene(
     encoder: str | Path | GaussianEncoder = "identity",
     frames: Sequence[int] | None = None,
     progress: bool = False,
-    fuse_every: int = 1,
+    fuse_every: int = 8,
 ) -> GaussianScene:
     """Open a capture (any format ``open_capture`` reads), encode the chosen frames and fuse them.
 
