@@ -81,13 +81,19 @@ def surface_area(scene, cell: float = 0.05) -> float:
 def procedural_captures(tmp: Path, houses: int) -> list[tuple[str, Path]]:
     from image2sim.dataengine.procedural import generate_scene, preset, write_scene
 
-    sc = preset("default")
-    sc = dataclasses.replace(sc, noise="middle")
+    sc = dataclasses.replace(preset("default"), noise="middle")
     out = []
     for seed in range(houses):
         path = tmp / f"house_{seed}"
         write_scene(generate_scene(sc, seed=9000 + seed), path)
         out.append((f"procedural middle, seed {9000 + seed}", path))
+    # The demo's regime: clean depth, 12 panoramas per house, so some walls are seen frontally only by
+    # a held-out frame (the case of fusion.owner_cos).
+    sparse = dataclasses.replace(preset("default"), noise="none")
+    sparse = dataclasses.replace(sparse, capture=dataclasses.replace(sparse.capture, views=12))
+    path = tmp / "sparse"
+    write_scene(generate_scene(sparse, seed=9100), path)
+    out.append(("procedural none, 12 panoramas, seed 9100", path))
     return out
 
 

@@ -119,7 +119,7 @@ def test_panorama_points_across_the_seam_find_their_pixel():
     assert set(col[:3].tolist()) <= {0, 31}
 
 
-def reference_mask(means, intervals, normals, own, views, tolerance, step):
+def reference_mask(means, intervals, normals, own, views, tolerance, step, owner_cos=0.0):
     """The rule point by point, in plain Python (the readable reference of best_view_mask)."""
     keep = []
     for p, q, nrm in zip(
@@ -151,6 +151,10 @@ def reference_mask(means, intervals, normals, own, views, tolerance, step):
             iv = float(view.interval[row[0], col[0]])
             if not (d > 0 and abs(float(rng[0]) - d) <= tolerance * d + 2.0 * iv):
                 continue
+            n = view.normals[row[0], col[0]].double().tolist()
+            length = math.sqrt(sum(v * v for v in off)) or 1e-12
+            if abs(sum(n[k] * off[k] / length for k in range(3))) < owner_cos:
+                continue
             mine = q
             if step > 1.0:
                 iv, mine = (
@@ -164,8 +168,8 @@ def reference_mask(means, intervals, normals, own, views, tolerance, step):
     return torch.tensor(keep)
 
 
-@pytest.mark.parametrize("step", [1.0, 1.5])
-def test_vectorised_rule_matches_the_reference(step):
+@pytest.mark.parametrize("step, owner_cos", [(1.0, 0.0), (1.5, 0.0), (1.5, 0.5)])
+def test_vectorised_rule_matches_the_reference(step, owner_cos):
     g = torch.Generator().manual_seed(0)
     frames = []
     for k in range(4):
@@ -178,8 +182,9 @@ def test_vectorised_rule_matches_the_reference(step):
     for own, f in enumerate(frames):
         gs = identity_gaussians(f, c)
         iv, nrm = own_geometry(gs.means, views[own])
-        fast = best_view_mask(gs.means, iv, nrm, own, views, c.fusion.same_surface_tolerance, step)
-        slow = reference_mask(gs.means, iv, nrm, own, views, c.fusion.same_surface_tolerance, step)
+        tol = c.fusion.same_surface_tolerance
+        fast = best_view_mask(gs.means, iv, nrm, own, views, tol, step, owner_cos=owner_cos)
+        slow = reference_mask(gs.means, iv, nrm, own, views, tol, step, owner_cos)
         assert torch.equal(fast, slow)
 
 
@@ -202,6 +207,7 @@ def test_keep_best_edge_cases():
         ("same_surface_tolerance", 0.0, "same_surface_tolerance"),
         ("grazing_cos", 0.0, "grazing_cos"),
         ("interval_step", 0.5, "interval_step"),
+        ("owner_cos", 1.5, "owner_cos"),
     ],
 )
 def test_bad_best_view_config_is_refused(field, value, message):
@@ -226,3 +232,30 @@ def test_points_another_view_saw_through_are_carved_and_silhouettes_are_not():
     holed.depth[..., H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1] = 0.0
     views[0] = view_map(holed, c.fusion)
     assert best_view_mask(pts, iv, normals, 1, views, 0.02, 1.0, carve_views=1)[0]
+
+
+def test_a_grazing_view_does_not_replace_a_frontal_one_it_samples_more_finely():
+    """owner_cos: a near view seeing the wall at a grazing angle (cos ~0.2) has a finer interval
+    than a far frontal one only by the clamp; with owner_cos 0.5 it may not replace the frontal one."""
+    c0, c5 = cfg(owner_cos=0.0, grazing_cos=0.05), cfg(owner_cos=0.5, grazing_cos=0.05)
+    frontal = plane_frame(-8.0, 2.0)
+    # A camera 0.5 m from the wall, looking along it (+Y): the wall x = 2 is at a grazing angle.
+    look_py = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    grazing = FrameInputs(
+        torch.full((1, 3, H, W), 0.5), torch.zeros(1, 1, H, W), CAM, pose(1.5, look_py, -3.0), "graze"
+    )
+    # Its depth: z-distance along +Y to the wall x = 2 for the pixels that see it, else invalid.
+    rays = CAM.ray_map(torch.float64)  # camera frame (x right, y down, z forward)
+    world = torch.einsum("ij,jhw->ihw", look_py, rays)
+    t = (2.0 - 1.5) / world[0].clamp_min(1e-9)
+    z = torch.where(world[0] > 1e-3, t * rays[2], torch.zeros_like(t))
+    grazing.depth[0, 0] = z.float()
+    sets = [identity_gaussians(f, c0) for f in (frontal, grazing)]
+    views0 = [view_map(f, c0.fusion) for f in (frontal, grazing)]
+    views5 = [view_map(f, c5.fusion) for f in (frontal, grazing)]
+    kept0 = select_best_views(sets, views0, c0.fusion)
+    kept5 = select_best_views(sets, views5, c5.fusion)
+    # Near its camera the grazing view samples the wall more finely than the far frontal one and
+    # takes those Gaussians over; with the rule it keeps only those it sees at a cosine >= 0.5.
+    assert len(kept0[0]) < len(kept5[0]) <= len(sets[0])
+    assert len(kept0[1]) >= len(kept5[1])

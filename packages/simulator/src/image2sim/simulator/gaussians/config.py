@@ -126,6 +126,10 @@ class FusionConfig:
     carve_views: int = 8
     """``views: best``: each frame's Gaussians are also dropped where one of this many nearest frames
     (by camera centre) saw empty space through them (silhouette halos, floaters); 0 disables."""
+    owner_cos: float = 0.5
+    """``views: best``: a frame replaces others' Gaussians only where it sees the surface at a viewing
+    cosine of at least this (a grazing frame samples a surface in sparse rows, and alone leaves
+    gaps between them: a wall seen frontally only by a held-out frame; 0: any frame)."""
     grazing_cos: float = 0.2
     """``views: best``: viewing cosines below this count as this (a pixel's sampling interval is
     footprint / max(cos, grazing_cos)); also used where the surface normal is unknown."""
@@ -257,6 +261,8 @@ class GaussianConfig:
             )
         if f.carve_views < 0:
             raise ConfigError(f"fusion.carve_views must be >= 0, got {f.carve_views}")
+        if not 0 <= f.owner_cos <= 1:
+            raise ConfigError(f"fusion.owner_cos must lie in [0, 1], got {f.owner_cos}")
         if f.views not in ("best", "all"):
             raise ConfigError(f"fusion.views must be 'best' or 'all', got {f.views!r}")
         if not (f.same_surface_tolerance > 0 and 0 < f.grazing_cos <= 1 and f.interval_step >= 1):

@@ -175,6 +175,7 @@ def best_view_mask(
     tolerance: float,
     step: float = 1.0,
     carve_views: int = 0,
+    owner_cos: float = 0.0,
 ) -> torch.Tensor:
     """Which of frame ``own``'s Gaussians no other view models better or sees through, (N,) bool.
 
@@ -224,6 +225,12 @@ def best_view_mask(
         d = view.depth.to(pts.device)[row, col].double()
         iv = view.interval.to(pts.device)[row, col].double()
         same = hit & (d > 0) & ((rng - d).abs() <= tolerance * d + 2.0 * iv)
+        if owner_cos > 0:
+            # A grazing view samples a surface in sparse rows; alone it leaves gaps between them,
+            # so it only replaces others' Gaussians where it sees the surface frontally enough.
+            normal = view.normals.to(pts.device)[row, col].double()
+            ray = offset[idx] / dist[idx, None].clamp_min(1e-12)
+            same &= (normal * ray).sum(dim=1).abs() >= owner_cos
         theirs = own_iv[idx]
         if step > 1.0:
             # Quantised intervals: views within one step of each other tie and the lower index
@@ -276,6 +283,7 @@ def keep_best(
         fusion.same_surface_tolerance,
         fusion.interval_step,
         fusion.carve_views,
+        fusion.owner_cos,
     )
     return gaussians.index(keep)
 
