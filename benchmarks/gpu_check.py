@@ -138,10 +138,12 @@ def check_views(report: dict) -> None:
     views = [view_map(f, cfg.fusion) for f in inputs]
     cpu = select_best_views(sets, views, cfg.fusion)
     to = lambda g: type(g)(**{k: v.cuda() for k, v in g.tensors().items()})  # noqa: E731
-    vcuda = [
-        type(v)(v.camera, v.world_to_cam.cuda(), v.depth.cuda(), v.interval.cuda(), v.normals.cuda())
-        for v in views
+    import dataclasses
+
+    tensor_fields = [
+        f.name for f in dataclasses.fields(views[0]) if isinstance(getattr(views[0], f.name), torch.Tensor)
     ]
+    vcuda = [dataclasses.replace(v, **{f: getattr(v, f).cuda() for f in tensor_fields}) for v in views]
     gpu = select_best_views([to(g) for g in sets], vcuda, cfg.fusion)
     report["best_view_cpu_vs_cuda"] = {
         "kept_cpu": [len(g) for g in cpu],
