@@ -9,12 +9,13 @@ Nothing is downloaded; the card only describes local files.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
+
+from image2sim.simulator.io.digest import file_sha256
 
 CARD_FILE = "README.md"
 """File name of the card inside the export folder (what the Hugging Face hub shows)."""
@@ -38,15 +39,6 @@ def _read_json_object(path: Path, what: str) -> dict[str, Any]:
     if not isinstance(doc, Mapping):
         raise ValueError(f"{path}: expected a JSON object ({what}), got {type(doc).__name__}")
     return dict(doc)
-
-
-def file_sha256(path: Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def data_lineage(sources: Iterable[str | Path]) -> list[dict[str, Any]]:

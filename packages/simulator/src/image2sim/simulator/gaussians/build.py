@@ -16,11 +16,12 @@ import torch
 from image2sim.simulator.gaussians.config import GaussianConfig, config_to_dict, gaussian_config_from_dict
 from image2sim.simulator.gaussians.encoder import GaussianEncoder, identity_gaussians
 from image2sim.simulator.gaussians.frames import prepare_frame
-from image2sim.simulator.gaussians.scene import GaussianScene, SceneError, _sha256
+from image2sim.simulator.gaussians.scene import GaussianScene, SceneError
 from image2sim.simulator.gaussians.views import keep_best, view_map
 from image2sim.simulator.geometry.cameras import EquirectCamera
+from image2sim.simulator.io.digest import file_sha256
 
-__all__ = ["save_encoder", "load_encoder", "build_scene", "nearest_frames", "encode_frames"]
+__all__ = ["save_encoder", "load_encoder", "encoder_file", "build_scene", "nearest_frames", "encode_frames"]
 
 
 def save_encoder(encoder: GaussianEncoder, path: str | Path) -> Path:
@@ -41,11 +42,9 @@ def save_encoder(encoder: GaussianEncoder, path: str | Path) -> Path:
     return path
 
 
-def load_encoder(path: str | Path, semantic_model: torch.nn.Module | None = None) -> GaussianEncoder:
-    """Inverse of :func:`save_encoder`; the semantic backbone is rebuilt from its config (local weights)."""
-    from image2sim.simulator.gaussians.semantic import build_semantic
-    from safetensors.torch import load_file
-
+def encoder_file(path: str | Path) -> Path:
+    """The encoder weights file a checkpoint argument names: the file itself, or the single
+    ``.safetensors`` in a folder (``sim train-geometry --out``'s)."""
     path = Path(path)
     if path.is_dir():
         found = sorted(path.glob("*.safetensors"))
@@ -53,7 +52,16 @@ def load_encoder(path: str | Path, semantic_model: torch.nn.Module | None = None
             raise SceneError(
                 f"{path}: expected exactly one encoder .safetensors in the folder, found {len(found)}"
             )
-        path = found[0]
+        return found[0]
+    return path
+
+
+def load_encoder(path: str | Path, semantic_model: torch.nn.Module | None = None) -> GaussianEncoder:
+    """Inverse of :func:`save_encoder`; the semantic backbone is rebuilt from its config (local weights)."""
+    from image2sim.simulator.gaussians.semantic import build_semantic
+    from safetensors.torch import load_file
+
+    path = encoder_file(path)
     meta_path = path.with_suffix(".json")
     if not path.is_file() or not meta_path.is_file():
         raise SceneError(f"{path}: encoder checkpoint needs {path.name} and {meta_path.name}")
@@ -126,9 +134,8 @@ def build_scene(
         net, enc_info = encoder.eval(), {"kind": "learned", "checkpoint": None, "sha256": None}
     elif str(encoder) != "identity":
         net = load_encoder(encoder)
-        ckpt = Path(encoder)
-        ckpt = ckpt if ckpt.suffix == ".safetensors" else next(iter(sorted(ckpt.glob("*.safetensors"))), ckpt)
-        enc_info = {"kind": "learned", "checkpoint": str(Path(encoder).resolve()), "sha256": _sha256(ckpt)}
+        weights = file_sha256(encoder_file(encoder))
+        enc_info = {"kind": "learned", "checkpoint": str(Path(encoder).resolve()), "sha256": weights}
     if net is not None:
         # The checkpoint brings its encoder (sizes, heads); fusion is a scene-building choice from cfg.
         cfg = dataclasses.replace(net.cfg, fusion=cfg.fusion)

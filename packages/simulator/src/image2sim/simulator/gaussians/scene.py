@@ -49,16 +49,6 @@ class SceneError(ValueError):
     """A bad scene folder or PLY; the message names the file and the problem."""
 
 
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with path.open("rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 @dataclass
 class GaussianScene:
     """Fused feature Gaussians of one scene plus provenance.

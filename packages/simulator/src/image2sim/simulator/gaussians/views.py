@@ -94,18 +94,15 @@ class ViewMap:
         return cos_edge / math.sqrt(cam.fx * cam.fy)
 
 
-def sampling_interval(depth: torch.Tensor, camera: Camera, grazing_cos: float) -> torch.Tensor:
-    """Metric sampling interval on the surface (B, 1, H, W): pixel footprint / max(|cos|, grazing_cos).
-
-    The cosine is between the viewing ray and the ``point_normals`` surface normal; where the normal
-    is unknown (next to invalid depth) the pixel counts as grazing. Invalid depth gives inf.
-    """
-    return _interval_and_normals(depth, camera, grazing_cos)[0]
-
-
-def _interval_and_normals(
+def sampling_interval(
     depth: torch.Tensor, camera: Camera, grazing_cos: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Metric sampling interval on the surface (B, 1, H, W): pixel footprint / max(|cos|, grazing_cos),
+    and the ``point_normals`` normals (B, 3, H, W) the cosine was taken with.
+
+    The cosine is between the viewing ray and the normal; where the normal is unknown (next to
+    invalid depth) the pixel counts as grazing. Invalid depth gives inf.
+    """
     normals = point_normals(depth, camera)
     rays = camera.ray_map(depth.dtype, depth.device)[None]
     cos = (normals * rays).sum(dim=1, keepdim=True).abs().clamp(min=grazing_cos)
@@ -121,7 +118,7 @@ def view_map(inputs: FrameInputs, fusion: FusionConfig) -> ViewMap:
     depth = inputs.depth
     valid = valid_pixels(depth, fusion)
     clean = torch.where(valid, depth, torch.zeros_like(depth))
-    interval, normals = _interval_and_normals(clean, inputs.camera, fusion.grazing_cos)
+    interval, normals = sampling_interval(clean, inputs.camera, fusion.grazing_cos)
     pose = inputs.cam_to_world.to(torch.float64)
     world_normals = normals[0].permute(1, 2, 0).double() @ pose[:3, :3].T.to(normals.device)
     return ViewMap(

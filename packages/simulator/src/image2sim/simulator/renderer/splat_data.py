@@ -286,17 +286,15 @@ def encoder_digest(spec: str) -> str:
     """``identity``, or the SHA-256 of the encoder's weights (cache keys and training records)."""
     if spec == "identity":
         return "identity"
-    from image2sim.simulator.gaussians.scene import _sha256
+    from image2sim.simulator.gaussians.build import encoder_file
+    from image2sim.simulator.io.digest import file_sha256
 
-    path = Path(spec)
-    if path.is_dir():
-        found = sorted(path.glob("*.safetensors"))
-        path = found[0] if len(found) == 1 else path
+    path = encoder_file(spec)
     if not path.is_file():
         raise SplatDataError(
             f"{spec}: encoder checkpoint not found (expected a .safetensors file or its folder)"
         )
-    return _sha256(path)
+    return file_sha256(path)
 
 
 def capture_conditions(
