@@ -366,3 +366,28 @@ def test_inspect_and_fuse_read_synthetic_scenes_without_special_cases(tmp_path):
         app, ["synth", "--preset", "tiny", "--config", str(bad), "--out", str(tmp_path / "y")]
     )
     assert rejected.exit_code == 2 and "viewz" in rejected.output
+
+
+def test_walking_camera_bounds_the_turn_between_views_and_leaves_positions_alone(tiny_scene):
+    walk = generate_scene(_with_noise(TINY, "none", yaw_step_max_deg=20.0), 4)
+    free = sample_viewpoints(tiny_scene, 12, np.random.default_rng(0))
+    views = sample_viewpoints(walk, 12, np.random.default_rng(0))
+    assert [v.position for v in views] == [v.position for v in free]
+    yaw = np.array([v.yaw for v in views])
+    turn = np.abs((np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi)
+    assert turn.max() <= np.radians(20.0) + 1e-9
+    assert np.all((yaw >= -np.pi) & (yaw < np.pi))
+
+
+def test_surface_detail_adds_fine_grain_and_zero_changes_nothing():
+    cfg = _with_noise(TINY, "none", camera="pinhole", height=48, width=64)
+    scene = generate_scene(cfg, 4)
+    grainy = generate_scene(dataclasses.replace(cfg, surface_detail=0.3), 4)
+    pose = pose_matrix(sample_viewpoints(scene, 1, np.random.default_rng(1))[0])
+    cam = make_camera(cfg)
+    plain, detail = render(scene, cam, pose), render(grainy, cam, pose)
+    assert np.array_equal(plain["depth"], detail["depth"])
+    diff = detail["rgb"].astype(float) - plain["rgb"].astype(float)
+    assert 2.0 < np.abs(diff).mean() < 40.0
+    with pytest.raises(Exception, match="surface_detail"):
+        dataclasses.replace(cfg, surface_detail=1.5).validate()

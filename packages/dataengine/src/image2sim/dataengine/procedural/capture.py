@@ -193,7 +193,14 @@ def sample_viewpoints(scene: ProceduralScene, n: int, rng: np.random.Generator) 
             break
         local += 1
         chosen.append(prev if pick is None else pick)
-    return [Viewpoint((float(p[0]), float(p[1]), eye), float(rng.uniform(-math.pi, math.pi))) for p in chosen]
+    if cap.yaw_step_max_deg >= 180.0:
+        yaws = [float(rng.uniform(-math.pi, math.pi)) for _ in chosen]
+    else:  # a walking camera: each heading a bounded random turn from the previous one
+        step = math.radians(cap.yaw_step_max_deg)
+        yaws = [float(rng.uniform(-math.pi, math.pi))]
+        for _ in chosen[1:]:
+            yaws.append(float((yaws[-1] + rng.uniform(-step, step) + math.pi) % (2 * math.pi) - math.pi))
+    return [Viewpoint((float(p[0]), float(p[1]), eye), yaw) for p, yaw in zip(chosen, yaws, strict=True)]
 
 
 def _rotation_from_axis_angle(v: np.ndarray) -> np.ndarray:

@@ -191,6 +191,10 @@ class CaptureConfig:
     """Shortest distance between consecutive views, metres."""
     spacing_max: float = 1.2
     """Longest distance between consecutive views (with a free straight line between them), metres."""
+    yaw_step_max_deg: float = 180.0
+    """Largest heading change between consecutive views, degrees. 180 (default): every view draws an
+    independent random yaw; smaller values make a walking camera whose consecutive views overlap, as
+    a phone video or a photo walk does (what structure-from-motion needs; ``image2sim data lift``)."""
     agent_radius: float = 0.15
     """Agent radius: navigable cells keep at least this distance from walls and objects, metres."""
     grid_resolution: float = 0.05
@@ -211,6 +215,10 @@ class SynthConfig:
     """Noise tier name: "none", "middle" or "high" (parameters in :data:`NOISE_TIERS`)."""
     caster: str = "auto"
     """Ray caster: "auto" (embree when importable, else numpy), "embree" or "numpy" (tile-culled slabs)."""
+    surface_detail: float = 0.0
+    """Contrast of fine albedo grain (periods of a few centimetres) on every surface, in [0, 1): real
+    paint, wood and fabric carry such detail and feature-based structure-from-motion needs it
+    (``image2sim data lift``); 0 keeps the smooth patterns, and the images, exactly as before."""
 
     def noise_config(self) -> NoiseConfig:
         """The parameters of :attr:`noise`."""
@@ -310,6 +318,8 @@ class SynthConfig:
                 f"capture spacing must satisfy 0 <= spacing_min <= spacing_max, 0 < spacing_max; got "
                 f"{cap.spacing_min}..{cap.spacing_max}"
             )
+        if not 0.0 <= cap.yaw_step_max_deg <= 180.0:
+            raise ConfigError(f"capture.yaw_step_max_deg must lie in [0, 180], got {cap.yaw_step_max_deg}")
         if cap.agent_radius < 0:
             raise ConfigError(f"capture.agent_radius must be >= 0, got {cap.agent_radius}")
         if not 0 < cap.grid_resolution <= 0.5:
@@ -320,6 +330,8 @@ class SynthConfig:
             raise ConfigError(
                 f"caster must be 'auto', 'embree', 'numpy' or 'numpy-brute', got {self.caster!r}"
             )
+        if not 0.0 <= self.surface_detail < 1.0:
+            raise ConfigError(f"surface_detail must lie in [0, 1), got {self.surface_detail}")
         noise = self.noise_config()
         if not 0 < noise.view_fraction <= 1:
             raise ConfigError(f"noise tier {self.noise!r}: view_fraction must lie in (0, 1]")

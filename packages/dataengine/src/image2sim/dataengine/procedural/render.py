@@ -14,7 +14,7 @@ import functools
 import numpy as np
 import torch
 from image2sim.dataengine.procedural.scene import WALL_MATERIAL, ProceduralScene
-from image2sim.dataengine.procedural.textures import evaluate_albedo
+from image2sim.dataengine.procedural.textures import detail_factor, evaluate_albedo
 from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
 
 __all__ = ["render", "camera_rays", "AMBIENT", "FILL_DIRECTION", "FILL_STRENGTH"]
@@ -63,7 +63,11 @@ def shade(scene: ProceduralScene, points: np.ndarray, box: np.ndarray, face: np.
     material = scene.box_material[box].copy()
     walls = material == WALL_MATERIAL
     material[walls] = scene.room_wall_material[room_c[walls]]
-    albedo = evaluate_albedo(points, axis, material, scene.materials.arrays())
+    table = scene.materials.arrays()
+    albedo = evaluate_albedo(points, axis, material, table)
+    amount = scene.config.surface_detail
+    if amount > 0:
+        albedo = albedo * detail_factor(points, axis, table["seed"][material], amount)[:, None]
     to_light = scene.light_position[room_c] - points
     dist2 = (to_light * to_light).sum(axis=1)
     # The normal is an axis vector: n . l is the signed component of l along that axis.
