@@ -1,0 +1,488 @@
+"""Camera poses and intrinsics by structure-from-motion (pycolmap, CPU).
+
+Pinhole frames: SIFT features, exhaustive (few frames) or sequential (video) matching, incremental
+mapping with one shared camera whose intrinsics bundle adjustment refines.
+
+Panoramas: each equirectangular frame is split into the six 90-degree cube faces of
+:data:`~image2sim.simulator.geometry.reproject.CUBEMAP_FACES`, which share the panorama's centre.
+The faces are reconstructed as a rig (COLMAP's rig support: the face-from-panorama rotations are
+known and held fixed, so a panorama has one pose), and the panorama pose is recovered from the rig
+pose. The residual reported for panoramas is the spread of the face centres around the panorama
+centre and the angle between the face rotations and the known ones (both 0 up to round-off when the
+rig held).
+
+Everything comes out in our conventions: OpenCV camera, camera-to-world, pixel centres at +0.5
+(COLMAP's convention too), reconstruction units (arbitrary scale, arbitrary gravity).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from image2sim.simulator.lift.frames import FrameSet, LiftInputError
+from image2sim.simulator.lift.types import PinholeView, SparseDepth
+
+__all__ = ["SfmError", "SfmOptions", "SfmView", "SfmResult", "run_sfm", "face_rotations"]
+
+log = logging.getLogger(__name__)
+
+
+class SfmError(LiftInputError):
+    """Structure-from-motion could not reconstruct the input; the message names it and why."""
+
+
+@dataclass
+class SfmOptions:
+    """Settings of :func:`run_sfm`."""
+
+    matcher: str = "auto"
+    """"exhaustive", "sequential" (video: each frame with its ``overlap`` successors) or "auto"
+    (exhaustive up to ``exhaustive_max`` frames)."""
+    exhaustive_max: int = 80
+    """Largest number of frames (panorama faces count once per panorama) matched exhaustively."""
+    overlap: int = 10
+    """Successors each frame is matched with by the sequential matcher."""
+    camera_model: str = "SIMPLE_PINHOLE"
+    """COLMAP camera model of pinhole frames: SIMPLE_PINHOLE (f, cx, cy) or PINHOLE (fx, fy, cx, cy)."""
+    focal_prior: float | None = None
+    """Initial focal length in pixels (default: COLMAP's 1.2 x the larger image side)."""
+    max_features: int = 8192
+    """SIFT features per image at most."""
+    min_registered: int = 3
+    """Fewest registered frames (panoramas) a usable reconstruction has."""
+    face_size: int | None = None
+    """Cube-face size of panoramas in pixels (default: width / 4, the panorama's resolution)."""
+    num_threads: int = 2
+    """CPU threads for extraction, matching and mapping."""
+    seed: int = 0
+    """COLMAP's random seed (RANSAC, mapping order)."""
+
+
+@dataclass
+class SfmView:
+    """One registered pinhole view (a frame, or a cube face of a panorama) and what it observes.
+
+    Attributes:
+        frame_id: the frame it belongs to.
+        face: cube-face index into ``CUBEMAP_FACES`` (None for pinhole frames).
+        K: (3, 3) intrinsics, pixel centres at +0.5.
+        cam_to_world: (4, 4) camera-to-world (OpenCV camera, reconstruction units).
+        uv: (k, 2) pixel coordinates of the view's observations of 3D points.
+        point_index: (k,) index of each observation's point in :attr:`SfmResult.points`.
+        image: (H, W, 3) uint8 RGB of the view.
+    """
+
+    frame_id: str
+    face: int | None
+    K: np.ndarray
+    cam_to_world: np.ndarray
+    uv: np.ndarray
+    point_index: np.ndarray
+    image: np.ndarray
+
+    def pinhole_view(self) -> PinholeView:
+        return PinholeView(image=self.image, K=self.K.copy(), cam_to_world=self.cam_to_world.copy())
+
+    def sparse_depth(self, points: np.ndarray) -> SparseDepth:
+        """The z-depth of this view's observed points (for fitting dense depth to them)."""
+        world_to_cam = np.linalg.inv(self.cam_to_world)
+        p = points[self.point_index] @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+        return SparseDepth(uv=self.uv.astype(np.float64), depth=p[:, 2].astype(np.float64))
+
+
+@dataclass
+class SfmResult:
+    """A reconstruction: registered frames, their views, the sparse points.
+
+    Attributes:
+        frame_ids: registered frames, in input order.
+        cam_to_world: (N, 4, 4) frame poses (the panorama centre for panoramas).
+        K: (3, 3) shared intrinsics of pinhole frames (None for panoramas).
+        views: registered views (one per pinhole frame; the registered faces of panoramas).
+        points: (P, 3) sparse 3D points; ``colors`` (P, 3) uint8.
+        dropped: ``(frame_id, reason)`` for frames SfM could not register.
+        panorama: True when the frames are equirectangular panoramas.
+        stats: numbers for the record (timings, reprojection error, matcher, residuals).
+    """
+
+    frame_ids: list[str]
+    cam_to_world: np.ndarray
+    K: np.ndarray | None
+    views: list[SfmView]
+    points: np.ndarray
+    colors: np.ndarray
+    dropped: list[tuple[str, str]] = field(default_factory=list)
+    panorama: bool = False
+    stats: dict = field(default_factory=dict)
+
+    def frame_pose(self, frame_id: str) -> np.ndarray:
+        return self.cam_to_world[self.frame_ids.index(frame_id)]
+
+    def transformed(self, scale: float, rotation: np.ndarray, translation: np.ndarray) -> SfmResult:
+        """The same reconstruction after ``x -> scale * R x + t`` (poses keep unit rotations)."""
+        R = np.asarray(rotation, dtype=np.float64)
+        t = np.asarray(translation, dtype=np.float64)
+
+        def pose(T: np.ndarray) -> np.ndarray:
+            out = np.eye(4)
+            out[:3, :3] = R @ T[:3, :3]
+            out[:3, 3] = scale * R @ T[:3, 3] + t
+            return out
+
+        views = [
+            SfmView(v.frame_id, v.face, v.K, pose(v.cam_to_world), v.uv, v.point_index, v.image)
+            for v in self.views
+        ]
+        return SfmResult(
+            frame_ids=list(self.frame_ids),
+            cam_to_world=np.stack([pose(T) for T in self.cam_to_world]),
+            K=self.K,
+            views=views,
+            points=scale * self.points @ R.T + t,
+            colors=self.colors,
+            dropped=list(self.dropped),
+            panorama=self.panorama,
+            stats=dict(self.stats),
+        )
+
+
+def face_rotations() -> np.ndarray:
+    """(6, 3, 3) rotations taking cube-face camera directions to the panorama camera frame."""
+    import torch
+    from image2sim.simulator.geometry.reproject import CUBEMAP_FACES, view_rotation
+
+    yaw = torch.tensor([math.radians(f[1]) for f in CUBEMAP_FACES], dtype=torch.float64)
+    pitch = torch.tensor([math.radians(f[2]) for f in CUBEMAP_FACES], dtype=torch.float64)
+    return view_rotation(yaw, pitch).numpy()
+
+
+def _rigid_to_matrix(rigid) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :4] = np.asarray(rigid.matrix(), dtype=np.float64)
+    return T
+
+
+def _quiet_colmap() -> None:
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2  # warnings and errors only; progress is ours
+
+
+def _cube_faces(frames: FrameSet, face_size: int) -> list[np.ndarray]:
+    """(6, F, F, 3) uint8 cube faces per panorama."""
+    import torch
+    from image2sim.simulator.geometry.reproject import equirect_to_cubemap
+
+    out = []
+    for img in frames.images:
+        pano = torch.from_numpy(img).permute(2, 0, 1)[None].double() / 255.0
+        cube = equirect_to_cubemap(pano, face_size)[0]  # (6, 3, F, F)
+        out.append((cube.permute(0, 2, 3, 1).clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy())
+    return out
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1])):
+        raise OSError(f"{path}: cannot write image")
+
+
+def _pick_largest(recs: dict):
+    if not recs:
+        return None
+    return max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+
+
+def run_sfm(
+    frames: FrameSet,
+    options: SfmOptions | None = None,
+    *,
+    progress: Callable[[str, float], None] | None = None,
+) -> SfmResult:
+    """Reconstruct ``frames``; see the module docstring. ``progress(stage, fraction)`` is called
+    as stages finish. Raises :class:`SfmError` naming the input when no usable reconstruction exists.
+    """
+    import pycolmap
+
+    opts = options or SfmOptions()
+    if opts.camera_model not in ("SIMPLE_PINHOLE", "PINHOLE"):
+        raise SfmError(f"camera_model must be SIMPLE_PINHOLE or PINHOLE, got {opts.camera_model!r}")
+    n = len(frames)
+    if n < opts.min_registered:
+        raise SfmError(
+            f"{frames.source}: too few frames for structure-from-motion: {n} "
+            f"(need at least {opts.min_registered})"
+        )
+    _quiet_colmap()
+    pycolmap.set_random_seed(opts.seed)
+    report = progress or (lambda stage, fraction: None)
+    stats: dict = {"frames": n, "panorama": frames.panorama}
+    with tempfile.TemporaryDirectory(prefix="image2sim-sfm-") as tmp_name:
+        tmp = Path(tmp_name)
+        image_dir, db_path = tmp / "images", tmp / "database.db"
+        t0 = time.perf_counter()
+        rot = face_rotations()
+        faces_of: dict[str, np.ndarray] = {}
+        if frames.panorama:
+            h, w = frames.size
+            face_size = int(opts.face_size or max(16, w // 4))
+            for fid, cube in zip(frames.ids, _cube_faces(frames, face_size), strict=True):
+                faces_of[fid] = cube
+                for k in range(6):
+                    _write_png(image_dir / f"face{k}" / f"{fid}.png", cube[k])
+            f = face_size / 2.0  # 90-degree faces
+            face_K = np.array([[f, 0, face_size / 2.0], [0, f, face_size / 2.0], [0, 0, 1.0]])
+            reader = pycolmap.ImageReaderOptions(
+                camera_model="SIMPLE_PINHOLE", camera_params=f"{f},{face_size / 2.0},{face_size / 2.0}"
+            )
+            camera_mode = pycolmap.CameraMode.PER_FOLDER
+        else:
+            for fid, img in zip(frames.ids, frames.images, strict=True):
+                _write_png(image_dir / f"{fid}.png", img)
+            params = ""
+            if opts.focal_prior is not None:
+                h, w = frames.size
+                f = float(opts.focal_prior)
+                params = (
+                    f"{f},{w / 2},{h / 2}"
+                    if opts.camera_model == "SIMPLE_PINHOLE"
+                    else f"{f},{f},{w / 2},{h / 2}"
+                )
+            reader = pycolmap.ImageReaderOptions(camera_model=opts.camera_model, camera_params=params)
+            camera_mode = pycolmap.CameraMode.SINGLE
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.use_gpu = False
+        extraction.num_threads = opts.num_threads
+        extraction.sift.max_num_features = opts.max_features
+        pycolmap.extract_features(
+            db_path, image_dir, camera_mode=camera_mode, reader_options=reader, extraction_options=extraction
+        )
+        if frames.panorama:
+            _apply_face_rig(db_path, rot)
+        stats["extract_s"] = time.perf_counter() - t0
+        report("features", 1.0)
+
+        t1 = time.perf_counter()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.use_gpu = False
+        matching.num_threads = opts.num_threads
+        if frames.panorama:
+            matching.rig_verification = True
+            matching.skip_image_pairs_in_same_frame = True
+        matcher = opts.matcher
+        if matcher == "auto":
+            matcher = "exhaustive" if n <= opts.exhaustive_max else "sequential"
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(db_path, matching_options=matching)
+        elif matcher == "sequential":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = opts.overlap * (6 if frames.panorama else 1)
+            pycolmap.match_sequential(db_path, matching_options=matching, pairing_options=pairing)
+        else:
+            raise SfmError(f"matcher must be auto, exhaustive or sequential, got {opts.matcher!r}")
+        stats["matcher"] = matcher
+        stats["match_s"] = time.perf_counter() - t1
+        report("matching", 1.0)
+
+        t2 = time.perf_counter()
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.num_threads = opts.num_threads
+        mapping.random_seed = opts.seed
+        mapping.multiple_models = True
+        if frames.panorama:
+            mapping.ba_refine_sensor_from_rig = False
+            mapping.ba_refine_focal_length = False
+            mapping.ba_refine_principal_point = False
+            mapping.ba_refine_extra_params = False
+        (tmp / "sparse").mkdir()
+        recs = pycolmap.incremental_mapping(db_path, image_dir, tmp / "sparse", mapping)
+        stats["map_s"] = time.perf_counter() - t2
+        report("mapping", 1.0)
+        rec = _pick_largest(recs)
+        if rec is None:
+            raise SfmError(
+                f"{frames.source}: structure-from-motion found no reconstruction from {n} frames "
+                "(no image pair with enough matched features and baseline: too little texture, too "
+                "little overlap, or a camera that only rotates)"
+            )
+        stats["models"] = len(recs)
+        if frames.panorama:
+            result = _panorama_result(rec, frames, faces_of, face_K, rot)
+        else:
+            result = _pinhole_result(rec, frames)
+    registered = len(result.frame_ids)
+    result.stats.update(stats)
+    result.stats["registered"] = registered
+    result.stats["mean_reprojection_error_px"] = float(rec.compute_mean_reprojection_error())
+    result.stats["points"] = int(len(result.points))
+    if registered < opts.min_registered:
+        raise SfmError(
+            f"{frames.source}: too few registered frames: {registered} of {n} "
+            f"(need {opts.min_registered}; unregistered: {[d for d, _ in result.dropped][:8]})"
+        )
+    baseline = _baseline_ratio(result)
+    result.stats["baseline_ratio"] = baseline
+    if baseline < 0.02:
+        raise SfmError(
+            f"{frames.source}: the cameras barely move (camera-centre spread {baseline:.3f} x the median "
+            "scene depth): a capture that only rotates has no baseline to triangulate depth or poses from"
+        )
+    for fid, reason in result.dropped:
+        log.warning("%s: frame %s dropped: %s", frames.source, fid, reason)
+    return result
+
+
+def _apply_face_rig(db_path: Path, rot: np.ndarray) -> None:
+    """Declare the six faces of each panorama one rig frame: faces k share the centre of face 0,
+    rotated by the known face rotations (``cam_k_from_cam_0 = R_k^T R_0``)."""
+    import pycolmap
+
+    cams = []
+    for k in range(6):
+        if k == 0:
+            cam_from_rig = None
+        else:
+            cam_from_rig = pycolmap.Rigid3d(
+                pycolmap.Rotation3d(rot[k].T @ rot[0]), np.zeros((3, 1), dtype=np.float64)
+            )
+        cams.append(
+            pycolmap.RigConfigCamera(ref_sensor=k == 0, image_prefix=f"face{k}/", cam_from_rig=cam_from_rig)
+        )
+    with pycolmap.Database.open(db_path) as db:
+        pycolmap.apply_rig_config([pycolmap.RigConfig(cameras=cams)], db)
+
+
+def _observations(image) -> tuple[np.ndarray, np.ndarray]:
+    uv, ids = [], []
+    for p in image.points2D:
+        if p.has_point3D():
+            uv.append(np.asarray(p.xy, dtype=np.float64))
+            ids.append(int(p.point3D_id))
+    return np.asarray(uv, dtype=np.float64).reshape(-1, 2), np.asarray(ids, dtype=np.int64)
+
+
+def _points(rec) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
+    ids = sorted(rec.points3D.keys())
+    index = {pid: i for i, pid in enumerate(ids)}
+    xyz = np.array([rec.points3D[pid].xyz for pid in ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([rec.points3D[pid].color for pid in ids], dtype=np.uint8).reshape(-1, 3)
+    return xyz, rgb, index
+
+
+def _pinhole_result(rec, frames: FrameSet) -> SfmResult:
+    points, colors, index = _points(rec)
+    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+    cams = {im.camera_id for im in by_name.values()}
+    if len(cams) != 1:
+        raise SfmError(f"{frames.source}: expected one shared camera, the reconstruction has {len(cams)}")
+    camera = rec.cameras[cams.pop()]
+    K = np.asarray(camera.calibration_matrix(), dtype=np.float64)
+    ids, poses, views, dropped = [], [], [], []
+    for fid, img in zip(frames.ids, frames.images, strict=True):
+        im = by_name.get(f"{fid}.png")
+        if im is None:
+            dropped.append((fid, "not registered by structure-from-motion"))
+            continue
+        T = np.linalg.inv(_rigid_to_matrix(im.cam_from_world()))
+        uv, pid = _observations(im)
+        ids.append(fid)
+        poses.append(T)
+        views.append(SfmView(fid, None, K, T, uv, np.array([index[p] for p in pid], dtype=np.int64), img))
+    return SfmResult(
+        frame_ids=ids,
+        cam_to_world=np.stack(poses) if poses else np.zeros((0, 4, 4)),
+        K=K,
+        views=views,
+        points=points,
+        colors=colors,
+        dropped=dropped,
+        panorama=False,
+        stats={"camera": {"model": camera.model.name, "params": [float(x) for x in camera.params]}},
+    )
+
+
+def _panorama_result(
+    rec, frames: FrameSet, faces_of: dict[str, np.ndarray], face_K: np.ndarray, rot: np.ndarray
+) -> SfmResult:
+    points, colors, index = _points(rec)
+    per_frame: dict[str, dict[int, object]] = {}
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        folder, name = im.name.split("/", 1)
+        per_frame.setdefault(Path(name).stem, {})[int(folder[4:])] = im
+    ids, poses, views, dropped = [], [], [], []
+    centre_spread, angle_err = [], []
+    for fid in frames.ids:
+        faces = per_frame.get(fid)
+        if not faces:
+            dropped.append((fid, "no cube face registered by structure-from-motion"))
+            continue
+        # Each registered face k gives a panorama pose: R_pano = R_face R_k^T, same centre.
+        pano_R, centres = [], []
+        for k, im in faces.items():
+            T = np.linalg.inv(_rigid_to_matrix(im.cam_from_world()))
+            pano_R.append(T[:3, :3] @ rot[k].T)
+            centres.append(T[:3, 3])
+        R = _average_rotations(np.stack(pano_R))
+        c = np.mean(centres, axis=0)
+        centre_spread.append(float(np.max(np.linalg.norm(np.asarray(centres) - c, axis=1))))
+        angle_err.append(max(_angle_deg(R.T @ Rk) for Rk in pano_R))
+        pano = np.eye(4)
+        pano[:3, :3], pano[:3, 3] = R, c
+        ids.append(fid)
+        poses.append(pano)
+        for k in range(6):
+            face_pose = np.eye(4)
+            face_pose[:3, :3], face_pose[:3, 3] = R @ rot[k], c
+            im = faces.get(k)
+            if im is not None:
+                uv, pid = _observations(im)
+                pidx = np.array([index[p] for p in pid], dtype=np.int64)
+            else:
+                uv, pidx = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+            views.append(SfmView(fid, k, face_K, face_pose, uv, pidx, faces_of[fid][k]))
+    return SfmResult(
+        frame_ids=ids,
+        cam_to_world=np.stack(poses) if poses else np.zeros((0, 4, 4)),
+        K=None,
+        views=views,
+        points=points,
+        colors=colors,
+        dropped=dropped,
+        panorama=True,
+        stats={
+            "rig_centre_spread_max": max(centre_spread, default=0.0),
+            "rig_rotation_residual_deg_max": max(angle_err, default=0.0),
+        },
+    )
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _average_rotations(Rs: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations (projection of their sum onto SO(3))."""
+    U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _baseline_ratio(result: SfmResult) -> float:
+    """Spread of camera centres (largest distance from their mean) over the median point depth."""
+    centres = result.cam_to_world[:, :3, 3]
+    spread = float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
+    if len(result.points) == 0:
+        return 0.0
+    dist = np.linalg.norm(result.points[:, None, :] - centres[None, : min(len(centres), 32)], axis=2)
+    return spread / max(float(np.median(dist)), 1e-12)
