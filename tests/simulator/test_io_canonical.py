@@ -208,3 +208,26 @@ def test_reader_image_errors(written: Path) -> None:
     (written / "frames" / "00002_rgb.png").write_bytes(b"\x89PNG\r\n\x1a\ngarbageIEND\xaeB`\x82")
     with pytest.raises(CaptureError, match=r"00002_rgb.png: cannot decode"):
         cap[2]
+
+
+def test_depth_confidence_round_trips_and_is_optional(tmp_path: Path) -> None:
+    frames = _frames(2, camera=PinholeCamera(10.0, 10.0, 8.0, 4.0, 8, 16))
+    conf = np.linspace(0.0, 1.0, 8 * 16, dtype=np.float32).reshape(8, 16)
+    frames[0].confidence = conf
+    out = write_capture(tmp_path / "cap", frames, scene_id="c")
+    assert (out / "frames" / "00000_confidence.png").is_file()
+    assert not (out / "frames" / "00001_confidence.png").exists()
+    cap = read_canonical(out)
+    back = cap[0].confidence
+    assert back is not None and back.dtype == np.float32 and back.shape == (8, 16)
+    assert np.max(np.abs(back - conf)) <= 0.5 / 255 + 1e-6
+    assert cap[1].confidence is None  # absent: None (older captures read as before)
+    for bad, match in ((conf * 2.0, "lie in \\[0, 1\\]"), (conf[:4], "confidence is 16x4")):
+        frames[0].confidence = bad
+        with pytest.raises(CaptureError, match=match):
+            write_capture(tmp_path / "bad", frames, scene_id="c")
+        assert not (tmp_path / "bad").exists()
+    frames[0].confidence = conf
+    (out / "frames" / "00000_confidence.png").write_bytes((out / "frames" / "00000_rgb.png").read_bytes())
+    with pytest.raises(CaptureError, match="00000_confidence.png: confidence image must be single-channel"):
+        read_canonical(out)[0]

@@ -8,6 +8,7 @@ Layout of a capture folder ``<dir>``::
     frames/<id>_rgb.png           (H, W, 3) 8-bit RGB
     frames/<id>_depth.png         (H, W) uint16 millimetres (range for equirect, z for pinhole), 0 = invalid
     frames/<id>_pose.json         {"cam_to_world": 4x4 nested list} (+ "notes": [...] when a reader left any)
+    frames/<id>_confidence.png    optional (H, W) uint8 depth confidence, 0..255 for [0, 1]
     semantics/<id>_category.png   optional (H, W) uint16 category ids
     semantics/<id>_instance.png   optional (H, W) uint16 instance ids
 
@@ -31,8 +32,10 @@ from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
 from image2sim.simulator.io.images import (
     read_depth_uint16,
     read_rgb,
+    read_uint8,
     read_uint16,
     write_rgb_png,
+    write_uint8_png,
     write_uint16_png,
 )
 from image2sim.simulator.io.records import Capture, CaptureError, Frame
@@ -46,6 +49,7 @@ __all__ = [
     "read_canonical",
     "is_canonical",
     "encode_depth_mm",
+    "encode_confidence",
 ]
 
 FORMAT_NAME = "image2sim-capture"
@@ -90,6 +94,24 @@ def encode_depth_mm(depth: np.ndarray, source: str) -> np.ndarray:
     return mm.astype(np.uint16)
 
 
+def encode_confidence(confidence: np.ndarray, source: str) -> np.ndarray:
+    """Confidence in [0, 1] -> uint8 0..255 (rounded); NaN or values outside [0, 1] are errors."""
+    c = np.asarray(confidence)
+    if c.ndim != 2 or not np.issubdtype(c.dtype, np.floating):
+        raise CaptureError(f"{source}: confidence must be (H, W) floats in [0, 1], got {c.shape} {c.dtype}")
+    if not np.all(np.isfinite(c)) or (c.size and (float(c.min()) < 0.0 or float(c.max()) > 1.0)):
+        raise CaptureError(f"{source}: confidence must be finite and lie in [0, 1]")
+    return np.rint(c.astype(np.float64) * 255.0).astype(np.uint8)
+
+
+def _check_confidence_size(confidence: np.ndarray, depth: np.ndarray, source) -> None:
+    if confidence.shape[:2] != depth.shape[:2]:
+        raise CaptureError(
+            f"{source}: confidence is {confidence.shape[1]}x{confidence.shape[0]} but depth is "
+            f"{depth.shape[1]}x{depth.shape[0]} (WxH)"
+        )
+
+
 def _label_to_uint16(labels: np.ndarray, source: str) -> np.ndarray:
     lab = np.asarray(labels)
     if lab.ndim != 2 or not np.issubdtype(lab.dtype, np.integer):
@@ -118,6 +140,8 @@ def _write_frame(tmp: Path, name: str, frame: Frame, index: int) -> None:
     if not isinstance(frame, Frame):
         raise CaptureError(f"{source}: expected a Frame, got {type(frame).__name__}")
     check_same_size(frame.rgb, frame.depth, source)
+    if frame.confidence is not None:
+        _check_confidence_size(np.asarray(frame.confidence), frame.depth, f"{source} confidence")
     cam = frame.camera
     if (cam.height, cam.width) != tuple(frame.depth.shape):
         raise CaptureError(
@@ -131,6 +155,11 @@ def _write_frame(tmp: Path, name: str, frame: Frame, index: int) -> None:
     if frame.notes:
         pose_doc["notes"] = list(frame.notes)
     (tmp / "frames" / f"{name}_pose.json").write_text(json.dumps(pose_doc) + "\n", encoding="utf-8")
+    if frame.confidence is not None:
+        write_uint8_png(
+            tmp / "frames" / f"{name}_confidence.png",
+            encode_confidence(frame.confidence, f"{source} confidence"),
+        )
     if frame.semantics is not None:
         write_uint16_png(
             tmp / "semantics" / f"{name}_category.png",
@@ -351,6 +380,11 @@ def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
                 f"{depth_path}: image is {depth.shape[1]}x{depth.shape[0]} but the manifest camera is "
                 f"{camera.width}x{camera.height}"
             )
+        confidence = None
+        conf_path = frames / f"{fid}_confidence.png"
+        if conf_path.exists():
+            confidence = read_uint8(conf_path, "confidence").astype(np.float32) / np.float32(255.0)
+            _check_confidence_size(confidence, depth, conf_path)
         semantics = instances = None
         if has_sem:
             sem_path = root / "semantics" / f"{fid}_category.png"
@@ -369,6 +403,7 @@ def read_canonical(path: str | Path, *, strict: bool = True) -> Capture:
             instances=instances,
             frame_id=fid,
             notes=list(notes[fid]),
+            confidence=confidence,
         )
 
     if not ids:

@@ -114,14 +114,26 @@ def read_rgb(path: Path, what: str = "colour") -> np.ndarray:
     return np.ascontiguousarray(image[:, :, 2::-1])  # BGR(A) -> RGB, alpha dropped
 
 
-def read_uint16(path: Path, what: str = "depth") -> np.ndarray:
-    """Read a single-channel 16-bit PNG as (H, W) uint16."""
+def _read_single(path: Path, what: str, dtype: type) -> np.ndarray:
     image = _decode(path, what, cv2.IMREAD_UNCHANGED)
     if image.ndim != 2:
         raise CaptureError(f"{path}: {what} image must be single-channel, got shape {image.shape}")
-    if image.dtype != np.uint16:
-        raise CaptureError(f"{path}: {what} image must be 16-bit (uint16), got {image.dtype}")
+    if image.dtype != dtype:
+        bits = 8 * np.dtype(dtype).itemsize
+        raise CaptureError(
+            f"{path}: {what} image must be {bits}-bit ({np.dtype(dtype).name}), got {image.dtype}"
+        )
     return image
+
+
+def read_uint16(path: Path, what: str = "depth") -> np.ndarray:
+    """Read a single-channel 16-bit PNG as (H, W) uint16."""
+    return _read_single(path, what, np.uint16)
+
+
+def read_uint8(path: Path, what: str = "confidence") -> np.ndarray:
+    """Read a single-channel 8-bit PNG as (H, W) uint8."""
+    return _read_single(path, what, np.uint8)
 
 
 def read_depth_uint16(path: Path) -> np.ndarray:
@@ -182,10 +194,19 @@ def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
         raise CaptureError(f"{path}: OpenCV could not write the PNG")
 
 
-def write_uint16_png(path: Path, image: np.ndarray) -> None:
-    """Write (H, W) uint16 as a 16-bit greyscale PNG."""
+def _write_single(path: Path, image: np.ndarray, dtype: type) -> None:
     image = np.asarray(image)
-    if image.dtype != np.uint16 or image.ndim != 2:
-        raise CaptureError(f"{path}: expected (H, W) uint16, got {image.shape} {image.dtype}")
+    if image.dtype != dtype or image.ndim != 2:
+        raise CaptureError(f"{path}: expected (H, W) {np.dtype(dtype).name}, got {image.shape} {image.dtype}")
     if not cv2.imwrite(str(path), image):
         raise CaptureError(f"{path}: OpenCV could not write the PNG")
+
+
+def write_uint16_png(path: Path, image: np.ndarray) -> None:
+    """Write (H, W) uint16 as a 16-bit greyscale PNG."""
+    _write_single(path, image, np.uint16)
+
+
+def write_uint8_png(path: Path, image: np.ndarray) -> None:
+    """Write (H, W) uint8 as an 8-bit greyscale PNG."""
+    _write_single(path, image, np.uint8)

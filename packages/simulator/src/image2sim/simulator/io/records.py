@@ -27,6 +27,8 @@ class Frame:
         instances: optional (H, W) int32 instance ids (0 = none).
         frame_id: identifier of the frame inside its capture (file stem, viewpoint id, ...).
         notes: reader remarks about this frame (e.g. "colour resampled to the depth grid").
+        confidence: optional (H, W) float32 in [0, 1], how far ``depth`` can be trusted per pixel
+            (lifted captures: ``image2sim data lift``); None when the capture has none.
     """
 
     rgb: np.ndarray
@@ -37,6 +39,7 @@ class Frame:
     instances: np.ndarray | None = None
     frame_id: str = ""
     notes: list[str] = field(default_factory=list)
+    confidence: np.ndarray | None = None
 
     @property
     def height(self) -> int:

@@ -242,27 +242,70 @@ def find_floor(
     up: np.ndarray,
     *,
     threshold: float | None = None,
-    floor_min_share: float = 0.25,
+    floor_min_share: float = 0.2,
+    max_tilt_deg: float = 8.0,
+    min_inliers: int = 20,
     seed: int = 0,
 ) -> Plane | None:
-    """The floor: the lowest dominant near-horizontal plane below the cameras (None when none is)."""
+    """The floor: the lowest dominant near-horizontal plane below the cameras (None when none is).
+
+    A floor is a small share of the points of a room (walls and furniture hold most), so random
+    triplets rarely land on it: candidate heights are the peaks of the points' height histogram
+    along ``up`` (a horizontal plane is a peak), a plane is fitted by RANSAC to the points near each
+    peak (tilt up to ``max_tilt_deg``, so a rough ``up`` suffices), and the lowest plane with at
+    least ``floor_min_share`` of the best one's inliers wins.
+    """
     pts = np.asarray(points, dtype=np.float64)
-    if len(pts) < 20:
-        return None
     centres = np.asarray(cam_to_world)[:, :3, 3]
+    cam_height = float(np.median(centres @ up))
+    pts = pts[pts @ up < cam_height]  # the floor lies below the cameras; this drops the ceiling
+    if len(pts) < min_inliers:
+        return None
     if threshold is None:
-        # 1 % of the median camera-to-point distance: a plane's thickness at reconstruction scale.
+        # 0.5 % of the median camera-to-point distance: a plane's thickness at reconstruction scale.
         sample = pts[:: max(1, len(pts) // 2000)]
         dist = np.linalg.norm(sample[:, None, :] - centres[None, :: max(1, len(centres) // 16)], axis=2)
-        threshold = 0.01 * float(np.median(dist))
-    planes = fit_planes(pts, up, threshold, seed=seed)
-    cam_height = float(np.median(centres @ up))
-    below = [p for p in planes if p.offset < cam_height - 3 * threshold]
-    if not below:
+        threshold = 0.005 * float(np.median(dist))
+    h = pts @ up
+    edges = np.arange(h.min(), h.max() + 2 * threshold, threshold)
+    counts = np.histogram(h, bins=edges)[0].astype(np.float64)
+    window = np.convolve(counts, np.ones(3), mode="same")  # points within ~1.5 thresholds
+    peaks = [
+        i
+        for i in range(len(window))
+        if window[i] >= min_inliers
+        and window[i] >= window[max(i - 1, 0)]
+        and window[i] >= window[min(i + 1, len(window) - 1)]
+    ]
+    planes: list[Plane] = []
+    for i in sorted(peaks, key=lambda i: edges[i])[:30]:  # lowest first
+        centre_h = 0.5 * (edges[i] + edges[i + 1])
+        # A narrow slab: with a tilted ``up`` guess it holds part of the floor, still a plane, and
+        # few points of the walls crossing it; the plane is then refitted to all its inliers.
+        near = np.nonzero(np.abs(h - centre_h) < 2 * threshold)[0]
+        found = fit_planes(
+            pts[near], up, threshold, max_tilt_deg=max_tilt_deg, max_planes=1, min_inliers=min_inliers, seed=seed
+        )
+        if not found:
+            continue
+        n, d = found[0].normal, found[0].offset
+        for _ in range(2):
+            inl = np.nonzero(np.abs(pts @ n - d) < threshold)[0]
+            c = pts[inl].mean(axis=0)
+            _, _, Vt = np.linalg.svd(pts[inl] - c, full_matrices=False)
+            n = Vt[2] if Vt[2] @ up >= 0 else -Vt[2]
+            d = float(n @ c)
+        inl = np.nonzero(np.abs(pts @ n - d) < threshold)[0]
+        if d < cam_height - 3 * threshold and n @ up >= np.cos(np.radians(max_tilt_deg)) and len(inl) >= min_inliers:
+            planes.append(Plane(n, d, inl))
+    if not planes:
         return None
-    largest = max(len(p.inliers) for p in below)
-    candidates = [p for p in below if len(p.inliers) >= floor_min_share * largest]
-    return min(candidates, key=lambda p: p.offset)
+    largest = max(len(p.inliers) for p in planes)
+    candidates = [p for p in planes if len(p.inliers) >= floor_min_share * largest]
+    floor = min(candidates, key=lambda p: p.offset)
+    # Inlier indices refer to ``points`` as given, not to the below-camera subset.
+    below = np.nonzero(np.asarray(points, dtype=np.float64) @ up < cam_height)[0]
+    return Plane(floor.normal, floor.offset, below[floor.inliers])
 
 
 def rotation_taking(up: np.ndarray, forward: np.ndarray | None = None) -> np.ndarray:
