@@ -46,6 +46,12 @@ def build_scene_command(
     overwrite: bool = typer.Option(False, help="Replace an existing scene folder."),
     threads: int = typer.Option(0, help="torch threads (0 = torch default)."),
     fuse_every: int = typer.Option(8, help="Frames fused into memory per pass (1 = strictly incremental)."),
+    refine_steps: int = typer.Option(
+        0,
+        "--refine-steps",
+        help="Per-scene refinement: optimise the fused Gaussians this many steps against the "
+        "capture's frames (photometric + depth, with pruning; docs/scenes.md). 0 = off.",
+    ),
     navigation: bool = typer.Option(
         True,
         "--navigation/--no-navigation",
@@ -87,6 +93,14 @@ def build_scene_command(
                 f"{capture}: no Gaussian survived fusion (every pixel invalid or outside the depth range "
                 f"{cfg.fusion.min_range:g}..{cfg.fusion.max_range:g} m); nothing written"
             )
+        refined = None
+        if refine_steps:
+            from image2sim.simulator.gaussians.refine import RefineConfig, refine_scene
+            from image2sim.simulator.io.registry import open_capture
+
+            refined = refine_scene(
+                scene, open_capture(capture), None, RefineConfig(steps=refine_steps), progress=True
+            )
         nav = _navigation(capture) if navigation else None
         scene.save(out, overwrite=overwrite)
         if ply:
@@ -100,6 +114,11 @@ def build_scene_command(
     manifest = scene.manifest()
     counts = manifest["counts"]
     typer.echo(_encoding_statement(manifest, config, encoder))
+    if refined is not None:
+        typer.echo(
+            f"refined {refined.steps} steps in {refined.seconds:.1f} s: {refined.gaussians_before} -> "
+            f"{refined.gaussians_after} Gaussians"
+        )
     if nav is not None:
         typer.echo(
             f"navigation: {nav[0].navigable_area():.1f} m^2 navigable, {nav[1].num_nodes} graph nodes "

@@ -144,6 +144,7 @@ class GaussianScene:
                 "per_voxel_size": level_histogram(g.levels, self.fusion) if g is not None else {},
             },
             "bounds": {"min": lo, "max": hi},
+            **({"refine": self.info["refine"]} if self.info.get("refine") else {}),
         }
 
     def save(self, folder: str | Path, overwrite: bool = False) -> Path:
@@ -200,7 +201,7 @@ class GaussianScene:
         except ConfigError as exc:
             raise SceneError(f"{man_path}: {exc}") from None
         manifest = _relocatable(manifest, man_path, lambda v, holder: str(resolve_from_file(v, holder)))
-        info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "encoding", "config")}
+        info = {k: manifest.get(k) for k in ("source", "encoder", "camera", "encoding", "config", "refine")}
         return cls(fusion=fusion, gaussians=gaussians, frames=list(manifest.get("frames", [])), info=info)
 
     def camera(self) -> Camera | None:

@@ -1,0 +1,253 @@
+"""Optional per-scene refinement: photometric + depth optimisation of fused Gaussians, with pruning.
+
+The feed-forward scene (:func:`image2sim.simulator.gaussians.build.build_scene`) places each
+Gaussian from one frame's depth and colour. Refinement renders the scene at the capture's own
+poses through the differentiable splat and optimises, with Adam, the means, log-scales, rotations,
+opacity logits and colour logits against those frames: L1 on RGB plus ``depth_weight`` x the
+relative depth error on pixels with valid depth that the scene covers (alpha > 0.5). Every
+``prune_every`` steps Gaussians whose opacity fell under ``prune_opacity`` are removed (their Adam
+moments with them). Feature channels (learned encoders) are carried along, not optimised.
+
+This is the optimisation the seed paper's feed-forward lifting avoids; it is off by default
+(``steps: 0``) and reported as error against seconds (``benchmarks/scene_fidelity.py``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from image2sim.simulator.gaussians.frames import prepare_frame
+from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
+
+__all__ = ["RefineConfig", "RefineLog", "refine_gaussians", "refine_scene"]
+
+_EPS = 1e-4  # opacities and colours are kept in (eps, 1 - eps) so their logits stay finite
+
+
+@dataclass
+class RefineConfig:
+    """Per-scene refinement settings (``sim build-scene --refine-steps``)."""
+
+    steps: int = 0
+    """Optimisation steps (0: off). Each step renders ``views_per_step`` frames of the capture."""
+    views_per_step: int = 1
+    """Frames rendered (and averaged in the loss) per step, drawn without replacement per epoch."""
+    lr_means: float = 5e-4
+    """Adam step of the means, metres (about a tenth of a typical Gaussian's size)."""
+    lr_scales: float = 5e-3
+    """Adam step of the log-scales."""
+    lr_quats: float = 1e-3
+    """Adam step of the (renormalised) rotation quaternions."""
+    lr_opacities: float = 2e-2
+    """Adam step of the opacity logits."""
+    lr_colors: float = 1e-2
+    """Adam step of the colour logits."""
+    depth_weight: float = 0.5
+    """Weight of the relative depth error (|d - d_gt| / d_gt) against the RGB L1."""
+    prune_every: int = 50
+    """Prune every this many steps (0: never)."""
+    prune_opacity: float = 0.02
+    """Gaussians whose opacity falls under this are removed at a prune."""
+    seed: int = 0
+    """Seed of the frame order."""
+
+    def validate(self) -> RefineConfig:
+        problems = []
+        if self.steps < 0:
+            problems.append(f"steps must be >= 0, got {self.steps}")
+        if self.views_per_step < 1:
+            problems.append(f"views_per_step must be >= 1, got {self.views_per_step}")
+        for name in ("lr_means", "lr_scales", "lr_quats", "lr_opacities", "lr_colors", "depth_weight"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                problems.append(f"{name} must be finite and >= 0, got {v}")
+        if self.prune_every < 0:
+            problems.append(f"prune_every must be >= 0, got {self.prune_every}")
+        if not 0 <= self.prune_opacity < 1:
+            problems.append(f"prune_opacity must be in [0, 1), got {self.prune_opacity}")
+        if problems:
+            raise ValueError("RefineConfig: " + "; ".join(problems))
+        return self
+
+
+@dataclass
+class RefineLog:
+    """What a refinement did: losses per step, Gaussians before/after, seconds."""
+
+    steps: int = 0
+    seconds: float = 0.0
+    gaussians_before: int = 0
+    gaussians_after: int = 0
+    losses: list[float] = field(default_factory=list)
+    pruned: list[int] = field(default_factory=list)
+    """Gaussians removed at each prune."""
+
+    def to_dict(self) -> dict:
+        first = self.losses[: max(1, len(self.losses) // 10)]
+        last = self.losses[-max(1, len(self.losses) // 10) :]
+        return {
+            "steps": self.steps,
+            "seconds": round(self.seconds, 2),
+            "gaussians_before": self.gaussians_before,
+            "gaussians_after": self.gaussians_after,
+            "pruned": int(sum(self.pruned)),
+            "loss_first": round(sum(first) / len(first), 5) if self.losses else None,
+            "loss_last": round(sum(last) / len(last), 5) if self.losses else None,
+        }
+
+
+def _logit(p: torch.Tensor) -> torch.Tensor:
+    p = p.clamp(_EPS, 1 - _EPS)
+    return torch.log(p) - torch.log1p(-p)
+
+
+def frame_loss(
+    g: dict[str, torch.Tensor], features: torch.Tensor, view: FrameInputs, depth_weight: float
+) -> torch.Tensor:
+    """The refinement loss of one frame: RGB L1 + ``depth_weight`` x relative depth L1 (covered,
+    valid pixels only). ``g`` holds the optimised parameters (raw: log-scales and logits)."""
+    from image2sim.simulator.splatting import splat
+
+    out = splat(
+        g["means"],
+        g["log_scales"].exp(),
+        F.normalize(g["quats"], dim=-1),
+        torch.sigmoid(g["opacity_logits"]),
+        torch.sigmoid(g["color_logits"]),
+        features,
+        view.camera,
+        view.cam_to_world.to(g["means"].dtype),
+        background=0.0,
+    )
+    loss = (out.rgb[0] - view.rgb[0].to(out.rgb.dtype)).abs().mean()
+    if depth_weight > 0:
+        alpha = out.alpha[0, 0]
+        gt = view.depth[0, 0].to(out.depth.dtype)
+        m = (gt > 0) & (alpha > 0.5)
+        if bool(m.any()):
+            depth = out.depth[0, 0][m] / alpha[m]
+            loss = loss + depth_weight * ((depth - gt[m]).abs() / gt[m]).mean()
+    return loss
+
+
+def refine_gaussians(
+    gaussians: GaussianSet,
+    views: Sequence[FrameInputs],
+    cfg: RefineConfig,
+    progress: bool = False,
+) -> tuple[GaussianSet, RefineLog]:
+    """Optimise ``gaussians`` against ``views`` (frames at the scene's encoding resolution).
+
+    Returns the refined set (footprints, weights and levels carried over for the survivors) and its
+    log. ``cfg.steps == 0`` returns the input unchanged.
+    """
+    cfg.validate()
+    log = RefineLog(gaussians_before=len(gaussians), gaussians_after=len(gaussians))
+    if cfg.steps == 0 or len(gaussians) == 0:
+        return gaussians, log
+    if not views:
+        raise ValueError("refine_gaussians: no frames to refine against")
+    t0 = time.perf_counter()
+    g0 = gaussians.detach()
+    params = {
+        "means": g0.means.clone(),
+        "log_scales": g0.scales.clamp_min(1e-8).log(),
+        "quats": F.normalize(g0.quats, dim=-1).clone(),
+        "opacity_logits": _logit(g0.opacities),
+        "color_logits": _logit(g0.colors),
+    }
+    lrs = {
+        "means": cfg.lr_means,
+        "log_scales": cfg.lr_scales,
+        "quats": cfg.lr_quats,
+        "opacity_logits": cfg.lr_opacities,
+        "color_logits": cfg.lr_colors,
+    }
+    params = {k: torch.nn.Parameter(v) for k, v in params.items()}
+    opt = torch.optim.Adam([{"params": [p], "lr": lrs[k], "name": k} for k, p in params.items()], eps=1e-15)
+    carried = {k: getattr(g0, k) for k in ("features", "footprints", "weights", "levels")}
+    rng = torch.Generator().manual_seed(cfg.seed)
+    order: list[int] = []
+    it = range(cfg.steps)
+    if progress:
+        from rich.progress import track
+
+        it = track(it, description=f"refining {len(gaussians)} Gaussians, {cfg.steps} steps")
+    for step in it:
+        opt.zero_grad(set_to_none=True)
+        loss_value = 0.0
+        for _ in range(cfg.views_per_step):
+            if not order:
+                order = torch.randperm(len(views), generator=rng).tolist()
+            loss = frame_loss(params, carried["features"], views[order.pop()], cfg.depth_weight)
+            (loss / cfg.views_per_step).backward()
+            loss_value += float(loss.detach()) / cfg.views_per_step
+        opt.step()
+        log.losses.append(loss_value)
+        last = step + 1 == cfg.steps
+        if cfg.prune_every and ((step + 1) % cfg.prune_every == 0 or last):
+            with torch.no_grad():
+                keep = torch.sigmoid(params["opacity_logits"]) >= cfg.prune_opacity
+            if not bool(keep.all()):
+                log.pruned.append(int((~keep).sum()))
+                params, opt = _prune(params, opt, keep)
+                carried = {k: v[keep] for k, v in carried.items()}
+    log.steps = cfg.steps
+    with torch.no_grad():
+        refined = GaussianSet(
+            means=params["means"].detach().clone(),
+            scales=params["log_scales"].detach().exp(),
+            quats=F.normalize(params["quats"].detach(), dim=-1),
+            opacities=torch.sigmoid(params["opacity_logits"].detach()),
+            colors=torch.sigmoid(params["color_logits"].detach()),
+            **carried,
+        )
+    log.gaussians_after = len(refined)
+    log.seconds = time.perf_counter() - t0
+    return refined, log
+
+
+def _prune(params: dict, opt: torch.optim.Adam, keep: torch.Tensor):
+    """Drop rows ``~keep`` from every parameter and its Adam moments (the optimiser is rebuilt with
+    the same step counts, so bias correction continues where it was)."""
+    new = {k: torch.nn.Parameter(p.detach()[keep].clone()) for k, p in params.items()}
+    groups = []
+    for group in opt.param_groups:
+        name = group["name"]
+        groups.append({"params": [new[name]], "lr": group["lr"], "name": name})
+    new_opt = torch.optim.Adam(groups, eps=1e-15)
+    for group in opt.param_groups:
+        old_p = group["params"][0]
+        state = opt.state.get(old_p)
+        if state:
+            new_opt.state[new[group["name"]]] = {
+                "step": state["step"],
+                "exp_avg": state["exp_avg"][keep].clone(),
+                "exp_avg_sq": state["exp_avg_sq"][keep].clone(),
+            }
+    return new, new_opt
+
+
+def refine_scene(scene, capture, frames: Sequence[int] | None, cfg: RefineConfig, progress: bool = False):
+    """Refine a :class:`~image2sim.simulator.gaussians.scene.GaussianScene` in place against the
+    ``frames`` of ``capture`` (default: the frames the scene was built from) at its encoding
+    resolution; records the log in ``scene.info["refine"]`` and returns it."""
+    if scene.gaussians is None:
+        raise ValueError("refine_scene: the scene is empty")
+    enc = scene.info.get("encoding") or {}
+    h, w = enc.get("height"), enc.get("width")
+    if not h or not w:
+        raise ValueError("refine_scene: the scene has no encoding resolution (scene.info['encoding'])")
+    if frames is None:
+        frames = [f["index"] for f in scene.frames if f.get("index") is not None]
+    edge = scene.fusion.edge_tolerance
+    views = [prepare_frame(capture[i], h, w, edge) for i in frames]
+    refined, log = refine_gaussians(scene.gaussians, views, cfg, progress=progress)
+    scene.gaussians = refined
+    scene.info["refine"] = {**log.to_dict(), "frames": len(views), "resolution": [w, h]}
+    return log
