@@ -294,3 +294,113 @@ def ingest(
     )
     for fid, reason in skipped:
         console.print(f"[yellow]skipped[/] {fid}: {reason}", highlight=False, soft_wrap=True)
+
+
+@app.command()
+def lift(
+    src: Annotated[
+        Path, typer.Argument(help="A folder of images (png/jpg; ids = file stems) or a video file.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for the canonical capture.")],
+    camera_height: Annotated[
+        float | None,
+        typer.Option(
+            "--camera-height", min=0.0, help="Camera height above the floor, metres (sets the scale)."
+        ),
+    ] = None,
+    baseline: Annotated[
+        float | None,
+        typer.Option(
+            "--baseline",
+            min=0.0,
+            help="Distance between --baseline-frames' centres, metres (sets the scale).",
+        ),
+    ] = None,
+    baseline_frames: Annotated[
+        tuple[str, str] | None,
+        typer.Option("--baseline-frames", help="The two frame ids --baseline is measured between."),
+    ] = None,
+    depth: Annotated[str, typer.Option("--depth", help="Depth source: mvs (no weights) or model.")] = "mvs",
+    depth_model: Annotated[
+        Path | None,
+        typer.Option("--depth-model", help="Local folder of a transformers depth model (--depth model)."),
+    ] = None,
+    panorama: Annotated[
+        bool | None,
+        typer.Option(
+            "--panorama/--pinhole",
+            help="Force equirect panoramas or pinhole frames (default: 2:1 = panorama).",
+        ),
+    ] = None,
+    fps: Annotated[float, typer.Option("--fps", min=0.01, help="Video: frames sampled per second.")] = 2.0,
+    max_frames: Annotated[
+        int | None, typer.Option("--max-frames", min=1, help="Keep at most N frames (spread evenly).")
+    ] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Lift RGB-only photos, a video or panoramas to a metric posed RGB-D capture (docs/lift.md).
+
+    Poses and intrinsics by structure-from-motion (pycolmap), depth from multi-view stereo or a
+    depth model fitted to the sparse points, gravity from the cameras and the floor, metric scale
+    from --camera-height or --baseline; frames SfM cannot register are dropped and listed."""
+    from image2sim.simulator.lift.capture import LiftOptions
+    from image2sim.simulator.lift.capture import lift as run_lift
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    if depth not in ("mvs", "model"):
+        _fail(f"--depth must be mvs or model, got {depth!r}")
+    if depth == "model" and depth_model is None:
+        _fail("--depth model needs --depth-model DIR (a local transformers depth model folder)")
+    if camera_height is not None and baseline is not None:
+        _fail("give --camera-height or --baseline, not both")
+    if baseline is not None and baseline_frames is None:
+        _fail("--baseline needs --baseline-frames A B (the frames it is measured between)")
+    if out.exists() and not overwrite:
+        _fail(f"{out}: already exists (pass --overwrite to replace it)")
+    if camera_height is None and baseline is None:
+        console.print(
+            "[yellow]warning:[/] no --camera-height or --baseline: the capture keeps the reconstruction's "
+            "arbitrary units, not metres",
+            highlight=False,
+        )
+    options = LiftOptions(
+        depth_source=depth,
+        depth_model=None if depth_model is None else str(depth_model),
+        camera_height=camera_height,
+        baseline=baseline,
+        baseline_frames=baseline_frames,
+        panorama=panorama,
+        fps=fps,
+        max_frames=max_frames,
+    )
+    stages = ("frames", "sfm", "depth", "scale", "write")
+    with _progress() as bar:
+        tasks = {s: bar.add_task(s, total=1, start=False) for s in stages}
+        current: dict[str, str] = {}
+
+        def progress(stage: str, message: str) -> None:
+            previous = current.get("stage")
+            if previous is not None and previous != stage:
+                bar.update(tasks[previous], completed=1)
+            if previous != stage:
+                bar.start_task(tasks[stage])
+            current["stage"] = stage
+            bar.update(tasks[stage], description=f"{stage}: {message}")
+
+        report = run_lift(src, out, options, overwrite=overwrite, progress=progress, show_depth_progress=True)
+        for s in stages:
+            bar.update(tasks[s], completed=1)
+    rec = report.record
+    for item in rec["dropped"]:
+        console.print(
+            f"[yellow]dropped[/] {item['frame_id']}: {item['reason']}", highlight=False, soft_wrap=True
+        )
+    reprojection = rec["sfm"].get("mean_reprojection_error_px", 0.0)
+    Console().print(
+        f"lifted {rec['registered']} of {rec['input_frames']} frames into {out} "
+        f"(scale {rec['scale_method']}: {rec['scale']:.4g} +- {100 * rec['scale_uncertainty']:.2g} %, "
+        f"depth {rec['depth_source']}, SfM reprojection error {reprojection:.3f} px)",
+        highlight=False,
+        soft_wrap=True,
+    )
