@@ -173,7 +173,7 @@ def load_video(
     fps: float = 2.0,
     max_frames: int | None = None,
     panorama: bool | None = None,
-    blur_ratio: float = 0.6,
+    blur_ratio: float = 0.3,
     blur_window: int = 2,
     min_motion: float = 0.01,
 ) -> FrameSet:

@@ -1,0 +1,137 @@
+"""``image2sim data lift`` end to end on RGB-only procedural houses, video frame selection, and errors.
+
+Depth comes from a stub that returns each view's exact depth in reconstruction units (part B's
+depth sources are tested in tests/simulator/test_lift_depth.py and test_lift_mvs.py), so what is
+checked here is everything around it: poses, scale, gravity, the written capture, confidence,
+panorama assembly and the manifest record.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from image2sim.simulator.io import open_capture
+from image2sim.simulator.lift import capture as lift_capture
+from image2sim.simulator.lift.frames import load_frames
+from image2sim.simulator.lift.scale import rotation_errors_deg, scale_error, umeyama
+
+from tests.simulator.lift_helpers import (
+    PANO_WALK,
+    WALK,
+    eye_height,
+    gt_poses,
+    rgb_folder,
+    synth_house,
+    truth_depth_fn,
+)
+
+
+def _abs_rel(est, true):
+    ok = (est > 0) & (true > 0)
+    return float(np.mean(np.abs(est[ok] - true[ok]) / true[ok])), float(ok.mean())
+
+
+def _check_lifted(out, scene, *, max_scale_error, max_abs_rel):
+    cap = open_capture(out)
+    truth = gt_poses(scene)
+    gt = open_capture(scene)
+    ids = cap.frame_ids
+    est = cap.poses
+    true = np.stack([truth[f] for f in ids])
+    # Metric and gravity-aligned: an SE(3) about +Z alone (no scale) must bring the poses home.
+    s, R, _ = umeyama(est[:, :3, 3], true[:, :3, 3])
+    assert abs(1 / s - 1) < max_scale_error and scale_error(est[:, :3, 3], true[:, :3, 3]) < max_scale_error
+    assert np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))) < 1.0  # world up already +Z
+    assert np.abs(est[:, 2, 3] - true[:, 2, 3]).max() < 0.05  # heights above the floor (z = 0)
+    assert rotation_errors_deg(est[:, :3, :3], true[:, :3, :3], R).max() < 1.0
+    rels = []
+    for i, fid in enumerate(ids):
+        frame = cap[i]
+        assert frame.confidence is not None and frame.confidence.shape == frame.depth.shape
+        rel, cover = _abs_rel(frame.depth, gt[gt.frame_ids.index(fid)].depth)
+        rels.append(rel)
+        assert cover > 0.9
+    assert np.median(rels) < max_abs_rel
+    return cap
+
+
+def test_lift_pinhole_house_writes_a_metric_capture(tmp_path, run_main, monkeypatch):
+    scene = synth_house(tmp_path / "pin", camera="pinhole", views=20, height=240, width=320, config=WALK)
+    monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: truth_depth_fn(scene))
+    images = rgb_folder(scene, tmp_path / "photos")
+    out = tmp_path / "lifted"
+    eye = eye_height(scene)
+    code, text = run_main(["data", "lift", str(images), "--out", str(out), "--camera-height", f"{eye}"])
+    assert code == 0, text
+    cap = _check_lifted(out, scene, max_scale_error=0.03, max_abs_rel=0.03)
+    # A view facing a bare wall may not register: it is dropped, named, and the rest is lifted.
+    assert len(cap) >= 18 and f"lifted {len(cap)} of 20 frames" in text
+    assert cap.camera.model == "pinhole" and cap.camera.fx == pytest.approx(160.0, rel=0.01)
+    record = json.loads((out / "manifest.json").read_text())["metadata"]["lift"]
+    assert record["scale_method"] == "camera_height" and record["depth_source"] == "mvs"
+    assert record["registered"] == len(cap) and len(record["dropped"]) == 20 - len(cap)
+    for item in record["dropped"]:
+        assert f"dropped {item['frame_id']}: not registered by structure-from-motion" in text
+    assert 0 < record["scale_uncertainty"] < 0.03
+    assert set(record["timings_s"]) == {"frames", "sfm", "depth", "scale", "write"}
+    # An existing output is refused before any work, naming it.
+    code, text = run_main(["data", "lift", str(images), "--out", str(out), "--camera-height", "1.5"])
+    assert code == 2 and "lifted: already exists" in text and "Traceback" not in text
+
+
+def test_lift_panorama_house_writes_an_equirect_capture(tmp_path, run_main, monkeypatch):
+    scene = synth_house(
+        tmp_path / "pano", camera="equirect", views=8, height=256, width=512, config=PANO_WALK
+    )
+    monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: truth_depth_fn(scene))
+    out = tmp_path / "lifted"
+    args = ["data", "lift", str(rgb_folder(scene, tmp_path / "panos")), "--out", str(out)]
+    code, text = run_main([*args, "--camera-height", f"{eye_height(scene)}"])
+    assert code == 0, text
+    cap = _check_lifted(out, scene, max_scale_error=0.03, max_abs_rel=0.05)
+    assert cap.camera.model == "equirect" and (cap.camera.height, cap.camera.width) == (256, 512)
+
+
+def test_bad_options_are_one_line_errors(tmp_path, run_main):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    cases = [
+        (["--depth", "lidar"], "--depth must be mvs or model"),
+        (["--depth", "model"], "--depth model needs --depth-model"),
+        (["--baseline", "1.0"], "--baseline needs --baseline-frames"),
+        (["--camera-height", "1.5", "--baseline", "1", "--baseline-frames", "a", "b"], "not both"),
+        ([], "no images (.png, .jpg, .jpeg) in this folder"),
+    ]
+    for extra, message in cases:
+        code, text = run_main(["data", "lift", str(folder), "--out", str(tmp_path / "o"), *extra])
+        assert code == 2 and message in text and "Traceback" not in text, (extra, text)
+        assert not (tmp_path / "o").exists()
+    code, text = run_main(["data", "lift", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o")])
+    assert code == 2 and "missing.mp4: no such folder or video file" in text
+
+
+def test_video_frames_skip_blurred_and_redundant_ones(tmp_path):
+    scene = synth_house(tmp_path / "vid", camera="pinhole", views=8, height=240, width=320, config=WALK)
+    frames = [cv2.imread(str(p)) for p in sorted((scene / "frames").glob("*_rgb.png"))]
+    video = tmp_path / "walk.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 4.0, (320, 240))
+    sequence = []
+    for i, f in enumerate(frames):
+        sequence.append(cv2.GaussianBlur(f, (0, 0), 4.0) if i == 3 else f)  # frame 3: motion blur
+        if i == 5:
+            sequence.append(f)  # frame 5 twice: the camera stood still
+    for f in sequence:
+        writer.write(f)
+    writer.release()
+    got = load_frames(video, fps=4.0)
+    assert not got.panorama and got.ids == [f"f{i:06d}" for i in range(len(got))]
+    reasons = dict(got.rejected)
+    assert reasons["video frame 3"].startswith("blurred")
+    assert reasons["video frame 6"].startswith("redundant")
+    assert len(got) == 7
+    assert len(load_frames(video, fps=2.0)) < len(got)  # sampling every other frame
+    capped = load_frames(video, fps=4.0, max_frames=3)
+    assert len(capped) == 3 and sum(r.startswith("left out") for _, r in capped.rejected) == 4
