@@ -13,14 +13,6 @@ from image2sim.simulator.lift.mvs import MVSConfig, run_mvs
 from image2sim.simulator.lift.types import PinholeView, SparseDepth
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _K(h: int, w: int, hfov_deg: float = 70.0) -> np.ndarray:
     f = 0.5 * w / math.tan(math.radians(hfov_deg) / 2)
     return np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
