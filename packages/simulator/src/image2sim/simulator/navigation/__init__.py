@@ -18,6 +18,7 @@ _EXPORTS = {
         "extract_navmap",
         "extract_navmap_from_gaussians",
         "extract_navmap_from_points",
+        "navmap_agreement",
         "render_topdown",
     ),
     "graph": ("NavGraph",),

@@ -50,6 +50,7 @@ __all__ = [
     "estimate_normals_pca",
     "radius_outlier_mask",
     "render_topdown",
+    "navmap_agreement",
 ]
 
 NAVMAP_FORMAT_VERSION = 1
@@ -1062,6 +1063,55 @@ def _fill_holes(
     if not out_ij:
         return empty
     return np.concatenate(out_ij), np.concatenate(out_z), np.concatenate(out_l)
+
+
+# ----------------------------------------------------------------------------------------------
+# Comparing two maps
+# ----------------------------------------------------------------------------------------------
+
+
+def navmap_agreement(
+    a: np.ndarray, b: np.ndarray, cell: float, *, height_tolerance: float = 0.5
+) -> dict[str, float]:
+    """Navigable-area agreement of map ``a`` (estimate) with map ``b`` (reference).
+
+    ``a`` and ``b`` are (N, 3) world centres of navigable cells of side ``cell`` metres
+    (:attr:`NavMap.points`), in one world frame; the two lattices may be shifted or rotated
+    against each other (a map from a lifted capture after its Sim(3) alignment). A cell of one
+    map counts as covered by the other when the other has a cell centre within ``0.75 * cell``
+    horizontally (every point of a square lattice of any rotation lies within ``cell / sqrt(2)``
+    of one of its centres) and ``height_tolerance`` metres vertically (storeys stay apart).
+    Cells are equal-area, so the counts are areas: ``precision`` = covered fraction of ``a``,
+    ``recall`` = covered fraction of ``b``, ``f_score`` their harmonic mean (0 when either map is
+    empty), ``area_a`` / ``area_b`` in m^2.
+    """
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 3)
+    if not (math.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell must be a finite positive size in metres, got {cell}")
+
+    def covered(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        if not len(src) or not len(ref):
+            return np.zeros(len(src), dtype=bool)
+        near = cKDTree(ref[:, :2]).query_ball_point(src[:, :2], r=0.75 * cell)
+        return np.array(
+            [
+                bool(len(ix)) and bool((np.abs(ref[ix, 2] - p[2]) <= height_tolerance).any())
+                for p, ix in zip(src, near, strict=True)
+            ],
+            dtype=bool,
+        )
+
+    precision = float(covered(a, b).mean()) if len(a) else 0.0
+    recall = float(covered(b, a).mean()) if len(b) else 0.0
+    f = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {
+        "precision": precision,
+        "recall": recall,
+        "f_score": f,
+        "area_a": len(a) * cell * cell,
+        "area_b": len(b) * cell * cell,
+    }
 
 
 # ----------------------------------------------------------------------------------------------
