@@ -265,3 +265,81 @@ def test_config_errors_name_the_option():
         MVSConfig.from_kwargs(planes=3)
     with pytest.raises(ValueError, match="near and MVSConfig.far"):
         MVSConfig(near=1.0)
+
+
+# ------------------------------------------------------------------------------- procedural houses
+
+
+def _house_sequence(seed: int, n: int = 5, h: int = 120, w: int = 160, noise: float = 2.0):
+    """A hand-held-like pinhole sequence in procedural house ``seed`` (default preset), exact poses.
+
+    Five upright 90-degree views 0.15 m apart along a line across the heading, alternately 0.1 m
+    above and below 1.4 m (a purely horizontal baseline cannot match horizontal stripes), from the
+    first navigable spot (seeded) whose middle view sees at least 1 m deep. Returns the views (RGB
+    with ``noise`` levels of Gaussian noise, like the ``middle`` tier), exact depths and the
+    noise-free grey images.
+    """
+    from image2sim.dataengine.procedural.config import preset
+    from image2sim.dataengine.procedural.render import render
+    from image2sim.dataengine.procedural.scene import generate_scene
+    from image2sim.simulator.conventions import camera_rotation_for_heading
+
+    scene = generate_scene(preset("default"), seed)
+    grid, nav = scene.grid, scene.grid.navigable
+    iy, ix = np.nonzero(nav)
+    rng = np.random.default_rng(0)
+    K = _K(h, w, 90.0)
+    for _ in range(200):
+        k = rng.integers(iy.size)
+        centre = grid.cell_centers(iy[k : k + 1], ix[k : k + 1])[0]
+        yaw = rng.uniform(-math.pi, math.pi)
+        right = np.array([math.sin(yaw), -math.cos(yaw)])
+        xy = centre + ((np.arange(n) - (n - 1) / 2) * 0.15)[:, None] * right
+        cy, cx = grid.world_to_cell(xy)
+        if (
+            not np.all((cy >= 0) & (cy < nav.shape[0]) & (cx >= 0) & (cx < nav.shape[1]))
+            or not nav[cy, cx].all()
+        ):
+            continue
+        views, depths, clean = [], [], []
+        for i, p in enumerate(xy):
+            pose = np.eye(4)
+            pose[:3, :3] = camera_rotation_for_heading(yaw)
+            pose[:3, 3] = (p[0], p[1], 1.4 + (0.1 if i % 2 else -0.1))
+            out = render(scene, _pinhole(K, h, w), pose)
+            rgb = np.clip(np.rint(out["rgb"] + rng.normal(0.0, noise, out["rgb"].shape)), 0, 255).astype(
+                np.uint8
+            )
+            views.append(PinholeView(rgb, K, pose))
+            depths.append(out["depth"])
+            clean.append(mvs.to_gray(out["rgb"]))
+        mid = depths[n // 2]
+        if np.median(mid[mid > 0]) >= 1.0:
+            return views, depths, clean
+    raise AssertionError(f"house {seed}: no sequence found")
+
+
+def _pinhole(K: np.ndarray, h: int, w: int):
+    from image2sim.simulator.geometry.cameras import PinholeCamera
+
+    return PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], h, w)
+
+
+@pytest.mark.parametrize("seed", [3, 8])
+def test_procedural_house_depth_against_exact_depth(seed):
+    """Measured (docs/lift.md, 160x120, middle-tier colour noise): house 3 AbsRel 0.086 on 22 % of
+    pixels, house 8 0.058 on 52 %; textureless (plain wall) pixels are never confident. The issue's
+    60 % coverage is out of reach here: plain walls have no texture to match (docs/lift.md)."""
+    views, depths, clean = _house_sequence(seed)
+    est = run_mvs(views, _sparse(depths))
+    abs_rel, covered = _abs_rel(est, depths)
+    assert abs_rel <= 0.10, abs_rel
+    assert covered >= (0.18 if seed == 3 else 0.45), covered
+    plain_confident, plain = 0, 0
+    for e, grey in zip(est, clean, strict=True):
+        g = grey[None]
+        std = (mvs._box_mean(g * g, 9) - mvs._box_mean(g, 9) ** 2).clamp_min(0).sqrt()[0].numpy()
+        flat = std < 0.003
+        plain += int(flat.sum())
+        plain_confident += int((e.confidence[flat] > 0).sum())
+    assert plain > 500 and plain_confident <= 0.01 * plain
