@@ -270,21 +270,26 @@ def test_config_errors_name_the_option():
 # ------------------------------------------------------------------------------- procedural houses
 
 
-def _house_sequence(seed: int, n: int = 5, h: int = 120, w: int = 160, noise: float = 2.0):
+def _house_sequence(
+    seed: int, n: int = 5, h: int = 120, w: int = 160, noise: float = 2.0, surface_detail: float = 0.0
+):
     """A hand-held-like pinhole sequence in procedural house ``seed`` (default preset), exact poses.
 
     Five upright 90-degree views 0.15 m apart along a line across the heading, alternately 0.1 m
     above and below 1.4 m (a purely horizontal baseline cannot match horizontal stripes), from the
     first navigable spot (seeded) whose middle view sees at least 1 m deep. Returns the views (RGB
     with ``noise`` levels of Gaussian noise, like the ``middle`` tier), exact depths and the
-    noise-free grey images.
+    noise-free grey images. ``surface_detail`` is the generator's fine albedo grain (0: as synthesised
+    by default).
     """
+    import dataclasses
+
     from image2sim.dataengine.procedural.config import preset
     from image2sim.dataengine.procedural.render import render
     from image2sim.dataengine.procedural.scene import generate_scene
     from image2sim.simulator.conventions import camera_rotation_for_heading
 
-    scene = generate_scene(preset("default"), seed)
+    scene = generate_scene(dataclasses.replace(preset("default"), surface_detail=surface_detail), seed)
     grid, nav = scene.grid, scene.grid.navigable
     iy, ix = np.nonzero(nav)
     rng = np.random.default_rng(0)
@@ -343,3 +348,11 @@ def test_procedural_house_depth_against_exact_depth(seed):
         plain += int(flat.sum())
         plain_confident += int((e.confidence[flat] > 0).sum())
     assert plain > 500 and plain_confident <= 0.01 * plain
+
+
+def test_procedural_house_with_surface_grain_meets_the_issue_target():
+    """With the generator's fine grain (``surface_detail: 0.3``, as the lift tests use) the issue's
+    target holds: AbsRel <= 0.10 on confident pixels covering >= 60 % (measured 0.032 on 74 %)."""
+    views, depths, _ = _house_sequence(3, surface_detail=0.3)
+    abs_rel, covered = _abs_rel(run_mvs(views, _sparse(depths)), depths)
+    assert abs_rel <= 0.10 and covered >= 0.60, (abs_rel, covered)
