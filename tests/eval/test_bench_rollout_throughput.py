@@ -2,37 +2,22 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
+
+from tests.eval.bench_loader import benchmark_module
 
 pytest.importorskip("image2sim.navpolicy")
 pytest.importorskip("image2sim.dataengine")
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
 def bench():
-    """The benchmark script as a module (its ``from harness import ...`` needs ``benchmarks/``)."""
-    name = "bench_rollout_throughput_under_test"
-    had_harness = "harness" in sys.modules
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCH / "rollout_throughput.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module  # dataclasses resolve their module through sys.modules
-        spec.loader.exec_module(module)
+    """The benchmark script as a module."""
+    with benchmark_module("rollout_throughput.py") as module:
         yield module
-    finally:
-        sys.modules.pop(name, None)
-        if not had_harness:
-            sys.modules.pop("harness", None)
-        sys.path.remove(str(BENCH))
 
 
 def test_quick_run_writes_finite_positive_rates(bench, tmp_path):

@@ -1,0 +1,40 @@
+"""The lifting benchmark (``benchmarks/lift.py``) in quick mode, pinhole house only."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from tests.eval.bench_loader import benchmark_module
+
+pytest.importorskip("pycolmap")
+pytest.importorskip("image2sim.dataengine")
+
+
+@pytest.fixture(scope="module")
+def bench():
+    """The benchmark script as a module."""
+    with benchmark_module("lift.py") as module:
+        yield module
+
+
+@pytest.mark.slow  # a 10-view house: synthesis, SfM and plane-sweep depth, ~30 s on 2 shared cores
+def test_quick_run_writes_scored_rows(bench, tmp_path):
+    bench.main(["--quick", "--only", "pinhole"], reports=tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lift.json", "lift.md"]
+    report = json.loads((tmp_path / "lift.json").read_text())
+    assert report["benchmark"] == "lift" and report["hardware"] and report["date_utc"].endswith("Z")
+    (row,) = report["rows"]
+    assert row["kind"] == "pinhole" and "error" not in row, row
+    assert row["registered"] >= 3 and row["input_frames"] == 10
+    for key in ("sfm_s", "depth_s", "scale_s", "write_s", "navmap_s", "ate_m", "rot_max_deg", "scale_error"):
+        assert math.isfinite(row[key]) and row[key] >= 0, key
+    assert 0 < row["coverage"] <= 1 and math.isfinite(row["absrel"])
+    assert 0 <= row["nav_f"] <= 1
+    # SfM poses themselves are good even in the smoke run (the scale may not be).
+    assert row["ate_m"] < 0.05 and row["rot_max_deg"] < 1.0
+    assert {c["key"] for c in report["checks"]} == set(bench.TARGETS)
+    text = (tmp_path / "lift.md").read_text()
+    assert "## Targets" in text and "## Per stage" in text
