@@ -82,6 +82,53 @@ def test_lift_pinhole_house_writes_a_metric_capture(tmp_path, run_main, monkeypa
     assert code == 2 and "lifted: already exists" in text and "Traceback" not in text
 
 
+def test_frames_without_valid_depth_are_dropped_and_named(tmp_path, run_main, monkeypatch):
+    """A view the depth source leaves empty (a plain wall: MVS has no confident pixel) is not written:
+    the strict reader refuses an all-invalid depth image, so the capture would not open."""
+    scene = synth_house(tmp_path / "pin", camera="pinhole", views=10, height=240, width=320, config=WALK)
+    truth = truth_depth_fn(scene)
+    blank: set[bytes] = set()
+
+    def depth_fn(views, **kw):
+        out = truth(views, **kw)
+        blank.add(views[2].image.tobytes())
+        for view, est in zip(views, out, strict=True):
+            if view.image.tobytes() in blank:
+                est.depth[:] = 0.0
+                est.confidence[:] = 0.0
+        return out
+
+    monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: depth_fn)
+    images = rgb_folder(scene, tmp_path / "photos")
+    out = tmp_path / "lifted"
+    eye = eye_height(scene)
+    code, text = run_main(["data", "lift", str(images), "--out", str(out), "--camera-height", f"{eye}"])
+    assert code == 0, text
+    record = json.loads((out / "manifest.json").read_text())["metadata"]["lift"]
+    empty = [d for d in record["dropped"] if d["reason"].startswith("no valid depth")]
+    assert len(empty) == 1 and record["written"] == record["registered"] - 1
+    assert f"dropped {empty[0]['frame_id']}: no valid depth" in text
+    assert f"lifted {record['written']} of 10 frames" in text
+    cap = open_capture(out)
+    assert empty[0]["frame_id"] not in cap.frame_ids and len(cap) == record["written"]
+    for i in range(len(cap)):
+        assert cap[i].depth.any()  # every written frame reads under the strict reader
+    # No frame with any depth: an error naming the input, nothing written.
+    monkeypatch.setattr(
+        lift_capture,
+        "_default_depth_fn",
+        lambda: (
+            lambda views, **kw: [
+                type(e)(depth=np.zeros_like(e.depth), confidence=np.zeros_like(e.confidence))
+                for e in truth(views, **kw)
+            ]
+        ),
+    )
+    code, text = run_main(["data", "lift", str(images), "--out", str(tmp_path / "none")])
+    assert code == 2 and "no registered frame got any valid depth" in text and "Traceback" not in text
+    assert not (tmp_path / "none").exists()
+
+
 def test_lift_panorama_house_writes_an_equirect_capture(tmp_path, run_main, monkeypatch):
     scene = synth_house(
         tmp_path / "pano", camera="equirect", views=8, height=256, width=512, config=PANO_WALK

@@ -55,26 +55,45 @@ def test_scores_measure_known_errors():
         umeyama(true[:2], true[:2])
 
 
+def _walls(rng, per_wall, height):
+    """Points on the four walls of a 5 x 4 m room, ``per_wall`` each, up to ``height``."""
+    walls = []
+    for x in (0.0, 5.0):
+        walls.append(
+            np.c_[np.full(per_wall, x), rng.uniform(0, 4, per_wall), rng.uniform(0, height, per_wall)]
+        )
+    for y in (0.0, 4.0):
+        walls.append(
+            np.c_[rng.uniform(0, 5, per_wall), np.full(per_wall, y), rng.uniform(0, height, per_wall)]
+        )
+    return walls
+
+
+def _level_cameras(rng, n_cams, eye, jitter=0.0):
+    """Level cameras with random headings inside the room, at ``eye`` (+- ``jitter``) metres."""
+    poses = []
+    for _ in range(n_cams):
+        T = np.eye(4)
+        T[:3, :3] = camera_rotation_for_heading(rng.uniform(-np.pi, np.pi))
+        T[:3, 3] = [
+            rng.uniform(1, 4),
+            rng.uniform(1, 3),
+            eye + (rng.uniform(-jitter, jitter) if jitter else 0.0),
+        ]
+        poses.append(T)
+    return np.stack(poses)
+
+
 def _room(seed=0, eye=1.45, n_cams=12):
     """A 5 x 4 x 2.6 m room: floor, ceiling and wall points, a table top, level cameras at ``eye``."""
     rng = np.random.default_rng(seed)
     floor = np.c_[rng.uniform(0, 5, 150), rng.uniform(0, 4, 150), np.zeros(150)]
     ceiling = np.c_[rng.uniform(0, 5, 300), rng.uniform(0, 4, 300), np.full(300, 2.6)]
-    walls = []
-    for x in (0.0, 5.0):
-        walls.append(np.c_[np.full(800, x), rng.uniform(0, 4, 800), rng.uniform(0, 2.6, 800)])
-    for y in (0.0, 4.0):
-        walls.append(np.c_[rng.uniform(0, 5, 800), np.full(800, y), rng.uniform(0, 2.6, 800)])
+    walls = _walls(rng, 800, 2.6)
     table = np.c_[rng.uniform(1, 2, 200), rng.uniform(1, 2, 200), np.full(200, 0.75)]
     points = np.concatenate([floor, ceiling, table, *walls])
     points = points + rng.normal(scale=0.003, size=points.shape)
-    poses = []
-    for _ in range(n_cams):
-        T = np.eye(4)
-        T[:3, :3] = camera_rotation_for_heading(rng.uniform(-np.pi, np.pi))
-        T[:3, 3] = [rng.uniform(1, 4), rng.uniform(1, 3), eye]
-        poses.append(T)
-    return np.stack(poses), points
+    return _level_cameras(rng, n_cams, eye), points
 
 
 def _to_reconstruction(poses, points, sim):
@@ -122,3 +141,38 @@ def test_baseline_scale_and_its_errors():
     ceiling = rec_points[150:450]  # nothing below the cameras: no floor
     with pytest.raises(ScaleError, match="--camera-height needs the floor"):
         estimate_metric_frame(rec_poses, ceiling, camera_height=1.4)
+
+
+def _grazing_room(seed=0, eye=1.5, n_cams=20):
+    """What level 90-degree pinhole views reconstruct: walls densely, the floor barely (60 points,
+    seen only at grazing angles), a textured counter top at 0.9 m (500 points)."""
+    rng = np.random.default_rng(seed)
+    floor = np.c_[rng.uniform(0.5, 4.5, 60), rng.uniform(0.5, 3.5, 60), np.zeros(60)]
+    walls = _walls(rng, 1000, 2.8)
+    counter = np.c_[rng.uniform(0, 2, 500), rng.uniform(3.4, 4, 500), np.full(500, 0.9)]
+    points = np.concatenate([floor, counter, *walls])
+    points = points + rng.normal(scale=0.003, size=points.shape)
+    return _level_cameras(rng, n_cams, eye, jitter=0.1), points
+
+
+def test_a_sparse_floor_among_dense_walls_is_found_by_its_support():
+    """Any horizontal slice of dense walls holds many points; the floor is the plane that stands out
+    from the slices beside it (inliers over background), not the one with the most inliers."""
+    poses, points = _grazing_room()
+    rec_poses, rec_points = _to_reconstruction(poses, points, _random_sim(7))
+    tried: list[dict] = []
+    floor = find_floor(rec_points, rec_poses, camera_up_mean(rec_poses), candidates=tried)
+    assert floor is not None and len(tried) > 5
+    assert np.isin(np.arange(60), floor.inliers).sum() >= 55  # (nearly) all the floor's points
+    # The counter holds over 4x the floor's inliers: the former rule (the lowest plane with 20 % of
+    # the most inliers) took it, and the scale was off by 155 %.
+    assert max(c["inliers"] for c in tried) > 4 * len(floor.inliers)
+    result = estimate_metric_frame(rec_poses, rec_points, camera_height=1.5)
+    metric = np.stack([result.transform.apply_pose(T) for T in rec_poses])
+    assert scale_error(metric[:, :3, 3], poses[:, :3, 3]) < 0.02  # eye heights vary by +-0.1 m
+    # Without the floor: no plane stands out, so the camera height cannot be used; the error says
+    # what to do instead rather than scaling by a wall slice.
+    no_floor = rec_points[60:]
+    no_floor = no_floor[np.abs(points[60:, 2] - 0.9) > 0.02]
+    with pytest.raises(ScaleError, match="--baseline M --baseline-frames A B instead"):
+        estimate_metric_frame(rec_poses, no_floor, camera_height=1.5)

@@ -398,7 +398,7 @@ def lift(
         )
     reprojection = rec["sfm"].get("mean_reprojection_error_px", 0.0)
     Console().print(
-        f"lifted {rec['registered']} of {rec['input_frames']} frames into {out} "
+        f"lifted {rec.get('written', rec['registered'])} of {rec['input_frames']} frames into {out} "
         f"(scale {rec['scale_method']}: {rec['scale']:.4g} +- {100 * rec['scale_uncertainty']:.2g} %, "
         f"depth {rec['depth_source']}, SfM reprojection error {reprojection:.3f} px)",
         highlight=False,

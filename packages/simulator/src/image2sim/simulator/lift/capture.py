@@ -132,8 +132,9 @@ def lift(
     :func:`image2sim.simulator.lift.depth.estimate_depth` (same signature).
     """
     from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
-    from image2sim.simulator.io.canonical import MAX_DEPTH_M, write_capture
+    from image2sim.simulator.io.canonical import MAX_DEPTH_M, encode_depth_mm, write_capture
     from image2sim.simulator.io.records import Frame
+    from image2sim.simulator.lift.frames import LiftInputError
 
     opts = options or LiftOptions()
     out = Path(out)
@@ -224,12 +225,23 @@ def lift(
             )
     frames_to_write = []
     metric_poses = {}
+    no_depth: list[tuple[str, str]] = []
     for fid, rgb, depth, conf, pose in out_frames:
         depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
         too_far = depth > MAX_DEPTH_M
         if too_far.any():
             clipped += int(too_far.sum())
             depth[too_far] = 0.0
+        if not encode_depth_mm(depth, f"{fid} depth").any():
+            # Every pixel invalid (e.g. a plain wall the stereo cannot match): the canonical reader
+            # refuses such a depth image, so the frame is left out and named, like an unregistered one.
+            no_depth.append(
+                (
+                    fid,
+                    f"no valid depth: the {opts.depth_source} depth left every pixel invalid or unconfident",
+                )
+            )
+            continue
         conf = np.where(depth > 0, np.clip(np.nan_to_num(conf), 0.0, 1.0), 0.0).astype(np.float32)
         notes = [
             f"lifted from {frames.source.name}: SfM pose, {opts.depth_source} depth, scale {scale.method}"
@@ -247,6 +259,11 @@ def lift(
                 confidence=conf,
             )
         )
+    if not frames_to_write:
+        raise LiftInputError(
+            f"{source}: no registered frame got any valid depth from the {opts.depth_source} depth source "
+            f"({len(out_frames)} frames): nothing to write"
+        )
     record = {
         "source": str(Path(source).resolve()),
         "sfm": _jsonable(sfm.stats),
@@ -255,8 +272,11 @@ def lift(
         **scale.record(),
         "transform": sim.to_dict(),
         "registered": len(sfm.frame_ids),
+        "written": len(frames_to_write),
         "input_frames": len(frames),
-        "dropped": [{"frame_id": f, "reason": r} for f, r in list(frames.rejected) + list(sfm.dropped)],
+        "dropped": [
+            {"frame_id": f, "reason": r} for f, r in list(frames.rejected) + list(sfm.dropped) + no_depth
+        ],
         "depth_beyond_range_px": clipped,
         "panorama": frames.panorama,
     }

@@ -242,7 +242,7 @@ def find_floor(
     up: np.ndarray,
     *,
     threshold: float | None = None,
-    floor_min_share: float = 0.2,
+    floor_min_share: float = 0.05,
     max_tilt_deg: float = 8.0,
     min_inliers: int = 20,
     min_contrast: float = 2.0,
@@ -257,13 +257,16 @@ def find_floor(
     peak (tilt up to ``max_tilt_deg``, so a rough ``up`` suffices) and refitted to all its inliers.
 
     Any horizontal slab through the walls also holds points (the walls crossing it), so a plane's
-    inlier count says little: its *support* is its inliers minus the background, the mean count of
-    the two parallel slabs ``4 * threshold`` above and below it (the walls cross those as much). A
-    plane is well supported when its support is at least ``min_inliers`` and its inliers at least
-    ``min_contrast`` times the background (a real surface, not a slice of the walls; measured on a
-    pinhole house seeing the floor only at grazing angles: floor 51 inliers over a background of 9,
-    wall slices 50-316 over 0.9-1.1 times as many). The floor is the lowest well-supported plane
-    with at least ``floor_min_share`` of the best one's support, and it must lie below every camera.
+    inlier count says little: its *support* is its inliers minus the background, the larger count
+    of the two parallel slabs ``4 * threshold`` above and below it (the walls cross those as much;
+    the larger, so the bottom edge of the visible walls is no plane). A plane is well supported
+    when its support is at least ``min_inliers`` and its inliers at least ``min_contrast`` times the
+    background (a surface, not a slice of the walls; measured on a pinhole house that sees the floor
+    only at grazing angles: floor 51 inliers over a background of 17, wall slices 50-316 inliers over
+    0.8-1.4 times as many). The floor is the lowest well-supported plane with at least
+    ``floor_min_share`` of the best one's support (a guard against stray clusters below the floor;
+    small, as a textured table can hold ten times the points of a floor seen at grazing angles),
+    and it must lie below every camera.
     ``candidates``, when given, receives one record per plane tried (height below the cameras'
     median in reconstruction units, inliers, background, tilt, accepted).
     """
@@ -299,7 +302,13 @@ def find_floor(
         # few points of the walls crossing it; the plane is then refitted to all its inliers.
         near = np.nonzero(np.abs(h - centre_h) < 2 * threshold)[0]
         found = fit_planes(
-            pts[near], up, threshold, max_tilt_deg=max_tilt_deg, max_planes=1, min_inliers=min_inliers, seed=seed
+            pts[near],
+            up,
+            threshold,
+            max_tilt_deg=max_tilt_deg,
+            max_planes=1,
+            min_inliers=min_inliers,
+            seed=seed,
         )
         if not found:
             continue
@@ -312,7 +321,7 @@ def find_floor(
             d = float(n @ c)
         signed = pts @ n - d
         inl = np.nonzero(np.abs(signed) < threshold)[0]
-        background = 0.5 * sum(int((np.abs(signed - k * threshold) < threshold).sum()) for k in (-4, 4))
+        background = float(max(int((np.abs(signed - k * threshold) < threshold).sum()) for k in (-4, 4)))
         support = len(inl) - background
         below_all = bool(d < float((centres @ n).min()) - 3 * threshold)
         ok = (
