@@ -128,6 +128,11 @@ def test_plane_chunks_do_not_change_the_cost():
     assert mvs._chunk_planes(16, 2, 24, 32, 0.05) < 16
     chunked, _ = mvs.plane_sweep_cost(grays[0], grays[1:], terms, inv, window=5, best_k=2, max_chunk_mb=0.05)
     assert torch.equal(whole, chunked)
+    # A per-pixel inverse depth (P, H, W) (slanted planes, ``plane_ncc``) that is constant per plane
+    # gives the fronto-parallel planes' cost.
+    maps = inv[:, None, None].expand(16, 24, 32).contiguous()
+    per_pixel, _ = mvs.plane_sweep_cost(grays[0], grays[1:], terms, maps, window=5, best_k=2)
+    assert torch.equal(whole, per_pixel)
 
 
 def test_winner_take_all_matches_the_per_pixel_reference():
@@ -204,6 +209,53 @@ def test_textureless_half_gets_no_confidence():
     textured = [(e, gt) for e, gt in zip(est, depths, strict=True)]
     abs_rel, covered = _abs_rel([e for e, _ in textured], [g for _, g in textured])
     assert abs_rel < 0.02 and 0.25 < covered < 0.6
+
+
+def _scene_plane(depth0: float = 3.0, slope: float = 0.3) -> tuple[np.ndarray, float]:
+    """``_plane_scene``'s plane Z = depth0 + slope X as ``normal . x = offset``."""
+    n = np.array([-slope, 0.0, 1.0])
+    return n / np.linalg.norm(n), depth0 / np.linalg.norm(n)
+
+
+def test_plane_ncc_supports_the_true_plane_only():
+    views, depths = _plane_scene(GRID)
+    normal, offset = _scene_plane()
+    depth, ncc, std = mvs.plane_ncc(views, 0, normal, offset)
+    np.testing.assert_allclose(depth, depths[0], rtol=1e-5)
+    assert np.median(ncc[4:-4, 4:-4]) > 0.9 and (std > 0.01).mean() > 0.9
+    _, off_ncc, _ = mvs.plane_ncc(views, 0, normal, offset - 1.0)
+    assert np.median(off_ncc[4:-4, 4:-4]) < 0.5
+
+
+def test_fill_floor_fills_textured_pixels_of_the_plane_only():
+    """Pixels without depth get the plane's depth where the plane explains the images (textured, and
+    better than the plane 10 % nearer or farther); a plain half, a wrong plane and pixels that
+    already have depth are left alone."""
+    from image2sim.simulator.lift.capture import FLOOR_FILL_CONFIDENCE, fill_floor
+    from image2sim.simulator.lift.types import DepthEstimate
+
+    views, depths = _plane_scene(GRID, flat_right=True)
+    normal, offset = _scene_plane()
+    empty = [DepthEstimate(np.zeros_like(d), np.zeros_like(d)) for d in depths]
+    kept = empty[1]
+    kept.depth[:, :10], kept.confidence[:, :10] = 7.0, 0.9  # already has (wrong) depth: kept
+    filled, n = fill_floor(views, empty, normal, offset)
+    K = views[0].K
+    w = depths[0].shape[1]
+    shares = []
+    for est, view, gt in zip(filled, views, depths, strict=True):
+        X = view.cam_to_world[0, 3] + (np.arange(w) + 0.5 - K[0, 2]) / K[0, 0] * gt
+        flat = X > 5.0 * gt / K[0, 0]
+        new = est.confidence == np.float32(FLOOR_FILL_CONFIDENCE)
+        assert not (new & flat).any()  # a plain patch proves nothing
+        np.testing.assert_allclose(est.depth[new], gt[new], rtol=1e-5)
+        shares.append(new[~flat].mean())
+    # Baselines of 0.1-0.2 m at 3 m: the planes 10 % nearer and farther often match nearly as well.
+    assert np.mean(shares) > 0.3 and min(shares) > 0
+    assert np.all(filled[1].depth[:, :10] == 7.0) and np.all(filled[1].confidence[:, :10] == np.float32(0.9))
+    assert n == sum(int((e.confidence == np.float32(FLOOR_FILL_CONFIDENCE)).sum()) for e in filled)
+    _, wrong = fill_floor(views, empty, normal, offset - 0.4)
+    assert wrong < 0.02 * n
 
 
 # -------------------------------------------------------------------------------------- hard cases

@@ -52,6 +52,8 @@ class LiftOptions:
     """Keep at most this many frames (spread evenly)."""
     min_confidence_floor: float = 0.5
     """Dense depth at or above this confidence joins the sparse points for finding the floor."""
+    floor_fill: bool = True
+    """Give pixels without depth that see the floor the floor plane's depth (:func:`fill_floor`)."""
     sfm: SfmOptions = field(default_factory=SfmOptions)
     """Structure-from-motion settings."""
 
@@ -84,6 +86,66 @@ def dense_points(views: list[PinholeView], estimates: list[DepthEstimate], min_c
         T = view.cam_to_world
         out.append(cam @ T[:3, :3].T + T[:3, 3])
     return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+FLOOR_FILL_CONFIDENCE = 0.02
+"""Confidence of depth filled from the floor plane (:func:`fill_floor`): below every confidence the
+plane sweep keeps (it zeroes < 0.05), so filled pixels are told apart by ``0 < confidence < 0.05``."""
+
+
+def fill_floor(
+    views: list[PinholeView],
+    estimates: list[DepthEstimate],
+    normal: np.ndarray,
+    offset: float,
+    *,
+    min_ncc: float = 0.8,
+    min_margin: float = 0.1,
+    shift: float = 0.1,
+    min_texture: float = 0.01,
+    confidence: float = FLOOR_FILL_CONFIDENCE,
+) -> tuple[list[DepthEstimate], int]:
+    """Depth of the floor plane ``normal . x = offset`` at pixels without depth whose colour the plane
+    explains; returns the new estimates and the number of pixels filled.
+
+    Level views see the floor at grazing angles, where the plane sweep's fronto-parallel planes do
+    not fit a 9 x 9 window and it is rarely confident, though the plane is known (the floor of the
+    scale stage). The plane's own homography warps each view onto its source views
+    (:func:`~image2sim.simulator.lift.mvs.plane_ncc`); a pixel without depth whose ray meets the
+    plane in front of the camera gets the plane's depth when its patch is textured (grey std >=
+    ``min_texture``) and matches the sources under the plane (mean ZNCC of the best two >=
+    ``min_ncc``) clearly better than under the parallel planes ``shift`` times the cameras' height
+    above and below it (by ``min_margin``: near the horizon, or with little parallax, every plane
+    warps alike and the match proves nothing). A wall or an object standing on the floor does not
+    match under the floor's homography, and a plain patch proves nothing. Filled pixels get
+    ``confidence``, distinctly low.
+    """
+    from image2sim.simulator.lift.mvs import plane_ncc
+
+    centres = np.stack([v.cam_to_world[:3, 3] for v in views])
+    delta = shift * float(np.median(centres @ normal - offset))  # 15 cm for cameras 1.5 m up
+    out, filled = [], 0
+    for i, est in enumerate(estimates):
+        plane, ncc, std = plane_ncc(views, i, normal, offset)
+        rival = np.maximum(
+            plane_ncc(views, i, normal, offset + delta)[1], plane_ncc(views, i, normal, offset - delta)[1]
+        )
+        fill = (
+            (est.depth <= 0)
+            & (plane > 0)
+            & (std >= min_texture)
+            & (ncc >= min_ncc)
+            & (ncc - rival >= min_margin)
+        )
+        k = int(fill.sum())
+        if k:
+            est = DepthEstimate(
+                depth=np.where(fill, plane, est.depth).astype(np.float32),
+                confidence=np.where(fill, np.float32(confidence), est.confidence).astype(np.float32),
+            )
+        out.append(est)
+        filled += k
+    return out, filled
 
 
 def _range_factor(K: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -188,6 +250,11 @@ def lift(
         focal_px=float(K0[0, 0]),
         source=str(source),
     )
+    if opts.floor_fill and scale.floor is not None:
+        estimates, filled = fill_floor(views, estimates, scale.floor.normal, scale.floor.offset)
+        floor_fill = {"pixels": filled, "confidence": FLOOR_FILL_CONFIDENCE}
+    else:
+        floor_fill = {"pixels": 0, "confidence": None}
     timings["scale"] = time.perf_counter() - t
     sim = scale.transform
 
@@ -278,6 +345,7 @@ def lift(
             {"frame_id": f, "reason": r} for f, r in list(frames.rejected) + list(sfm.dropped) + no_depth
         ],
         "depth_beyond_range_px": clipped,
+        "floor_fill": floor_fill,
         "panorama": frames.panorama,
     }
     record.pop("camera_heights_m", None)

@@ -345,13 +345,15 @@ def plane_sweep_cost(
     """Aggregated cost volume (P, H, W) float32 and the reference patches' grey std (H, W).
 
     ``homographies[s] = (A, b)`` maps reference pixel centres ``p = (u, v, 1)`` to source ``s`` as
-    ``A p + b * inv_depth``. Per source the cost is ``1 - ZNCC`` of the ``window``-sized patches of the
-    reference and of the source warped by the plane; a plane point outside the source image or
-    behind it does not count. Per pixel and plane the cost is the mean of the ``best_k`` lowest valid
-    source costs (fewer if fewer are valid; :data:`MAX_COST` if none is).
+    ``A p + b * inv_depth``; ``inv_depths`` is (P,) for fronto-parallel planes or (P, H, W), a
+    per-pixel inverse depth for each of P slanted planes (:func:`plane_ncc`). Per source the cost is
+    ``1 - ZNCC`` of the ``window``-sized patches of the reference and of the source warped by the
+    plane; a plane point outside the source image or behind it does not count. Per pixel and plane
+    the cost is the mean of the ``best_k`` lowest valid source costs (fewer if fewer are valid;
+    :data:`MAX_COST` if none is).
     """
     h, w = ref_gray.shape
-    S, P = len(src_grays), int(inv_depths.numel())
+    S, P = len(src_grays), int(inv_depths.shape[0])
     if S == 0:
         raise ValueError("plane_sweep_cost needs at least one source view")
     ref = ref_gray.to(torch.float32)[None]
@@ -363,11 +365,11 @@ def plane_sweep_cost(
     chunk = _chunk_planes(P, S, h, w, max_chunk_mb)
     for start in range(0, P, chunk):
         inv = inv_depths[start : start + chunk]
-        pc = int(inv.numel())
+        pc = int(inv.shape[0])
         per_source = torch.full((S, pc, h, w), _INVALID, dtype=torch.float32)
         for s, (src, (A, b)) in enumerate(zip(src_grays, homographies, strict=True)):
             hs, ws = src.shape
-            q = (A @ pix)[None] + b[None, :, None] * inv[:, None, None]  # (pc, 3, HW)
+            q = (A @ pix)[None] + b[None, :, None] * inv.reshape(pc, 1, -1)  # (pc, 3, HW)
             z = q[:, 2]
             front = z > 1e-12
             zs = torch.where(front, z, torch.ones_like(z))
@@ -388,6 +390,46 @@ def plane_sweep_cost(
             per_source[s] = torch.where(inside.reshape(pc, h, w), c, torch.full_like(c, _INVALID))
         cost[start : start + pc] = _best_k_mean(per_source, best_k)
     return cost, std_r
+
+
+def plane_ncc(
+    views: list[PinholeView], index: int, normal: np.ndarray, offset: float, config: MVSConfig | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Photometric support of one world plane ``normal . x = offset`` in view ``index``.
+
+    The plane's own homography (slanted, unlike the sweep's fronto-parallel planes, so a floor seen
+    at a grazing angle warps exactly) maps the view onto its source views (:func:`select_sources` at
+    the plane's median depth); returns the plane's z-depth (H, W) (0 where the ray misses it), the
+    mean ZNCC of the ``config.best_k`` best sources (-1 where none sees the point) and the
+    reference patches' grey std, all float32.
+    """
+    config = config or MVSConfig()
+    view = views[index]
+    h, w = view.image.shape[:2]
+    R, c = np.asarray(view.cam_to_world, np.float64)[:3, :3], np.asarray(view.cam_to_world, np.float64)[:3, 3]
+    n_cam = R.T @ np.asarray(normal, np.float64)
+    rays = np.linalg.solve(np.asarray(view.K, np.float64), _pixel_centres(h, w).numpy())  # (3, HW), z = 1
+    inv = (rays.T @ n_cam) / (float(offset) - float(normal @ c))  # 1 / z-depth of the plane
+    hits = inv > 1e-12
+    depth = np.where(hits, 1.0 / np.where(hits, inv, 1.0), 0.0).reshape(h, w).astype(np.float32)
+    ncc = np.full((h, w), -1.0, dtype=np.float32)
+    if not hits.any():
+        return depth, ncc, np.zeros((h, w), dtype=np.float32)
+    src = select_sources(views, index, float(np.median(depth[depth > 0])), config)
+    gray = to_gray(view.image)
+    if not src:
+        return depth, ncc, np.zeros((h, w), dtype=np.float32)
+    cost, std_r = plane_sweep_cost(
+        gray,
+        [to_gray(views[j].image) for j in src],
+        [_homography_terms(view, views[j]) for j in src],
+        torch.from_numpy(np.where(hits, inv, 0.0)).reshape(1, h, w),
+        window=config.window,
+        best_k=config.best_k,
+        max_chunk_mb=config.max_chunk_mb,
+    )
+    ncc = np.where(cost[0].numpy() < MAX_COST, 1.0 - cost[0].numpy(), -1.0).astype(np.float32)
+    return depth, ncc, std_r.numpy().astype(np.float32)
 
 
 def _best_k_mean(per_source: torch.Tensor, best_k: int) -> torch.Tensor:
