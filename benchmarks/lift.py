@@ -299,6 +299,10 @@ def lift_case(name: str, images: Path, out: Path, camera_height: float, depth_kw
         "scale_s": timings["scale"],
         "write_s": timings["write"],
         "frames_s": timings["frames"],
+        "floor_fill_px": rep.record.get("floor_fill", {}).get("pixels"),
+        "dropped_no_depth": [
+            d["frame_id"] for d in rep.record["dropped"] if d["reason"].startswith("no valid depth")
+        ],
         "total_s": time.perf_counter() - t0,
     }
 
@@ -427,7 +431,9 @@ def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
         "`surface_detail 0.3`, walking camera (`yaw_step_max_deg 25`). Scored against the same house "
         "at tier `none` (exact poses and depth). `--camera-height` = the capture's recorded eye height.",
         "- Depth AbsRel: written metric depth vs exact, pooled over pixels with confidence > 0 "
-        "(MVS zeroes the rest); coverage = those pixels / pixels with exact depth, registered frames.",
+        "(MVS zeroes the rest; this includes the floor-plane fill, confidence 0.02); coverage = those "
+        "pixels / pixels with exact depth, registered frames (a frame left out for lack of depth counts "
+        "as uncovered).",
         "- Navigable F: `extract_navmap` defaults (as `sim navmap`) on the lifted capture, carried into "
         "the exact world by the pose Sim(3), vs the exact capture's map (HM3D: the given depth and "
         "poses of the same frames); `navmap_agreement`, 0.05 m cells.",
@@ -467,6 +473,15 @@ def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
             f"{r['nav_f']:.3f} ({r.get('nav_precision', 0):.3f} / {r.get('nav_recall', 0):.3f}) | "
             f"{fmt('f', r.get('nav_f_registered_frames'))} |"
         )
+    lines.append("")
+    for r in rows:
+        if "error" not in r:
+            no_depth = ", ".join(r.get("dropped_no_depth") or []) or "none"
+            lines.append(
+                f"- {r['case']}: frames left out for lack of any valid depth: {no_depth}; "
+                f"pixels given the floor plane's depth (floor fill): {r.get('floor_fill_px', '–')}; "
+                f"frames the capture reader refused: {len(r.get('frames_refused_by_reader') or [])}."
+            )
     lines += ["", *meta.get("notes", [])]
     if not meta.get("quick"):
         lines += ["", *LIMITS]
@@ -487,7 +502,18 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
     ap.add_argument("--hm3d-width", type=int, default=1024, help="HM3D panoramas downsampled to this width")
     ap.add_argument("--num-planes", type=int, default=None, help="MVS planes (default: the MVS default)")
     ap.add_argument("--only", choices=("pinhole", "panorama", "hm3d"), nargs="+", help="run only these")
+    ap.add_argument(
+        "--render-only",
+        action="store_true",
+        help="rewrite reports/lift.md from reports/lift.json (after editing the notes), running nothing",
+    )
     args = ap.parse_args(argv)
+    if args.render_only:
+        folder = Path(reports) if reports is not None else ROOT / "reports"
+        doc = json.loads((folder / "lift.json").read_text(encoding="utf-8"))
+        rows = doc.pop("rows")
+        write_report("lift", rows, doc, markdown=markdown(rows, doc["checks"], doc), reports=reports)
+        return {**doc, "rows": rows}
     torch.set_num_threads(1)
     depth_kw = {} if args.num_planes is None else {"num_planes": args.num_planes}
     if args.quick and args.num_planes is None:

@@ -176,3 +176,15 @@ def test_a_sparse_floor_among_dense_walls_is_found_by_its_support():
     no_floor = no_floor[np.abs(points[60:, 2] - 0.9) > 0.02]
     with pytest.raises(ScaleError, match="--baseline M --baseline-frames A B instead"):
         estimate_metric_frame(rec_poses, no_floor, camera_height=1.5)
+
+
+def test_dense_points_join_only_when_the_sparse_ones_show_no_floor():
+    poses, points = _grazing_room(seed=2)
+    rec_poses, rec_points = _to_reconstruction(poses, points, _random_sim(8))
+    floor, walls = rec_points[:60], rec_points[560:]  # (60:560 is the counter)
+    result = estimate_metric_frame(rec_poses, rec_points, camera_height=1.5, dense_points=walls[:500])
+    assert result.details["floor_points"] == "sparse"
+    result = estimate_metric_frame(rec_poses, walls, camera_height=1.5, dense_points=floor)
+    assert result.details["floor_points"] == "sparse+dense"
+    metric = np.stack([result.transform.apply_pose(T) for T in rec_poses])
+    assert scale_error(metric[:, :3, 3], poses[:, :3, 3]) < 0.02

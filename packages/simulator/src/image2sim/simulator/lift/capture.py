@@ -51,7 +51,8 @@ class LiftOptions:
     max_frames: int | None = None
     """Keep at most this many frames (spread evenly)."""
     min_confidence_floor: float = 0.5
-    """Dense depth at or above this confidence joins the sparse points for finding the floor."""
+    """Dense depth at or above this confidence joins the sparse points for finding the floor (when
+    the sparse points alone show none)."""
     floor_fill: bool = True
     """Give pixels without depth that see the floor the floor plane's depth (:func:`fill_floor`)."""
     sfm: SfmOptions = field(default_factory=SfmOptions)
@@ -237,11 +238,11 @@ def lift(
 
     t = time.perf_counter()
     say("scale", "gravity, floor and metric scale")
-    floor_points = np.concatenate([sfm.points, dense_points(views, estimates, opts.min_confidence_floor)])
     K0 = sfm.K if sfm.K is not None else sfm.views[0].K
     scale = estimate_metric_frame(
         sfm.cam_to_world,
-        floor_points,
+        sfm.points,
+        dense_points=dense_points(views, estimates, opts.min_confidence_floor),
         frame_ids=sfm.frame_ids,
         camera_height=opts.camera_height,
         baseline=opts.baseline,

@@ -376,9 +376,17 @@ def estimate_metric_frame(
     bootstrap: int = 200,
     seed: int = 0,
     source: str = "reconstruction",
+    dense_points: np.ndarray | None = None,
 ) -> ScaleResult:
     """Gravity, floor and scale of a reconstruction (poses (N, 4, 4), points (P, 3)); see the module
-    docstring. At most one of ``camera_height`` and ``baseline`` is given."""
+    docstring. At most one of ``camera_height`` and ``baseline`` is given.
+
+    ``points`` are the sparse SfM points; ``dense_points`` (confident dense depth), when given, join
+    them only when the sparse points alone show no floor: triangulated feature points hold floor
+    texture even where the floor is seen at grazing angles, while dense depth there is scarce and
+    its errors blur the wall slices the floor must stand out from (on the benchmark's pinhole house
+    the floor stood out 8x from the sparse points' background, 3x with dense depth added; scale
+    error 0.13 % against 0.64 %)."""
     poses = np.asarray(cam_to_world, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if camera_height is not None and baseline is not None:
@@ -386,8 +394,14 @@ def estimate_metric_frame(
     cam_up = camera_up_mean(poses)
     tried: list[dict] = []
     floor = find_floor(pts, poses, cam_up, seed=seed, candidates=tried)
+    details: dict = {"up_source": "cameras", "floor_points": "sparse"}
+    if floor is None and dense_points is not None and len(dense_points):
+        pts = np.concatenate([pts, np.asarray(dense_points, dtype=np.float64).reshape(-1, 3)])
+        tried_dense: list[dict] = []
+        floor = find_floor(pts, poses, cam_up, seed=seed, candidates=tried_dense)
+        tried += tried_dense
+        details["floor_points"] = "sparse+dense"
     up = cam_up
-    details: dict = {"up_source": "cameras"}
     if floor is not None:
         tilt = float(np.degrees(np.arccos(np.clip(floor.normal @ cam_up, -1, 1))))
         details["floor_tilt_to_camera_up_deg"] = tilt
