@@ -4,7 +4,12 @@
 :func:`~image2sim.simulator.io.canonical.write_capture`) with per-frame depth confidence and a
 manifest record ``metadata.lift``: ``sfm`` (matcher, timings, reprojection error, points,
 intrinsics or rig residuals), ``depth_source``, ``scale_method``, ``scale``, ``scale_uncertainty``,
-``registered``, ``dropped`` (frames left out, with the reason) and ``timings_s`` per stage.
+``registered``, ``written``, ``dropped`` (frames left out, with the reason: rejected video frames,
+frames SfM did not register, and frames left with no valid depth pixel, which the canonical reader
+would refuse), ``floor_fill`` and ``timings_s`` per stage.
+
+After the scale stage, pixels without depth that the floor plane explains get its depth
+(:func:`fill_floor`, confidence :data:`FLOOR_FILL_CONFIDENCE`).
 
 Pinhole frames keep their images and get the shared SfM intrinsics (z-depth). Panoramas get depth
 per cube face, converted to range and assembled into the equirectangular frame (each panorama pixel
