@@ -152,13 +152,15 @@ def rotation_errors_deg(
     R_est: np.ndarray, R_true: np.ndarray, R_align: np.ndarray | None = None
 ) -> np.ndarray:
     """Angles (degrees) between ``R_align @ R_est[i]`` and ``R_true[i]``, rotations (N, 3, 3)."""
+    import torch
+    from image2sim.simulator.geometry.se3 import rotation_angle
+
     R_est = np.asarray(R_est, dtype=np.float64)
     R_true = np.asarray(R_true, dtype=np.float64)
     if R_align is not None:
         R_est = np.einsum("ij,njk->nik", R_align, R_est)
     rel = np.einsum("nji,njk->nik", R_est, R_true)
-    cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return np.degrees(rotation_angle(torch.from_numpy(rel)).numpy())
 
 
 def scale_error(est: np.ndarray, true: np.ndarray) -> float:

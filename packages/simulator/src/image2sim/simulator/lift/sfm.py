@@ -189,11 +189,10 @@ def _cube_faces(frames: FrameSet, face_size: int) -> list[np.ndarray]:
 
 
 def _write_png(path: Path, rgb: np.ndarray) -> None:
-    import cv2
+    from image2sim.simulator.io.images import write_rgb_png
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1])):
-        raise OSError(f"{path}: cannot write image")
+    write_rgb_png(path, rgb)
 
 
 def _pick_largest(recs: dict):
@@ -468,7 +467,10 @@ def _panorama_result(
 
 
 def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    import torch
+    from image2sim.simulator.geometry.se3 import rotation_angle
+
+    return math.degrees(float(rotation_angle(torch.from_numpy(np.asarray(R, dtype=np.float64)))))
 
 
 def _average_rotations(Rs: np.ndarray) -> np.ndarray:
