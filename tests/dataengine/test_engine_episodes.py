@@ -346,6 +346,39 @@ def test_navpolicy_dataset_reads_the_shards(full_run):
     assert np.abs(traj.frames[0].astype(int) - traj.frames[-1].astype(int)).max() > 0
 
 
+def test_approach_episodes_go_to_their_own_shard_and_leave_the_episodes_unchanged(
+    scenes_root, full_run, tmp_path
+):
+    from image2sim.dataengine.distributed import read_shard_list
+    from image2sim.navpolicy.data import ShardReader
+
+    ref, ref_summary = full_run
+    out = tmp_path / "approach"
+    cfg = EngineConfig(**CFG, approach={"views": 30, "min_length": 0.5})
+    summary = run_engine(scenes_root, out, cfg, executor="local", progress=False)
+    # The regular episodes are those of the run without approach episodes (their own random stream).
+    assert _read(out / "train" / "train.json.gz") == _read(ref / "train" / "train.json.gz")
+    assert summary["episodes"] == ref_summary["episodes"]
+    made = 0
+    for name in ("scene_000", "scene_001"):
+        done = json.loads((out / "scenes" / name / "done.json").read_text())
+        made += done["approach_episodes"]
+        if done["approach_episodes"]:
+            reader = ShardReader(out / "scenes" / name / "approach")
+            assert len(reader) == done["approach_episodes"]
+            for i in range(len(reader)):
+                t = reader[i]
+                assert t.episode_id.startswith(f"{name}-a") and t.actions[-1] == int(Action.STOP)
+                assert len(t.frames) == len(range(0, len(t.actions), cfg.frame_stride))
+    assert made > 0, "no approach episode in either tiny house"
+    listed = [p.name for p in read_shard_list(out)]
+    assert listed.count("approach") == sum(
+        (out / "scenes" / n / "approach" / "manifest.json").is_file() for n in ("scene_000", "scene_001")
+    )
+    ids = {e["episode_id"] for e in _read(out / "train" / "train.json.gz")["episodes"]}
+    assert not any("-a" in i.split("scene_00")[1] for i in ids)
+
+
 def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_run, tmp_path, monkeypatch):
     import image2sim.dataengine.distributed as dist
 

@@ -12,6 +12,7 @@ from image2sim.dataengine.mining import SceneObject
 from image2sim.dataengine.rollout import RolloutConfig, replay, rollout_plan
 from image2sim.dataengine.trajectories import (
     DEFAULT_BUCKETS,
+    ApproachConfig,
     Bucket,
     SamplingConfig,
     coverage_radius,
@@ -19,6 +20,7 @@ from image2sim.dataengine.trajectories import (
     episode_capacity,
     farthest_point,
     idf_weights,
+    sample_approach_plans,
     sample_plans,
 )
 from image2sim.simulator.conventions import Action
@@ -126,6 +128,77 @@ def test_plans_respect_buckets_radii_and_walls(world):
         np.array_equal(a.start, b.start) and np.array_equal(a.goal, b.goal)
         for a, b in zip(plans, again, strict=True)
     )
+
+
+def _sees(ids):
+    """A visibility test that sees exactly the objects (of ``OBJECTS``) with these ids."""
+    want = np.array([[o.position[0], o.position[1]] for o in OBJECTS if o.object_id in ids]).reshape(-1, 2)
+
+    def visible(start, heading, positions):
+        return np.array(
+            [bool(np.any(np.all(np.isclose(p[:2], want), axis=1))) for p in positions], dtype=bool
+        )
+
+    return visible
+
+
+def test_approach_plans_target_only_visible_unambiguous_objects(world):
+    """Each approach plan's goal is an object the view sees, of a category seen once in it; the same
+    start pose gives one plan per such object (different goals: the instruction decides)."""
+    m, g, planner = world
+    cfg = ApproachConfig(views=12, per_view=3, min_length=1.0)
+    # The cup and the sofa in view: both become goals of the same start pose.
+    plans, stats = sample_approach_plans(
+        g, OBJECTS, cfg, SamplingConfig(), np.random.default_rng(0), _sees({1, 2})
+    )
+    assert plans and {p.goal_object["category"] for p in plans} == {"cup", "sofa"}
+    assert all(p.bucket == "approach" for p in plans)
+    by_start = Counter((tuple(p.start), p.heading) for p in plans)
+    assert max(by_start.values()) == 2  # one pose, two goals
+    for p in plans:
+        obj = np.asarray(p.goal_object["position"])
+        assert np.linalg.norm(p.goal[:2] - obj[:2]) <= p.goal_radius
+        assert p.geodesic_distance >= cfg.min_length
+    # Both beds in view: "the bed" is ambiguous, so no plan; a sofa beside them still gets one.
+    plans, stats = sample_approach_plans(
+        g, OBJECTS, cfg, SamplingConfig(), np.random.default_rng(0), _sees({3, 4})
+    )
+    assert plans == [] and stats["approach_nothing_in_view"] == 12
+    plans, _ = sample_approach_plans(
+        g, OBJECTS, cfg, SamplingConfig(), np.random.default_rng(0), _sees({2, 3, 4})
+    )
+    assert plans and {p.goal_object["category"] for p in plans} == {"sofa"}
+    # per_view caps the goals of one pose; views = 0 makes none.
+    plans, _ = sample_approach_plans(
+        g,
+        OBJECTS,
+        ApproachConfig(views=12, per_view=1),
+        SamplingConfig(),
+        np.random.default_rng(0),
+        _sees({1, 2}),
+    )
+    assert max(Counter((tuple(p.start), p.heading) for p in plans).values()) == 1
+    assert (
+        sample_approach_plans(
+            g, OBJECTS, ApproachConfig(), SamplingConfig(), np.random.default_rng(0), _sees({1})
+        )[0]
+        == []
+    )
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(views=-1),
+        dict(per_view=0),
+        dict(max_distance=0.0),
+        dict(hfov_deg=float("nan")),
+        dict(min_length=-1),
+    ],
+)
+def test_approach_config_rejects_bad_values(bad):
+    with pytest.raises(ValueError, match="ApproachConfig"):
+        ApproachConfig(**bad)
 
 
 def test_small_scene_fallback_never_starts_inside_the_success_distance(world):

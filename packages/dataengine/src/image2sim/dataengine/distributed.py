@@ -34,7 +34,13 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from image2sim.dataengine.episodes import check_episode_layout, write_episode_files
-from image2sim.dataengine.pipeline import DONE_FILE, EPISODES_FILE, EngineConfig, process_scene
+from image2sim.dataengine.pipeline import (
+    APPROACH_SHARD,
+    DONE_FILE,
+    EPISODES_FILE,
+    EngineConfig,
+    process_scene,
+)
 from image2sim.simulator.io.atomic import write_bytes_atomic
 from image2sim.simulator.io.paths import relative_to_file, resolve_from_file
 from image2sim.simulator.lifetime import WORKER_ENV, spawn_pool
@@ -358,8 +364,9 @@ def merge_outputs(
         gt.update(doc["gt"])
         extras.update(doc.get("extras", {}))
         done.append(name)
-        if (folder / "shard" / "manifest.json").is_file():
-            shards.append(relative_to_file(folder / "shard", out_dir / SHARD_LIST))
+        for shard in ("shard", APPROACH_SHARD):  # a scene's episodes, then its approach episodes
+            if (folder / shard / "manifest.json").is_file():
+                shards.append(relative_to_file(folder / shard, out_dir / SHARD_LIST))
     main, gt_path = write_episode_files(
         out_dir, split, episodes, gt, min_geodesic, extras, fmt, language, annotator_id
     )

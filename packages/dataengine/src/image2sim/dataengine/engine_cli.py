@@ -143,6 +143,14 @@ def episodes_command(
         "min_path_length=1.0 for houses too small for a 3 m path (such episodes start inside the 3 m "
         "success distance of the evaluation).",
     ),
+    approach_views: int = typer.Option(
+        0,
+        "--approach-views",
+        min=0,
+        help="Per scene: start poses with goal objects in view, each giving up to 2 short approach "
+        "episodes (one per visible object) in a second shard, scenes/<name>/approach, listed in "
+        "shards.json but never in the episode file: they teach a policy to tell the named object apart.",
+    ),
 ) -> None:
     """Sample, roll out, render and annotate episodes for every scene (resumable; one Ray task per scene)."""
     from image2sim.dataengine.distributed import RunError, run_engine
@@ -167,6 +175,7 @@ def episodes_command(
             renderer=None if renderer is None else str(renderer),
             rollout={} if min_steps is None else {"min_steps": min_steps},
             sampling=_parse_options(sampling),
+            approach={"views": approach_views} if approach_views else {},
             detector=detector,
             detector_weights=None if detector_weights is None else str(detector_weights),
             objects=None if objects is None else str(objects),

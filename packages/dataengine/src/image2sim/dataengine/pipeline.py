@@ -35,9 +35,11 @@ from image2sim.dataengine.rollout import (
     truncate_rollout,
 )
 from image2sim.dataengine.trajectories import (
+    ApproachConfig,
     SamplingConfig,
     bucket_of,
     episode_capacity,
+    sample_approach_plans,
     sample_path_plans,
     sample_plans,
 )
@@ -108,6 +110,10 @@ class EngineConfig:
     """Overrides of :class:`RolloutConfig` fields."""
     mining: dict = field(default_factory=dict)
     """Overrides of :class:`MiningConfig` fields."""
+    approach: dict = field(default_factory=dict)
+    """Overrides of :class:`~image2sim.dataengine.trajectories.ApproachConfig` fields: short training
+    episodes that start with their goal in view, written to ``scenes/<name>/approach`` (a second shard,
+    never the episode file). ``{"views": 0}`` (the default): none."""
     visible_distance: float = 3.5
     """Objects within this distance and inside the 180 x 118 degree view count as visible at a macro-step
     (and may be named by the annotator) when nothing occludes them (see :mod:`.visibility`)."""
@@ -340,6 +346,50 @@ def _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg):
     return cut, plan
 
 
+APPROACH_SHARD = "approach"
+"""Sub-folder of ``scenes/<name>`` holding the approach episodes' shard."""
+
+
+def _approach_rollouts(sim, follower, graph, objects, navmap, occupancy, cfg, scfg, rcfg, name, drops):
+    """Rolled-out approach episodes (:class:`ApproachConfig`, ``cfg.approach``) of one scene, from their
+    own random stream, so the regular episodes are the same with and without them."""
+    from image2sim.dataengine.visibility import VisibilityConfig, visible_mask
+
+    acfg = config_from_dict(ApproachConfig, cfg.approach, "approach")
+    if not acfg.views:
+        return []
+    view = VisibilityConfig(
+        max_distance=acfg.max_distance,
+        hfov_deg=acfg.hfov_deg,
+        vfov_deg=acfg.hfov_deg,
+        tolerance=cfg.occlusion_tolerance,
+        occlusion=cfg.occlusion,
+    )
+    eye_up = np.array([0.0, 0.0, float(navmap.embodiment.eye_height)])
+
+    def visible(start, heading, positions):
+        return visible_mask(positions, np.asarray(start, float) + eye_up, heading, occupancy, view)
+
+    rng = _rng(cfg.seed, name + "/approach")
+    plans, _ = sample_approach_plans(graph, objects, acfg, scfg, rng, visible, navmap.to_map)
+    out = []
+    for plan in plans:
+        r = rollout_plan(sim, follower, plan, rcfg)
+        if r.ok and not _replays(sim, plan, r):
+            r.reason = "replay_mismatch"
+        if not r.ok:
+            drops[f"approach: {r.reason}"] = drops.get(f"approach: {r.reason}", 0) + 1
+            continue
+        out.append((plan, r))
+    return out
+
+
+def _replays(sim, plan, r) -> bool:
+    """Re-executing the actions from the start reaches the same end without a collision."""
+    pos, _, col = replay(sim, plan.start, plan.heading, r.actions)
+    return bool(np.abs(pos[-1] - r.positions[-1]).max() <= 1e-6 and not any(col))
+
+
 def _rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
 
@@ -425,11 +475,23 @@ def process_scene(
         if not r.ok:
             drops[r.reason] = drops.get(r.reason, 0) + 1
             continue
-        pos, _, col = replay(sim, plan.start, plan.heading, r.actions)
-        if np.abs(pos[-1] - r.positions[-1]).max() > 1e-6 or any(col):
+        if not _replays(sim, plan, r):
             drops["replay_mismatch"] = drops.get("replay_mismatch", 0) + 1
             continue
         kept.append((plan, r))
+    n_regular = len(kept)
+    from image2sim.dataengine.visibility import (
+        Occupancy,
+        VisibilityConfig,
+        near_categories,
+        visible_categories,
+    )
+
+    occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and objects else None
+    if objects and cfg.render != "none":  # approach episodes are training frames only
+        kept += _approach_rollouts(
+            sim, follower, graph, objects, navmap, occupancy, cfg, scfg, rcfg, inputs.name, drops
+        )
     # Annotation requests.
     vlm = cfg.annotator != "template"
     render_fn, render_mode = (
@@ -439,24 +501,16 @@ def process_scene(
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
-    from image2sim.dataengine.visibility import (
-        Occupancy,
-        VisibilityConfig,
-        near_categories,
-        visible_categories,
-    )
-
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and objects else None
     obj_map = navmap.to_map(np.array([o.position for o in objects], dtype=np.float64).reshape(-1, 3))
     eye_up = np.array([0.0, 0.0, float(navmap.embodiment.eye_height)])
     index_of = {int(o.object_id): i for i, o in enumerate(objects)}
     near_of: dict[int, list[str]] = {}  # goal object id -> its "near" landmarks (computed once per goal)
     requests, chunks = [], []
     for k, (plan, r) in enumerate(kept):
-        eid = f"{inputs.name}-{k:05d}"
+        eid = f"{inputs.name}-{k:05d}" if k < n_regular else f"{inputs.name}-a{k - n_regular:05d}"
         steps = macro_steps(r.actions, r.positions, r.headings, ChunkConfig())
         world = navmap.to_world(r.positions)
         eyes = np.asarray(r.positions, dtype=np.float64) + eye_up
@@ -503,53 +557,61 @@ def process_scene(
     annotations = annotator.annotate(requests) if requests else []
     # Episodes, gt (Habitat frame, VLN-CE's fields only), their extras and the shard.
     episodes, gt, extras = [], {}, {}
-    writer = None
+    writer = approach_writer = None
+    n_approach = 0
     if render_fn is not None:
         from image2sim.dataengine.shards import SceneShardWriter
 
-        writer = SceneShardWriter(
-            out / "shard", {"view": cfg.view, "height": cfg.obs_height, "render": render_mode}
-        )
+        spec = {"view": cfg.view, "height": cfg.obs_height, "render": render_mode}
+        writer = SceneShardWriter(out / "shard", spec)
+        if len(kept) > n_regular:
+            approach_writer = SceneShardWriter(out / APPROACH_SHARD, spec)
     accepted = [(plan, r) for (plan, r), ann in zip(kept, annotations, strict=True) if ann.accepted]
     # A generator: nothing renders (and no pool starts) until the first frame is asked for.
     rendered = _rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
     try:
-        for (plan, r), steps, req, ann in zip(kept, chunks, requests, annotations, strict=True):
+        for k, ((plan, r), steps, req, ann) in enumerate(
+            zip(kept, chunks, requests, annotations, strict=True)
+        ):
             if not ann.accepted:
                 drops[f"annotation: {ann.reason}"] = drops.get(f"annotation: {ann.reason}", 0) + 1
                 continue
             world = navmap.to_world(r.positions)
-            ref_idx = sorted({0, *[m.start for m in steps], len(world) - 1})
-            goal_w = navmap.to_world(np.asarray(plan.goal))
             heading_w = _world_heading(navmap, plan.heading)
-            extra = {
-                "style": ann.style,
-                "structure": ann.structure,
-                "tone": ann.tone,
-                "goal_object": plan.goal_object,
-                "bucket": plan.bucket,
-                "path_length": r.path_length,
-                "num_steps": len(r.actions),
-                "truncated_stuck": r.truncated_stuck,
-                "macro_steps": [m.text for m in steps],
-            }
-            rec = episode_record(
-                req.episode_id,
-                inputs.name,  # resolvable as <scenes dir>/<scene_id>
-                world[0],
-                heading_w,
-                goal_w,
-                plan.goal_radius,
-                world[ref_idx],
-                ann.text,
-                plan.geodesic_distance,
-            )
-            episodes.append(rec)
-            extras[req.episode_id] = extra
-            gt[req.episode_id] = gt_record(world, r.actions, r.forward_steps)
-            if writer is not None:
+            approach = k >= n_regular  # training frames only, never the episode file
+            if approach:
+                n_approach += 1
+            else:
+                ref_idx = sorted({0, *[m.start for m in steps], len(world) - 1})
+                extras[req.episode_id] = {
+                    "style": ann.style,
+                    "structure": ann.structure,
+                    "tone": ann.tone,
+                    "goal_object": plan.goal_object,
+                    "bucket": plan.bucket,
+                    "path_length": r.path_length,
+                    "num_steps": len(r.actions),
+                    "truncated_stuck": r.truncated_stuck,
+                    "macro_steps": [m.text for m in steps],
+                }
+                episodes.append(
+                    episode_record(
+                        req.episode_id,
+                        inputs.name,  # resolvable as <scenes dir>/<scene_id>
+                        world[0],
+                        heading_w,
+                        navmap.to_world(np.asarray(plan.goal)),
+                        plan.goal_radius,
+                        world[ref_idx],
+                        ann.text,
+                        plan.geodesic_distance,
+                    )
+                )
+                gt[req.episode_id] = gt_record(world, r.actions, r.forward_steps)
+            shard = approach_writer if approach else writer
+            if shard is not None:
                 frames, frame_steps = next(rendered)
-                writer.add(
+                shard.add(
                     req.episode_id,
                     inputs.name,
                     ann.text,
@@ -562,11 +624,13 @@ def process_scene(
                         "heading_world": float(heading_w),  # about +z, 0 = +x
                     },
                 )
-        if writer is not None:
-            writer.close()
+        for w in (writer, approach_writer):
+            if w is not None:
+                w.close()
     except BaseException:
-        if writer is not None:
-            writer.abort()
+        for w in (writer, approach_writer):
+            if w is not None:
+                w.abort()
         raise
     finally:
         rendered.close()  # ends the render pool, if one started
@@ -579,6 +643,7 @@ def process_scene(
         "rolled_out_ok": len(kept),
         "stopped_at_goal": sum("cut_past_goal_m" in r.extra for _, r in kept),
         "episodes": len(episodes),
+        "approach_episodes": n_approach,
         "drops": drops,
         "plan_stats": plan_stats,
         "objects": len(objects),

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +33,8 @@ __all__ = [
     "farthest_point",
     "coverage_radius",
     "sample_plans",
+    "ApproachConfig",
+    "sample_approach_plans",
 ]
 
 
@@ -185,29 +187,15 @@ def _object_radius(obj, config: SamplingConfig) -> float:
     return config.small_radius if obj.small else config.large_radius
 
 
-def sample_plans(
-    graph, planner, objects: Sequence, n: int, config: SamplingConfig, rng: np.random.Generator, to_map=None
-) -> tuple[list[EpisodePlan], dict]:
-    """Sample up to ``n`` episode plans on one scene -> (plans, statistics of rejections).
+def _goal_candidates(graph, objects: Sequence, config: SamplingConfig, to_map, stats: Counter):
+    """(nodes of the largest connected component, per reachable object ``(object, radius, standing
+    node ids)``): the standing nodes lie within the object's radius and pass the geodesic check."""
+    from scipy.sparse.csgraph import dijkstra  # directed=True on the symmetric matrix: no conversion
 
-    ``objects`` are :class:`~image2sim.dataengine.mining.SceneObject` (world frame positions);
-    ``to_map`` converts world points to the map frame (identity when None).
-    """
-    from scipy.sparse.csgraph import (
-        dijkstra,
-    )  # directed=True on the symmetric length matrix: no per-call conversion
-
-    stats = Counter()
     nodes = graph.nodes
-    if graph.num_nodes == 0 or not objects:
-        stats["no_nodes" if graph.num_nodes == 0 else "no_objects"] += 1
-        return [], dict(stats)
-    # The largest connected component: every plan must be reachable.
     comp = graph.components
-    main = int(np.bincount(comp).argmax())
-    in_main = np.nonzero(comp == main)[0]
+    in_main = np.nonzero(comp == int(np.bincount(comp).argmax()))[0]  # every plan must be reachable
     conv = (lambda p: np.asarray(p, float)) if to_map is None else to_map
-    # Per object: its nearest navigable node and the candidate standing nodes within the radius.
     obj_info = []
     for o in objects:
         p = conv(np.asarray(o.position, float))
@@ -225,6 +213,33 @@ def sample_plans(
         if len(ok) == 0:
             continue
         obj_info.append((o, r, ok))
+    return in_main, obj_info
+
+
+def _goal_record(obj, radius: float) -> dict:
+    return {
+        "object_id": int(obj.object_id),
+        "category": obj.category,
+        "position": [float(v) for v in obj.position],
+        "small": bool(obj.small),
+        "radius": radius,
+        "room_type": obj.room_type,
+    }
+
+
+def sample_plans(
+    graph, planner, objects: Sequence, n: int, config: SamplingConfig, rng: np.random.Generator, to_map=None
+) -> tuple[list[EpisodePlan], dict]:
+    """Sample up to ``n`` episode plans on one scene -> (plans, statistics of rejections).
+
+    ``objects`` are :class:`~image2sim.dataengine.mining.SceneObject` (world frame positions);
+    ``to_map`` converts world points to the map frame (identity when None).
+    """
+    stats = Counter()
+    if graph.num_nodes == 0 or not objects:
+        stats["no_nodes" if graph.num_nodes == 0 else "no_objects"] += 1
+        return [], dict(stats)
+    in_main, obj_info = _goal_candidates(graph, objects, config, to_map, stats)
     if not obj_info:
         stats["no_valid_goal_object"] += 1
         return [], dict(stats)
@@ -235,17 +250,105 @@ def sample_plans(
     def targets(start):
         k = int(rng.choice(len(obj_info), p=w))
         obj, radius, stand = obj_info[k]
-        rec = {
-            "object_id": int(obj.object_id),
-            "category": obj.category,
-            "position": [float(v) for v in obj.position],
-            "small": bool(obj.small),
-            "radius": radius,
-            "room_type": obj.room_type,
-        }
-        return stand, rec, radius
+        return stand, _goal_record(obj, radius), radius
 
     return _draw_plans(n, graph, config, rng, in_main, targets, stats), dict(stats)
+
+
+@dataclass(frozen=True)
+class ApproachConfig:
+    """Approach episodes: short training episodes that start with their goal object in view.
+
+    From a random navigable pose, every visible object of a category seen once in the view becomes
+    the goal of its own episode (up to ``per_view``), so the same first view is paired with
+    different instructions and different expert actions. A policy cannot fit them without reading
+    which object the instruction names: they ground category words in views, the grounding a
+    pretrained VLM brings and a from-scratch policy lacks. Training data only: they are shorter
+    than the evaluation's buckets and go to their own shard, never to the episode file.
+    """
+
+    views: int = 0
+    """Start poses per scene (0: no approach episodes)."""
+    per_view: int = 2
+    """At most this many goal objects (of different categories) per start pose."""
+    max_distance: float = 5.0
+    """Objects farther than this from the eye (metres) do not count as in view."""
+    hfov_deg: float = 90.0
+    """Horizontal field of view that must contain the goal (the stored pinhole view's 90 degrees)."""
+    min_length: float = 1.0
+    """The goal standing point is the nearest one at least this far (metres, geodesic) from the start."""
+
+    def __post_init__(self) -> None:
+        if self.views < 0 or self.per_view < 1:
+            raise ValueError(
+                f"ApproachConfig: need views >= 0 and per_view >= 1, got {self.views}, {self.per_view}"
+            )
+        for name in ("max_distance", "hfov_deg", "min_length"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"ApproachConfig.{name} must be a positive number, got {v!r}")
+
+
+def sample_approach_plans(
+    graph,
+    objects: Sequence,
+    config: ApproachConfig,
+    sampling: SamplingConfig,
+    rng: np.random.Generator,
+    visible: Callable[[np.ndarray, float, np.ndarray], np.ndarray],
+    to_map=None,
+) -> tuple[list[EpisodePlan], dict]:
+    """Plans of approach episodes (:class:`ApproachConfig`) -> (plans, statistics).
+
+    ``visible(start, heading, positions)`` -> (N,) bool: which of the objects (map-frame
+    ``positions``) a camera at the feet position ``start`` looking along ``heading`` sees (field of
+    view, distance, occlusion: the caller's test). Each plan's bucket is ``"approach"``.
+    """
+    from scipy.sparse.csgraph import dijkstra
+
+    stats = Counter()
+    if config.views == 0 or graph.num_nodes == 0 or not objects:
+        return [], dict(stats)
+    in_main, obj_info = _goal_candidates(graph, objects, sampling, to_map, stats)
+    if not obj_info:
+        return [], dict(stats)
+    conv = (lambda p: np.asarray(p, float)) if to_map is None else to_map
+    pos = np.array([conv(np.asarray(o.position, float)) for o, _, _ in obj_info]).reshape(-1, 3)
+    max_len = 2.0 * config.max_distance + max(r for _, r, _ in obj_info)
+    plans: list[EpisodePlan] = []
+    for _ in range(config.views):
+        start = graph.nodes[int(rng.choice(in_main))].copy()
+        heading = float(rng.uniform(-math.pi, math.pi))
+        seen = np.nonzero(visible(start, heading, pos))[0]
+        cats = Counter(obj_info[i][0].category for i in seen)
+        # A category seen twice makes "the <category>" ambiguous in this view: skip it.
+        seen = [int(i) for i in seen if cats[obj_info[i][0].category] == 1]
+        if not seen:
+            stats["approach_nothing_in_view"] += 1
+            continue
+        s_node = int(graph.snap(start[None])[0][0])
+        dist = dijkstra(graph.length_matrix, directed=True, indices=s_node, limit=max_len)
+        for i in rng.permutation(seen)[: config.per_view]:
+            obj, radius, stand = obj_info[int(i)]
+            d = dist[stand]
+            ok = np.isfinite(d) & (d >= config.min_length)
+            if not ok.any():
+                stats["approach_too_close"] += 1
+                continue
+            j = np.nonzero(ok)[0][int(np.argmin(d[ok]))]
+            plans.append(
+                EpisodePlan(
+                    start,
+                    heading,
+                    graph.nodes[stand[j]].copy(),
+                    _goal_record(obj, radius),
+                    radius,
+                    "approach",
+                    float(d[j]),
+                )
+            )
+    stats["approach_planned"] = len(plans)
+    return plans, dict(stats)
 
 
 def sample_path_plans(

@@ -24,7 +24,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["NearConfig", "Occupancy", "VisibilityConfig", "in_view", "near_categories", "visible_categories"]
+__all__ = [
+    "NearConfig",
+    "Occupancy",
+    "VisibilityConfig",
+    "in_view",
+    "near_categories",
+    "visible_categories",
+    "visible_mask",
+]
 
 
 @dataclass(frozen=True)
@@ -167,6 +175,24 @@ def in_view(eye: np.ndarray, heading: float, targets: np.ndarray, config: Visibi
     )
 
 
+def visible_mask(
+    positions: np.ndarray,
+    eye: np.ndarray,
+    heading: float,
+    occupancy: Occupancy | None,
+    config: VisibilityConfig | None = None,
+) -> np.ndarray:
+    """(N,) True where a target (``positions`` (N, 3), same frame as ``eye`` and the occupancy) is
+    visible from ``eye`` (see the module docstring); ``occupancy=None`` skips the occlusion test."""
+    cfg = config or VisibilityConfig()
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    ok = in_view(eye, heading, pos, cfg)
+    if cfg.occlusion and occupancy is not None and ok.any():
+        idx = np.nonzero(ok)[0]
+        ok[idx] = occupancy.segments_clear(eye, pos[idx], cfg.tolerance)
+    return ok
+
+
 def visible_categories(
     objects: Sequence,
     positions: np.ndarray,
@@ -175,19 +201,8 @@ def visible_categories(
     occupancy: Occupancy | None,
     config: VisibilityConfig | None = None,
 ) -> list[str]:
-    """Sorted unique categories of ``objects`` visible from ``eye`` (see the module docstring).
-
-    ``positions`` (N, 3) are the objects' positions in the same frame as ``eye`` and the occupancy;
-    ``occupancy=None`` skips the occlusion test.
-    """
-    cfg = config or VisibilityConfig()
-    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    if len(pos) == 0:
-        return []
-    ok = in_view(eye, heading, pos, cfg)
-    if cfg.occlusion and occupancy is not None and ok.any():
-        idx = np.nonzero(ok)[0]
-        ok[idx] = occupancy.segments_clear(eye, pos[idx], cfg.tolerance)
+    """Sorted unique categories of ``objects`` visible from ``eye`` (:func:`visible_mask`)."""
+    ok = visible_mask(positions, eye, heading, occupancy, config)
     return sorted({objects[i].category for i in np.nonzero(ok)[0]})
 
 
