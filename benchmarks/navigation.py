@@ -22,8 +22,8 @@ from harness import hardware, load_average, time_it, write_report
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 from image2sim.simulator.navigation.graph import NavGraph, ray_march_free
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.navigation.planner import Planner
 from scipy.sparse.csgraph import dijkstra
 

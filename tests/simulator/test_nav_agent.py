@@ -13,7 +13,7 @@ from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld, wrap_angle
 from image2sim.simulator.navigation.embodiment import Embodiment
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 
 SPACING = 0.04
 F, L, R, S = int(Action.MOVE_FORWARD), int(Action.TURN_LEFT), int(Action.TURN_RIGHT), int(Action.STOP)

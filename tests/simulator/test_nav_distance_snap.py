@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 from image2sim.simulator.navigation import synthetic as syn
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 from image2sim.simulator.navigation.graph import NavGraph
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.navigation.planner import Planner
 
 

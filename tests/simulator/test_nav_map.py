@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.embodiment import ConfigError, Embodiment, NavMapConfig
-from image2sim.simulator.navigation.navmap import (
-    NavMap,
-    NavMapError,
+from image2sim.simulator.navigation.extract import (
     extract_navmap_from_points,
     fit_plane_ransac,
-    render_topdown,
     rotation_aligning,
 )
+from image2sim.simulator.navigation.navmap import NavMap, NavMapError
+from image2sim.simulator.navigation.topdown import render_topdown
 
 RADIUS = Embodiment().radius
 SPACING = 0.04  # surface sampling: finer than the 0.05 m voxels, coarse enough to be fast
@@ -252,7 +251,7 @@ def test_ransac_plane_recovers_plane_with_outliers():
 
 def procedural_iou(seed: int) -> float:
     proc = pytest.importorskip("image2sim.dataengine.procedural")
-    from image2sim.simulator.navigation.navmap import extract_navmap
+    from image2sim.simulator.navigation.extract import extract_navmap
 
     base = proc.preset("tiny")
     cfg = dataclasses.replace(
@@ -293,7 +292,7 @@ def test_hm3d_cameras_stand_above_navigable_floor(hm3d_scene_dir, capsys):
     # cameras stand above extracted floor that is honestly not navigable. Every storey camera stands
     # above navigable floor. (With a body that climbs the risers all 86 do: test_nav_stairs.py.)
     from image2sim.simulator.io import open_capture
-    from image2sim.simulator.navigation.navmap import extract_navmap
+    from image2sim.simulator.navigation.extract import extract_navmap
 
     cap = open_capture(hm3d_scene_dir)
     m = extract_navmap(cap, config=NavMapConfig(pixel_stride=4))
@@ -328,7 +327,7 @@ def test_hm3d_cameras_stand_above_navigable_floor(hm3d_scene_dir, capsys):
 
 
 def test_gaussian_scene_input_matches_point_input():
-    from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
+    from image2sim.simulator.navigation.extract import extract_navmap_from_gaussians
 
     w = syn.box_room(3.0, 2.0, spacing=SPACING)
     # Flat Gaussians lying in each surface: quaternion (w, x, y, z) turning +z onto the normal (the

@@ -11,9 +11,9 @@ import pytest
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 from image2sim.simulator.navigation.follower import OracleFollower, smooth_path
 from image2sim.simulator.navigation.graph import NavGraph, edge_costs, ray_march_free
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.navigation.planner import Planner
 
 SPACING = 0.04

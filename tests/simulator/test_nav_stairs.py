@@ -9,9 +9,9 @@ from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
 from image2sim.simulator.navigation.embodiment import ConfigError, Embodiment, FollowerConfig, NavMapConfig
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 from image2sim.simulator.navigation.follower import OracleFollower
 from image2sim.simulator.navigation.graph import NavGraph
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points
 from image2sim.simulator.navigation.planner import Planner
 
 SPACING = 0.04
@@ -140,7 +140,7 @@ def test_follower_config_slide_when_cycling_validation():
 @pytest.mark.slow  # two extractions of 86 panoramas (pixel stride 4): ~1-3 min on the shared machine
 def test_hm3d_stairs_join_the_storeys_and_the_oracle_climbs_them(hm3d_scene_dir, capsys):
     from image2sim.simulator.io import open_capture
-    from image2sim.simulator.navigation.navmap import extract_navmap
+    from image2sim.simulator.navigation.extract import extract_navmap
 
     cap = open_capture(hm3d_scene_dir)
     emb = Embodiment(max_step_height=0.25)

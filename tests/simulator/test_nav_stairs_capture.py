@@ -17,8 +17,9 @@ import torch
 from image2sim.simulator.geometry.cameras import EquirectCamera
 from image2sim.simulator.io.records import Frame
 from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
+from image2sim.simulator.navigation.extract import extract_navmap
 from image2sim.simulator.navigation.graph import NavGraph, joined_storeys
-from image2sim.simulator.navigation.navmap import NavMap, extract_navmap
+from image2sim.simulator.navigation.navmap import NavMap
 
 pytest.importorskip("image2sim.dataengine.procedural")
 from image2sim.dataengine.procedural.raycast import BoxCaster  # noqa: E402 (optional package)

@@ -11,7 +11,7 @@ from image2sim.simulator.conventions import Action
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.embodiment import ConfigError
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 from image2sim.simulator.sim import GaussianRenderFn, NavEnv, NeuralSimulator, ObservationSpec
 
 

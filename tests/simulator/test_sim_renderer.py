@@ -15,7 +15,7 @@ from image2sim.simulator.conventions import Action  # noqa: E402
 from image2sim.simulator.gaussians import GaussianScene, GaussianSet  # noqa: E402
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera  # noqa: E402
 from image2sim.simulator.navigation import synthetic as syn  # noqa: E402
-from image2sim.simulator.navigation.navmap import extract_navmap_from_points  # noqa: E402
+from image2sim.simulator.navigation.extract import extract_navmap_from_points  # noqa: E402
 from image2sim.simulator.renderer import tiny  # noqa: E402
 from image2sim.simulator.renderer.model import PixelFlowRenderer, save_renderer  # noqa: E402
 from image2sim.simulator.sim import (  # noqa: E402

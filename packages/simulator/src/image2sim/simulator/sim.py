@@ -311,7 +311,7 @@ class NeuralSimulator:
         from pathlib import Path
 
         from image2sim.simulator.gaussians.scene import GaussianScene
-        from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
+        from image2sim.simulator.navigation.extract import extract_navmap_from_gaussians
 
         folder = Path(folder)
         scene = GaussianScene.load(folder)

@@ -133,8 +133,8 @@ def build_scene_command(
 def _navigation(capture: Path):
     """Navigable map and graph of a capture at the default embodiment and configs (``sim navmap``'s)."""
     from image2sim.simulator.io import open_capture
+    from image2sim.simulator.navigation.extract import extract_navmap
     from image2sim.simulator.navigation.graph import NavGraph
-    from image2sim.simulator.navigation.navmap import extract_navmap
 
     navmap = extract_navmap(open_capture(capture), progress=True)
     return navmap, NavGraph.build(navmap, progress=True)

@@ -12,15 +12,9 @@ import importlib
 
 _EXPORTS = {
     "embodiment": ("ConfigError", "Embodiment", "FollowerConfig", "GraphConfig", "NavMapConfig"),
-    "navmap": (
-        "NavMap",
-        "NavMapError",
-        "extract_navmap",
-        "extract_navmap_from_gaussians",
-        "extract_navmap_from_points",
-        "navmap_agreement",
-        "render_topdown",
-    ),
+    "navmap": ("NavMap", "NavMapError", "navmap_agreement"),
+    "extract": ("extract_navmap", "extract_navmap_from_gaussians", "extract_navmap_from_points"),
+    "topdown": ("render_topdown",),
     "graph": ("NavGraph",),
     "planner": ("DistanceField", "PathResult", "Planner"),
     "agent": (

@@ -22,7 +22,7 @@ def _load_source(path: Path, config: dict, stride: int | None, skip_bad: bool = 
     """A capture folder (any registered format), a Gaussian scene folder, or a point-cloud .npz."""
     import numpy as np
     from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
-    from image2sim.simulator.navigation.navmap import extract_navmap, extract_navmap_from_points
+    from image2sim.simulator.navigation.extract import extract_navmap, extract_navmap_from_points
 
     emb = Embodiment.from_dict(config.get("embodiment"), where="--config embodiment")
     nav_cfg = dict(config.get("navmap") or {})
@@ -43,7 +43,7 @@ def _load_source(path: Path, config: dict, stride: int | None, skip_bad: bool = 
             )
     if path.is_dir() and (path / "gaussians.safetensors").is_file():
         from image2sim.simulator.gaussians.scene import GaussianScene
-        from image2sim.simulator.navigation.navmap import extract_navmap_from_gaussians
+        from image2sim.simulator.navigation.extract import extract_navmap_from_gaussians
 
         scene = GaussianScene.load(path)
         g = scene.gaussians
@@ -87,7 +87,7 @@ def navmap_command(
 ) -> None:
     """Extract the navigable map (+ top-down PNG of navigable cells, clearance and levels)."""
     from image2sim.simulator.io.records import CaptureError
-    from image2sim.simulator.navigation.navmap import render_topdown, write_png
+    from image2sim.simulator.navigation.topdown import render_topdown, write_png
 
     cfg = _read_config(config)
     try:
@@ -132,8 +132,9 @@ def plan_command(
     """Plan a collision-aware path between two points and draw it."""
     import numpy as np
     from image2sim.simulator.navigation.graph import NavGraph
-    from image2sim.simulator.navigation.navmap import NavMap, render_topdown, write_png
+    from image2sim.simulator.navigation.navmap import NavMap
     from image2sim.simulator.navigation.planner import Planner
+    from image2sim.simulator.navigation.topdown import render_topdown, write_png
 
     map_path = scene / "navmap.npz" if scene.is_dir() else scene
     navmap = NavMap.load(map_path)

@@ -2,7 +2,7 @@
 
 Surfaces are sampled on a regular lattice (``spacing`` metres) with normals facing the free side, so
 every world can be fed straight into
-:func:`image2sim.simulator.navigation.navmap.extract_navmap_from_points`. Each world also carries its
+:func:`image2sim.simulator.navigation.extract.extract_navmap_from_points`. Each world also carries its
 exact free-floor predicate so tests can compare a navigable map against ground truth.
 """
 
