@@ -174,3 +174,23 @@ def test_validation_on_held_out_shards_is_logged_and_does_not_touch_training(tin
         bad = copy.deepcopy(cfg)
         bad.train.val_every = 0
         bad.validate()
+
+
+def test_an_episodes_output_folder_stands_for_the_shards_it_lists(tmp_path):
+    """`nav train --shard <data episodes --out>` trains on every shard of its shards.json, in order
+    (scene shards and approach shards); a shard folder stays itself."""
+    import json
+
+    from image2sim.navpolicy.cli import expand_shard_folders
+
+    out = tmp_path / "episodes"
+    for rel in ("scenes/a/shard", "scenes/a/approach", "scenes/b/shard"):
+        (out / rel).mkdir(parents=True)
+        (out / rel / "manifest.json").write_text("{}")
+    (out / "shards.json").write_text(
+        json.dumps({"shards": ["scenes/a/shard", "scenes/a/approach", "scenes/b/shard"]})
+    )
+    plain = out / "scenes" / "b" / "shard"
+    got = expand_shard_folders([out, plain])
+    assert got == [out / "scenes/a/shard", out / "scenes/a/approach", plain, plain]
+    assert expand_shard_folders([]) == []

@@ -119,12 +119,31 @@ def _tracking_overrides(wandb: str, project: str) -> dict:
     return out
 
 
+def expand_shard_folders(paths: list[Path]) -> list[Path]:
+    """Each path as it is, except a `data episodes` output folder (a ``shards.json`` and no shard
+    manifest of its own), which stands for the shards its list names, in order."""
+    out: list[Path] = []
+    for p in paths:
+        if (p / "shards.json").is_file() and not (p / "manifest.json").is_file():
+            from image2sim.dataengine.distributed import read_shard_list
+
+            out += read_shard_list(p)
+        else:
+            out.append(p)
+    return out
+
+
 @app.command("train")
 def train_cmd(
     stage: Annotated[str, typer.Option(help="bc (behaviour cloning) or dagger.")] = "bc",
     config: Annotated[str, typer.Option(help="Preset (tiny|paper) or YAML file.")] = "tiny",
     shards: Annotated[
-        list[Path] | None, typer.Option("--shard", help="Shard folder(s); overrides data.shards.")
+        list[Path] | None,
+        typer.Option(
+            "--shard",
+            help="Shard folder(s), or a `data episodes` output folder (its shards.json: every scene's "
+            "shard and approach shard); overrides data.shards.",
+        ),
     ] = None,
     shard_weights: Annotated[
         list[float] | None,
@@ -208,6 +227,7 @@ def train_cmd(
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
     """
     tracking = _tracking_overrides(wandb, wandb_project)
+    shards = expand_shard_folders(shards or [])
     if stage == "dagger":
         episode_source = None
         if episodes is not None:
