@@ -22,6 +22,7 @@ from image2sim.dataengine.trajectories import (
     idf_weights,
     sample_approach_plans,
     sample_plans,
+    switch_plans,
 )
 from image2sim.simulator.conventions import Action
 

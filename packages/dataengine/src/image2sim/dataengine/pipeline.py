@@ -42,6 +42,7 @@ from image2sim.dataengine.trajectories import (
     sample_approach_plans,
     sample_path_plans,
     sample_plans,
+    switch_plans,
 )
 from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
@@ -372,15 +373,23 @@ def _approach_rollouts(sim, follower, graph, objects, navmap, occupancy, cfg, sc
 
     rng = _rng(cfg.seed, name + "/approach")
     plans, _ = sample_approach_plans(graph, objects, acfg, scfg, rng, visible, navmap.to_map)
-    out = []
-    for plan in plans:
-        r = rollout_plan(sim, follower, plan, rcfg)
-        if r.ok and not _replays(sim, plan, r):
-            r.reason = "replay_mismatch"
-        if not r.ok:
-            drops[f"approach: {r.reason}"] = drops.get(f"approach: {r.reason}", 0) + 1
-            continue
-        out.append((plan, r))
+
+    def roll(plans):
+        kept = []
+        for plan in plans:
+            r = rollout_plan(sim, follower, plan, rcfg)
+            if r.ok and not _replays(sim, plan, r):
+                r.reason = "replay_mismatch"
+            if not r.ok:
+                drops[f"{plan.bucket}: {r.reason}"] = drops.get(f"{plan.bucket}: {r.reason}", 0) + 1
+                continue
+            kept.append((plan, r))
+        return kept
+
+    out = roll(plans)
+    if acfg.switch:
+        ends = [(p, r.positions[-1], float(r.headings[-1])) for p, r in out]
+        out += roll(switch_plans(ends, lambda a, b: sim.planner.geodesic_distance(a, b)[0]))
     return out
 
 

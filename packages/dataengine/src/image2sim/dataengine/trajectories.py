@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -35,6 +35,7 @@ __all__ = [
     "sample_plans",
     "ApproachConfig",
     "sample_approach_plans",
+    "switch_plans",
 ]
 
 
@@ -277,6 +278,11 @@ class ApproachConfig:
     """Horizontal field of view that must contain the goal (the stored pinhole view's 90 degrees)."""
     min_length: float = 1.0
     """The goal standing point is the nearest one at least this far (metres, geodesic) from the start."""
+    switch: bool = True
+    """Also an episode from the end of each approach episode to the other goals seen from its start
+    pose (:func:`switch_plans`): its first view shows an object close by, and the instruction names
+    another, so the expert walks on. Without them every close object in the data ends in STOP, and a
+    policy learns to stop near anything rather than near the named object."""
 
     def __post_init__(self) -> None:
         if self.views < 0 or self.per_view < 1:
@@ -349,6 +355,38 @@ def sample_approach_plans(
             )
     stats["approach_planned"] = len(plans)
     return plans, dict(stats)
+
+
+def switch_plans(
+    done: Sequence[tuple[EpisodePlan, np.ndarray, float]], geodesic: Callable[[np.ndarray, np.ndarray], float]
+) -> list[EpisodePlan]:
+    """Goal-switch plans: for approach episodes ``done`` = (plan, end position, end heading) that share
+    a start pose, one plan from the end of each to the goal of each other (bucket ``approach_switch``).
+    ``geodesic(a, b)`` is the path length in metres (inf when unreachable: no plan)."""
+    by_view: dict[tuple, list] = {}
+    for item in done:
+        p = item[0]
+        by_view.setdefault((*np.round(np.asarray(p.start, float), 6), round(float(p.heading), 9)), []).append(
+            item
+        )
+    out = []
+    for group in by_view.values():
+        for a, end, heading in group:
+            for b, _, _ in group:
+                if b is a or b.goal_object.get("object_id") == a.goal_object.get("object_id"):
+                    continue
+                geo = float(geodesic(end, b.goal))
+                if math.isfinite(geo):
+                    out.append(
+                        replace(
+                            b,
+                            start=np.asarray(end, float).copy(),
+                            heading=float(heading),
+                            bucket="approach_switch",
+                            geodesic_distance=geo,
+                        )
+                    )
+    return out
 
 
 def sample_path_plans(
