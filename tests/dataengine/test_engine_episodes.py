@@ -354,7 +354,7 @@ def test_approach_episodes_go_to_their_own_shard_and_leave_the_episodes_unchange
 
     ref, ref_summary = full_run
     out = tmp_path / "approach"
-    cfg = EngineConfig(**CFG, approach={"views": 30, "min_length": 0.5})
+    cfg = EngineConfig(**CFG, approach={"views": 30, "min_length": 0.5, "switch": True})
     summary = run_engine(scenes_root, out, cfg, executor="local", progress=False)
     # The regular episodes are those of the run without approach episodes (their own random stream).
     assert _read(out / "train" / "train.json.gz") == _read(ref / "train" / "train.json.gz")

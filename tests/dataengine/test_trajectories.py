@@ -187,6 +187,35 @@ def test_approach_plans_target_only_visible_unambiguous_objects(world):
     )
 
 
+def test_switch_plans_start_at_one_goal_and_lead_to_the_other_goals_of_the_view():
+    from image2sim.dataengine.trajectories import EpisodePlan
+
+    def plan(start, heading, goal, oid):
+        rec = {"object_id": oid, "category": f"c{oid}"}
+        return EpisodePlan(np.array(start, float), heading, np.array(goal, float), rec, 3.0, "approach", 2.0)
+
+    a = plan([0, 0, 0], 0.5, [2, 0, 0], 1)
+    b = plan([0, 0, 0], 0.5, [0, 2, 0], 2)
+    c = plan([5, 5, 0], 0.1, [6, 5, 0], 3)  # another view: never paired with a or b
+    ends = [
+        (a, np.array([1.8, 0, 0]), 0.25),
+        (b, np.array([0, 1.8, 0]), 1.5),
+        (c, np.array([5.8, 5, 0]), 0.0),
+    ]
+    far = np.array([0, 1.8, 0])
+
+    def geodesic(x, y):  # b's end cannot reach a's goal
+        return math.inf if np.allclose(x, far) else float(np.linalg.norm(np.asarray(x) - np.asarray(y)))
+
+    out = switch_plans(ends, geodesic)
+    assert len(out) == 1
+    (p,) = out
+    assert np.allclose(p.start, [1.8, 0, 0]) and p.heading == 0.25  # where and how the a-episode ended
+    assert np.allclose(p.goal, b.goal) and p.goal_object == b.goal_object and p.goal_radius == b.goal_radius
+    assert p.bucket == "approach_switch" and p.geodesic_distance == pytest.approx(np.hypot(1.8, 2.0))
+    assert switch_plans([], geodesic) == []
+
+
 @pytest.mark.parametrize(
     "bad",
     [

@@ -278,11 +278,12 @@ class ApproachConfig:
     """Horizontal field of view that must contain the goal (the stored pinhole view's 90 degrees)."""
     min_length: float = 1.0
     """The goal standing point is the nearest one at least this far (metres, geodesic) from the start."""
-    switch: bool = True
+    switch: bool = False
     """Also an episode from the end of each approach episode to the other goals seen from its start
     pose (:func:`switch_plans`): its first view shows an object close by, and the instruction names
-    another, so the expert walks on. Without them every close object in the data ends in STOP, and a
-    policy learns to stop near anything rather than near the named object."""
+    another, so the expert walks on. Meant to stop a policy from learning "stop near anything"; in
+    the 32-house pilot it did not make stopping depend on the instruction, and held-out SR fell
+    (docs/sim2real.md), so it is off by default."""
 
     def __post_init__(self) -> None:
         if self.views < 0 or self.per_view < 1:
