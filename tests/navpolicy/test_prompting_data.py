@@ -335,3 +335,24 @@ def test_max_trajectories_keeps_the_first_ones_in_shard_order(tmp_path, tiny_cfg
     cfg.data.shards, cfg.data.shard_weights, cfg.data.max_trajectories = [str(a), str(b)], [1.0, 1.0], 3
     with pytest.raises(ConfigError, match="max_trajectories"):
         cfg.validate()
+
+
+def test_shuffled_instructions_permute_instructions_and_keep_everything_else(tmp_path):
+    """data.shuffle_instructions (the instruction-blind control): every trajectory keeps its actions
+    and frames but is told another trajectory's instruction, a fixed seeded permutation."""
+    trajs = synthetic_trajectories(12, height=8, width=8, seed=4)
+    for k, t in enumerate(trajs):
+        t.instruction = f"instruction number {k}"
+    root = write_shard(tmp_path / "s", trajs)
+    plain = NavShardDataset([root], seed=5)
+    mixed = NavShardDataset([root], seed=5, shuffle_instructions=True)
+    again = NavShardDataset([root], seed=5, shuffle_instructions=True)
+    got = [mixed.trajectory(i) for i in range(len(mixed))]
+    ref = [plain.trajectory(i) for i in range(len(plain))]
+    assert sorted(t.instruction for t in got) == sorted(t.instruction for t in ref)  # a permutation
+    assert sum(a.instruction != b.instruction for a, b in zip(got, ref, strict=True)) >= 8
+    assert [t.instruction for t in got] == [again.trajectory(i).instruction for i in range(len(again))]
+    for a, b in zip(got, ref, strict=True):
+        assert a.actions == b.actions and np.array_equal(a.frames, b.frames)
+    # The sample the policy trains on carries the swapped instruction.
+    assert mixed[0].instruction == got[0].instruction

@@ -146,6 +146,10 @@ class DataConfig:
     max_trajectories: int | None = None
     """Behaviour cloning on the first N trajectories of ``shards`` only (in shard order; data-scaling
     curves). None: all. Not combinable with ``shard_weights``."""
+    shuffle_instructions: bool = False
+    """Control run: each training trajectory gets the instruction of another one (a fixed random
+    permutation, seeded by ``train.seed``), so nothing ties instructions to paths. A policy trained so
+    is the instruction-blind baseline: whatever it reaches, it reaches without reading."""
     end_cut_probability: float = 0.0
     """``streaming`` only: probability that a sample is cut at the trajectory's end (its last label the
     final STOP) instead of at a uniform point; 0 leaves STOP as rare as in the trajectories."""

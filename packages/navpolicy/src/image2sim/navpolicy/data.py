@@ -426,6 +426,7 @@ class NavShardDataset(_SamplingDataset):
         end_cut_probability: float = 0.0,
         max_trajectories: int | None = None,
         cache_frames: bool = False,
+        shuffle_instructions: bool = False,
     ) -> None:
         self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
         if not shards:
@@ -436,6 +437,10 @@ class NavShardDataset(_SamplingDataset):
             if max_trajectories < 1:
                 raise ValueError(f"max_trajectories must be >= 1, got {max_trajectories}")
             self.index = self.index[:max_trajectories]  # the first ones, in shard order
+        # data.shuffle_instructions: trajectory i is told the instruction of trajectory source[i].
+        self.instruction_source = (
+            np.random.default_rng([seed, 4441]).permutation(len(self.index)) if shuffle_instructions else None
+        )
         self.max_observations = max_observations
         self.max_action_labels = max_action_labels
         self.jitter = jitter
@@ -447,7 +452,11 @@ class NavShardDataset(_SamplingDataset):
 
     def trajectory(self, i: int) -> Trajectory:
         r, j = self.index[i]
-        return self.readers[r][j]
+        traj = self.readers[r][j]
+        if self.instruction_source is not None:
+            r2, j2 = self.index[int(self.instruction_source[i])]
+            traj.instruction = self.readers[r2].records[j2]["instruction"]
+        return traj
 
 
 class InMemoryNavDataset(_SamplingDataset):

@@ -255,6 +255,7 @@ class NavBCModule(L.LightningModule):
                 seed=tc.seed,
                 max_trajectories=self.cfg.data.max_trajectories,
                 cache_frames=self.cfg.data.cache_frames,
+                shuffle_instructions=self.cfg.data.shuffle_instructions,
                 **sample_options(self.cfg),
             )
         per_step = tc.batch_size * tc.accumulate_grad_batches
