@@ -377,9 +377,7 @@ def _approach_rollouts(sim, follower, graph, objects, navmap, occupancy, cfg, sc
     def roll(plans):
         kept = []
         for plan in plans:
-            r = rollout_plan(sim, follower, plan, rcfg)
-            if r.ok and not _replays(sim, plan, r):
-                r.reason = "replay_mismatch"
+            plan, r = _checked_rollout(sim, follower, plan, rcfg)
             if not r.ok:
                 drops[f"{plan.bucket}: {r.reason}"] = drops.get(f"{plan.bucket}: {r.reason}", 0) + 1
                 continue
@@ -393,10 +391,18 @@ def _approach_rollouts(sim, follower, graph, objects, navmap, occupancy, cfg, sc
     return out
 
 
-def _replays(sim, plan, r) -> bool:
-    """Re-executing the actions from the start reaches the same end without a collision."""
-    pos, _, col = replay(sim, plan.start, plan.heading, r.actions)
-    return bool(np.abs(pos[-1] - r.positions[-1]).max() <= 1e-6 and not any(col))
+def _checked_rollout(sim, follower, plan, rcfg, cut=None):
+    """(plan, rollout) of the oracle on ``plan``, then ``cut(plan, rollout) -> (rollout, plan)`` when
+    given (stopping at the goal), then the replay check: re-executing the actions from the start must
+    reach the same end without a collision. A rejected rollout says why in ``reason``."""
+    r = rollout_plan(sim, follower, plan, rcfg)
+    if r.ok and cut is not None:
+        r, plan = cut(plan, r)
+    if r.ok:
+        pos, _, col = replay(sim, plan.start, plan.heading, r.actions)
+        if np.abs(pos[-1] - r.positions[-1]).max() > 1e-6 or any(col):
+            r.reason = "replay_mismatch"
+    return plan, r
 
 
 def _rng(seed: int, name: str) -> np.random.Generator:
@@ -478,14 +484,11 @@ def process_scene(
     for plan in plans:
         if len(kept) >= n:
             break
-        r = rollout_plan(sim, follower, plan, rcfg)
-        if r.ok:
-            r, plan = _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg)
+        plan, r = _checked_rollout(
+            sim, follower, plan, rcfg, lambda p, r: _stop_at_the_goal(sim, p, r, navmap, scfg, rcfg)
+        )
         if not r.ok:
             drops[r.reason] = drops.get(r.reason, 0) + 1
-            continue
-        if not _replays(sim, plan, r):
-            drops["replay_mismatch"] = drops.get("replay_mismatch", 0) + 1
             continue
         kept.append((plan, r))
     n_regular = len(kept)
