@@ -11,6 +11,13 @@ import typer
 app = typer.Typer(help="Navigation policy (Image2Nav): train, DAgger, run.", no_args_is_help=True)
 
 
+def _gather_commands() -> None:
+    # Command modules keep their own registries and never import this one (no cycle).
+    from image2sim.navpolicy import vision_cli
+
+    app.registered_commands.extend(vision_cli.app.registered_commands)
+
+
 def _config(config: str, overrides: dict | None = None):
     from image2sim.navpolicy.config import ConfigError, load_config
 
@@ -813,3 +820,6 @@ def drive_cmd(
     write_nav_report(out / name / "report", name, report, {"source": str(out / name), "server": server})
     typer.echo(nav_table_markdown([(name, report)]))
     typer.echo(f"updated {metrics}")
+
+
+_gather_commands()

@@ -79,6 +79,10 @@ class ModelConfig:
     """Sizes used when ``source == "tiny"``."""
     freeze_vision: bool = True
     """Freeze the vision tower (patch embedding, blocks). The paper trains only LLM + projector."""
+    vision_weights: str = ""
+    """Optional ``image2sim nav pretrain-vision`` output (its folder or ``vision.safetensors``) loaded
+    into the vision tower and its mergers when the model is built: the recognition prior that the
+    paper's pretrained Qwen3-VL has and a from-scratch tiny tower lacks. Empty: the built weights."""
     train_merger: bool = True
     """Keep the vision-language merger/projector (and DeepStack mergers) trainable."""
     lora: LoraSettings = field(default_factory=LoraSettings)

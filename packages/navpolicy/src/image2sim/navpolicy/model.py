@@ -216,6 +216,10 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None) -> NavPolicy:
         image_processor = make_image_processor(cfg.observation, int(model.config.vision_config.patch_size))
         pre = load_image_processor(path)
         image_processor.image_mean, image_processor.image_std = pre.image_mean, pre.image_std
+    if mc.vision_weights:
+        from image2sim.navpolicy.vision_pretrain import load_vision_weights
+
+        load_vision_weights(model, mc.vision_weights)
     freeze_for_training(model, mc)
     if mc.gradient_checkpointing:
         enable_checkpointing(model)

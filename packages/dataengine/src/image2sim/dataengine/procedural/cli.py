@@ -55,3 +55,37 @@ def synth(
     paths = synthesize(cfg, out, scenes=scenes, seed=seed, overwrite=overwrite, progress=True)
     for p in paths:
         typer.echo(str(p))
+
+
+@app.command("views")
+def views(
+    scenes: Path = typer.Option(..., "--scenes", help="Folder of procedural captures (from `data synth`)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (views/<scene>.npz, categories.json)."),
+    per_scene: int = typer.Option(400, "--per-scene", min=1, help="Views per house."),
+    size: int = typer.Option(64, "--size", min=8, help="Square view side (the policy's observation)."),
+    hfov: float = typer.Option(90.0, "--hfov", help="Field of view in degrees (the policy's camera)."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Base seed (each house its own stream)."),
+) -> None:
+    """Recognition views: random agent views of procedural houses with per-pixel category ids, for
+    `image2sim nav pretrain-vision`. Rerun with the same options to resume."""
+    from image2sim.dataengine.procedural.exact import is_procedural_capture
+    from image2sim.dataengine.procedural.views import ViewsConfig, write_views
+
+    if not scenes.is_dir():
+        raise typer.BadParameter(f"{scenes} is not a folder", param_hint="--scenes")
+    dirs = sorted(d for d in scenes.iterdir() if (d / "manifest.json").is_file())
+    if not dirs:
+        raise typer.BadParameter(f"{scenes} holds no capture folders (sub-folders with manifest.json)")
+    foreign = [d.name for d in dirs if not is_procedural_capture(d)]
+    if foreign:
+        raise typer.BadParameter(
+            f"{', '.join(foreign[:3])}: not procedural captures; views need the generator's per-pixel "
+            "categories (make captures with `image2sim data synth`)",
+            param_hint="--scenes",
+        )
+    try:
+        manifest = write_views(dirs, out, ViewsConfig(per_scene, size, hfov, seed), progress=True)
+    except ValueError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"{sum(manifest['scenes'].values())} views of {len(manifest['scenes'])} houses -> {out}")

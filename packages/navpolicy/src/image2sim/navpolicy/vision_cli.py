@@ -1,0 +1,57 @@
+"""``image2sim nav pretrain-vision``: recognition pretraining of the tiny policy's vision tower.
+
+Its own small Typer registry, gathered into ``image2sim nav`` by :mod:`image2sim.navpolicy.cli`
+(which this module never imports, so there is no cycle).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+app = typer.Typer()
+
+
+@app.command("pretrain-vision")
+def pretrain_vision_cmd(
+    views: Annotated[Path, typer.Option(help="`image2sim data views` output folder.")],
+    out: Annotated[Path, typer.Option(help="Output folder (vision.safetensors, pretrain.json).")],
+    config: Annotated[
+        str, typer.Option(help="Policy preset or YAML: its model.tiny sizes and observation size.")
+    ] = "tiny",
+    steps: Annotated[int, typer.Option(help="Optimiser steps.")] = 1500,
+    batch_size: Annotated[int, typer.Option(help="Views per step.")] = 64,
+    lr: Annotated[float, typer.Option(help="Peak learning rate.")] = 2e-3,
+    seed: Annotated[int, typer.Option(help="Seed of the tower's initialisation and the batch order.")] = 0,
+    probe_only: Annotated[
+        bool,
+        typer.Option(help="Keep the random tower frozen and train only merger + head (the baseline)."),
+    ] = False,
+    threads: Annotated[int, typer.Option(help="torch threads (0 = torch default).")] = 0,
+) -> None:
+    """Teach the vision tower which categories each token's cell shows; set model.vision_weights to
+    the output folder to start a policy from it (docs/navpolicy.md)."""
+    import torch
+    from image2sim.navpolicy.config import ConfigError, load_config
+    from image2sim.navpolicy.vision_pretrain import VisionPretrainConfig, pretrain_vision
+
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        cfg = load_config(config)
+        pcfg = VisionPretrainConfig(
+            steps=steps, batch_size=batch_size, lr=lr, seed=seed, train_tower=not probe_only
+        ).validate()
+    except (ConfigError, ValueError) as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    if out.exists():
+        raise typer.BadParameter(f"{out} exists; choose another --out or delete it", param_hint="--out")
+    try:
+        report = pretrain_vision(cfg, views, out, pcfg, progress=True)
+    except (FileNotFoundError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(json.dumps({"out": str(out), **report["final"], "seconds": round(report["seconds"], 1)}))
