@@ -64,6 +64,8 @@ def main() -> None:
     def action_hits(sample) -> list[bool]:
         """Greedy hits on the labelled action tokens of ``sample``'s last observation."""
         batch = collate([sample])
+        for key in ("goal_in_view", "image_end"):  # training-only entries
+            batch.pop(key, None)
         with torch.no_grad():
             logits = policy.model(**batch).logits[0]
         labels = batch["labels"][0]

@@ -556,3 +556,39 @@ def test_ray_executor_matches_local(scenes_root, full_run, tmp_path):
     for t in tasks.values():
         assert t["torch_threads"] == 1 and t["omp_num_threads"] == "1"
         assert 0 < t["cpu_s"] and 0 < t["wall_s"] and t["pid"] != os.getpid()
+
+
+def test_shard_frames_are_labelled_goal_in_view(full_run):
+    """Each stored frame of an object-goal episode says whether its goal object is in view; the
+    labels are those of the frames' own poses (replayed here), not of neighbouring steps."""
+    from image2sim.dataengine.visibility import Occupancy, VisibilityConfig, goal_in_view
+    from image2sim.simulator.navigation import NavMap
+    from image2sim.simulator.sim import NeuralSimulator
+
+    out, _ = full_run
+    extras = json.loads((out / "train" / "train_extras.json").read_text())
+    cfg = EngineConfig(**CFG)
+    view = VisibilityConfig(max_distance=cfg.goal_view_distance, hfov_deg=90.0, vfov_deg=90.0)
+    labels = []
+    for scene in ("scene_000", "scene_001"):
+        navmap = NavMap.load(out / "scenes" / scene / "navmap.npz")
+        occ = Occupancy.from_navmap(navmap)
+        sim = NeuralSimulator(navmap)
+        eye = np.array([0.0, 0.0, navmap.embodiment.eye_height])
+        for line in (out / "scenes" / scene / "shard" / "trajectories.jsonl").read_text().splitlines():
+            rec = json.loads(line)
+            seen = rec["extra"]["goal_in_view"]
+            assert len(seen) == len(rec["frame_steps"]) and set(seen) <= {0, 1}
+            start = navmap.to_map(np.asarray(rec["extra"]["start_world"]))
+            sim.reset(start[None], np.array([rec["extra"]["heading_world"]]), observe=False)
+            pos, head = [start], [rec["extra"]["heading_world"]]
+            for a in rec["actions"][:-1]:
+                _, info = sim.step([a], observe=False)
+                pos.append(info["position"][0])
+                head.append(float(info["heading"][0]))
+            steps = rec["frame_steps"]
+            goal = navmap.to_map(np.asarray(extras[rec["episode_id"]]["goal_object"]["position"]))
+            want = goal_in_view(goal, np.asarray(pos)[steps] + eye, np.asarray(head)[steps], occ, view)
+            assert seen == [int(v) for v in want], rec["episode_id"]
+            labels += seen
+    assert 0 in labels and 1 in labels

@@ -225,3 +225,20 @@ def test_near_needs_distance_same_storey_and_no_wall_between():
     assert not occ.mutually_visible(np.array([1.0, 0, 0.8]), np.array([3.0, 0, 0.8]), 0.5)
     with pytest.raises(ValueError, match="max_distance"):
         NearConfig(max_distance=0.0)
+
+
+def test_goal_in_view_labels_each_pose_by_field_of_view_distance_and_occlusion():
+    from image2sim.dataengine.visibility import goal_in_view
+
+    occ = Occupancy.from_points(_wall_points(2.0, 0.15, 0.6, 0.0, 2.5), voxel=0.05)
+    cfg = VisibilityConfig(max_distance=5.0, hfov_deg=90.0, vfov_deg=90.0)
+    goal = np.array([3.0, 0.0, 0.8])
+    eyes = np.array(
+        [[0.0, 0.0, 1.25], [0.0, 0.0, 1.25], [0.0, 0.0, 1.25], [-4.0, 0.0, 1.25], [0.0, 1.0, 1.25]]
+    )
+    # ahead; behind (heading pi); 50 degrees off the heading (outside +-45); 7 m away; ray through the wall
+    heads = np.array([0.0, math.pi, math.radians(50.0), 0.0, math.atan2(-1.0, 3.0)])
+    assert goal_in_view(goal, eyes, heads, occ, cfg).tolist() == [True, False, False, False, False]
+    assert goal_in_view(goal, eyes, heads, None, cfg).tolist() == [True, False, False, False, True]
+    with pytest.raises(ValueError, match="2 eyes but 1 headings"):
+        goal_in_view(goal, eyes[:2], heads[:1], occ, cfg)

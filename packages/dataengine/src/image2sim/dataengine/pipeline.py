@@ -122,8 +122,14 @@ class EngineConfig:
     """Occlusion test of the visibility: a ray march through the navigation map's obstacle voxels."""
     occlusion_tolerance: float = 0.3
     """Obstacle voxels within this distance (metres) of an object do not occlude it (its own surface)."""
+    goal_view_distance: float = 5.0
+    """Each stored frame of an object-goal episode is labelled ``goal_in_view`` (shard record
+    ``extra``): 1 when the goal object lies within this distance, inside the stored view's field of
+    view and unoccluded. Image2Nav's ``train.goal_aux_weight`` learns from it."""
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.goal_view_distance) and self.goal_view_distance > 0):
+            raise ValueError(f"EngineConfig.goal_view_distance must be > 0, got {self.goal_view_distance!r}")
         if self.render not in RENDER_MODES:
             raise ValueError(f"EngineConfig.render must be one of {RENDER_MODES}, got {self.render!r}")
         if self.view not in ("pinhole", "ultrawide"):
@@ -495,6 +501,7 @@ def process_scene(
     from image2sim.dataengine.visibility import (
         Occupancy,
         VisibilityConfig,
+        goal_in_view,
         near_categories,
         visible_categories,
     )
@@ -516,8 +523,20 @@ def process_scene(
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
+    fov = (90.0, 90.0) if cfg.view == "pinhole" else (180.0, 118.0)  # the stored observation's
+    goal_view = VisibilityConfig(
+        max_distance=cfg.goal_view_distance,
+        hfov_deg=fov[0],
+        vfov_deg=fov[1],
+        tolerance=cfg.occlusion_tolerance,
+        occlusion=cfg.occlusion,
+    )
     obj_map = navmap.to_map(np.array([o.position for o in objects], dtype=np.float64).reshape(-1, 3))
     eye_up = np.array([0.0, 0.0, float(navmap.embodiment.eye_height)])
+
+    def eyes_of(r):
+        return np.asarray(r.positions, dtype=np.float64) + eye_up
+
     index_of = {int(o.object_id): i for i, o in enumerate(objects)}
     near_of: dict[int, list[str]] = {}  # goal object id -> its "near" landmarks (computed once per goal)
     requests, chunks = [], []
@@ -525,7 +544,7 @@ def process_scene(
         eid = f"{inputs.name}-{k:05d}" if k < n_regular else f"{inputs.name}-a{k - n_regular:05d}"
         steps = macro_steps(r.actions, r.positions, r.headings, ChunkConfig())
         world = navmap.to_world(r.positions)
-        eyes = np.asarray(r.positions, dtype=np.float64) + eye_up
+        eyes = eyes_of(r)
         vis = [
             visible_categories(objects, obj_map, eyes[m.start], r.headings[m.start], occupancy, vis_cfg)
             for m in steps
@@ -623,19 +642,18 @@ def process_scene(
             shard = approach_writer if approach else writer
             if shard is not None:
                 frames, frame_steps = next(rendered)
-                shard.add(
-                    req.episode_id,
-                    inputs.name,
-                    ann.text,
-                    r.actions,
-                    frames,
-                    frame_steps,
-                    {
-                        "style": ann.style,
-                        "start_world": [float(v) for v in world[0]],  # z up, metres
-                        "heading_world": float(heading_w),  # about +z, 0 = +x
-                    },
-                )
+                extra = {
+                    "style": ann.style,
+                    "start_world": [float(v) for v in world[0]],  # z up, metres
+                    "heading_world": float(heading_w),  # about +z, 0 = +x
+                }
+                if plan.goal_object is not None:
+                    goal = navmap.to_map(np.asarray(plan.goal_object["position"], dtype=np.float64))
+                    seen = goal_in_view(
+                        goal, eyes_of(r)[frame_steps], r.headings[frame_steps], occupancy, goal_view
+                    )
+                    extra["goal_in_view"] = [int(v) for v in seen]
+                shard.add(req.episode_id, inputs.name, ann.text, r.actions, frames, frame_steps, extra)
         for w in (writer, approach_writer):
             if w is not None:
                 w.close()

@@ -193,6 +193,29 @@ def visible_mask(
     return ok
 
 
+def goal_in_view(
+    goal: np.ndarray,
+    eyes: np.ndarray,
+    headings: np.ndarray,
+    occupancy: Occupancy | None,
+    config: VisibilityConfig | None = None,
+) -> np.ndarray:
+    """(N,) True where the ``goal`` position (3,) is visible (:func:`visible_mask`) from eye ``eyes[i]``
+    (N, 3) looking along ``headings[i]``: the per-frame labels of Image2Nav's grounding loss."""
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    heads = np.asarray(headings, dtype=np.float64).reshape(-1)
+    if len(eyes) != len(heads):
+        raise ValueError(f"goal_in_view: {len(eyes)} eyes but {len(heads)} headings")
+    target = np.asarray(goal, dtype=np.float64).reshape(1, 3)
+    return np.array(
+        [
+            bool(visible_mask(target, e, float(h), occupancy, config)[0])
+            for e, h in zip(eyes, heads, strict=True)
+        ],
+        dtype=bool,
+    )
+
+
 def visible_categories(
     objects: Sequence,
     positions: np.ndarray,

@@ -181,6 +181,12 @@ class TrainConfig:
     """Peak AdamW learning rate."""
     weight_decay: float = 0.0
     """AdamW weight decay."""
+    goal_aux_weight: float = 0.0
+    """Weight of an auxiliary grounding loss: a linear head on the language model's state at each
+    image's last token predicts whether the instruction's goal is in that view (binary
+    cross-entropy; labels from the shard records' ``goal_in_view``; samples without them add
+    nothing). Only a model that ties the instruction's words to the image can lower it. The head is
+    for training only and is not exported. 0: off."""
     warmup_steps: int = 2
     """Linear warm-up steps before cosine decay."""
     min_lr_ratio: float = 0.1
@@ -324,6 +330,8 @@ class NavPolicyConfig:
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
+        if not (math.isfinite(self.train.goal_aux_weight) and self.train.goal_aux_weight >= 0):
+            raise ConfigError(f"train.goal_aux_weight must be >= 0, got {self.train.goal_aux_weight}")
         if self.train.val_every < 1 or self.train.val_batches < 1:
             raise ConfigError(
                 f"train.val_every and train.val_batches must be >= 1, got {self.train.val_every}, "

@@ -40,6 +40,11 @@ class ShardError(ValueError):
     """A shard file is missing or malformed; the message names the file and the problem."""
 
 
+GOAL_IN_VIEW = "goal_in_view"
+"""Optional per-frame record field (``extra``): 1 where the instruction's goal object is in the
+frame's view (the data engine's ``goal_in_view``); the target of ``train.goal_aux_weight``."""
+
+
 @dataclass
 class Trajectory:
     """One expert trajectory with (some of) its rendered observations.
@@ -81,6 +86,9 @@ class Trajectory:
             raise ShardError(
                 f"{where}: frame_steps must increase strictly inside [0, {len(self.actions) - 1}]"
             )
+        seen = self.extra.get(GOAL_IN_VIEW) if isinstance(self.extra, dict) else None
+        if seen is not None and (len(seen) != len(steps) or any(int(v) not in (0, 1) for v in seen)):
+            raise ShardError(f"{where}: extra.{GOAL_IN_VIEW} must hold one 0/1 per frame ({len(steps)})")
         return self
 
 
@@ -103,6 +111,8 @@ class NavSample:
     executed: list[tuple[int, ...]]
     targets: list[tuple[int, ...]]
     episode_id: str = ""
+    goal_in_view: list[int] | None = None
+    """Per observation: 1 if the goal is in view, 0 if not (None: the trajectory has no such labels)."""
 
     @property
     def num_labels(self) -> int:
@@ -221,6 +231,7 @@ def make_sample(
     for s in steps:
         executed.append(() if prev is None else tuple(int(a) for a in traj.actions[prev:s]))
         prev = s
+    seen = traj.extra.get(GOAL_IN_VIEW) if isinstance(traj.extra, dict) else None
     return NavSample(
         instruction=traj.instruction,
         observations=np.asarray(traj.frames)[idx],
@@ -228,6 +239,7 @@ def make_sample(
         executed=executed,
         targets=[oracle_targets(traj, s) for s in steps],
         episode_id=traj.episode_id,
+        goal_in_view=None if seen is None else [int(seen[i]) for i in idx],
     )
 
 
@@ -456,6 +468,8 @@ class NavShardDataset(_SamplingDataset):
         if self.instruction_source is not None:
             r2, j2 = self.index[int(self.instruction_source[i])]
             traj.instruction = self.readers[r2].records[j2]["instruction"]
+            # Its goal labels describe its own goal, not the borrowed instruction's: drop them.
+            traj.extra = {k: v for k, v in traj.extra.items() if k != GOAL_IN_VIEW}
         return traj
 
 
@@ -491,6 +505,15 @@ class InMemoryNavDataset(_SamplingDataset):
 def image_token_counts(image_grid_thw: torch.Tensor, merge_size: int = MERGE_SIZE) -> list[int]:
     """``<|image_pad|>`` tokens per image: t*h*w patches merged ``merge_size``^2 to one token."""
     return [int(v) for v in (image_grid_thw.prod(-1) // (merge_size**2)).tolist()]
+
+
+def image_end_positions(mm_token_type_ids: torch.Tensor) -> torch.Tensor:
+    """(num_images, 2) [row, position] of each image's last token, images in prompt order (row by
+    row): where a causal model has read the instruction and the whole image."""
+    mm = mm_token_type_ids != 0
+    nxt = torch.zeros_like(mm)
+    nxt[:, :-1] = mm[:, 1:]
+    return torch.nonzero(mm & ~nxt)
 
 
 def patchify_batch(images: Sequence[np.ndarray], processor) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -596,7 +619,7 @@ class NavCollator:
             attn[i, :n] = 1
         # Belt and braces: no label may ever sit on an image token.
         labels[mm != 0] = IGNORE_INDEX
-        return {
+        batch = {
             "input_ids": input_ids,
             "attention_mask": attn,
             "labels": labels,
@@ -604,6 +627,13 @@ class NavCollator:
             "pixel_values": pixel_values,
             "image_grid_thw": grid,
         }
+        if any(s.goal_in_view is not None for s in samples):
+            batch["goal_in_view"] = torch.tensor(
+                [v for s in samples for v in (s.goal_in_view or [-1] * len(s.observations))],
+                dtype=torch.float32,
+            )
+            batch["image_end"] = image_end_positions(mm)
+        return batch
 
 
 # --------------------------------------------------------------------------------- observations

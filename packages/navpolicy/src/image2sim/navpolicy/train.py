@@ -229,6 +229,10 @@ def action_accuracy(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return (pred[mask] == tgt[mask]).float().mean()
 
 
+_NON_MODEL_KEYS = ("episode_ids", "goal_in_view", "image_end")
+"""Batch entries for the training module, not for the model's forward."""
+
+
 class NavBCModule(L.LightningModule):
     """Behaviour cloning: cross-entropy on the action tokens of interleaved image/action prompts."""
 
@@ -246,6 +250,12 @@ class NavBCModule(L.LightningModule):
         from the checkpoint on a resume, so it covers the whole run."""
         self.losses: list[float] = []
         """Training loss per step, whole run (restored from the checkpoint on a resume)."""
+        self.goal_head = None
+        if cfg.train.goal_aux_weight > 0:
+            from image2sim.navpolicy.model import base_qwen
+
+            hidden = int(base_qwen(policy.model).config.text_config.hidden_size)
+            self.goal_head = torch.nn.Linear(hidden, 1)
 
     def train_dataloader(self):
         tc = self.cfg.train
@@ -296,6 +306,9 @@ class NavBCModule(L.LightningModule):
         self.log("val/loss", out.loss, batch_size=bsz, on_epoch=True, on_step=False)
         acc = action_accuracy(out.logits.detach(), batch["labels"])
         self.log("val/action_acc", acc, batch_size=bsz, on_epoch=True, on_step=False)
+        goal = self.goal_loss(batch, out)
+        if goal is not None:
+            self.log("val/goal_acc", goal[1], batch_size=bsz, on_epoch=True, on_step=False)
 
     def _collate(self, samples):
         batch = self.collator(samples)
@@ -303,17 +316,42 @@ class NavBCModule(L.LightningModule):
         return batch
 
     def forward(self, batch):
-        inputs = {k: v for k, v in batch.items() if k != "episode_ids"}
+        inputs = {k: v for k, v in batch.items() if k not in _NON_MODEL_KEYS}
+        if self.goal_head is not None and "goal_in_view" in batch:
+            inputs["output_hidden_states"] = True
         return self.model(**inputs)
+
+    def goal_loss(self, batch, out) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(binary cross-entropy, accuracy) of the grounding head on the batch's labelled images, or
+        None (head off, or no labels)."""
+        if self.goal_head is None or "goal_in_view" not in batch:
+            return None
+        ends, y = batch["image_end"], batch["goal_in_view"]
+        if len(ends) != len(y):
+            raise ValueError(f"{len(y)} goal_in_view labels for {len(ends)} images in the batch")
+        known = y >= 0
+        if not bool(known.any()):
+            return None
+        h = out.hidden_states[-1][ends[known, 0], ends[known, 1]]
+        logits = self.goal_head(h.to(self.goal_head.weight.dtype)).squeeze(-1)
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[known])
+        acc = ((logits.detach() > 0).float() == y[known]).float().mean()
+        return loss, acc
 
     def training_step(self, batch, batch_idx):
         out = self(batch)
         bsz = batch["input_ids"].shape[0]
         self.seen.append(list(batch["episode_ids"]))
+        loss = out.loss
+        goal = self.goal_loss(batch, out)
+        if goal is not None:
+            loss = loss + self.cfg.train.goal_aux_weight * goal[0]
+            self.log("train/goal_loss", goal[0], batch_size=bsz)
+            self.log("train/goal_acc", goal[1], batch_size=bsz)
         self.losses.append(float(out.loss.detach()))
         self.log("train/loss", out.loss, prog_bar=True, batch_size=bsz)
         self.log("train/action_acc", action_accuracy(out.logits.detach(), batch["labels"]), batch_size=bsz)
-        return out.loss
+        return loss
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # The loss and batch history travel with the weights: a resumed run reports the whole run.
@@ -328,6 +366,8 @@ class NavBCModule(L.LightningModule):
     def configure_optimizers(self):
         tc = self.cfg.train
         params = [p for p in self.model.parameters() if p.requires_grad]
+        if self.goal_head is not None:
+            params += list(self.goal_head.parameters())
         if not params:
             raise RuntimeError("no trainable parameters (check model.freeze_vision / lora settings)")
         opt = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay)
