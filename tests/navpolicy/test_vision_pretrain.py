@@ -92,7 +92,10 @@ def _toy_views(root: Path, houses: int = 3, per_house: int = 48, size: int = 64)
                 rgb[i, y : y + 12, x : x + 12] = colours[int(c)]
                 sem[i, y : y + 12, x : x + 12] = int(c)
         np.savez(root / "views" / f"h{h}.npz", rgb=rgb, semantics=sem)
-    cats = [{"id": i, "name": n} for i, n in enumerate(["floor", "wall", "ceiling", "a", "b", "c", "d"], 1)]
+    cats = [
+        {"id": i, "name": n}
+        for i, n in enumerate(["floor", "wall", "ceiling", "sofa", "lamp", "bed", "desk"], 1)
+    ]
     (root / "categories.json").write_text(json.dumps({"categories": cats}))
     manifest = {
         "format": "image2sim-views",
@@ -159,3 +162,65 @@ def test_vision_weights_errors(tiny_cfg, tiny_policy, tmp_path):
     views = _toy_views(tmp_path / "v32", houses=2, per_house=2, size=32)
     with pytest.raises(ValueError, match="do not match the policy's observation"):
         pretrain_vision(tiny_cfg, views, tmp_path / "x", VisionPretrainConfig(steps=1))
+
+
+def test_grounding_questions_ask_every_view_yes_and_no_equally():
+    from image2sim.navpolicy.vision_pretrain import grounding_question
+
+    rng = np.random.default_rng(0)
+    counts = rng.integers(0, 3, size=(5, 30)) * 15  # pixels of 5 categories in 30 views
+    counts[:, 0] = 0  # a view that shows nothing is never asked about
+    pool = np.arange(30)
+    qs = [grounding_question(counts, pool, 20, rng) for _ in range(6000)]
+    assert all(i != 0 for _, i, _ in qs)
+    for view in range(1, 30):
+        labels = [y for _, i, y in qs if i == view]
+        if labels:
+            assert abs(np.mean(labels) - 0.5) < 0.2  # the view alone says nothing
+    assert abs(np.mean([y for *_, y in qs]) - 0.5) < 0.03
+    for c, i, y in qs:
+        assert (counts[c, i] >= 20) if y else counts[c, i] == 0
+    with pytest.raises(ValueError, match="empty"):
+        grounding_question(np.zeros((2, 3), int) + 5, np.arange(3), 20, rng)
+
+
+def _half_views(root: Path, houses: int = 3, per_house: int = 48) -> Path:
+    """Views whose lower half is one category's colour (upper half wall): is the named one in view?"""
+    colours = {4: (220, 40, 40), 5: (40, 200, 40), 6: (40, 60, 220), 7: (230, 220, 40)}
+    rng = np.random.default_rng(0)
+    (root / "views").mkdir(parents=True)
+    for h in range(houses):
+        rgb = np.full((per_house, 64, 64, 3), 128, np.uint8)
+        sem = np.full((per_house, 64, 64), 2, np.int16)
+        for i in range(per_house):
+            c = int(rng.choice(list(colours)))
+            rgb[i, 32:] = colours[c]
+            sem[i, 32:] = c
+        np.savez(root / "views" / f"h{h}.npz", rgb=rgb, semantics=sem)
+    names = ["floor", "wall", "ceiling", "sofa", "lamp", "bed", "desk"]
+    cats = [{"id": i, "name": n} for i, n in enumerate(names, 1)]
+    (root / "categories.json").write_text(json.dumps({"categories": cats}))
+    scenes = {f"h{h}": per_house for h in range(houses)}
+    (root / "manifest.json").write_text(
+        json.dumps({"format": "image2sim-views", "version": 1, "config": {}, "scenes": scenes})
+    )
+    return root
+
+
+def test_grounding_pretraining_learns_from_the_view_and_exports_a_policy(tiny_cfg, tmp_path):
+    from image2sim.navpolicy.model import build_policy
+    from image2sim.navpolicy.vision_pretrain import GroundingConfig, pretrain_grounding
+
+    views = _half_views(tmp_path / "views")
+    cfg = GroundingConfig(
+        steps=200, batch_size=16, lr=3e-3, warmup_steps=5, eval_every=200, val_fraction=0.34
+    )
+    report = pretrain_grounding(tiny_cfg, views, tmp_path / "ground", cfg)
+    first, last = report["history"][0], report["history"][-1]
+    # Only the pair (named category, view) answers the question: another view leaves it at chance.
+    assert last["val_acc"] > 0.9 and last["val_acc_other_view"] < 0.7, report["history"]
+    assert abs(first["val_acc"] - 0.5) < 0.2
+    # The export is a policy that behaviour cloning can start from.
+    loaded = build_policy(replace(tiny_cfg, model=replace(tiny_cfg.model, source=str(tmp_path / "ground"))))
+    assert json.loads((tmp_path / "ground" / "grounding.json").read_text())["final"] == last
+    assert loaded.codec.single_token

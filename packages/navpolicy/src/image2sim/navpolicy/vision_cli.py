@@ -55,3 +55,40 @@ def pretrain_vision_cmd(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(json.dumps({"out": str(out), **report["final"], "seconds": round(report["seconds"], 1)}))
+
+
+@app.command("pretrain-grounding")
+def pretrain_grounding_cmd(
+    views: Annotated[Path, typer.Option(help="`image2sim data views` output folder.")],
+    out: Annotated[Path, typer.Option(help="Output policy export (use as model.source for BC).")],
+    config: Annotated[
+        str,
+        typer.Option(help="Policy preset or YAML (set model.vision_weights to a pretrain-vision output)."),
+    ] = "tiny",
+    steps: Annotated[int, typer.Option(help="Optimiser steps.")] = 2400,
+    batch_size: Annotated[int, typer.Option(help="Questions per step.")] = 32,
+    lr: Annotated[float, typer.Option(help="Learning rate.")] = 2e-3,
+    seed: Annotated[int, typer.Option(help="Seed of the questions and the head.")] = 0,
+    threads: Annotated[int, typer.Option(help="torch threads (0 = torch default).")] = 0,
+) -> None:
+    """Teach the policy to tell whether the object its instruction names is in view (one view per
+    question), before behaviour cloning (docs/navpolicy.md)."""
+    import torch
+    from image2sim.navpolicy.config import ConfigError, load_config
+    from image2sim.navpolicy.vision_pretrain import GroundingConfig, pretrain_grounding
+
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        cfg = load_config(config)
+        gcfg = GroundingConfig(steps=steps, batch_size=batch_size, lr=lr, seed=seed).validate()
+    except (ConfigError, ValueError) as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    if out.exists():
+        raise typer.BadParameter(f"{out} exists; choose another --out or delete it", param_hint="--out")
+    try:
+        report = pretrain_grounding(cfg, views, out, gcfg, progress=True)
+    except (FileNotFoundError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(json.dumps({"out": str(out), **report["final"]}))

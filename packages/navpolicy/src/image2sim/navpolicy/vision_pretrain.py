@@ -27,6 +27,8 @@ import torch
 
 __all__ = [
     "VisionPretrainConfig",
+    "GroundingConfig",
+    "pretrain_grounding",
     "token_labels",
     "average_precision",
     "pretrain_vision",
@@ -265,4 +267,176 @@ def pretrain_vision(
         state = {k: v.detach().contiguous() for k, v in visual.state_dict().items()}
         save_file(state, str(tmp / VISION_WEIGHTS), metadata={"format": "image2sim-vision-tower"})
         (tmp / "pretrain.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+# ------------------------------------------------------------------------------ stage 2: grounding
+
+
+@dataclass
+class GroundingConfig:
+    """Grounding pretraining: is the object the instruction names in this view?"""
+
+    steps: int = 2400
+    """Optimiser steps."""
+    batch_size: int = 32
+    """Questions per step."""
+    lr: float = 2e-3
+    """AdamW learning rate (constant after a linear warm-up)."""
+    warmup_steps: int = 50
+    """Linear warm-up steps."""
+    min_pixels: int = 20
+    """A category is in view when it covers at least this many pixels; absent when it covers none."""
+    val_fraction: float = 0.1
+    """Share of the houses (the last ones) held out to score grounding."""
+    val_questions: int = 400
+    """Held-out questions scored at every evaluation."""
+    eval_every: int = 200
+    """Score the held-out houses every this many steps (and at the end)."""
+    seed: int = 0
+    """Seed of the questions and of the head's initialisation."""
+
+    def validate(self) -> GroundingConfig:
+        for name in ("steps", "batch_size", "eval_every", "min_pixels", "val_questions"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"pretrain-grounding: {name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise ValueError(f"pretrain-grounding: val_fraction must lie in (0, 1), got {self.val_fraction}")
+        return self
+
+
+GROUNDING_TEMPLATES = (
+    "Go to the {}.",
+    "Find the {} and stop there.",
+    "Walk to the {}.",
+    "Please stop at the {}.",
+)
+"""Instruction wordings of the grounding questions (the category's name with spaces)."""
+
+
+def grounding_question(counts: np.ndarray, pool: np.ndarray, min_pixels: int, rng) -> tuple[int, int, int]:
+    """(category row, view index, label) of one question over the views in ``pool``: a view first
+    (one that shows some category with >= ``min_pixels`` pixels and lacks another), then with
+    probability 1/2 a category it shows (label 1), else one it does not show at all (0). Every view
+    is thus asked about as often with answer yes as with no, so the view alone (e.g. how cluttered it
+    is) says nothing about the answer: only the view *and* the named category together do. A
+    category's word alone still carries a prior (a painting is on most walls); the blind control of
+    :func:`pretrain_grounding` (another view) measures it. ``counts``: (C, N) pixels of each category
+    row in each view."""
+    present = counts[:, pool] >= min_pixels
+    absent = counts[:, pool] == 0
+    usable = pool[present.any(axis=0) & absent.any(axis=0)]
+    if not len(usable):
+        raise ValueError("no view shows one category and lacks another: are the views empty?")
+    i = int(rng.choice(usable))
+    label = int(rng.random() < 0.5)
+    rows = np.nonzero(counts[:, i] >= min_pixels if label else counts[:, i] == 0)[0]
+    return int(rng.choice(rows)), i, label
+
+
+def pretrain_grounding(
+    policy_config,
+    views: str | Path,
+    out_dir: str | Path,
+    config: GroundingConfig | None = None,
+    progress: bool = False,
+) -> dict:
+    """Train ``policy_config``'s policy (its trainable parts: language model and mergers; set
+    ``model.vision_weights`` to start from a recognition-pretrained tower) to answer, at the last
+    token of one view, whether the object its instruction names is in that view, through the
+    grounding head of ``train.goal_aux_weight``. Writes the policy as an export to ``out_dir`` (start
+    behaviour cloning from it with ``model.source: <out_dir>``) with ``grounding.json``: held-out
+    accuracy at each evaluation, with the right view and with another view (the blind control)."""
+    import copy
+
+    from image2sim.dataengine.procedural.views import load_views
+    from image2sim.navpolicy.data import NavSample
+    from image2sim.navpolicy.model import build_policy, export_policy
+    from image2sim.navpolicy.train import NavBCModule
+
+    cfg = (config or GroundingConfig()).validate()
+    rgb, sem, manifest = load_views(views)
+    table = json.loads((Path(views) / "categories.json").read_text())["categories"]
+    objects = [c for c in table if c["name"] not in ("floor", "wall", "ceiling")]
+    names = [c["name"].replace("_", " ") for c in objects]
+    counts = np.stack([(sem == int(c["id"])).sum(axis=(1, 2)) for c in objects])
+    train_idx, val_idx, val_houses = _split_by_house(manifest, cfg.val_fraction)
+    pcfg = copy.deepcopy(policy_config)
+    pcfg.train.goal_aux_weight = max(pcfg.train.goal_aux_weight, 1.0)  # the module builds its head
+    torch.manual_seed(cfg.seed)
+    policy = build_policy(pcfg, seed=cfg.seed)
+    module = NavBCModule(policy, pcfg)
+    rng = np.random.default_rng(cfg.seed)
+
+    def sample(c: int, i: int, label: int, wording: int, view: int | None = None) -> NavSample:
+        text = GROUNDING_TEMPLATES[wording % len(GROUNDING_TEMPLATES)].format(names[c])
+        image = rgb[i if view is None else view][None]
+        return NavSample(text, image, [0], [()], [(0, 0)], goal_in_view=[label])
+
+    vrng = np.random.default_rng([cfg.seed, 1])
+    val_q = [
+        (*grounding_question(counts, val_idx, cfg.min_pixels, vrng), k) for k in range(cfg.val_questions)
+    ]
+    others = vrng.permutation(len(val_q))
+    val_own = [sample(c, i, y, k) for c, i, y, k in val_q]
+    val_other = [
+        sample(c, i, y, k, view=val_q[int(j)][1]) for (c, i, y, k), j in zip(val_q, others, strict=True)
+    ]
+
+    def accuracy(samples) -> float:
+        module.eval()
+        hits = []
+        with torch.no_grad():
+            for k in range(0, len(samples), 50):
+                batch = module._collate(samples[k : k + 50])
+                out = module(batch)
+                ends = batch["image_end"]
+                h = out.hidden_states[-1][ends[:, 0], ends[:, 1]]
+                pred = module.goal_head(h.to(module.goal_head.weight.dtype)).squeeze(-1) > 0
+                hits.append((pred.float() == batch["goal_in_view"]).numpy())
+        module.train()
+        return float(np.concatenate(hits).mean())
+
+    params = [p for p in module.model.parameters() if p.requires_grad] + list(module.goal_head.parameters())
+    opt = torch.optim.AdamW(params, lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / max(1, cfg.warmup_steps)))
+    history = [{"step": 0, "val_acc": accuracy(val_own), "val_acc_other_view": accuracy(val_other)}]
+    t0 = time.perf_counter()
+    steps = range(cfg.steps)
+    if progress:
+        from rich.progress import track
+
+        steps = track(steps, description="grounding pretraining")
+    module.train()
+    loss_avg = None
+    for step in steps:
+        qs = [grounding_question(counts, train_idx, cfg.min_pixels, rng) for _ in range(cfg.batch_size)]
+        batch = module._collate([sample(c, i, y, int(rng.integers(1 << 30))) for c, i, y in qs])
+        loss, _ = module.goal_loss(batch, module(batch))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        loss_avg = loss.item() if loss_avg is None else 0.95 * loss_avg + 0.05 * loss.item()
+        if (step + 1) % cfg.eval_every == 0 or step + 1 == cfg.steps:
+            history.append(
+                {
+                    "step": step + 1,
+                    "loss": loss_avg,
+                    "val_acc": accuracy(val_own),
+                    "val_acc_other_view": accuracy(val_other),
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
+    report = {
+        "config": asdict(cfg),
+        "views": str(views),
+        "val_houses": val_houses,
+        "history": history,
+        "final": history[-1],
+        "seconds": time.perf_counter() - t0,
+    }
+    policy.model.eval()
+    export_policy(policy, out_dir, pcfg)
+    (Path(out_dir) / "grounding.json").write_text(json.dumps(report, indent=1))
     return report
