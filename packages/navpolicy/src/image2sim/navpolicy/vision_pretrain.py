@@ -142,13 +142,6 @@ def load_vision_weights(model: torch.nn.Module, path: str | Path) -> None:
     visual.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()})
 
 
-def _lr_factor(step: int, warmup: int, total: int) -> float:
-    if step < warmup:
-        return (step + 1) / warmup
-    t = (step - warmup) / max(1, total - warmup)
-    return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t)))
-
-
 def _split_by_house(manifest: dict, val_fraction: float) -> tuple[np.ndarray, np.ndarray, list[str]]:
     names = list(manifest["scenes"])
     counts = [int(manifest["scenes"][n]) for n in names]
@@ -174,6 +167,7 @@ def pretrain_vision(
     from image2sim.dataengine.procedural.views import load_views
     from image2sim.navpolicy.data import patchify_batch
     from image2sim.navpolicy.model import MERGE_SIZE, base_qwen, build_policy
+    from image2sim.navpolicy.train import warmup_cosine
     from image2sim.simulator.io.atomic import atomic_dir
 
     cfg = (config or VisionPretrainConfig()).validate()
@@ -199,7 +193,9 @@ def pretrain_vision(
         p.requires_grad_(cfg.train_tower or name.startswith(("merger.", "deepstack_merger_list.")))
     params = [p for p in visual.parameters() if p.requires_grad] + list(head.parameters())
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg.warmup_steps, cfg.steps))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: warmup_cosine(s, cfg.warmup_steps, cfg.steps, 0.1)
+    )
     gen = np.random.default_rng(cfg.seed)
     grid = size // cell
 
@@ -385,17 +381,13 @@ def pretrain_grounding(
 
     def accuracy(samples) -> float:
         module.eval()
-        hits = []
+        hits = 0.0
         with torch.no_grad():
             for k in range(0, len(samples), 50):
                 batch = module._collate(samples[k : k + 50])
-                out = module(batch)
-                ends = batch["image_end"]
-                h = out.hidden_states[-1][ends[:, 0], ends[:, 1]]
-                pred = module.goal_head(h.to(module.goal_head.weight.dtype)).squeeze(-1) > 0
-                hits.append((pred.float() == batch["goal_in_view"]).numpy())
+                hits += float(module.goal_loss(batch, module(batch))[1]) * len(batch["goal_in_view"])
         module.train()
-        return float(np.concatenate(hits).mean())
+        return hits / len(samples)
 
     params = [p for p in module.model.parameters() if p.requires_grad] + list(module.goal_head.parameters())
     opt = torch.optim.AdamW(params, lr=cfg.lr)
