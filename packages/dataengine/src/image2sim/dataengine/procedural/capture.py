@@ -390,11 +390,30 @@ def synthesize(
     seed: int,
     overwrite: bool = False,
     progress: bool = True,
+    workers: int = 1,
 ) -> list[Path]:
-    """Generate ``scenes`` scenes into ``out_dir/scene_XXX`` (each independent of the others)."""
+    """Generate ``scenes`` scenes into ``out_dir/scene_XXX`` (each independent of the others).
+
+    ``workers`` > 1 generates them in that many spawned processes: scene ``i`` depends only on
+    ``(config, seed, i)``, so the output is the same as with one worker.
+    """
     out_dir = Path(out_dir)
-    paths = []
-    for i in range(scenes):
-        scene = generate_scene(config, scene_seed(seed, i))
-        paths.append(write_scene(scene, out_dir / f"scene_{i:03d}", overwrite=overwrite, progress=progress))
-    return paths
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers == 1 or scenes == 1:
+        return [_synthesize_one(config, out_dir, seed, i, overwrite, progress) for i in range(scenes)]
+    from image2sim.simulator.lifetime import spawn_pool
+
+    with spawn_pool(min(workers, scenes)) as pool:
+        futures = [
+            pool.submit(_synthesize_one, config, out_dir, seed, i, overwrite, False) for i in range(scenes)
+        ]
+        return [f.result() for f in futures]
+
+
+def _synthesize_one(
+    config: SynthConfig, out_dir: Path, seed: int, index: int, overwrite: bool, progress: bool
+) -> Path:
+    """Scene ``index`` of the base ``seed`` (a top-level function, so a worker process can run it)."""
+    scene = generate_scene(config, scene_seed(seed, index))
+    return write_scene(scene, out_dir / f"scene_{index:03d}", overwrite=overwrite, progress=progress)

@@ -30,6 +30,9 @@ def synth(
     camera: str | None = typer.Option(None, "--camera", help="equirect or pinhole."),
     caster: str | None = typer.Option(None, "--caster", help="auto, embree or numpy."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing scene folders."),
+    workers: int = typer.Option(
+        1, "--workers", min=1, help="Scenes generated in parallel processes (same output as 1)."
+    ),
 ) -> None:
     """Generate procedural indoor scenes (RGB-D + semantics + instances, exact GT in gt/)."""
     from dataclasses import replace
@@ -52,7 +55,9 @@ def synth(
     except ConfigError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(2) from None
-    paths = synthesize(cfg, out, scenes=scenes, seed=seed, overwrite=overwrite, progress=True)
+    paths = synthesize(
+        cfg, out, scenes=scenes, seed=seed, overwrite=overwrite, progress=True, workers=workers
+    )
     for p in paths:
         typer.echo(str(p))
 
