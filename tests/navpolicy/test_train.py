@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -194,3 +195,20 @@ def test_an_episodes_output_folder_stands_for_the_shards_it_lists(tmp_path):
     got = expand_shard_folders([out, plain])
     assert got == [out / "scenes/a/shard", out / "scenes/a/approach", plain, plain]
     assert expand_shard_folders([]) == []
+
+
+def test_repo_file_resolves_from_any_directory_and_reports_missing_files(tmp_path, monkeypatch):
+    """Relative config paths (train.deepspeed_config) work from any working directory of a clone,
+    and nothing is resolved at import (an installed wheel has no checkout above it)."""
+    from image2sim.navpolicy.train import TrainConfig, make_strategy, repo_file
+
+    monkeypatch.chdir(tmp_path)
+    found = repo_file("configs/zero2.json")
+    assert found.is_file() and found.is_absolute() and found.parent.name == "configs"
+    (tmp_path / "local.json").write_text("{}")
+    assert repo_file("local.json") == Path("local.json")  # the working directory comes first
+    assert repo_file(tmp_path / "x.json") == tmp_path / "x.json"
+    assert not repo_file("configs/absent.json").exists()
+    pytest.importorskip("deepspeed")
+    with pytest.raises(FileNotFoundError, match="deepspeed_config configs/absent.json"):
+        make_strategy(TrainConfig(strategy="deepspeed_zero2", deepspeed_config="configs/absent.json"))

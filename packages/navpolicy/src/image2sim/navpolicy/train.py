@@ -29,7 +29,18 @@ from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler
 
-REPO_ROOT = Path(__file__).resolve().parents[5]
+
+def repo_file(path: str | Path) -> Path:
+    """``path`` as given when absolute or present under the working directory, else under the source
+    checkout this module runs from (``configs/zero2.json`` from any directory of a clone). Resolved
+    on use, not at import: an installed wheel has no checkout above it."""
+    path = Path(path)
+    if path.is_absolute() or path.exists():
+        return path
+    for root in Path(__file__).resolve().parents:
+        if (root / "packages" / "navpolicy").is_dir() and (root / path).exists():
+            return root / path
+    return path
 
 
 # ------------------------------------------------------------------------------------------ data order
@@ -193,11 +204,12 @@ def make_strategy(tc: TrainConfig):
             "train.strategy deepspeed_zero2 needs DeepSpeed: pip install 'image2sim-navpolicy[deepspeed]' "
             "(or train with strategy auto / ddp)"
         )
-    path = Path(tc.deepspeed_config)
-    if not path.is_absolute():
-        path = REPO_ROOT / path
+    path = repo_file(tc.deepspeed_config)
     if not path.is_file():
-        raise FileNotFoundError(f"train.deepspeed_config {path} not found")
+        raise FileNotFoundError(
+            f"train.deepspeed_config {tc.deepspeed_config} not found (relative paths are looked up in the "
+            "working directory, then in the source checkout)"
+        )
     config = json.loads(path.read_text())
     if config.get("zero_optimization", {}).get("stage") != 2:
         raise ValueError(f"{path}: zero_optimization.stage must be 2 for deepspeed_zero2")
