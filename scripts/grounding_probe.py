@@ -36,7 +36,14 @@ def main() -> None:
     import torch
     from image2sim.eval.nav_summary import wilson_interval
     from image2sim.navpolicy.config import load_config
-    from image2sim.navpolicy.data import NavCollator, NavSample, ShardReader, make_sample, next_actions
+    from image2sim.navpolicy.data import (
+        NavCollator,
+        NavSample,
+        ShardReader,
+        make_sample,
+        model_inputs,
+        next_actions,
+    )
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 
@@ -63,9 +70,7 @@ def main() -> None:
 
     def action_hits(sample) -> list[bool]:
         """Greedy hits on the labelled action tokens of ``sample``'s last observation."""
-        batch = collate([sample])
-        for key in ("goal_in_view", "image_end"):  # training-only entries
-            batch.pop(key, None)
+        batch = model_inputs(collate([sample]))
         with torch.no_grad():
             logits = policy.model(**batch).logits[0]
         labels = batch["labels"][0]

@@ -136,3 +136,11 @@ def test_approximate_distance_of_a_cut_off_position_is_nearest_connected_node_pl
     assert field.approximate(np.array([np.nan, 0.0, 0.0]))[0] == math.inf
     d, reason = field.approximate(p + np.array([0.0, 0.0, 5.0]))
     assert d == math.inf and "vertically" in reason
+
+
+def test_largest_component_nodes_are_the_bigger_side_of_a_wall():
+    g = graph("narrow")  # two components split by a wall the body cannot pass
+    main = g.largest_component_nodes
+    sizes = np.bincount(g.components)
+    assert len(main) == sizes.max() and len(np.unique(g.components[main])) == 1
+    assert np.all(np.diff(main) > 0)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import math
 import time
-import zlib
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from image2sim.dataengine.rollout import (
     rollout_plan,
     truncate_rollout,
 )
+from image2sim.dataengine.seeding import named_rng
 from image2sim.dataengine.trajectories import (
     ApproachConfig,
     SamplingConfig,
@@ -377,7 +377,7 @@ def _approach_rollouts(sim, follower, graph, objects, navmap, occupancy, cfg, sc
     def visible(start, heading, positions):
         return visible_mask(positions, np.asarray(start, float) + eye_up, heading, occupancy, view)
 
-    rng = _rng(cfg.seed, name + "/approach")
+    rng = named_rng(cfg.seed, name + "/approach")
     plans, _ = sample_approach_plans(graph, objects, acfg, scfg, rng, visible, navmap.to_map)
 
     def roll(plans):
@@ -411,10 +411,6 @@ def _checked_rollout(sim, follower, plan, rcfg, cut=None):
     return plan, r
 
 
-def _rng(seed: int, name: str) -> np.random.Generator:
-    return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
-
-
 def _room_at(objects, pos_world: np.ndarray) -> str | None:
     best, room = math.inf, None
     for o in objects:
@@ -443,6 +439,13 @@ def _observation_spec(cfg: EngineConfig, pano_height: int):
         ultrawide_height=h,
         ultrawide_width=int(round(h * 512 / 336)),
     )
+
+
+def _field_of_view(spec) -> tuple[float, float]:
+    """(horizontal, vertical) degrees of the view an ObservationSpec stores (pinhole views are square)."""
+    if spec.pinhole:
+        return float(spec.pinhole_hfov_deg), float(spec.pinhole_hfov_deg)
+    return float(spec.ultrawide_hfov_deg), float(spec.ultrawide_vfov_deg)
 
 
 # ---------------------------------------------------------------------------------------- the task
@@ -477,7 +480,7 @@ def process_scene(
     rcfg = config_from_dict(RolloutConfig, cfg.rollout, "rollout")
     area = navmap.navigable_area()
     n = cfg.per_scene if cfg.per_scene is not None else episode_capacity(area, scfg)
-    rng = _rng(cfg.seed, inputs.name)
+    rng = named_rng(cfg.seed, inputs.name)
     sim = NeuralSimulator(navmap, graph)
     follower = OracleFollower(sim.planner)
     n_plans = int(math.ceil(n * scfg.plan_oversample))
@@ -523,7 +526,7 @@ def process_scene(
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    fov = (90.0, 90.0) if cfg.view == "pinhole" else (180.0, 118.0)  # the stored observation's
+    fov = _field_of_view(_observation_spec(cfg, pano_height=64))  # the stored observation's
     goal_view = VisibilityConfig(
         max_distance=cfg.goal_view_distance,
         hfov_deg=fov[0],

@@ -194,8 +194,7 @@ def _goal_candidates(graph, objects: Sequence, config: SamplingConfig, to_map, s
     from scipy.sparse.csgraph import dijkstra  # directed=True on the symmetric matrix: no conversion
 
     nodes = graph.nodes
-    comp = graph.components
-    in_main = np.nonzero(comp == int(np.bincount(comp).argmax()))[0]  # every plan must be reachable
+    in_main = graph.largest_component_nodes  # every plan must be reachable
     conv = (lambda p: np.asarray(p, float)) if to_map is None else to_map
     obj_info = []
     for o in objects:
@@ -402,8 +401,7 @@ def sample_path_plans(
     if graph.num_nodes == 0:
         stats["no_nodes"] += 1
         return [], dict(stats)
-    comp = graph.components
-    in_main = np.nonzero(comp == int(np.bincount(comp).argmax()))[0]
+    in_main = graph.largest_component_nodes
     clear = graph.clearance[in_main] >= graph.embodiment.radius + config.path_endpoint_margin
     if clear.any():
         in_main = in_main[clear]

@@ -563,6 +563,15 @@ def patchify_batch(images: Sequence[np.ndarray], processor) -> tuple[torch.Tenso
     return pixel_values, grid
 
 
+TRAINING_ONLY_KEYS = ("episode_ids", "goal_in_view", "image_end")
+"""Entries of a :class:`NavCollator` batch for the training module (losses, logging), not the model."""
+
+
+def model_inputs(batch: dict) -> dict:
+    """The entries of a collated batch that the model's forward takes."""
+    return {k: v for k, v in batch.items() if k not in TRAINING_ONLY_KEYS}
+
+
 class NavCollator:
     """Turns :class:`NavSample` lists into padded Qwen3-VL batches with action-only labels.
 

@@ -24,7 +24,13 @@ import lightning as L
 import numpy as np
 import torch
 from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
-from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, NavShardDataset, sample_options
+from image2sim.navpolicy.data import (
+    InMemoryNavDataset,
+    NavCollator,
+    NavShardDataset,
+    model_inputs,
+    sample_options,
+)
 from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler
@@ -241,10 +247,6 @@ def action_accuracy(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return (pred[mask] == tgt[mask]).float().mean()
 
 
-_NON_MODEL_KEYS = ("episode_ids", "goal_in_view", "image_end")
-"""Batch entries for the training module, not for the model's forward."""
-
-
 class NavBCModule(L.LightningModule):
     """Behaviour cloning: cross-entropy on the action tokens of interleaved image/action prompts."""
 
@@ -328,7 +330,7 @@ class NavBCModule(L.LightningModule):
         return batch
 
     def forward(self, batch):
-        inputs = {k: v for k, v in batch.items() if k not in _NON_MODEL_KEYS}
+        inputs = model_inputs(batch)
         if self.goal_head is not None and "goal_in_view" in batch:
             inputs["output_hidden_states"] = True
         return self.model(**inputs)

@@ -34,26 +34,18 @@ def pretrain_vision_cmd(
 ) -> None:
     """Teach the vision tower which categories each token's cell shows; set model.vision_weights to
     the output folder to start a policy from it (docs/navpolicy.md)."""
-    import torch
-    from image2sim.navpolicy.config import ConfigError, load_config
     from image2sim.navpolicy.vision_pretrain import VisionPretrainConfig, pretrain_vision
 
-    if threads:
-        torch.set_num_threads(threads)
-    try:
-        cfg = load_config(config)
-        pcfg = VisionPretrainConfig(
+    report = _run(
+        pretrain_vision,
+        config,
+        views,
+        out,
+        threads,
+        lambda: VisionPretrainConfig(
             steps=steps, batch_size=batch_size, lr=lr, seed=seed, train_tower=not probe_only
-        ).validate()
-    except (ConfigError, ValueError) as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    if out.exists():
-        raise typer.BadParameter(f"{out} exists; choose another --out or delete it", param_hint="--out")
-    try:
-        report = pretrain_vision(cfg, views, out, pcfg, progress=True)
-    except (FileNotFoundError, ValueError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+        ),
+    )
     typer.echo(json.dumps({"out": str(out), **report["final"], "seconds": round(report["seconds"], 1)}))
 
 
@@ -73,22 +65,37 @@ def pretrain_grounding_cmd(
 ) -> None:
     """Teach the policy to tell whether the object its instruction names is in view (one view per
     question), before behaviour cloning (docs/navpolicy.md)."""
+    from image2sim.navpolicy.vision_pretrain import GroundingConfig, pretrain_grounding
+
+    report = _run(
+        pretrain_grounding,
+        config,
+        views,
+        out,
+        threads,
+        lambda: GroundingConfig(steps=steps, batch_size=batch_size, lr=lr, seed=seed),
+    )
+    typer.echo(json.dumps({"out": str(out), **report["final"]}))
+
+
+def _run(stage, config: str, views: Path, out: Path, threads: int, make_stage_config) -> dict:
+    """The two pretraining commands' shell: threads, the policy config and the stage's config checked
+    (bad values are usage errors), a fresh --out, then ``stage(policy config, views, out, stage
+    config)``; missing or bad inputs end with exit code 2 and the message."""
     import torch
     from image2sim.navpolicy.config import ConfigError, load_config
-    from image2sim.navpolicy.vision_pretrain import GroundingConfig, pretrain_grounding
 
     if threads:
         torch.set_num_threads(threads)
     try:
         cfg = load_config(config)
-        gcfg = GroundingConfig(steps=steps, batch_size=batch_size, lr=lr, seed=seed).validate()
+        stage_cfg = make_stage_config().validate()
     except (ConfigError, ValueError) as exc:
         raise typer.BadParameter(str(exc)) from exc
     if out.exists():
         raise typer.BadParameter(f"{out} exists; choose another --out or delete it", param_hint="--out")
     try:
-        report = pretrain_grounding(cfg, views, out, gcfg, progress=True)
+        return stage(cfg, views, out, stage_cfg, progress=True)
     except (FileNotFoundError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    typer.echo(json.dumps({"out": str(out), **report["final"]}))

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from image2sim.dataengine.seeding import named_rng
 
 __all__ = ["VIEWS_FORMAT", "ViewsConfig", "render_views", "write_views", "load_views"]
 
@@ -51,11 +52,6 @@ class ViewsConfig:
         return self
 
 
-def _rng(seed: int, name: str) -> np.random.Generator:
-    # Per-house stream independent of the other houses and of their order.
-    return np.random.default_rng([int(seed), *name.encode()])
-
-
 def render_views(capture_dir: str | Path, config: ViewsConfig) -> dict[str, np.ndarray]:
     """``config.per_scene`` random agent views of one procedural capture's house (module docstring)."""
     from image2sim.dataengine.procedural.exact import capture_navigation, procedural_scene_of
@@ -72,12 +68,10 @@ def render_views(capture_dir: str | Path, config: ViewsConfig) -> dict[str, np.n
     navmap, graph = capture_navigation(capture_dir, procedural=True)
     if graph.num_nodes == 0:
         raise ValueError(f"{capture_dir}: the navigation graph is empty, so there is no pose to view from")
-    # Nodes of the largest component: where episodes start (an isolated node may be under furniture).
-    comp = graph.components
-    main = np.nonzero(comp == np.bincount(comp).argmax())[0]
+    main = graph.largest_component_nodes  # where episodes start
     spec = ObservationSpec(panorama=False, pinhole=True, pinhole_size=cfg.size, pinhole_hfov_deg=cfg.hfov_deg)
     sim = NeuralSimulator(navmap, graph, render_fn, spec)
-    rng = _rng(cfg.seed, Path(capture_dir).name)
+    rng = named_rng(cfg.seed, Path(capture_dir).name)
     nodes = graph.nodes[rng.choice(main, size=cfg.per_scene)]
     headings = rng.uniform(-np.pi, np.pi, size=cfg.per_scene)
     rgb = np.empty((cfg.per_scene, cfg.size, cfg.size, 3), np.uint8)

@@ -244,6 +244,15 @@ class NavGraph:
             _, self._components = connected_components(self.length_matrix, directed=False)
         return self._components
 
+    @property
+    def largest_component_nodes(self) -> np.ndarray:
+        """Ids of the nodes in the largest connected component (sorted; empty for an empty graph):
+        where episodes start and end, since an isolated node may stand under furniture."""
+        if self.num_nodes == 0:
+            return np.zeros(0, dtype=np.int64)
+        comp = self.components
+        return np.nonzero(comp == int(np.bincount(comp).argmax()))[0]
+
     def snap(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest node of map-frame feet positions (N, 3) -> (node ids (N,), horizontal offsets (N,)).
 
