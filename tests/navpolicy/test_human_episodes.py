@@ -357,3 +357,34 @@ def test_bc_draws_by_shard_weights_and_the_cli_sets_them(two_shards, tmp_path):
     assert seen != episodes(PositionDataset(ds, 0))  # not the unweighted order
     res = CliRunner().invoke(app, ["train", "--stage", "dagger", *args[1:], "--out", str(tmp_path / "d")])
     assert res.exit_code == 2 and "behaviour cloning" in _said(res)
+
+
+def test_cli_set_overrides_reach_the_saved_config_and_bad_ones_are_usage_errors(two_shards, tmp_path):
+    """`nav train --set KEY=VALUE` overrides any config field (checked like the YAML's keys)."""
+    from image2sim.navpolicy.cli import app
+    from image2sim.simulator.config import read_mapping
+    from typer.testing import CliRunner
+
+    big, _ = two_shards
+    cfg = tmp_path / "small.yaml"
+    cfg.write_text(
+        "base: tiny\ndata:\n  max_observations: 2\n  max_action_labels: 4\ntrain:\n  batch_size: 2\n"
+    )
+    args = ["train", "--shard", str(big), "--config", str(cfg), "--threads", "1"]
+    out = tmp_path / "run"
+    sets = ["--set", "train.seed=3", "--set", "data.shuffle_instructions=true", "--set", "train.batch_size=1"]
+    res = CliRunner().invoke(app, [*args, *sets, "--max-steps", "1", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    saved = read_mapping(out / "config.yaml")
+    assert (
+        saved["train"]["seed"] == 3 and saved["train"]["batch_size"] == 1 and saved["train"]["max_steps"] == 1
+    )
+    assert saved["data"]["shuffle_instructions"] is True and saved["data"]["max_observations"] == 2
+    for bad, said in (
+        ("train.seed", "KEY=VALUE"),
+        ("train.nope=1", "train.nope"),
+        ("train.seed=x", "train.seed"),
+    ):
+        res = CliRunner().invoke(app, [*args, "--set", bad, "--out", str(tmp_path / "bad")])
+        assert res.exit_code == 2 and said in _said(res), (bad, _said(res))
+    assert not (tmp_path / "bad").exists()

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from image2sim.simulator.config import merge_overrides
 
 app = typer.Typer(help="Navigation policy (Image2Nav): train, DAgger, run.", no_args_is_help=True)
 
@@ -16,6 +17,16 @@ def _gather_commands() -> None:
     from image2sim.navpolicy import vision_cli
 
     app.registered_commands.extend(vision_cli.app.registered_commands)
+
+
+def _set_overrides(items: list[str]) -> dict:
+    """``--set KEY=VALUE`` options as nested overrides (a malformed one is a usage error)."""
+    from image2sim.simulator.config import ConfigError, parse_overrides
+
+    try:
+        return parse_overrides(items)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--set") from exc
 
 
 def _config(config: str, overrides: dict | None = None):
@@ -227,6 +238,14 @@ def train_cmd(
     wandb_project: Annotated[
         str, typer.Option(help="W&B project (params: tracking.project; '' = train.wandb_project).")
     ] = "",
+    sets: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="Config override KEY=VALUE (dotted key, YAML value; repeatable; applied after --config, "
+            "before the other options), e.g. --set train.seed=1 --set data.shuffle_instructions=true.",
+        ),
+    ] = None,
 ) -> None:
     """Train the policy. Writes config.yaml, CSV/W&B logs, checkpoints and a merged export.
 
@@ -234,6 +253,7 @@ def train_cmd(
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
     """
     tracking = _tracking_overrides(wandb, wandb_project)
+    base = _set_overrides(sets or [])
     shards = expand_shard_folders(shards or [])
     if stage == "dagger":
         episode_source = None
@@ -260,11 +280,12 @@ def train_cmd(
             fresh,
             episode_source,
             tracking,
+            base,
         )
         return
     if stage != "bc":
         raise typer.BadParameter(f"unknown stage {stage!r}; use bc or dagger", param_hint="--stage")
-    overrides: dict = {"train": dict(tracking)} if tracking else {}
+    overrides = merge_overrides(base, {"train": dict(tracking)} if tracking else {})
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if shard_weights:
@@ -341,10 +362,11 @@ def _train_dagger(
     fresh=False,
     episode_source=None,
     tracking: dict | None = None,
+    base: dict | None = None,
 ) -> None:
     import torch
 
-    overrides: dict = {"train": dict(tracking)} if tracking else {}
+    overrides = merge_overrides(base or {}, {"train": dict(tracking)} if tracking else {})
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if max_steps:

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import types
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -21,6 +22,8 @@ T = TypeVar("T")
 __all__ = [
     "ConfigError",
     "merge_config",
+    "merge_overrides",
+    "parse_overrides",
     "config_from_dict",
     "config_to_dict",
     "load_config",
@@ -118,6 +121,49 @@ def merge_config(base: T, data: Mapping[str, Any] | None, where: str = "") -> T:
         raise
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{where or type(base).__name__}: {err}") from err
+
+
+_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)")
+
+
+def parse_overrides(items: Sequence[str], where: str = "--set") -> dict[str, Any]:
+    """Nested overrides from ``KEY=VALUE`` strings (dotted keys, YAML values): ``["train.seed=1",
+    "data.shuffle_instructions=true"]`` -> ``{"train": {"seed": 1}, "data": {"shuffle_instructions":
+    True}}``. Keys and types are checked later, by :func:`merge_config`, against the config itself."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(parts):
+            raise ConfigError(f"{where} {item!r}: expected KEY=VALUE with a dotted KEY, e.g. train.seed=1")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as err:
+            raise ConfigError(f"{where} {item!r}: the value is not YAML ({err})") from None
+        if isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+            value = float(value)  # YAML 1.1 reads 2e-3 (no dot) as a string
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{where} {item!r}: {part} is set to a value and used as a section")
+        if isinstance(node.get(parts[-1]), dict):
+            raise ConfigError(f"{where} {item!r}: {key} is a section, set its fields instead")
+        node[parts[-1]] = value
+    return out
+
+
+def merge_overrides(base: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``extra`` merged in, section by section (``extra`` wins)."""
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merge_overrides(dict(out[key]), value)
+        else:
+            out[key] = value
+    return out
 
 
 def config_from_dict(cls: type[T], data: Mapping[str, Any] | None, where: str = "") -> T:
