@@ -78,6 +78,8 @@ image2sim eval sim2real \
   --row random=random@"$O"/eval/baselines/nav.json \
   --row forward=forward@"$O"/eval/baselines/nav.json \
   --row oracle=oracle@"$O"/eval/baselines/nav.json \
+  --row neural_bc=image2nav@"$O"/scaling/hall/nav.json \
+  --row blind=image2nav@"$O"/eval/blind/nav.json \
   --policy neural="$O"/policies/neural/dagger/export \
   --policy splat_only="$O"/policies/splat_only/dagger/export \
   --policy exact="$O"/policies/exact/dagger/export \

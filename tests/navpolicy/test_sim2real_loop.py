@@ -295,6 +295,26 @@ def test_gather_reports_rows_gap_trend_and_the_target(tmp_path):
     assert (tmp_path / "p.png").stat().st_size > 1000
 
 
+def test_instruction_check_compares_the_policy_with_its_instruction_blind_control(tmp_path):
+    from image2sim.eval.sim2real import gather, write_outputs
+
+    def rows(policy_hits, blind_hits):
+        return {
+            "neural_bc": {"doc": _nav_doc({"image2nav": (policy_hits, 200)}), "agent": "image2nav"},
+            "blind": {"doc": _nav_doc({"image2nav": (blind_hits, 200)}), "agent": "image2nav"},
+        }
+
+    close = gather(rows(36, 30))["checks"]["instruction"]
+    assert close["sr_difference"] == pytest.approx(3.0) and close["intervals_separated"] is False
+    far = gather(rows(90, 30))["checks"]["instruction"]
+    assert far["intervals_separated"] is True and far["sr_ratio"] == pytest.approx(3.0)
+    assert "instruction" not in gather({"neural_bc": rows(1, 1)["neural_bc"]})["checks"]
+    doc = gather(rows(36, 30))
+    write_outputs(doc, tmp_path / "m.json", tmp_path / "r.md", tmp_path / "p.png")
+    text = (tmp_path / "r.md").read_text()
+    assert "| blind | 15.0" in text and "+3.0 points" in text and "no measurable instruction following" in text
+
+
 def test_gather_refuses_rows_under_different_protocols():
     from image2sim.eval.sim2real import gather
 

@@ -26,7 +26,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ROWS", "gather", "row_from_nav", "scaling_trend", "sim2real_markdown", "write_outputs"]
+__all__ = [
+    "ROWS",
+    "gather",
+    "instruction_check",
+    "row_from_nav",
+    "scaling_trend",
+    "sim2real_markdown",
+    "write_outputs",
+]
 
 ROWS = ("neural", "splat_only", "exact", "random", "forward")
 """Rows of the transfer table: the three training sources and the two baselines."""
@@ -128,6 +136,8 @@ def gather(
     doc["policies"] = dict(policies or {})
     doc["budget"] = dict(budget or {})
     doc["checks"] = {"heldout": target_check(out_rows)}
+    if INSTRUCTION_PAIR[0] in out_rows and INSTRUCTION_PAIR[1] in out_rows:
+        doc["checks"]["instruction"] = instruction_check(out_rows)
     for name, spec in (extra_checks or {}).items():
         extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
         doc["checks"][name] = {**target_check(extra), "rows": extra}
@@ -151,6 +161,29 @@ def target_check(rows: Mapping[str, Mapping[str, Any]], policy: str = "neural") 
         "twice_best_baseline": bool(twice),
         "intervals_separated": bool(separated),
         "met": bool(twice and separated),
+    }
+
+
+INSTRUCTION_PAIR = ("neural_bc", "blind")
+"""(policy, control) of the instruction check: the neural row's behaviour-cloning policy and the same
+BC on the same episodes with every trajectory told another one's instruction."""
+
+
+def instruction_check(
+    rows: Mapping[str, Mapping[str, Any]],
+    policy: str = INSTRUCTION_PAIR[0],
+    control: str = INSTRUCTION_PAIR[1],
+) -> dict:
+    """Does the policy gain from reading its instruction? Its SR against the instruction-blind
+    control trained the same way: the difference, the ratio, and whether the 95 % intervals are
+    disjoint (the only case that shows reading)."""
+    p, c = rows[policy], rows[control]
+    return {
+        "policy": policy,
+        "control": control,
+        "sr_difference": p["sr"] - c["sr"],
+        "sr_ratio": p["sr"] / c["sr"] if c["sr"] > 0 else (math.inf if p["sr"] > 0 else None),
+        "intervals_separated": bool(p["sr_ci"][0] > c["sr_ci"][1]),
     }
 
 
@@ -181,6 +214,19 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
             "",
         ]
     for name, chk in doc.get("checks", {}).items():
+        if name == "instruction":
+            diff = chk["sr_difference"]
+            verdict = (
+                "disjoint: the policy reads its instruction"
+                if chk["intervals_separated"]
+                else "overlap: no measurable instruction following"
+            )
+            out.append(
+                f"Check `instruction`: `{chk['policy']}` SR - `{chk['control']}` SR (the same BC with "
+                f"shuffled instructions) = {'+' if diff >= 0 else ''}{_fmt(diff)} points; "
+                f"intervals {verdict}."
+            )
+            continue
         if chk.get("met") is None:
             continue
         out.append(
