@@ -99,6 +99,27 @@ def test_random_and_forward_baselines_are_much_worse(scene):
     assert fwd["steps"] == 7.0
 
 
+def test_episode_outcomes_split_every_goal_episode_into_one_ending():
+    from image2sim.eval.metrics.nav import EpisodeResult
+    from image2sim.eval.nav_summary import OUTCOMES, episode_outcomes
+
+    ids = iter(range(100))
+
+    def result(success, oracle, steps):
+        m = {"success": success, "oracle_success": oracle, "steps": steps}
+        return EpisodeResult(f"e{next(ids)}", m, PROTO)
+
+    cap = PROTO.max_steps
+    rs = [result(1.0, 1.0, 20), result(0.0, 1.0, 30), result(0.0, 0.0, 12), result(0.0, 0.0, 12)]
+    rs += [result(0.0, 0.0, cap), result(None, None, 5)]  # the last has no goal: not counted
+    got = episode_outcomes(rs)
+    assert got == {"success": 0.2, "passed_goal": 0.2, "stopped_short": 0.4, "out_of_steps": 0.2}
+    assert set(got) == set(OUTCOMES) and episode_outcomes([result(None, None, 5)]) is None
+    summary = nav_summary(rs[:5])
+    assert summary["outcomes"]["success"] == pytest.approx(summary["sr"])
+    assert "| forward | 20.0 | 20.0 | 40.0 | 20.0 |" in nav_markdown({"agents": {"forward": summary}})
+
+
 def test_episode_trajectory_is_a_function_of_its_seed(scene):
     _, sim, episodes = scene
     backend = NeuralSimBackend(sim, PROTO)

@@ -309,9 +309,15 @@ def test_instruction_check_compares_the_policy_with_its_instruction_blind_contro
     far = gather(rows(90, 30))["checks"]["instruction"]
     assert far["intervals_separated"] is True and far["sr_ratio"] == pytest.approx(3.0)
     assert "instruction" not in gather({"neural_bc": rows(1, 1)["neural_bc"]})["checks"]
-    doc = gather(rows(36, 30))
+    both = rows(36, 30)
+    outcomes = {"success": 0.15, "passed_goal": 0.05, "stopped_short": 0.7, "out_of_steps": 0.1}
+    both["blind"]["doc"]["agents"]["image2nav"]["outcomes"] = outcomes
+    doc = gather(both)
+    assert doc["rows"]["blind"]["outcomes"]["stopped_short"] == pytest.approx(70.0)
+    assert doc["rows"]["neural_bc"]["outcomes"] is None  # an evaluation made before outcomes existed
     write_outputs(doc, tmp_path / "m.json", tmp_path / "r.md", tmp_path / "p.png")
     text = (tmp_path / "r.md").read_text()
+    assert "| 5.0 | 70.0 |" in text and "| 200 | n/a | n/a |" in text
     assert "| blind | 15.0" in text and "+3.0 points" in text and "no measurable instruction following" in text
 
 

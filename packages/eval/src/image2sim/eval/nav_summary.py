@@ -18,7 +18,9 @@ from image2sim.eval.protocols import Protocol
 from image2sim.eval.results import read_result_file, result_document, write_metrics_file
 
 __all__ = [
+    "OUTCOMES",
     "bootstrap_ci",
+    "episode_outcomes",
     "nav_markdown",
     "nav_summary",
     "update_nav_metrics",
@@ -59,11 +61,38 @@ def bootstrap_ci(
     return (float(np.quantile(means, a)), float(np.quantile(means, 1.0 - a)))
 
 
+OUTCOMES = ("success", "passed_goal", "stopped_short", "out_of_steps")
+"""How an episode ends: within the success distance; came within it at some point but ended
+elsewhere; never came within it and stopped before the step limit; never came within it and ran out
+of steps. Where failures sit tells what to fix: a policy that mostly stops short needs to travel and
+search, one that passes the goal needs to recognise it."""
+
+
+def episode_outcomes(results: Sequence[EpisodeResult]) -> dict[str, float] | None:
+    """Fraction of the goal-bearing episodes in each of :data:`OUTCOMES` (None without any)."""
+    counts = dict.fromkeys(OUTCOMES, 0)
+    for r in results:
+        m = r.metrics
+        if m.get("success") is None or m.get("oracle_success") is None:
+            continue
+        if m["success"]:
+            counts["success"] += 1
+        elif m["oracle_success"]:
+            counts["passed_goal"] += 1
+        elif (m.get("steps") or 0) >= r.protocol.max_steps:
+            counts["out_of_steps"] += 1
+        else:
+            counts["stopped_short"] += 1
+    n = sum(counts.values())
+    return {k: v / n for k, v in counts.items()} if n else None
+
+
 def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str, Any]:
     """Headline record of one agent for ``metrics/nav.json``.
 
     ``sr``, ``spl``, ``ne``, ``osr``, ``ndtw`` (None when no episode has a reference path), ``sdtw``,
-    ``path_length``, ``steps``, ``n_episodes``, ``sr_ci`` (Wilson 95 %) and ``spl_ci`` (bootstrap 95 %).
+    ``path_length``, ``steps``, ``n_episodes``, ``sr_ci`` (Wilson 95 %), ``spl_ci`` (bootstrap 95 %)
+    and ``outcomes`` (:func:`episode_outcomes`).
     On episodes without a goal (a test split) every goal metric and interval is None (n/a), never 0.
     """
     report = aggregate(results)
@@ -89,6 +118,7 @@ def nav_summary(results: Sequence[EpisodeResult], ci_seed: int = 0) -> dict[str,
         "ne_approximate": mean("ne_approximate"),
         "sr_ci": list(wilson_interval(sum(sr_vals), len(sr_vals))) if sr_vals else None,
         "spl_ci": list(bootstrap_ci(spl_vals, seed=ci_seed)) if spl_vals else None,
+        "outcomes": episode_outcomes(results),
         "ci_method": {"sr_ci": "wilson 95%", "spl_ci": "percentile bootstrap 95%, 2000 resamples"},
     }
 
@@ -138,6 +168,16 @@ def nav_markdown(doc: Mapping[str, Any]) -> str:
         )
     proto = doc.get("protocol") or {}
     text = "\n".join(lines) + "\n"
+    outcomes = {n: a["outcomes"] for n, a in agents.items() if a.get("outcomes")}
+    if outcomes:
+        head = " | ".join(f"{k} %" for k in OUTCOMES)
+        text += f"\n| Agent | {head} |\n|---|" + "---:|" * len(OUTCOMES)
+        for n, o in outcomes.items():
+            text += f"\n| {n} | " + " | ".join(f"{100 * o[k]:.1f}" for k in OUTCOMES) + " |"
+        text += (
+            "\n\nOutcomes: ended within the success distance; passed within it but ended elsewhere; "
+            "never within it, stopped; never within it, out of steps.\n"
+        )
     approx = {n: a["ne_approximate"] for n, a in agents.items() if a.get("ne_approximate")}
     if approx:
         shares = ", ".join(f"{n} {100 * v:.1f}%" for n, v in approx.items())

@@ -61,6 +61,8 @@ def row_from_nav(doc: Mapping[str, Any], agent: str, where: str = "nav.json") ->
         "ne": a.get("ne"),
         "steps": a.get("steps"),
         "episodes": int(a["n_episodes"]),
+        # how the episodes end (percent; nav_summary.OUTCOMES), None for evaluations made before it
+        "outcomes": {k: _pct(v) for k, v in a["outcomes"].items()} if a.get("outcomes") else None,
     }
 
 
@@ -197,15 +199,25 @@ def _ci(c: Sequence[Any]) -> str:
 
 def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> str:
     """The report's tables (rows, gap, scaling, checks) from a :func:`gather` document."""
-    lines = ["| policy / baseline | SR % [95% CI] | SPL % [95% CI] | nDTW % | NE (m) | steps | episodes |"]
-    lines.append("|---|---|---|---:|---:|---:|---:|")
+    lines = [
+        "| policy / baseline | SR % [95% CI] | SPL % [95% CI] | nDTW % | NE (m) | steps | episodes "
+        "| passed the goal % | stopped short % |"
+    ]
+    lines.append("|---|---|---|---:|---:|---:|---:|---:|---:|")
     for name in [r for r in ROWS if r in doc["rows"]] + [r for r in doc["rows"] if r not in ROWS]:
         r = doc["rows"][name]
+        o = r.get("outcomes") or {}
         lines.append(
             f"| {name} | {_fmt(r['sr'])} {_ci(r['sr_ci'])} | {_fmt(r['spl'])} {_ci(r['spl_ci'])} | "
-            f"{_fmt(r['ndtw'])} | {_fmt(r['ne'], 2)} | {_fmt(r['steps'])} | {r['episodes']} |"
+            f"{_fmt(r['ndtw'])} | {_fmt(r['ne'], 2)} | {_fmt(r['steps'])} | {r['episodes']} | "
+            f"{_fmt(o.get('passed_goal'))} | {_fmt(o.get('stopped_short'))} |"
         )
     out = ["## Transfer to held-out houses (exact renderer)", "", *lines, ""]
+    out += [
+        "Passed the goal: came within the success distance but ended elsewhere; stopped short: never "
+        "came within it and stopped (n/a: evaluated before outcomes were recorded).",
+        "",
+    ]
     if doc.get("gap"):
         g = doc["gap"]
         out += [
