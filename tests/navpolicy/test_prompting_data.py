@@ -304,7 +304,7 @@ def test_streaming_config_is_validated(tiny_cfg):
     with pytest.raises(ConfigError, match="sparse_frames"):
         cfg.validate()
     cfg.data.sampling = "random"
-    with pytest.raises(ConfigError, match="uniform or streaming"):
+    with pytest.raises(ConfigError, match="data.sampling must be one of uniform, streaming"):
         cfg.validate()
 
 

@@ -163,3 +163,37 @@ def test_parse_overrides_nests_dotted_keys_and_parses_yaml_values():
         items = ["train.seed=1", bad] if bad == "train=1" else [bad]
         with pytest.raises(ConfigError, match="--set"):
             parse_overrides(items)
+
+
+def test_field_checks_name_the_dotted_field_and_the_value():
+    import math
+    from dataclasses import dataclass, field
+
+    from image2sim.simulator.config import require_at_least, require_in_range, require_one_of
+
+    @dataclass
+    class Inner:
+        p: float = 0.5
+        mode: str = "a"
+
+    @dataclass
+    class Outer:
+        steps: int = 3
+        inner: Inner = field(default_factory=Inner)
+
+    cfg = Outer()
+    require_at_least(cfg, ("steps", "inner.p"), 0)
+    require_in_range(cfg, "inner.p", 0.0, 1.0)
+    require_one_of(cfg, "inner.mode", ("a", "b"))
+    with pytest.raises(ConfigError, match=r"x: steps must be >= 4, got 3"):
+        require_at_least(cfg, "steps", 4, where="x: ")
+    cfg.inner.p = math.nan  # nan passes no bound
+    with pytest.raises(ConfigError, match=r"inner.p must be >= 0, got nan"):
+        require_at_least(cfg, "inner.p", 0)
+    for value, kwargs in ((1.0, {"high_open": True}), (0.0, {"low_open": True}), (1.5, {})):
+        cfg.inner.p = value
+        with pytest.raises(ConfigError, match=r"inner.p must lie in [\[(]0.0, 1.0[\])]"):
+            require_in_range(cfg, "inner.p", 0.0, 1.0, **kwargs)
+    cfg.inner.mode = "c"
+    with pytest.raises(ValueError, match="inner.mode must be one of a, b; got 'c'"):  # ConfigError is one
+        require_one_of(cfg, "inner.mode", ("a", "b"))

@@ -13,7 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from image2sim.simulator.config import ConfigError  # one error type repository-wide
+from image2sim.simulator.config import (  # one error type and field checks repository-wide
+    ConfigError,
+    require_at_least,
+    require_in_range,
+    require_one_of,
+)
 from image2sim.simulator.markers import GoalMarker
 
 
@@ -330,23 +335,14 @@ class NavPolicyConfig:
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
-        if not (math.isfinite(self.train.goal_aux_weight) and self.train.goal_aux_weight >= 0):
-            raise ConfigError(f"train.goal_aux_weight must be >= 0, got {self.train.goal_aux_weight}")
-        if self.train.val_every < 1 or self.train.val_batches < 1:
-            raise ConfigError(
-                f"train.val_every and train.val_batches must be >= 1, got {self.train.val_every}, "
-                f"{self.train.val_batches}"
-            )
-        if self.data.sampling not in ("uniform", "streaming"):
-            raise ConfigError(f"data.sampling must be uniform or streaming, not {self.data.sampling!r}")
+        require_at_least(self, "train.goal_aux_weight", 0)
+        require_at_least(self, ("train.val_every", "train.val_batches", "data.observation_stride"), 1)
+        require_one_of(self, "data.sampling", ("uniform", "streaming"))
         if self.data.max_trajectories is not None and (
             self.data.max_trajectories < 1 or self.data.shard_weights
         ):
             raise ConfigError("data.max_trajectories must be >= 1 and cannot be used with data.shard_weights")
-        if not 0.0 <= self.data.end_cut_probability <= 1.0:
-            raise ConfigError(
-                f"data.end_cut_probability must lie in [0, 1], got {self.data.end_cut_probability}"
-            )
+        require_in_range(self, "data.end_cut_probability", 0.0, 1.0)
         if self.data.sampling == "streaming" and (
             self.agent.sparse_frames + self.agent.dense_frames
             > min(self.data.max_observations, self.data.max_action_labels // 2)
@@ -355,34 +351,22 @@ class NavPolicyConfig:
                 "data.sampling streaming: agent.sparse_frames + agent.dense_frames must fit "
                 "data.max_observations (and data.max_action_labels / 2)"
             )
-        if self.data.observation_stride < 1:
-            raise ConfigError(f"data.observation_stride must be >= 1, got {self.data.observation_stride}")
-        if self.observation.camera not in ("pinhole", "equirect"):
-            raise ConfigError(
-                f"observation.camera must be pinhole or equirect, not {self.observation.camera!r}"
-            )
+        require_one_of(self, "observation.camera", ("pinhole", "equirect"))
         if self.agent.sparse_frames < 0 or self.agent.dense_frames < 1:
             raise ConfigError("agent.dense_frames must be >= 1 and agent.sparse_frames >= 0")
-        if self.agent.fallback_action not in (0, 1, 2, 3):
-            raise ConfigError(f"agent.fallback_action {self.agent.fallback_action} is not an action id 0..3")
-        if self.train.strategy not in ("auto", "ddp", "deepspeed_zero2"):
-            raise ConfigError(f"train.strategy {self.train.strategy!r} is not auto, ddp or deepspeed_zero2")
+        require_one_of(self, "agent.fallback_action", (0, 1, 2, 3))
+        require_one_of(self, "train.strategy", ("auto", "ddp", "deepspeed_zero2"))
         d = self.dagger
-        if d.observe_every < 1:
-            raise ConfigError(f"dagger.observe_every must be >= 1, got {d.observe_every}")
+        require_at_least(self, "dagger.observe_every", 1)
         if not 1 <= d.chunk_min <= d.chunk_max:
             raise ConfigError(
                 f"dagger.chunk_min/chunk_max must satisfy 1 <= min <= max, got {d.chunk_min}, {d.chunk_max}"
             )
-        for name in ("model_probability", "final_model_probability"):
-            if not 0.0 <= getattr(d, name) <= 1.0:
-                raise ConfigError(f"dagger.{name} must lie in [0, 1], got {getattr(d, name)}")
-        if d.schedule not in ("constant", "linear", "exponential"):
-            raise ConfigError(f"dagger.schedule {d.schedule!r} is not constant, linear or exponential")
-        if d.rounds < 1 or d.episodes_per_round < 1 or d.max_steps < 1 or d.train_steps_per_round < 0:
-            raise ConfigError("dagger.rounds, episodes_per_round, max_steps must be >= 1 (train steps >= 0)")
-        if self.model.dtype not in ("float32", "bfloat16", "float16"):
-            raise ConfigError(f"model.dtype {self.model.dtype!r} is not float32, bfloat16 or float16")
+        require_in_range(self, ("dagger.model_probability", "dagger.final_model_probability"), 0.0, 1.0)
+        require_one_of(self, "dagger.schedule", ("constant", "linear", "exponential"))
+        require_at_least(self, ("dagger.rounds", "dagger.episodes_per_round", "dagger.max_steps"), 1)
+        require_at_least(self, "dagger.train_steps_per_round", 0)
+        require_one_of(self, "model.dtype", ("float32", "bfloat16", "float16"))
         return self
 
     def _validate_shard_weights(self) -> None:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from image2sim.simulator.config import require_at_least, require_in_range
 
 __all__ = [
     "VisionPretrainConfig",
@@ -68,13 +69,10 @@ class VisionPretrainConfig:
     """Seed of the tower's initialisation, the batch order and the flips."""
 
     def validate(self) -> VisionPretrainConfig:
-        for name in ("steps", "batch_size", "eval_every", "min_pixels"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"pretrain-vision: {name} must be >= 1, got {getattr(self, name)}")
-        if not 0.0 < self.val_fraction < 1.0:
-            raise ValueError(f"pretrain-vision: val_fraction must lie in (0, 1), got {self.val_fraction}")
-        if not self.lr > 0:
-            raise ValueError(f"pretrain-vision: lr must be > 0, got {self.lr}")
+        where = "pretrain-vision: "
+        require_at_least(self, ("steps", "batch_size", "eval_every", "min_pixels"), 1, where)
+        require_in_range(self, "val_fraction", 0.0, 1.0, low_open=True, high_open=True, where=where)
+        require_in_range(self, "lr", 0.0, math.inf, low_open=True, high_open=True, where=where)
         return self
 
 
@@ -293,11 +291,11 @@ class GroundingConfig:
     """Seed of the questions and of the head's initialisation."""
 
     def validate(self) -> GroundingConfig:
-        for name in ("steps", "batch_size", "eval_every", "min_pixels", "val_questions"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"pretrain-grounding: {name} must be >= 1, got {getattr(self, name)}")
-        if not 0.0 < self.val_fraction < 1.0:
-            raise ValueError(f"pretrain-grounding: val_fraction must lie in (0, 1), got {self.val_fraction}")
+        where = "pretrain-grounding: "
+        names = ("steps", "batch_size", "eval_every", "min_pixels", "val_questions")
+        require_at_least(self, names, 1, where)
+        require_in_range(self, "val_fraction", 0.0, 1.0, low_open=True, high_open=True, where=where)
+        require_in_range(self, "lr", 0.0, math.inf, low_open=True, high_open=True, where=where)
         return self
 
 

@@ -9,6 +9,7 @@ on a preset, rejecting unknown keys and wrong types with the dotted path of the 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 import types
@@ -24,6 +25,9 @@ __all__ = [
     "merge_config",
     "merge_overrides",
     "parse_overrides",
+    "require_at_least",
+    "require_in_range",
+    "require_one_of",
     "config_from_dict",
     "config_to_dict",
     "load_config",
@@ -121,6 +125,53 @@ def merge_config(base: T, data: Mapping[str, Any] | None, where: str = "") -> T:
         raise
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{where or type(base).__name__}: {err}") from err
+
+
+# ------------------------------------------------------------------- field checks for validate()
+# The shapes every config's validate() repeats: a lower bound, an interval, a choice. Each names the
+# dotted field and the value it got; ``where`` prefixes the message (e.g. "pretrain-vision: ").
+
+
+def _field(config: Any, name: str) -> Any:
+    value = config
+    for part in name.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def require_at_least(config: Any, names: str | Sequence[str], low: float, where: str = "") -> None:
+    """Every field in ``names`` (dotted paths on ``config``) is a finite number >= ``low``."""
+    for name in [names] if isinstance(names, str) else names:
+        v = _field(config, name)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= low):
+            raise ConfigError(f"{where}{name} must be >= {low}, got {v!r}")
+
+
+def require_in_range(
+    config: Any,
+    names: str | Sequence[str],
+    low: float,
+    high: float,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    where: str = "",
+) -> None:
+    """Every field in ``names`` lies in the interval from ``low`` to ``high`` (closed unless stated)."""
+    for name in [names] if isinstance(names, str) else names:
+        v = _field(config, name)
+        ok = isinstance(v, (int, float)) and math.isfinite(v)
+        ok = ok and (v > low if low_open else v >= low) and (v < high if high_open else v <= high)
+        if not ok:
+            interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+            raise ConfigError(f"{where}{name} must lie in {interval}, got {v!r}")
+
+
+def require_one_of(config: Any, name: str, choices: Sequence[Any], where: str = "") -> None:
+    """Field ``name`` is one of ``choices``."""
+    v = _field(config, name)
+    if v not in choices:
+        raise ConfigError(f"{where}{name} must be one of {', '.join(map(str, choices))}; got {v!r}")
 
 
 _NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)")

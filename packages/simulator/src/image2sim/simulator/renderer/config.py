@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from image2sim.simulator.config import require_at_least, require_in_range, require_one_of
 from image2sim.simulator.gaussians.config import SemanticConfig
 from image2sim.simulator.trainer import TrainerConfig, check_trainer_config
 
@@ -300,8 +301,7 @@ class RendererConfig:
             )
         if sum(self.distill.level_weights) <= 0:
             raise ValueError("distill.level_weights must not all be zero")
-        if not 0.0 <= self.distill.ema_decay <= 1.0:
-            raise ValueError(f"distill.ema_decay must lie in [0, 1], got {self.distill.ema_decay}")
+        require_in_range(self, ("distill.ema_decay", "meanflow.p_r_equals_t"), 0.0, 1.0)
         mf = self.meanflow
         if len(mf.sigma_small) != 2 or len(mf.sigma_large) != 2:
             raise ValueError("meanflow.sigma_small/sigma_large need (rgb, depth) pairs")
@@ -309,22 +309,15 @@ class RendererConfig:
             raise ValueError("meanflow sigmas must be non-negative")
         if not mf.t_eps > 0:
             raise ValueError(f"meanflow.t_eps must be positive, got {mf.t_eps}")
-        if not 0.0 <= mf.p_r_equals_t <= 1.0:
-            raise ValueError(f"meanflow.p_r_equals_t must lie in [0, 1], got {mf.p_r_equals_t}")
-        if mf.tangent not in ("target", "model"):
-            raise ValueError(f"meanflow.tangent must be 'target' or 'model', got {mf.tangent!r}")
+        require_one_of(self, "meanflow.tangent", ("target", "model"))
         if mf.depth_scale <= 0:
             raise ValueError(f"meanflow.depth_scale must be positive, got {mf.depth_scale}")
-        if mf.sample_steps < 1:
-            raise ValueError(f"meanflow.sample_steps must be >= 1, got {mf.sample_steps}")
+        require_at_least(self, ("meanflow.sample_steps", "curriculum.batch_size"), 1)
         cur = self.curriculum
         if not 0 <= cur.stage2_start <= cur.stage3_start <= cur.total_steps:
             raise ValueError("curriculum needs 0 <= stage2_start <= stage3_start <= total_steps")
-        if cur.batch_size < 1:
-            raise ValueError(f"curriculum.batch_size must be >= 1, got {cur.batch_size}")
         sem = self.semantic
-        if sem.backbone not in ("none", "dinov3"):
-            raise ValueError(f"semantic.backbone must be 'none' or 'dinov3', got {sem.backbone!r}")
+        require_one_of(self, "semantic.backbone", ("none", "dinov3"))
         token_out = self.aligner.target_dim or self.aligner.token_dim
         if sem.backbone != "none" and token_out != sem.dim:
             raise ValueError(
