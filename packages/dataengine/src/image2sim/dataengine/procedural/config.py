@@ -13,7 +13,13 @@ import math
 from dataclasses import dataclass, field, fields
 
 from image2sim.simulator.config import ConfigError as SharedConfigError
-from image2sim.simulator.config import config_to_dict, merge_config
+from image2sim.simulator.config import (
+    config_to_dict,
+    merge_config,
+    require_at_least,
+    require_in_range,
+    require_one_of,
+)
 
 __all__ = [
     "LayoutConfig",
@@ -226,7 +232,7 @@ class SynthConfig:
 
     def validate(self) -> SynthConfig:
         """Raise :class:`ConfigError` naming the first invalid field; return ``self`` when valid."""
-        lay, obj, cap = self.layout, self.objects, self.capture
+        lay, cap = self.layout, self.capture
         _check_finite(self)
         if lay.rooms_min < 1:
             raise ConfigError(f"layout.rooms_min must be >= 1 (a plan needs a room), got {lay.rooms_min}")
@@ -282,27 +288,23 @@ class SynthConfig:
                 f"(2 * capture.agent_radius + 2 * capture.grid_resolution = "
                 f"{2 * cap.agent_radius + 2 * cap.grid_resolution:g} m) or rooms cannot connect"
             )
-        for name in ("corridor_probability", "extra_door_probability"):
-            if not 0.0 <= getattr(lay, name) <= 1.0:
-                raise ConfigError(f"layout.{name} must lie in [0, 1], got {getattr(lay, name)}")
-        if obj.furniture_scale < 0:
-            raise ConfigError(f"objects.furniture_scale must be >= 0, got {obj.furniture_scale}")
-        if obj.small_per_surface_max < 0 or obj.placement_attempts < 1:
-            raise ConfigError(
-                "objects.small_per_surface_max must be >= 0 and objects.placement_attempts >= 1"
-            )
-        if not 0.0 <= obj.small_probability <= 1.0:
-            raise ConfigError(f"objects.small_probability must lie in [0, 1], got {obj.small_probability}")
-        if obj.wall_gap < 0 or obj.door_clearance < 0:
-            raise ConfigError("objects.wall_gap and objects.door_clearance must be >= 0")
-        if cap.views < 1:
-            raise ConfigError(f"capture.views must be >= 1, got {cap.views}")
-        if cap.camera not in ("equirect", "pinhole"):
-            raise ConfigError(f"capture.camera must be 'equirect' or 'pinhole', got {cap.camera!r}")
+        unit = ("layout.corridor_probability", "layout.extra_door_probability", "objects.small_probability")
+        require_in_range(self, unit, 0.0, 1.0)
+        require_at_least(
+            self,
+            (
+                "objects.furniture_scale",
+                "objects.small_per_surface_max",
+                "objects.wall_gap",
+                "objects.door_clearance",
+            ),
+            0,
+        )
+        require_at_least(self, ("objects.placement_attempts", "capture.views"), 1)
+        require_one_of(self, "capture.camera", ("equirect", "pinhole"))
         if cap.height < 2 or cap.width < 2:
             raise ConfigError(f"capture image size must be at least 2x2, got {cap.width}x{cap.height}")
-        if not 0 < cap.hfov_deg < 180:
-            raise ConfigError(f"capture.hfov_deg must lie in (0, 180), got {cap.hfov_deg}")
+        require_in_range(self, "capture.hfov_deg", 0, 180, low_open=True, high_open=True)
         if cap.eye_height_min <= 0 or cap.eye_height_max < cap.eye_height_min:
             raise ConfigError(
                 f"capture eye heights must satisfy 0 < eye_height_min <= eye_height_max, got "
@@ -318,20 +320,11 @@ class SynthConfig:
                 f"capture spacing must satisfy 0 <= spacing_min <= spacing_max, 0 < spacing_max; got "
                 f"{cap.spacing_min}..{cap.spacing_max}"
             )
-        if not 0.0 <= cap.yaw_step_max_deg <= 180.0:
-            raise ConfigError(f"capture.yaw_step_max_deg must lie in [0, 180], got {cap.yaw_step_max_deg}")
-        if cap.agent_radius < 0:
-            raise ConfigError(f"capture.agent_radius must be >= 0, got {cap.agent_radius}")
-        if not 0 < cap.grid_resolution <= 0.5:
-            raise ConfigError(
-                f"capture.grid_resolution must lie in (0, 0.5] metres, got {cap.grid_resolution}"
-            )
-        if self.caster not in ("auto", "embree", "numpy", "numpy-brute"):
-            raise ConfigError(
-                f"caster must be 'auto', 'embree', 'numpy' or 'numpy-brute', got {self.caster!r}"
-            )
-        if not 0.0 <= self.surface_detail < 1.0:
-            raise ConfigError(f"surface_detail must lie in [0, 1), got {self.surface_detail}")
+        require_in_range(self, "capture.yaw_step_max_deg", 0.0, 180.0)
+        require_at_least(self, "capture.agent_radius", 0)
+        require_in_range(self, "capture.grid_resolution", 0, 0.5, low_open=True)  # metres
+        require_one_of(self, "caster", ("auto", "embree", "numpy", "numpy-brute"))
+        require_in_range(self, "surface_detail", 0.0, 1.0, high_open=True)
         noise = self.noise_config()
         if not 0 < noise.view_fraction <= 1:
             raise ConfigError(f"noise tier {self.noise!r}: view_fraction must lie in (0, 1]")

@@ -8,12 +8,20 @@ offending field, so a typo never silently falls back to a default.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from image2sim.simulator.config import ConfigError as SharedConfigError
-from image2sim.simulator.config import config_to_dict, merge_config, read_mapping
+from image2sim.simulator.config import (
+    config_to_dict,
+    merge_config,
+    read_mapping,
+    require_at_least,
+    require_in_range,
+    require_one_of,
+)
 from image2sim.simulator.trainer import TrainerConfig, check_trainer_config
 
 __all__ = [
@@ -237,43 +245,32 @@ class GaussianConfig:
             raise ConfigError(f"encoder.kernel_size must be odd and positive, got {e.kernel_size}")
         if not 0 < e.scale_min < e.scale_max:
             raise ConfigError(f"encoder needs 0 < scale_min < scale_max, got {e.scale_min}, {e.scale_max}")
-        if e.identity_shape not in ("sphere", "disc"):
-            raise ConfigError(f"encoder.identity_shape must be 'sphere' or 'disc', got {e.identity_shape!r}")
-        if not 0 < e.disc_thickness <= 1:
-            raise ConfigError(f"encoder.disc_thickness must lie in (0, 1], got {e.disc_thickness}")
+        require_one_of(self, "encoder.identity_shape", ("sphere", "disc"))
+        require_in_range(self, "encoder.disc_thickness", 0, 1, low_open=True)
         if not 0 < e.opacity_init < 1 or e.scale_init <= 0 or e.depth_scale <= 0:
             raise ConfigError(
                 "encoder.opacity_init must lie in (0, 1); scale_init and depth_scale must be > 0"
             )
-        if s.backbone not in ("none", "dinov3"):
-            raise ConfigError(f"semantic.backbone must be 'none' or 'dinov3', got {s.backbone!r}")
+        require_one_of(self, "semantic.backbone", ("none", "dinov3"))
         if s.patch_size <= 0 or s.dim <= 0 or len(s.mean) != 3 or len(s.std) != 3 or min(s.std) <= 0:
             raise ConfigError("semantic.patch_size/dim must be > 0, mean/std 3 values with std > 0")
-        if f.policy not in ("footprint", "fixed"):
-            raise ConfigError(f"fusion.policy must be 'footprint' or 'fixed', got {f.policy!r}")
+        require_one_of(self, "fusion.policy", ("footprint", "fixed"))
         if not (f.voxel_size > 0 and f.base_voxel > 0 and f.footprint_factor > 0):
             raise ConfigError("fusion.voxel_size, base_voxel and footprint_factor must be > 0")
-        if not 1 <= f.levels <= 24:
-            raise ConfigError(f"fusion.levels must lie in [1, 24], got {f.levels}")
+        require_in_range(self, "fusion.levels", 1, 24)
         if f.cover_factor < 0 or not 0 <= f.min_range < f.max_range or not 0 <= f.min_opacity < 1:
             raise ConfigError(
                 "fusion needs cover_factor >= 0, 0 <= min_range < max_range, 0 <= min_opacity < 1"
             )
-        if f.carve_views < 0:
-            raise ConfigError(f"fusion.carve_views must be >= 0, got {f.carve_views}")
-        if not 0 <= f.owner_cos <= 1:
-            raise ConfigError(f"fusion.owner_cos must lie in [0, 1], got {f.owner_cos}")
-        if f.views not in ("best", "all"):
-            raise ConfigError(f"fusion.views must be 'best' or 'all', got {f.views!r}")
+        require_at_least(self, ("fusion.carve_views", "fusion.threads"), 0)
+        require_in_range(self, "fusion.owner_cos", 0, 1)
+        require_one_of(self, "fusion.views", ("best", "all"))
         if not (f.same_surface_tolerance > 0 and 0 < f.grazing_cos <= 1 and f.interval_step >= 1):
             raise ConfigError(
                 "fusion needs same_surface_tolerance > 0, grazing_cos in (0, 1] and interval_step >= 1, "
                 f"got {f.same_surface_tolerance}, {f.grazing_cos}, {f.interval_step}"
             )
-        if f.threads < 0:
-            raise ConfigError(f"fusion.threads must be >= 0, got {f.threads}")
-        if f.edge_tolerance <= 0:
-            raise ConfigError(f"fusion.edge_tolerance must be > 0, got {f.edge_tolerance}")
+        require_in_range(self, "fusion.edge_tolerance", 0, math.inf, low_open=True, high_open=True)
         t = self.train
         if t.num_sources < 1 or t.steps < 0 or t.lr <= 0:
             raise ConfigError("train.num_sources >= 1, steps >= 0 and lr > 0 are required")
