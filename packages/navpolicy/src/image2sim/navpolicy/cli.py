@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from image2sim.navpolicy.train_cli import _tracking_overrides, expand_shard_folders  # noqa: F401 - re-exported
+from image2sim.navpolicy.train_cli import _tracking_overrides, check_source, expand_shard_folders  # noqa: F401 - re-exported
 from image2sim.navpolicy.train_cli import nav_config as _config
 
 app = typer.Typer(help="Navigation policy (Image2Nav): train, DAgger, run.", no_args_is_help=True)
@@ -171,19 +171,9 @@ def from_episodes_cmd(
     generated data by sample ratio: ``nav train --shard OUT --shard-weight W ...``.
     """
     from image2sim.eval import datasets as ds
-    from image2sim.navpolicy.dagger import SOURCES
     from image2sim.navpolicy.human import shard_from_episodes
 
-    if source not in SOURCES:
-        raise typer.BadParameter(
-            f"must be one of {', '.join(SOURCES)}, got {source!r}", param_hint="--source"
-        )
-    if source == "neural" and renderer is None:
-        raise typer.BadParameter(
-            "source neural renders through the pixel-flow renderer: give --renderer <weights>, "
-            "or --source splat_only / exact",
-            param_hint="--renderer",
-        )
+    check_source(source, renderer)
     if renderer is not None and not renderer.exists():
         raise typer.BadParameter(f"{renderer}: no such file or folder", param_hint="--renderer")
     if not sim_scenes.is_dir():

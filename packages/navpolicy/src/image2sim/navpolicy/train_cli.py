@@ -39,6 +39,22 @@ def nav_config(config: str, overrides: dict | None = None):
         raise typer.BadParameter(str(exc), param_hint=hint) from exc
 
 
+def check_source(source: str, renderer) -> None:
+    """``--source`` names an observation source, and ``neural`` comes with ``--renderer``."""
+    from image2sim.navpolicy.dagger import SOURCES
+
+    if source not in SOURCES:
+        raise typer.BadParameter(
+            f"must be one of {', '.join(SOURCES)}, got {source!r}", param_hint="--source"
+        )
+    if source == "neural" and renderer is None:
+        raise typer.BadParameter(
+            "source neural renders through the pixel-flow renderer: give --renderer <weights>, "
+            "or --source splat_only / exact",
+            param_hint="--renderer",
+        )
+
+
 def _tracking_overrides(wandb: str, project: str) -> dict:
     """``train`` config overrides from ``--wandb MODE`` / ``--wandb-project`` (empty: keep the config's)."""
     out: dict = {}
@@ -244,18 +260,9 @@ def train_cmd(
 
 
 def _dagger_episode_scenes(episodes: Path, scenes_root: Path, source: str, renderer, marker):
-    from image2sim.navpolicy.dagger import SOURCES, episode_scenes
+    from image2sim.navpolicy.dagger import episode_scenes
 
-    if source not in SOURCES:
-        raise typer.BadParameter(
-            f"must be one of {', '.join(SOURCES)}, got {source!r}", param_hint="--source"
-        )
-    if source == "neural" and renderer is None:
-        raise typer.BadParameter(
-            "source neural renders through the pixel-flow renderer: give --renderer <weights>, "
-            "or --source splat_only",
-            param_hint="--renderer",
-        )
+    check_source(source, renderer)
     from image2sim.eval.datasets import EpisodeFileError, load_image2sim_episodes
 
     gt = episodes.with_name(episodes.name.replace(".json.gz", "_gt.json.gz"))
