@@ -318,7 +318,8 @@ def test_instruction_check_compares_the_policy_with_its_instruction_blind_contro
     write_outputs(doc, tmp_path / "m.json", tmp_path / "r.md", tmp_path / "p.png")
     text = (tmp_path / "r.md").read_text()
     assert "| 5.0 | 70.0 |" in text and "| 200 | n/a | n/a |" in text
-    assert "| blind | 15.0" in text and "+3.0 points" in text and "no measurable instruction following" in text
+    assert "| blind | 15.0" in text and "+3.0 points" in text
+    assert "no measurable instruction following" in text
 
 
 def test_gather_refuses_rows_under_different_protocols():
