@@ -21,29 +21,20 @@ TRAIN_THREADS=${TRAIN_THREADS:-3}; MAX_EPISODES=${MAX_EPISODES:-100000}; REFEREN
 HELDOUT_EPISODES=${HELDOUT_EPISODES:-$W/heldout_eps/train/train.json.gz}; FRESH_EPISODES=${FRESH_EPISODES:-$W/fresh_eps/train/train.json.gz}
 mkdir -p "$W/results"
 log() { echo "[$(date +%T)] $*" | tee -a "$W/progress.log"; }
-policy_yaml() {  # <out yaml> <seed> <shuffle>
-  python - "$CONFIG" "$1" "$2" "$3" "$ACCEL" <<'PY'
-import sys, yaml
-src, out, seed, shuffle, accel = sys.argv[1:]
-cfg = yaml.safe_load(open(src))
-cfg.setdefault("train", {}).update(seed=int(seed), accelerator=accel, devices=1)
-cfg.setdefault("data", {})["shuffle_instructions"] = shuffle == "1"
-yaml.safe_dump(cfg, open(out, "w"))
-PY
-}
 episodes() {  # <captures> <out> <workers> [extra]
   [ -f "$2/shards.json" ] || image2sim data episodes --scenes "$1" --out "$2" --workers "$3" "${@:4}" > "$2.log" 2>&1
 }
 train() {  # <name> <seed> <shuffle> <shards json>...
   local name=$1 seed=$2 shuffle=$3; shift 3
   [ -d "$W/bc_$name/export" ] && return 0
-  policy_yaml "$W/policy_$name.yaml" "$seed" "$shuffle"
   local args=()
   for f in "$@"; do
     for s in $(python -c "import json,sys; print(' '.join(json.load(open(sys.argv[1]))['shards']))" "$f"); do
       args+=(--shard "$(dirname "$f")/$s"); done; done
   log "train $name (${#args[@]} shard args)"
-  image2sim nav train --stage bc --config "$W/policy_$name.yaml" "${args[@]}" --out "$W/bc_$name" \
+  local blind=false; [ "$shuffle" = 1 ] && blind=true
+  image2sim nav train --stage bc --config "$CONFIG" --set train.seed="$seed" --set data.shuffle_instructions=$blind \
+    --set train.accelerator="$ACCEL" --set train.devices=1 "${args[@]}" --out "$W/bc_$name" \
     --threads "$TRAIN_THREADS" > "$W/bc_$name.log" 2>&1 && log "trained $name" || log "FAILED train $name"
 }
 evaluate() {  # <name> <model dir> <policy yaml>
@@ -82,7 +73,7 @@ fi
 [ -n "$REFERENCE" ] && evaluate ref "$REFERENCE" "$CONFIG"
 wait
 # every policy's two evaluations at once (eval nav parallelises over the 3 scenes only)
-for d in "$W"/bc_*/export; do n=$(basename "$(dirname "$d")"); evaluate "${n#bc_}" "$d" "$W/policy_${n#bc_}.yaml" & done
+for d in "$W"/bc_*/export; do n=$(basename "$(dirname "$d")"); evaluate "${n#bc_}" "$d" "$CONFIG" & done
 wait
 python - "$W" <<'PY'
 import json, pathlib, sys

@@ -182,7 +182,7 @@ def test_an_episodes_output_folder_stands_for_the_shards_it_lists(tmp_path):
     (scene shards and approach shards); a shard folder stays itself."""
     import json
 
-    from image2sim.navpolicy.cli import expand_shard_folders
+    from image2sim.navpolicy.train_cli import expand_shard_folders
 
     out = tmp_path / "episodes"
     for rel in ("scenes/a/shard", "scenes/a/approach", "scenes/b/shard"):

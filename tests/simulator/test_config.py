@@ -145,7 +145,7 @@ def test_read_mapping_reads_yaml_and_json_and_empty_files(tmp_path):
 
 
 def test_parse_overrides_nests_dotted_keys_and_parses_yaml_values():
-    from image2sim.simulator.config import merge_overrides, parse_overrides
+    from image2sim.simulator.config import parse_overrides
 
     got = parse_overrides(
         ["train.seed=1", "data.shuffle_instructions=true", "train.lr=2e-3", "name=", "a.b.c=[1, 2]"]
@@ -155,9 +155,6 @@ def test_parse_overrides_nests_dotted_keys_and_parses_yaml_values():
         "data": {"shuffle_instructions": True},
         "name": "",
         "a": {"b": {"c": [1, 2]}},
-    }
-    assert merge_overrides({"train": {"seed": 0, "lr": 1.0}}, {"train": {"seed": 5}}) == {
-        "train": {"seed": 5, "lr": 1.0}
     }
     for bad in ("seed", "=1", "train..seed=1", "train=1", "train.seed=[1"):
         items = ["train.seed=1", bad] if bad == "train=1" else [bad]

@@ -120,7 +120,7 @@ def test_wandb_logger_from_params_has_project_group_tags_and_stage_config(tmp_pa
 
 
 def test_nav_train_wandb_option_sets_the_config(tmp_path):
-    from image2sim.navpolicy.cli import _tracking_overrides
+    from image2sim.navpolicy.train_cli import _tracking_overrides
 
     assert _tracking_overrides("", "") == {}
     assert _tracking_overrides("disabled", "p") == {

@@ -526,7 +526,7 @@ def process_scene(
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    fov = _field_of_view(_observation_spec(cfg, pano_height=64))  # the stored observation's
+    fov = _field_of_view(_observation_spec(cfg, _pano_height(cfg)))  # the stored observation's
     goal_view = VisibilityConfig(
         max_distance=cfg.goal_view_distance,
         hfov_deg=fov[0],

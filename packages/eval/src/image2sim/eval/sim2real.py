@@ -146,6 +146,13 @@ def gather(
     return doc
 
 
+def _sr_ratio(row: Mapping[str, Any], reference: Mapping[str, Any]) -> float | None:
+    """SR of ``row`` over SR of ``reference`` (inf over a zero reference, None when both are 0)."""
+    if reference["sr"] > 0:
+        return row["sr"] / reference["sr"]
+    return math.inf if row["sr"] > 0 else None
+
+
 def target_check(rows: Mapping[str, Mapping[str, Any]], policy: str = "neural") -> dict:
     """Issue 19's bar: the policy's SR >= 2x the best baseline's and its lower 95 % bound above the
     best baseline's upper bound."""
@@ -154,7 +161,7 @@ def target_check(rows: Mapping[str, Mapping[str, Any]], policy: str = "neural") 
         return {"met": None, "reason": "missing rows"}
     best = max(base, key=lambda b: rows[b]["sr"])
     p, b = rows[policy], rows[best]
-    ratio = p["sr"] / b["sr"] if b["sr"] > 0 else math.inf if p["sr"] > 0 else None
+    ratio = _sr_ratio(p, b)
     twice = p["sr"] >= 2 * b["sr"]
     separated = p["sr_ci"][0] > b["sr_ci"][1]
     return {
@@ -184,7 +191,7 @@ def instruction_check(
         "policy": policy,
         "control": control,
         "sr_difference": p["sr"] - c["sr"],
-        "sr_ratio": p["sr"] / c["sr"] if c["sr"] > 0 else (math.inf if p["sr"] > 0 else None),
+        "sr_ratio": _sr_ratio(p, c),
         "intervals_separated": bool(p["sr_ci"][0] > c["sr_ci"][1]),
     }
 

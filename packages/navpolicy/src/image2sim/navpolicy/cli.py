@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from image2sim.navpolicy.train_cli import _tracking_overrides, check_source, expand_shard_folders  # noqa: F401 - re-exported
+from image2sim.navpolicy.train_cli import check_source
 from image2sim.navpolicy.train_cli import nav_config as _config
 
 app = typer.Typer(help="Navigation policy (Image2Nav): train, DAgger, run.", no_args_is_help=True)

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from image2sim.simulator.config import merge_overrides
 
 app = typer.Typer()
 
@@ -27,13 +26,16 @@ def _set_overrides(items: list[str]) -> dict:
         raise typer.BadParameter(str(exc), param_hint="--set") from exc
 
 
-def nav_config(config: str, overrides: dict | None = None):
-    """The policy config (preset or YAML plus ``overrides``); a bad one is a usage error naming the
+def nav_config(config: str, overrides: dict | None = None, sets: dict | None = None):
+    """The policy config: preset or YAML, then ``sets`` (``--set``), then ``overrides`` (the other
+    options), each layer merged by the shared config mechanism; a bad one is a usage error naming the
     option to fix."""
     from image2sim.navpolicy.config import ConfigError, load_config
+    from image2sim.simulator.config import merge_config
 
     try:
-        return load_config(config, overrides)
+        cfg = load_config(config, sets)
+        return merge_config(cfg, overrides).validate() if overrides else cfg
     except ConfigError as exc:
         hint = "--shard-weight" if "data.shard_weights" in str(exc) else "--config"
         raise typer.BadParameter(str(exc), param_hint=hint) from exc
@@ -187,7 +189,7 @@ def train_cmd(
     procedural scenes of the data engine, starting from ``--init`` (default: the config's model).
     """
     tracking = _tracking_overrides(wandb, wandb_project)
-    base = _set_overrides(sets or [])
+    set_layer = _set_overrides(sets or [])
     shards = expand_shard_folders(shards or [])
     if stage == "dagger":
         episode_source = None
@@ -214,12 +216,12 @@ def train_cmd(
             fresh,
             episode_source,
             tracking,
-            base,
+            set_layer,
         )
         return
     if stage != "bc":
         raise typer.BadParameter(f"unknown stage {stage!r}; use bc or dagger", param_hint="--stage")
-    overrides = merge_overrides(base, {"train": dict(tracking)} if tracking else {})
+    overrides: dict = {"train": dict(tracking)} if tracking else {}
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if shard_weights:
@@ -230,7 +232,7 @@ def train_cmd(
         overrides.setdefault("train", {})["max_steps"] = max_steps
     if max_trajectories:
         overrides.setdefault("data", {})["max_trajectories"] = max_trajectories
-    cfg = nav_config(config, overrides)
+    cfg = nav_config(config, overrides, set_layer)
     if not cfg.data.shards:
         raise typer.BadParameter("no training shards: pass --shard or set data.shards", param_hint="--shard")
     if threads:
@@ -287,11 +289,11 @@ def _train_dagger(
     fresh=False,
     episode_source=None,
     tracking: dict | None = None,
-    base: dict | None = None,
+    set_layer: dict | None = None,
 ) -> None:
     import torch
 
-    overrides = merge_overrides(base or {}, {"train": dict(tracking)} if tracking else {})
+    overrides: dict = {"train": dict(tracking)} if tracking else {}
     if shards:
         overrides.setdefault("data", {})["shards"] = [str(s) for s in shards]
     if max_steps:
@@ -301,7 +303,7 @@ def _train_dagger(
             typer.echo(f"error: --init {init}: no such model folder", err=True)
             raise typer.Exit(2)
         overrides.setdefault("model", {})["source"] = str(init)
-    cfg = nav_config(config, overrides)
+    cfg = nav_config(config, overrides, set_layer)
     if threads:
         torch.set_num_threads(threads)
     from image2sim.navpolicy.dagger import procedural_scenes, run_dagger

@@ -23,7 +23,6 @@ T = TypeVar("T")
 __all__ = [
     "ConfigError",
     "merge_config",
-    "merge_overrides",
     "parse_overrides",
     "require_at_least",
     "require_in_range",
@@ -203,17 +202,6 @@ def parse_overrides(items: Sequence[str], where: str = "--set") -> dict[str, Any
         if isinstance(node.get(parts[-1]), dict):
             raise ConfigError(f"{where} {item!r}: {key} is a section, set its fields instead")
         node[parts[-1]] = value
-    return out
-
-
-def merge_overrides(base: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
-    """``base`` with ``extra`` merged in, section by section (``extra`` wins)."""
-    out = dict(base)
-    for key, value in extra.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
-            out[key] = merge_overrides(dict(out[key]), value)
-        else:
-            out[key] = value
     return out
 
 
