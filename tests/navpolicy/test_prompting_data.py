@@ -319,6 +319,41 @@ def test_end_cut_probability_oversamples_the_final_stop():
         assert lo <= n <= hi, (p, n)
 
 
+def test_late_starts_are_the_agents_context_from_a_later_start():
+    """``late_start_probability``: the sample is what an agent placed at a later frame would hold at
+    the cut (its context selected over the suffix, history text from that start), and the number of
+    frames seen no longer predicts a final STOP."""
+    from image2sim.navpolicy.data import select_context_frames
+
+    traj = _long_trajectory()
+    stop = int(Action.STOP)
+    late, stops, seen_counts = 0, [], []
+    for seed in range(2000):
+        s = make_sample(traj, 16, 32, np.random.default_rng(seed), 2, (8, 8), 0.5, 1.0)
+        obs_index = [t // 2 for t in s.steps]
+        start, cut = obs_index[0], obs_index[-1]
+        late += start > 0
+        assert obs_index == [start + i for i in select_context_frames(cut + 1 - start, 8, 8)]
+        assert s.executed[0] == ()
+        assert all(
+            s.executed[j] == tuple(traj.actions[s.steps[j - 1] : s.steps[j]]) for j in range(1, len(s.steps))
+        )
+        np.testing.assert_array_equal(s.observations, np.asarray(traj.frames)[s.steps])
+        stops.append(stop in s.targets[-1])
+        seen_counts.append(cut + 1 - start)
+    assert late > 1800  # start 0 only when every candidate up to the cut is seen
+    stops, seen_counts = np.asarray(stops), np.asarray(seen_counts)
+    # 50 candidates; the end is cut half the time, whatever the count seen (but the last count).
+    for lo, hi in ((1, 16), (16, 32), (32, 50)):
+        sel = (seen_counts >= lo) & (seen_counts < hi)
+        assert abs(stops[sel].mean() - 0.5) < 0.08, (lo, hi, stops[sel].mean())
+    # Disabled: the sample stream is the one drawn without the option.
+    for seed in range(20):
+        a = make_sample(traj, 16, 32, np.random.default_rng(seed), 2, (8, 8), 0.25)
+        b = make_sample(traj, 16, 32, np.random.default_rng(seed), 2, (8, 8), 0.25, 0.0)
+        assert a.steps == b.steps and a.steps[0] == 0
+
+
 def test_max_trajectories_keeps_the_first_ones_in_shard_order(tmp_path, tiny_cfg):
     import copy
 

@@ -162,6 +162,11 @@ class DataConfig:
     end_cut_probability: float = 0.0
     """``streaming`` only: probability that a sample is cut at the trajectory's end (its last label the
     final STOP) instead of at a uniform point; 0 leaves STOP as rare as in the trajectories."""
+    late_start_probability: float = 0.0
+    """``streaming`` only: probability that a sample's episode starts at a later frame, as if the agent
+    had been placed there, with the number of frames seen drawn independently of whether the cut is
+    the end: the context's length is then no cue to STOP, only the view is. 0 = every sample starts at
+    the episode's start."""
     num_workers: int = 0
     """DataLoader worker processes."""
     cache_frames: bool = False
@@ -343,6 +348,7 @@ class NavPolicyConfig:
         ):
             raise ConfigError("data.max_trajectories must be >= 1 and cannot be used with data.shard_weights")
         require_in_range(self, "data.end_cut_probability", 0.0, 1.0)
+        require_in_range(self, "data.late_start_probability", 0.0, 1.0)
         if self.data.sampling == "streaming" and (
             self.agent.sparse_frames + self.agent.dense_frames
             > min(self.data.max_observations, self.data.max_action_labels // 2)

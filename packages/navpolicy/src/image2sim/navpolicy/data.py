@@ -177,6 +177,7 @@ def sample_options(cfg) -> dict:
         "stride": d.observation_stride,
         "context": context,
         "end_cut_probability": d.end_cut_probability,
+        "late_start_probability": d.late_start_probability,
     }
 
 
@@ -188,6 +189,7 @@ def make_sample(
     stride: int = 1,
     context: tuple[int, int] | None = None,
     end_cut_probability: float = 0.0,
+    late_start_probability: float = 0.0,
 ) -> NavSample:
     """Sample observations of ``traj`` and pair each with its next two actions.
 
@@ -204,7 +206,12 @@ def make_sample(
     the cut is the end, not whenever the context is full (a small policy trained on whole-trajectory
     samples learns "16 observations in the context: stop"). ``end_cut_probability``: the cut is the
     end with this probability (else uniform), so the final STOP, one label in a whole trajectory, is
-    seen often enough to be learned.
+    seen often enough to be learned. ``late_start_probability``: the sample's episode starts at a
+    later candidate, as if the agent had been placed there (any suffix of an expert path is an expert
+    path). The number of candidates seen is drawn uniformly, the same way whether the cut is the end
+    or not, so the length of the context says nothing about STOP and only the view can (without it a
+    full 16-frame context ends in STOP half again as often as an 8-15-frame one, and a context under 8
+    frames never does).
     """
     n_obs = min(max_observations, max_action_labels // ACTIONS_PER_STEP)
     if n_obs < 1:
@@ -221,11 +228,22 @@ def make_sample(
                 f"streaming context ({sparse} sparse + {dense} dense frames) must have dense >= 1 and fit "
                 f"the {n_obs} observations a sample holds"
             )
+        last, start = len(cand) - 1, 0
         if rng is None or rng.random() < end_cut_probability:
-            cut = len(cand) - 1
+            cut = last
         else:
             cut = int(rng.integers(len(cand)))
-        idx = [cand[i] for i in select_context_frames(cut + 1, sparse, dense)]
+        # Drawn only when enabled, so runs without it keep their sample stream.
+        if rng is not None and late_start_probability > 0 and rng.random() < late_start_probability:
+            # The number of candidates the agent has seen is drawn first, the same way for final and
+            # other cuts, so it says nothing about STOP: a cut other than the end falls before it.
+            seen = int(rng.integers(1, len(cand) + 1))
+            if cut != last and seen <= last:
+                cut = int(rng.integers(seen - 1, last))
+            else:
+                cut = last
+            start = cut + 1 - seen
+        idx = [cand[start + i] for i in select_context_frames(cut + 1 - start, sparse, dense)]
     steps = [int(traj.frame_steps[i]) for i in idx]
     executed, prev = [], None
     for s in steps:
@@ -396,6 +414,7 @@ class _SamplingDataset(torch.utils.data.Dataset):
     stride: int
     context: tuple[int, int] | None
     end_cut_probability: float
+    late_start_probability: float
     jitter: bool
     seed: int
     epoch: int
@@ -420,6 +439,7 @@ class _SamplingDataset(torch.utils.data.Dataset):
             self.stride,
             self.context,
             self.end_cut_probability,
+            self.late_start_probability,
         )
 
 
@@ -436,11 +456,13 @@ class NavShardDataset(_SamplingDataset):
         stride: int = 1,
         context: tuple[int, int] | None = None,
         end_cut_probability: float = 0.0,
+        late_start_probability: float = 0.0,
         max_trajectories: int | None = None,
         cache_frames: bool = False,
         shuffle_instructions: bool = False,
     ) -> None:
         self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
+        self.late_start_probability = late_start_probability
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s, cache_frames) for s in shards]
@@ -486,8 +508,10 @@ class InMemoryNavDataset(_SamplingDataset):
         stride: int = 1,
         context: tuple[int, int] | None = None,
         end_cut_probability: float = 0.0,
+        late_start_probability: float = 0.0,
     ) -> None:
         self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
+        self.late_start_probability = late_start_probability
         self.trajectories = list(trajectories)
         self.max_observations, self.max_action_labels = max_observations, max_action_labels
         self.jitter, self.seed, self.epoch = jitter, seed, 0
