@@ -5,7 +5,7 @@ graph and kinematics, at the policy's training observation (64x64 pinhole, 90 de
 ``configs/navpolicy/tiny-dagger.yaml``; ``--obs`` for other sizes):
 
 * ``exact``: the procedural mesh renderer (the data engine's ground truth, as
-  :func:`image2sim.navpolicy.dagger.procedural_simulator` builds it) -- the reference;
+  :func:`image2sim.navpolicy.rollout_scenes.procedural_simulator` builds it) -- the reference;
 * ``splat_only``: :class:`~image2sim.simulator.sim.GaussianRenderFn` over the house's identity
   Gaussians (``gaussians.build_scene(capture, tiny(), encoder="identity")``), the pinhole view splatted
   directly;
@@ -20,7 +20,7 @@ B agents step together (B in {1, 4}; ``--batch``), driven by the tiny Image2Nav 
 B > 1. The loop is the streaming agent's, as the evaluation runner drives it: render B observations,
 one policy call gives every agent its next two actions, two ``sim.step`` calls execute them
 (``--observe-every 1`` renders and asks the policy at every step instead). An episode is a fixed
-number of agent steps from the same starts (``dagger.sample_tasks``); a STOP does not end it (it is
+number of agent steps from the same starts (``rollout_scenes.sample_tasks``); a STOP does not end it (it is
 executed as a no-op step), so every repeat and every renderer does the same amount of work.
 
 Steps/s = B x steps per episode / median episode wall time (median of ``--repeats`` episodes after one
@@ -84,7 +84,7 @@ def build_simulators(
     """The simulators of ``rows`` on one procedural house (shared navigation map and graph) and a
     description of the scene and renderers."""
     from image2sim.dataengine.procedural import generate_scene, preset, write_scene
-    from image2sim.navpolicy.dagger import procedural_simulator
+    from image2sim.navpolicy.rollout_scenes import procedural_simulator
     from image2sim.simulator.gaussians import build_scene
     from image2sim.simulator.gaussians import tiny as gaussians_tiny
     from image2sim.simulator.renderer.config import tiny as renderer_tiny
@@ -224,7 +224,7 @@ def run(
     backend: str = "auto",
 ) -> tuple[list[dict], dict, list[str]]:
     """Measure every (row, batch) setting; returns the rows, the report metadata and its Markdown."""
-    from image2sim.navpolicy.dagger import sample_tasks
+    from image2sim.navpolicy.rollout_scenes import sample_tasks
     from image2sim.simulator.conventions import Action
 
     if REFERENCE not in rows:

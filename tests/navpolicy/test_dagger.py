@@ -15,15 +15,13 @@ from image2sim.navpolicy.dagger import (
     MODEL,
     ORACLE,
     ChunkMixer,
-    NavTask,
     OracleLabeler,
     dagger_rollout,
-    goal_instruction,
     mixing_probability,
     run_dagger,
-    sample_tasks,
 )
 from image2sim.navpolicy.data import ShardReader, make_sample
+from image2sim.navpolicy.rollout_scenes import NavTask, goal_instruction, sample_tasks
 from image2sim.simulator.conventions import Action
 
 # ------------------------------------------------------------------------------------------ mixing
@@ -105,7 +103,7 @@ def test_goal_instruction_is_egocentric():
 
 @pytest.fixture(scope="module")
 def scene():
-    from image2sim.navpolicy.dagger import procedural_simulator
+    from image2sim.navpolicy.rollout_scenes import procedural_simulator
 
     sim = procedural_simulator(0, "tiny")
     tasks = sample_tasks(sim, 4, np.random.default_rng(0), 1.2, "tiny-000")
@@ -199,7 +197,7 @@ def test_goal_marker_is_seen_on_the_way_and_named_in_the_instruction(scene, tiny
     the evaluation episode's goal."""
     from image2sim.eval.runner import NeuralSimBackend, embodiment_for
     from image2sim.navpolicy.act import act_protocol, task_episodes
-    from image2sim.navpolicy.dagger import procedural_scenes
+    from image2sim.navpolicy.rollout_scenes import procedural_scenes
     from image2sim.simulator.markers import GoalMarker
 
     assert goal_instruction(np.zeros(3), 0.0, np.array([2.0, 0.0, 0.0]), "magenta pillar") == (
@@ -310,7 +308,7 @@ def test_oracle_labeler_is_stateless(scene):
 
 def test_tiny_dagger_run_adds_samples_and_trains_on_them(scene, tiny_cfg, tiny_policy, tmp_path):
     sim, tasks = scene
-    from image2sim.navpolicy.dagger import DaggerScene
+    from image2sim.navpolicy.rollout_scenes import RolloutScene
 
     cfg = copy.deepcopy(tiny_cfg)
     cfg.data.max_observations, cfg.data.max_action_labels = 6, 12
@@ -325,7 +323,7 @@ def test_tiny_dagger_run_adds_samples_and_trains_on_them(scene, tiny_cfg, tiny_p
     )
     policy = copy.deepcopy(tiny_policy)
     before = {k: v.clone() for k, v in policy.model.state_dict().items()}
-    res = run_dagger(cfg, [DaggerScene(sim, tasks, "tiny-000")], tmp_path / "dagger", policy=policy)
+    res = run_dagger(cfg, [RolloutScene(sim, tasks, "tiny-000")], tmp_path / "dagger", policy=policy)
     # Each round adds its episodes to the aggregated data and trains on the data so far.
     assert res.dataset_sizes == [1, 2]
     assert [len(x) for x in res.losses] == [2, 2] and all(math.isfinite(v) for x in res.losses for v in x)
@@ -372,14 +370,14 @@ def test_cli_dagger_refuses_a_missing_init_folder(tmp_path):
 
 
 def test_rerun_in_the_same_folder_replaces_the_rounds(scene, tiny_cfg, tiny_policy, tmp_path):
-    from image2sim.navpolicy.dagger import DaggerScene
+    from image2sim.navpolicy.rollout_scenes import RolloutScene
 
     sim, tasks = scene
     cfg = copy.deepcopy(tiny_cfg)
     cfg.dagger = DaggerConfig(rounds=1, episodes_per_round=1, train_steps_per_round=0, max_steps=6)
     for _ in range(2):
         res = run_dagger(
-            cfg, [DaggerScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False
+            cfg, [RolloutScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False
         )
     assert res.dataset_sizes == [1] and res.losses == [[]]
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
@@ -418,14 +416,15 @@ def test_interrupted_dagger_resumes_with_the_same_data_and_losses(
     same arguments ends with exactly the uninterrupted run's episodes, shards, losses and weights,
     without collecting any episode twice."""
     import image2sim.navpolicy.dagger as dagger_mod
-    from image2sim.navpolicy.dagger import STATE_FILE, DaggerScene
+    from image2sim.navpolicy.dagger import STATE_FILE
     from image2sim.navpolicy.data import synthetic_trajectories
+    from image2sim.navpolicy.rollout_scenes import RolloutScene
     from image2sim.navpolicy.train import NavBCModule
 
     sim, tasks = scene
     cfg = _resume_cfg(tiny_cfg)
     base = synthetic_trajectories(2, 6, 10, cfg.observation.height, cfg.observation.width, seed=0)
-    scenes = [DaggerScene(sim, tasks, "tiny-000")]
+    scenes = [RolloutScene(sim, tasks, "tiny-000")]
 
     def run(folder, **kw):
         return run_dagger(
@@ -496,21 +495,21 @@ def test_interrupted_dagger_resumes_with_the_same_data_and_losses(
 
 
 def test_dagger_resume_refuses_other_arguments(scene, tiny_cfg, tiny_policy, tmp_path):
-    from image2sim.navpolicy.dagger import DaggerScene
+    from image2sim.navpolicy.rollout_scenes import RolloutScene
 
     sim, tasks = scene
     cfg = copy.deepcopy(tiny_cfg)
     cfg.dagger = DaggerConfig(rounds=1, episodes_per_round=1, train_steps_per_round=0, max_steps=4)
-    run_dagger(cfg, [DaggerScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False)
+    run_dagger(cfg, [RolloutScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False)
     other = copy.deepcopy(cfg)
     other.dagger.max_steps = 5
     with pytest.raises(ValueError, match="dagger_state.json.*other arguments"):
         run_dagger(
-            other, [DaggerScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False
+            other, [RolloutScene(sim, tasks)], tmp_path, policy=copy.deepcopy(tiny_policy), export=False
         )
     res = run_dagger(
         other,
-        [DaggerScene(sim, tasks)],
+        [RolloutScene(sim, tasks)],
         tmp_path,
         policy=copy.deepcopy(tiny_policy),
         export=False,

@@ -44,7 +44,7 @@ def house(tmp_path_factory):
     """A tiny procedural capture and an R2R-CE split over it: three episodes whose reference paths
     are planner shortest paths between graph nodes, and one whose path leads 30 m out of the house."""
     from image2sim.dataengine.procedural import preset, synthesize
-    from image2sim.navpolicy.dagger import scene_simulator
+    from image2sim.navpolicy.rollout_scenes import scene_simulator
 
     root = tmp_path_factory.mktemp("human")
     synthesize(preset("tiny"), root / "captures", scenes=1, seed=0, progress=False)
@@ -87,8 +87,8 @@ def _convert(house, out, **kw):
 def test_r2r_episodes_become_a_shard_that_replays_to_the_reference_end(house, tmp_path):
     from image2sim.dataengine.rollout import replay
     from image2sim.eval.datasets import load_r2r_ce
-    from image2sim.navpolicy.dagger import scene_simulator, tasks_from_episodes
     from image2sim.navpolicy.data import ShardReader
+    from image2sim.navpolicy.rollout_scenes import scene_simulator, tasks_from_episodes
 
     captures, data, texts = house
     summary = _convert(house, tmp_path / "human", progress=False)

@@ -56,7 +56,7 @@ def test_episode_scene_ids_resolve_to_the_capture_folders(engine_run):
 
 
 def _sim(captures):
-    from image2sim.navpolicy.dagger import scene_simulator
+    from image2sim.navpolicy.rollout_scenes import scene_simulator
 
     return scene_simulator(captures / "scene_000", "exact")
 
@@ -123,7 +123,8 @@ def test_dagger_tasks_from_engine_episodes_follow_their_references(engine_run):
     """Oracle-only DAgger rollouts of the generated episodes end where each reference path ends,
     with frames only where ``observe_every`` asks, and labels at every step."""
     from image2sim.navpolicy.config import ObservationConfig
-    from image2sim.navpolicy.dagger import ChunkMixer, dagger_rollout, episode_scenes
+    from image2sim.navpolicy.dagger import ChunkMixer, dagger_rollout
+    from image2sim.navpolicy.rollout_scenes import episode_scenes
 
     captures, out = engine_run
     eps = _episodes(out)
@@ -143,7 +144,7 @@ def test_dagger_tasks_from_engine_episodes_follow_their_references(engine_run):
 
 
 def test_episode_scenes_name_a_missing_scene_and_a_missing_renderer(engine_run, tmp_path):
-    from image2sim.navpolicy.dagger import episode_scenes, scene_simulator
+    from image2sim.navpolicy.rollout_scenes import episode_scenes, scene_simulator
 
     captures, out = engine_run
     with pytest.raises(FileNotFoundError, match="scene_000"):
@@ -160,7 +161,7 @@ def test_splat_only_and_neural_sources_open_the_engine_scene_cache(engine_run, t
     import shutil
 
     from image2sim.navpolicy.config import ObservationConfig
-    from image2sim.navpolicy.dagger import render_observation, scene_simulator
+    from image2sim.navpolicy.rollout_scenes import render_observation, scene_simulator
     from image2sim.simulator.gaussians import build_scene, tiny
     from image2sim.simulator.renderer.config import tiny as renderer_tiny
     from image2sim.simulator.renderer.model import PixelFlowRenderer

@@ -51,10 +51,10 @@ def make_agent(cfg: NavPolicyConfig, name: str):
 def task_episodes(
     sim, n: int, seed: int, scene_id: str, min_distance: float = 1.5, marker_name: str | None = None
 ):
-    """Runner episodes from :func:`image2sim.navpolicy.dagger.sample_tasks` (same instructions as
+    """Runner episodes from :func:`image2sim.navpolicy.rollout_scenes.sample_tasks` (same instructions as
     DAgger's rollouts: the goal relative to the start pose, naming the goal marker if there is one)."""
     from image2sim.eval.datasets import Instruction, NavEpisode
-    from image2sim.navpolicy.dagger import sample_tasks
+    from image2sim.navpolicy.rollout_scenes import sample_tasks
 
     out = []
     rng = np.random.default_rng([seed, 2])
@@ -137,7 +137,7 @@ def run_act(
     ``topdown.png``, ``frames/NNNN.png``, ``strip.png`` (8 frames along the episode) and
     ``episode.json`` under ``out``; returns the record."""
     from image2sim.eval.runner import NeuralSimBackend, embodiment_for, run_episode
-    from image2sim.navpolicy.dagger import procedural_simulator
+    from image2sim.navpolicy.rollout_scenes import procedural_simulator
     from PIL import Image
 
     proto = act_protocol(cfg, max_steps, success_distance)
@@ -205,7 +205,7 @@ def compare_agents(
         nav_summary,
         run_episode,
     )
-    from image2sim.navpolicy.dagger import procedural_simulator
+    from image2sim.navpolicy.rollout_scenes import procedural_simulator
     from rich.progress import Progress
 
     proto = act_protocol(cfg, max_steps, success_distance)

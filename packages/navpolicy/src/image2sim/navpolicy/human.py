@@ -5,7 +5,7 @@ human episodes come as VLN-CE files (:mod:`image2sim.eval.datasets` reads them i
 :func:`shard_from_episodes` turns them into Image2Nav training shards:
 
 1. the episodes are grouped by scene (``<scenes_root>/<scene_id stem>``) and each scene's simulator
-   is opened once (:func:`~image2sim.navpolicy.dagger.scene_simulator`: ``neural``, ``splat_only``
+   is opened once (:func:`~image2sim.navpolicy.rollout_scenes.scene_simulator`: ``neural``, ``splat_only``
    or ``exact`` observations);
 2. per episode, the :class:`~image2sim.simulator.navigation.follower.ReferencePathFollower` drives
    the agent from the episode's start pose along its dense ground-truth route (``gt_locations``) or,
@@ -137,7 +137,7 @@ def _skip_reason(r: ReferenceRollout, end_tolerance: float) -> str:
 def _render_replay(sim, task, actions, steps, obs: ObservationConfig):
     """Re-execute ``actions`` from the task's start, rendering the observation at ``steps``; returns
     (frames, final position)."""
-    from image2sim.navpolicy.dagger import render_observation
+    from image2sim.navpolicy.rollout_scenes import render_observation
 
     wanted = set(steps)
     sim.reset(np.asarray(task.start, np.float64)[None], np.array([task.heading]), observe=False)
@@ -233,7 +233,7 @@ def shard_from_episodes(
         scenes_root: folder of scene folders named by the episodes' ``scene_id`` stem.
         out_dir: the shard folder to write (published atomically at the end).
         source: ``neural`` (built scenes + ``renderer``), ``splat_only`` or ``exact`` (procedural
-            captures rendered exactly), as in :func:`~image2sim.navpolicy.dagger.scene_simulator`.
+            captures rendered exactly), as in :func:`~image2sim.navpolicy.rollout_scenes.scene_simulator`.
         renderer: pixel-flow renderer weights (path or module) for ``neural``; loaded once.
         observation: the policy's observation (camera, size, FOV); default ``ObservationConfig()``.
         frame_stride: store the observation of every ``frame_stride``-th step (2 = what the streaming
@@ -259,7 +259,7 @@ def shard_from_episodes(
         FileNotFoundError: a scene folder is missing (``missing_scenes="error"``).
         FileExistsError: ``out_dir`` exists and ``overwrite`` is off.
     """
-    from image2sim.navpolicy.dagger import SOURCES, scene_simulator, tasks_from_episodes
+    from image2sim.navpolicy.rollout_scenes import SOURCES, scene_simulator, tasks_from_episodes
     from rich.progress import Progress
 
     if dataset is None:

@@ -43,7 +43,7 @@ def nav_config(config: str, overrides: dict | None = None, sets: dict | None = N
 
 def check_source(source: str, renderer) -> None:
     """``--source`` names an observation source, and ``neural`` comes with ``--renderer``."""
-    from image2sim.navpolicy.dagger import SOURCES
+    from image2sim.navpolicy.rollout_scenes import SOURCES
 
     if source not in SOURCES:
         raise typer.BadParameter(
@@ -262,7 +262,7 @@ def train_cmd(
 
 
 def _dagger_episode_scenes(episodes: Path, scenes_root: Path, source: str, renderer, marker):
-    from image2sim.navpolicy.dagger import episode_scenes
+    from image2sim.navpolicy.rollout_scenes import episode_scenes
 
     check_source(source, renderer)
     from image2sim.eval.datasets import EpisodeFileError, load_image2sim_episodes
@@ -306,8 +306,9 @@ def _train_dagger(
     cfg = nav_config(config, overrides, set_layer)
     if threads:
         torch.set_num_threads(threads)
-    from image2sim.navpolicy.dagger import procedural_scenes, run_dagger
+    from image2sim.navpolicy.dagger import run_dagger
     from image2sim.navpolicy.data import ShardError, ShardReader
+    from image2sim.navpolicy.rollout_scenes import procedural_scenes
 
     base = []
     if cfg.dagger.include_bc_data:
