@@ -256,13 +256,13 @@ def test_the_hm3d_sample_yields_50_path_episodes(hm3d_scene_dir, tmp_path):
 def test_asking_for_more_plans_keeps_the_first_ones(house):
     """Plan i depends only on plans 0..i-1, so the pipeline's oversampling (plans drawn 1.5x over the
     wanted count, failures replaced) can only add episodes, never lose the ones a smaller run had."""
-    from image2sim.dataengine.pipeline import _navigation, resolve_scene
+    from image2sim.dataengine.scene_assets import resolve_scene, scene_navigation
     from image2sim.dataengine.trajectories import SamplingConfig, sample_path_plans, sample_plans
     from image2sim.simulator.sim import NeuralSimulator
 
     cache = house.parent / "plans_cache"
     cache.mkdir(exist_ok=True)
-    navmap, graph = _navigation(resolve_scene(house), cache)
+    navmap, graph = scene_navigation(resolve_scene(house), cache)
     cfg = SamplingConfig()
     few, _ = sample_path_plans(graph, 4, cfg, np.random.default_rng(5))
     more, _ = sample_path_plans(graph, 7, cfg, np.random.default_rng(5))

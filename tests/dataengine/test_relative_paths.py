@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 from image2sim.dataengine.distributed import read_shard_list
-from image2sim.dataengine.pipeline import resolve_scene
+from image2sim.dataengine.scene_assets import resolve_scene
 from image2sim.simulator.io.paths import relative_to_file, resolve_from_file
 
 

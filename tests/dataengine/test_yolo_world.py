@@ -233,7 +233,8 @@ def test_engine_mines_with_yolo_world_over_the_scene_vocabulary(
 ):
     """The engine's yolo-world path: prompts are the scene's object categories (no structure), and
     the object database it writes says which detector made it."""
-    from image2sim.dataengine.pipeline import EngineConfig, _objects, resolve_scene
+    from image2sim.dataengine.pipeline import EngineConfig
+    from image2sim.dataengine.scene_assets import resolve_scene, scene_objects
     from image2sim.simulator.io.registry import open_capture
 
     cats, _ = load_categories(capture_dir)
@@ -244,7 +245,7 @@ def test_engine_mines_with_yolo_world_over_the_scene_vocabulary(
         lambda rgb: [(d.box, 0.6, vocab.index(d.category)) for d in table[rgb.tobytes()][1]]
     )
     cfg = EngineConfig(detector="yolo-world", detector_weights=str(weights), mining={"view_size": 160})
-    objs = _objects(resolve_scene(capture_dir), tmp_path, cfg)
+    objs = scene_objects(resolve_scene(capture_dir), tmp_path, cfg)
     assert fake_ultralytics.created[0].classes == vocab and "wall" not in vocab and "chair" in vocab
     assert objs and {o.category for o in objs} <= set(vocab)
     doc = json.loads((tmp_path / "objects.json").read_text())

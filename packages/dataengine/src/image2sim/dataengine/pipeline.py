@@ -2,9 +2,9 @@
 
 ``process_scene(scene_dir, out_dir, config)``:
   1. resolve the scene: a capture folder (``image2sim-capture``) or a built scene folder (Gaussian scene
-     ``manifest.json`` whose ``source.capture`` points at the capture); navigation map, graph and object
-     database are taken from the scene folder when present, else built and cached in
-     ``{out}/scenes/{name}/``;
+     ``manifest.json`` whose ``source.capture`` points at the capture); navigation map, graph, object
+     database and render function from :mod:`.scene_assets` (the scene folder's when present, else
+     built and cached in ``{out}/scenes/{name}/``);
   2. sample plans (:mod:`.trajectories`), roll them out with the oracle follower in the
      :class:`NeuralSimulator` (:mod:`.rollout`), replay every accepted rollout and assert it reaches the
      same final position without collision;
@@ -25,13 +25,20 @@ from pathlib import Path
 import numpy as np
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps, path_features
 from image2sim.dataengine.episodes import episode_record, gt_record
-from image2sim.dataengine.mining import MiningConfig
 from image2sim.dataengine.rollout import (
     RolloutConfig,
     closest_approach_cut,
     replay,
     rollout_plan,
     truncate_rollout,
+)
+from image2sim.dataengine.scene_assets import (
+    DETECTORS,
+    SceneInputs,
+    resolve_scene,
+    scene_navigation,
+    scene_objects,
+    scene_render_fn,
 )
 from image2sim.dataengine.seeding import named_rng
 from image2sim.dataengine.trajectories import (
@@ -46,14 +53,10 @@ from image2sim.dataengine.trajectories import (
 )
 from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
-from image2sim.simulator.io.paths import resolve_from_file
 
 __all__ = [
     "EngineConfig",
-    "SceneInputs",
-    "resolve_scene",
     "process_scene",
-    "scene_name",
     "DONE_FILE",
     "EPISODES_FILE",
 ]
@@ -61,7 +64,6 @@ __all__ = [
 DONE_FILE = "done.json"
 EPISODES_FILE = "episodes.json"
 RENDER_MODES = ("auto", "procedural", "gaussians", "none")
-DETECTORS = ("gt", "yolo-world", "annotations", "none")
 
 
 @dataclass
@@ -158,173 +160,6 @@ class EngineConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-@dataclass
-class SceneInputs:
-    """Resolved inputs of one scene."""
-
-    name: str
-    scene_id: str
-    capture_dir: Path
-    scene_dir: Path
-    """The folder given on the command line (capture or built scene)."""
-    procedural: bool
-    gaussian_dir: Path | None
-
-
-def scene_name(path: Path) -> str:
-    return Path(path).name
-
-
-def resolve_scene(path: str | Path) -> SceneInputs:
-    """Identify a capture folder or a built scene folder (see the module docstring)."""
-    path = Path(path)
-    man_path = path / "manifest.json"
-    if not man_path.is_file():  # a capture of another format, read in place
-        from image2sim.simulator.io.registry import open_capture
-
-        cap = open_capture(path)  # raises CaptureError naming the folder when no reader knows it
-        return SceneInputs(path.name, str(cap.scene_id or path.name), path, path, False, None)
-    man = json.loads(man_path.read_text())
-    gaussian_dir = None
-    if (path / "gaussians.safetensors").is_file():
-        src = (man.get("source") or {}).get("capture")
-        # Relative to the manifest (relocatable scene folders), or absolute (older scenes).
-        capture_dir = resolve_from_file(src, man_path) if src else None
-        if capture_dir is None or not (capture_dir / "manifest.json").is_file():
-            raise FileNotFoundError(
-                f"{man_path}: field 'source.capture' ({src!r}) does not point at a capture"
-            )
-        gaussian_dir = path
-        man = json.loads((capture_dir / "manifest.json").read_text())
-    else:
-        capture_dir = path
-    meta = man.get("metadata") or {}
-    procedural = meta.get("generator") == "image2sim.dataengine.procedural"
-    return SceneInputs(
-        path.name, str(man.get("scene_id") or path.name), capture_dir, path, procedural, gaussian_dir
-    )
-
-
-# ---------------------------------------------------------------------------------------- assets
-
-
-def _navigation(inputs: SceneInputs, cache: Path, asset_cache: str | None = None):
-    """The scene's map and graph: a built scene's own, else this run's (``cache``), else copied from
-    the content-keyed ``asset_cache``, else extracted from the capture (and stored in both)."""
-    from image2sim.dataengine.asset_cache import cached, content_key
-    from image2sim.simulator.navigation import NavMap
-    from image2sim.simulator.navigation.graph import NavGraph
-
-    folder = inputs.scene_dir
-    if (folder / "navmap.npz").is_file() and (folder / "navgraph.npz").is_file():
-        return NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz")
-
-    def build() -> None:
-        from image2sim.dataengine.procedural.exact import capture_navigation
-
-        navmap, graph = capture_navigation(inputs.capture_dir, inputs.procedural)
-        navmap.save(cache / "navmap.npz")
-        graph.save(cache / "navgraph.npz")
-
-    def key() -> str:
-        return content_key(inputs.capture_dir, "navigation", f"procedural={inputs.procedural}")
-
-    cached(asset_cache, key, ["navmap.npz", "navgraph.npz"], cache, build)
-    return NavMap.load(cache / "navmap.npz"), NavGraph.load(cache / "navgraph.npz")
-
-
-def _objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
-    from image2sim.dataengine import mining
-
-    for folder in (inputs.scene_dir, cache):
-        if (folder / "objects.json").is_file():
-            try:
-                return mining.load_objects(folder / "objects.json")
-            except ValueError:
-                if folder == inputs.scene_dir:
-                    continue  # a foreign objects.json (e.g. a GT file): mine our own
-                raise
-    if cfg.detector == "none":
-        return []
-    if cfg.detector == "annotations":
-        from image2sim.dataengine.objects_file import load_objects_file, objects_file_for
-
-        objs = load_objects_file(objects_file_for(cfg.objects, inputs.name, inputs.capture_dir))
-        mining.save_objects(cache / "objects.json", objs, {"detector": "annotations"})
-        return objs
-    from image2sim.simulator.io.registry import open_capture
-
-    mcfg = config_from_dict(MiningConfig, cfg.mining, "mining")
-    cap = open_capture(inputs.capture_dir)
-    small: set[str] = set()
-    if cfg.detector == "gt":
-        cats, small = mining.load_categories(inputs.capture_dir)
-        det = mining.GTDetector(cats)
-    elif cfg.detector == "yolo-world":
-        if not cfg.detector_weights:
-            raise ValueError("detector yolo-world needs detector_weights (a local file)")
-        if (inputs.capture_dir / "gt" / "categories.json").is_file():
-            cats, small = mining.load_categories(inputs.capture_dir)
-            vocab = sorted(set(cats.values()) - {"floor", "wall", "ceiling", "rug"})
-        else:
-            vocab, small = list(mining.DEFAULT_VOCABULARY), set(mining.DEFAULT_SMALL)
-        det = mining.YoloWorldDetector(cfg.detector_weights, vocab)
-    else:
-        raise ValueError(f"unknown detector {cfg.detector!r}; known: {DETECTORS}")
-    objs, stats = mining.mine_capture(cap, det, mcfg, small)
-    mining.attach_gt_metadata(objs, inputs.capture_dir)
-    mining.save_objects(
-        cache / "objects.json", objs, {"detector": det.name, "stats": stats, "config": asdict(mcfg)}
-    )
-    return objs
-
-
-def _render_fn(
-    inputs: SceneInputs, cache: Path, mode: str, renderer: str | None = None, asset_cache: str | None = None
-):
-    """(render function or None, mode actually used)."""
-    if renderer is not None and mode == "auto":
-        mode = "gaussians"
-    if mode == "auto":
-        mode = "gaussians"  # training data comes from the neural simulator unless asked otherwise
-    if mode == "none":
-        return None, mode
-    if mode == "procedural":
-        if not inputs.procedural:
-            raise ValueError(f"{inputs.capture_dir}: render=procedural needs a procedural capture")
-        from image2sim.dataengine.procedural.exact import exact_render_fn
-
-        return exact_render_fn(inputs.capture_dir, instances=True), mode
-    from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
-    from image2sim.simulator.sim import GaussianRenderFn
-
-    folder = inputs.gaussian_dir
-    if folder is None:
-        from image2sim.dataengine.asset_cache import cached, content_key
-        from image2sim.simulator.gaussians.config import config_to_dict
-
-        folder = cache / "gaussians"
-        # The key names the whole Gaussian config, so a cache built under other fusion settings
-        # (e.g. before best-view selection) is never reused.
-        config = json.dumps(config_to_dict(tiny()), sort_keys=True)
-        cached(
-            asset_cache,
-            lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}"),
-            ["gaussians"],
-            cache,
-            lambda: build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True),
-        )
-    g = GaussianScene.load(folder).gaussians
-    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
-    if renderer is not None:
-        from image2sim.simulator.renderer.model import load_renderer
-        from image2sim.simulator.sim import PixelFlowRenderFn
-
-        # Panoramic: the simulator cuts the pinhole / ultra-wide views out of the rendered panorama.
-        return PixelFlowRenderFn(tensors, load_renderer(renderer)), "gaussians+pixel-flow"
-    return GaussianRenderFn(tensors), mode
 
 
 # ---------------------------------------------------------------------------------------- helpers
@@ -474,8 +309,8 @@ def process_scene(
     out = Path(out_dir) / "scenes" / inputs.name
     out.mkdir(parents=True, exist_ok=True)
     sweep_stale_temps(out / "shard")  # left by a killed earlier attempt of this scene
-    navmap, graph = _navigation(inputs, out, asset_cache)
-    objects = _objects(inputs, out, cfg)
+    navmap, graph = scene_navigation(inputs, out, asset_cache)
+    objects = scene_objects(inputs, out, cfg)
     scfg = config_from_dict(SamplingConfig, cfg.sampling, "sampling")
     rcfg = config_from_dict(RolloutConfig, cfg.rollout, "rollout")
     area = navmap.navigable_area()
@@ -519,7 +354,7 @@ def process_scene(
     render_fn, render_mode = (
         (None, "none")
         if cfg.render == "none"
-        else _render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache)
+        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache)
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
@@ -737,8 +572,8 @@ def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
 
     config = EngineConfig.from_dict(cfg)
     inputs = resolve_scene(scene_dir)
-    navmap, graph = _navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
-    render_fn, _ = _render_fn(inputs, Path(out), config.render, config.renderer)
+    navmap, graph = scene_navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
+    render_fn, _ = scene_render_fn(inputs, Path(out), config.render, config.renderer)
     _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
 
 
