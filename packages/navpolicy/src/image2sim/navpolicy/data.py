@@ -419,6 +419,15 @@ class _SamplingDataset(torch.utils.data.Dataset):
     seed: int
     epoch: int
 
+    def _set_layout(
+        self, max_observations, max_action_labels, jitter, seed, stride, context, end_cut, late_start
+    ) -> None:
+        """The sample layout both datasets take (see :func:`make_sample`); epoch 0."""
+        self.max_observations, self.max_action_labels = max_observations, max_action_labels
+        self.jitter, self.seed, self.epoch = jitter, seed, 0
+        self.stride, self.context = stride, context
+        self.end_cut_probability, self.late_start_probability = end_cut, late_start
+
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
@@ -461,8 +470,16 @@ class NavShardDataset(_SamplingDataset):
         cache_frames: bool = False,
         shuffle_instructions: bool = False,
     ) -> None:
-        self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
-        self.late_start_probability = late_start_probability
+        self._set_layout(
+            max_observations,
+            max_action_labels,
+            jitter,
+            seed,
+            stride,
+            context,
+            end_cut_probability,
+            late_start_probability,
+        )
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s, cache_frames) for s in shards]
@@ -475,11 +492,6 @@ class NavShardDataset(_SamplingDataset):
         self.instruction_source = (
             np.random.default_rng([seed, 4441]).permutation(len(self.index)) if shuffle_instructions else None
         )
-        self.max_observations = max_observations
-        self.max_action_labels = max_action_labels
-        self.jitter = jitter
-        self.seed = seed
-        self.epoch = 0
 
     def __len__(self) -> int:
         return len(self.index)
@@ -510,11 +522,17 @@ class InMemoryNavDataset(_SamplingDataset):
         end_cut_probability: float = 0.0,
         late_start_probability: float = 0.0,
     ) -> None:
-        self.stride, self.context, self.end_cut_probability = stride, context, end_cut_probability
-        self.late_start_probability = late_start_probability
+        self._set_layout(
+            max_observations,
+            max_action_labels,
+            jitter,
+            seed,
+            stride,
+            context,
+            end_cut_probability,
+            late_start_probability,
+        )
         self.trajectories = list(trajectories)
-        self.max_observations, self.max_action_labels = max_observations, max_action_labels
-        self.jitter, self.seed, self.epoch = jitter, seed, 0
 
     def __len__(self) -> int:
         return len(self.trajectories)
