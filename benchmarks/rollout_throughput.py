@@ -1,6 +1,7 @@
 """Rollout throughput: agent-steps per second through ``NeuralSimulator`` with the policy in the loop.
 
-One procedural house (``preset('tiny')``) is simulated three ways, all with the same navigation map,
+One procedural house (``preset('tiny')``; ``--house-preset default`` for the sim2real pipeline's
+house size) is simulated three ways, all with the same navigation map,
 graph and kinematics, at the policy's training observation (64x64 pinhole, 90 deg, as in
 ``configs/navpolicy/tiny-dagger.yaml``; ``--obs`` for other sizes):
 
@@ -80,6 +81,7 @@ def build_simulators(
     renderer: str | None,
     flow_steps: int,
     backend: str = "auto",
+    house_preset: str = "tiny",
 ) -> tuple[dict, dict]:
     """The simulators of ``rows`` on one procedural house (shared navigation map and graph) and a
     description of the scene and renderers."""
@@ -94,12 +96,15 @@ def build_simulators(
 
     t0 = time.perf_counter()
     spec = ObservationSpec(panorama=False, pinhole=True, pinhole_size=obs, pinhole_hfov_deg=hfov)
-    exact = procedural_simulator(seed, "tiny")
+    exact = procedural_simulator(seed, house_preset)
     exact.spec = spec
     sims: dict = {"exact": exact}
-    info: dict = {"house": f"procedural preset 'tiny', seed {seed}", "graph_nodes": len(exact.graph.nodes)}
+    info: dict = {
+        "house": f"procedural preset '{house_preset}', seed {seed}",
+        "graph_nodes": len(exact.graph.nodes),
+    }
     if {"splat_only", "neural"} & set(rows):
-        capture = write_scene(generate_scene(preset("tiny"), seed=seed), work / "capture")
+        capture = write_scene(generate_scene(preset(house_preset), seed=seed), work / "capture")
         scene = build_scene(capture, gaussians_tiny(), encoder="identity")
         folder = work / "scene"
         scene.save(folder)
@@ -222,6 +227,7 @@ def run(
     seed: int = 0,
     threads: int = 1,
     backend: str = "auto",
+    house_preset: str = "tiny",
 ) -> tuple[list[dict], dict, list[str]]:
     """Measure every (row, batch) setting; returns the rows, the report metadata and its Markdown."""
     from image2sim.navpolicy.rollout_scenes import sample_tasks
@@ -247,7 +253,9 @@ def run(
                 f"the policy's camera is {cfg.observation.camera!r}: only pinhole is benchmarked"
             )
         hfov = float(cfg.observation.hfov_deg)
-        sims, scene_info = build_simulators(rows, obs, hfov, seed, Path(tmp), renderer, flow_steps, backend)
+        sims, scene_info = build_simulators(
+            rows, obs, hfov, seed, Path(tmp), renderer, flow_steps, backend, house_preset
+        )
         tasks = sample_tasks(sims[REFERENCE], max(batches), np.random.default_rng(seed), scene_id="bench")
         starts = np.stack([t.start for t in tasks])
         headings = np.array([t.heading for t in tasks])
@@ -440,6 +448,12 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
     ap.add_argument("--observe-every", type=int, choices=(1, 2), default=2, help="steps per observation")
     ap.add_argument("--backend", default="auto", help="splatting backend (auto, cpu, torch, reference)")
     ap.add_argument("--seed", type=int, default=0, help="procedural house and start poses")
+    ap.add_argument(
+        "--house-preset",
+        choices=("tiny", "default"),
+        default="tiny",
+        help="procedural house preset ('default': the size of the sim2real pipeline's houses)",
+    )
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared box)")
     ap.add_argument("--quick", action="store_true", help="smoke run: defaults B in {1, 2}, 4 steps, 1 repeat")
     args = ap.parse_args(argv)
@@ -461,6 +475,7 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
         seed=args.seed,
         threads=args.threads,
         backend=args.backend,
+        house_preset=args.house_preset,
     )
     json_path, _ = write_report(NAME, rows, meta, markdown=lines, reports=reports)
     print("\n".join(lines))

@@ -266,7 +266,10 @@ def _observation_spec(cfg: EngineConfig, pano_height: int):
 
     h = int(cfg.obs_height)
     if cfg.view == "pinhole":
-        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h)
+        # pano_height matters for panoramic render functions (the pixel-flow renderer), which render
+        # the panorama and cut the view from it: without it they rendered at the spec's default
+        # 256x512, 4x the pixels of a 64 px view and a scale the tiny renderer never trained on.
+        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h, pano_height=pano_height)
     return ObservationSpec(
         panorama=False,
         ultrawide=True,
