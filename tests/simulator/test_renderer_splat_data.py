@@ -151,6 +151,10 @@ def test_deterministic_and_split_matches_sim_train(box_capture, half_capture):
     a = sd.SplatConditionDataset([box_capture, half_capture], H, W, cfg, gaussian_config=_gcfg())
     b = sd.SplatConditionDataset([box_capture, half_capture], H, W, cfg, gaussian_config=_gcfg())
     assert torch.equal(a.conditions, b.conditions)
+    # One capture per spawned process: the same conditions, targets and sources, in capture order.
+    c = sd.SplatConditionDataset([box_capture, half_capture], H, W, cfg, gaussian_config=_gcfg(), workers=2)
+    assert torch.equal(a.conditions, c.conditions) and torch.equal(a.target_rgb, c.target_rgb)
+    assert [s.frames for s in c.sources] == [s.frames for s in a.sources]
     # Global counting over captures: frames 2 (box) and 1 (half, global 5) are held out.
     assert [s.frames for s in a.sources] == [[0, 1, 3], [0, 2]]
     lengths = [4, 3, 9, 1]
@@ -217,6 +221,10 @@ def test_config_errors(box_capture):
         )
     with pytest.raises(sd.SplatDataError, match="at least one capture"):
         sd.SplatConditionDataset([], H, W)
+    with pytest.raises(sd.SplatDataError, match="workers"):
+        sd.SplatConditionDataset(
+            [box_capture], H, W, sd.SplatDataConfig(), gaussian_config=_gcfg(), workers=0
+        )
 
 
 @pytest.mark.slow

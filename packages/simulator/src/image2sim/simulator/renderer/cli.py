@@ -12,6 +12,7 @@ splat of the identity Gaussians of the capture's OTHER training frames at its po
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import typer
@@ -53,6 +54,9 @@ def train_command(
     resume: str = typer.Option("", help="Checkpoint to resume from ('last' = out/checkpoints/last.ckpt)."),
     seed: int = typer.Option(0, help="Seed of data order, degradations, (r, t) and noise."),
     threads: int = typer.Option(1, help="torch threads (1 is fastest on a shared 2-core machine)."),
+    data_workers: int = typer.Option(
+        0, help="With splat: processes building the captures' conditions, one capture each (0: one per core)."
+    ),
     bf16: bool = typer.Option(False, help="bf16 autocast."),
     accelerator: str = typer.Option("", help="Override trainer.accelerator: cpu, gpu or auto."),
     devices: int = typer.Option(0, help="Override trainer.devices (processes per node; >1 needs ddp)."),
@@ -131,7 +135,11 @@ def train_command(
             cache_dir=str(splat_cache),
             max_frames=None if max_frames < 0 else max_frames,
         )
-        ds = SplatConditionDataset(data, cfg.height, cfg.width, scfg, progress=True)
+        if data_workers < 0:
+            raise typer.BadParameter(f"must be >= 0, got {data_workers}", param_hint="--data-workers")
+        ds = SplatConditionDataset(
+            data, cfg.height, cfg.width, scfg, progress=True, workers=data_workers or (os.cpu_count() or 1)
+        )
         write_training_record(out, training_record(data, scfg, ds.gaussian_config))
         cached = sum(s.cached for s in ds.sources)
         typer.echo(

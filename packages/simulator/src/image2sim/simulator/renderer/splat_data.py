@@ -372,6 +372,25 @@ def capture_conditions(
     return cond, False
 
 
+def _build_conditions(jobs: list[tuple], workers: int, progress: bool) -> list[tuple[torch.Tensor, bool]]:
+    """:func:`capture_conditions` of every job (its positional arguments), in order."""
+    if workers <= 1:
+        return [capture_conditions(*job, progress=progress) for job in jobs]
+    from image2sim.simulator.lifetime import spawn_pool
+
+    with spawn_pool(workers) as pool:
+        futures = [pool.submit(capture_conditions, *job) for job in jobs]
+        if progress:
+            from concurrent.futures import as_completed
+
+            from rich.progress import track
+
+            label = f"splatting {len(jobs)} captures ({workers} processes)"
+            for _ in track(as_completed(futures), total=len(futures), description=label):
+                pass
+        return [f.result() for f in futures]
+
+
 @dataclass
 class _Source:
     path: str
@@ -395,7 +414,11 @@ class SplatConditionDataset(Dataset):
         cfg: SplatDataConfig | None = None,
         gaussian_config: Any = None,
         progress: bool = False,
+        workers: int = 1,
     ) -> None:
+        """``workers`` > 1 builds the captures' conditions in that many spawned processes, one capture
+        each (leave-target-out fusion is single-threaded, so one process per core is what uses the
+        machine); the conditions are the same as in one process."""
         from image2sim.simulator.gaussians.config import load_gaussian_config
         from image2sim.simulator.renderer.data import load_capture_targets
 
@@ -409,10 +432,16 @@ class SplatConditionDataset(Dataset):
         """The resolved Gaussian config the conditions were built with."""
         all_targets = [load_capture_targets(p, height, width, self.cfg.max_frames) for p in captures]
         split = holdout_split([len(t) for t in all_targets], self.cfg.holdout_every)
+        if int(workers) < 1:
+            raise SplatDataError(f"workers must be >= 1, got {workers}")
+        jobs = [
+            (path, height, width, train, self.cfg, gcfg, targets)
+            for path, targets, (_, train) in zip(captures, all_targets, split, strict=True)
+        ]
+        built = _build_conditions(jobs, min(int(workers), len(jobs)), progress)
         conds, rgbs, depths = [], [], []
         self.sources: list[_Source] = []
-        for path, targets, (_, train) in zip(captures, all_targets, split, strict=True):
-            cond, cached = capture_conditions(path, height, width, train, self.cfg, gcfg, targets, progress)
+        for (path, _, _, train, _, _, targets), (cond, cached) in zip(jobs, built, strict=True):
             conds.append(cond)
             rgbs += [targets[i][0] for i in train]
             depths += [targets[i][1] for i in train]
