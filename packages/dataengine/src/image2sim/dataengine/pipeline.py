@@ -94,6 +94,10 @@ class EngineConfig:
     """Local pixel-flow renderer weights (an ``export-renderer`` folder, ``save_renderer`` safetensors
     or a Lightning checkpoint) applied after splatting (the simulator's ``PixelFlowRenderFn``); needs
     render=gaussians (or auto)."""
+    device: str = "cpu"
+    """Torch device the Gaussian observations render on: cpu, or cuda / cuda:N on a GPU machine (the
+    splat and the pixel-flow renderer; the exact procedural renderer, the navigation and the files stay
+    on the CPU). The frames match the CPU's up to float rounding."""
     detector: str = "gt"
     """Where goal objects come from: gt (a procedural capture's ground truth), yolo-world (mined with
     local weights), annotations (a person's objects file, :mod:`.objects_file`) or none (no objects:
@@ -149,6 +153,14 @@ class EngineConfig:
                 "detector none makes landmark-free path episodes, which only the template annotator "
                 "describes (VLM prompts ask about a goal object): use --annotator template"
             )
+        import torch
+
+        try:
+            torch_device = torch.device(self.device)
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(f"EngineConfig.device: {self.device!r} is not a torch device ({err})") from None
+        if torch_device.type not in ("cpu", "cuda"):
+            raise ValueError(f"EngineConfig.device must be cpu or cuda[:N], got {self.device!r}")
         if self.renderer is not None and self.render not in ("auto", "gaussians"):
             raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
 
@@ -357,7 +369,7 @@ def process_scene(
     render_fn, render_mode = (
         (None, "none")
         if cfg.render == "none"
-        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache)
+        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device)
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
@@ -576,7 +588,7 @@ def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
     config = EngineConfig.from_dict(cfg)
     inputs = resolve_scene(scene_dir)
     navmap, graph = scene_navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
-    render_fn, _ = scene_render_fn(inputs, Path(out), config.render, config.renderer)
+    render_fn, _ = scene_render_fn(inputs, Path(out), config.render, config.renderer, device=config.device)
     _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
 
 

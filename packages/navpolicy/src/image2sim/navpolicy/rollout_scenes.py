@@ -264,19 +264,12 @@ def scene_simulator(folder: str | Path, source: str = "neural", renderer=None):
     from image2sim.simulator.gaussians import GaussianScene
     from image2sim.simulator.navigation import NavMap
     from image2sim.simulator.navigation.graph import NavGraph
-    from image2sim.simulator.sim import GaussianRenderFn, PixelFlowRenderFn, load_pixel_flow
+    from image2sim.simulator.sim import gaussian_render_fn
 
     g = GaussianScene.load(gdir).gaussians
     if g is None:
         raise ValueError(f"{gdir}: the Gaussian scene is empty")
-    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
-    if tensors["features"] is None:
-        del tensors["features"]
-    render_fn = (
-        PixelFlowRenderFn(tensors, load_pixel_flow(renderer))
-        if source == "neural"
-        else GaussianRenderFn(tensors)
-    )
+    render_fn = gaussian_render_fn(g, renderer if source == "neural" else None)
     return NeuralSimulator(
         NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz"), render_fn
     )
