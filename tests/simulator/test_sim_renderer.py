@@ -26,6 +26,7 @@ from image2sim.simulator.sim import (  # noqa: E402
     PixelFlowRenderFn,
     gaussian_render_fn,
     gaussian_tensors,
+    panorama_height_for,
     views_from_panorama,
 )
 
@@ -196,6 +197,23 @@ def test_cuda_observations_match_the_cpu_ones(scene_and_ckpt, with_renderer):
             a, b = obs["cpu"][view][key], obs["cuda"][view][key]
             assert isinstance(b, np.ndarray) and b.dtype == a.dtype and b.shape == a.shape
             np.testing.assert_allclose(b, a, atol=2e-3 if key == "rgb" else 2e-3 * max(1.0, float(a.max())))
+
+
+@pytest.mark.parametrize(
+    "pixels, fov, height",
+    [(64, 90.0, 128), (48, 90.0, 96), (98, 180.0, 98), (100, 79.0, 228), (8, 90.0, 32), (512, 360.0, 256)],
+)
+def test_panorama_height_matches_the_views_angular_resolution(pixels, fov, height):
+    h = panorama_height_for(pixels, fov)
+    assert h == height
+    if h > 32:  # above the floor: one view pixel per panorama pixel across the view
+        assert abs(2 * h * fov / 360.0 - pixels) <= 1.0
+
+
+@pytest.mark.parametrize("pixels, fov", [(0, 90.0), (64, 0.0), (64, 400.0), (64, float("nan"))])
+def test_panorama_height_rejects_bad_views(pixels, fov):
+    with pytest.raises(ValueError, match="panorama_height_for"):
+        panorama_height_for(pixels, fov)
 
 
 def _analytic_pano(h: int) -> dict:

@@ -273,21 +273,21 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.asarray(rgb, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
-def _observation_spec(cfg: EngineConfig, pano_height: int):
-    from image2sim.simulator.sim import ObservationSpec
+def _observation_spec(cfg: EngineConfig):
+    """The stored view's spec. Its panorama height is the view's angular resolution
+    (:func:`~image2sim.simulator.sim.panorama_height_for`), which panoramic render functions (the
+    pixel-flow renderer) render at before cutting the view: without it they rendered at the spec's
+    default 256x512, 4x the pixels of a 64 px view and a scale the tiny renderer never trained on."""
+    from image2sim.simulator.sim import ObservationSpec, panorama_height_for
 
     h = int(cfg.obs_height)
     if cfg.view == "pinhole":
-        # pano_height matters for panoramic render functions (the pixel-flow renderer), which render
-        # the panorama and cut the view from it: without it they rendered at the spec's default
-        # 256x512, 4x the pixels of a 64 px view and a scale the tiny renderer never trained on.
-        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h, pano_height=pano_height)
+        spec = ObservationSpec(panorama=False, pinhole=True, pinhole_size=h)
+        return replace(spec, pano_height=panorama_height_for(h, spec.pinhole_hfov_deg))
+    width = int(round(h * 512 / 336))
+    pano_height = panorama_height_for(width, 180.0)  # the ultra-wide view spans 180 degrees
     return ObservationSpec(
-        panorama=False,
-        ultrawide=True,
-        pano_height=pano_height,
-        ultrawide_height=h,
-        ultrawide_width=int(round(h * 512 / 336)),
+        panorama=False, ultrawide=True, pano_height=pano_height, ultrawide_height=h, ultrawide_width=width
     )
 
 
@@ -376,7 +376,7 @@ def process_scene(
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    fov = _field_of_view(_observation_spec(cfg, _pano_height(cfg)))  # the stored observation's
+    fov = _field_of_view(_observation_spec(cfg))  # the stored observation's
     goal_view = VisibilityConfig(
         max_distance=cfg.goal_view_distance,
         hfov_deg=fov[0],
@@ -550,19 +550,11 @@ def observation_steps(n_actions: int, stride: int) -> list[int]:
     return list(range(0, max(int(n_actions), 1), max(int(stride), 1)))
 
 
-def _pano_height(cfg: EngineConfig) -> int:
-    """Panorama height at the stored view's angular resolution (a 64 px, 90 degree pinhole view spans
-    a quarter of a 256-wide panorama), so a panoramic renderer is not upsampled into the view."""
-    if cfg.view == "pinhole":
-        return max(64, int(round(cfg.obs_height * 180.0 / 90.0)))
-    return max(64, int(round(cfg.obs_height * 512 / 336)))  # 180 degrees = half the panorama width
-
-
 def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> tuple[np.ndarray, list[int]]:
     """Observations of the rollout at :func:`observation_steps` (frames, their steps), by re-executing
     it with rendering on where a frame is stored."""
     sim.render_fn = render_fn
-    sim.spec = _observation_spec(cfg, pano_height=_pano_height(cfg))
+    sim.spec = _observation_spec(cfg)
     key = "pinhole" if cfg.view == "pinhole" else "ultrawide"
     steps = observation_steps(len(r.actions), cfg.frame_stride)
     wanted = set(steps)

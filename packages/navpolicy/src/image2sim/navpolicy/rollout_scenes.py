@@ -49,9 +49,9 @@ def render_observation(sim, obs: ObservationConfig) -> np.ndarray:
     if obs.camera == "pinhole" and getattr(sim.render_fn, "panoramic", False):
         # A panoramic renderer (the pixel-flow renderer): render the panorama at the pinhole view's
         # angular resolution and cut the view out of it, as NeuralSimulator.observe does.
-        from image2sim.simulator.sim import ObservationSpec, views_from_panorama
+        from image2sim.simulator.sim import ObservationSpec, panorama_height_for, views_from_panorama
 
-        h = max(32, int(round(obs.width * 180.0 / obs.hfov_deg)))
+        h = panorama_height_for(obs.width, obs.hfov_deg)
         pano = sim.render_fn(EquirectCamera(h, 2 * h), pose)
         spec = ObservationSpec(
             panorama=False, pinhole=True, pinhole_size=obs.height, pinhole_hfov_deg=obs.hfov_deg

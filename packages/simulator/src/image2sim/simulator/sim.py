@@ -36,6 +36,7 @@ __all__ = [
     "load_pixel_flow",
     "gaussian_tensors",
     "gaussian_render_fn",
+    "panorama_height_for",
 ]
 
 RenderFn = Callable[[Camera, np.ndarray], dict]
@@ -223,6 +224,24 @@ class PixelFlowRenderFn:
             "rgb": res.rgb[0].permute(1, 2, 0).clamp(0, 1).float().cpu().numpy(),
             "depth": res.depth[0, 0].float().cpu().numpy(),
         }
+
+
+MIN_PANORAMA_HEIGHT = 32
+"""The smallest panorama a panoramic render function is asked for (tiny views still get 32x64)."""
+
+
+def panorama_height_for(view_pixels: int, view_fov_deg: float) -> int:
+    """Height of the panorama at a view's angular resolution: ``view_pixels`` across ``view_fov_deg``
+    degrees is ``view_pixels * 360 / fov`` columns over the full circle, and the panorama's height is
+    half its width. A panoramic renderer (the pixel-flow renderer) renders at this height, so the view
+    is cut from it without up- or downsampling: 64 px over 90 degrees gives 128x256, the tiny
+    renderer's training size. The data engine and DAgger both ask for panoramas through this."""
+    if not (view_pixels >= 1 and 0 < view_fov_deg <= 360):
+        raise ValueError(
+            f"panorama_height_for: need view_pixels >= 1 and 0 < fov <= 360, got "
+            f"{view_pixels}, {view_fov_deg}"
+        )
+    return max(MIN_PANORAMA_HEIGHT, int(round(view_pixels * 180.0 / view_fov_deg)))
 
 
 def views_from_panorama(pano: dict, spec: ObservationSpec) -> dict:
