@@ -219,13 +219,14 @@ def tasks_from_episodes(episodes, sim, scene_id: str = "") -> list[NavTask]:
     return out
 
 
-def scene_simulator(folder: str | Path, source: str = "neural", renderer=None):
+def scene_simulator(folder: str | Path, source: str = "neural", renderer=None, device: str = "cpu"):
     """A :class:`NeuralSimulator` for DAgger rollouts from one scene folder.
 
     ``neural``: a built scene (``sim build-scene``: Gaussians + navigation map and graph) rendered by
     the pixel-flow renderer ``renderer`` (weights path; required); ``splat_only``: the same scene
     splatted, no learned renderer; ``exact``: a procedural capture rendered exactly (the navigation
-    map and graph from the folder when present, else extracted as the data engine does).
+    map and graph from the folder when present, else extracted as the data engine does). ``device``:
+    where Gaussian scenes render (cpu or cuda); the exact renderer runs on the CPU.
     """
     from image2sim.simulator.sim import NeuralSimulator
 
@@ -269,17 +270,23 @@ def scene_simulator(folder: str | Path, source: str = "neural", renderer=None):
     g = GaussianScene.load(gdir).gaussians
     if g is None:
         raise ValueError(f"{gdir}: the Gaussian scene is empty")
-    render_fn = gaussian_render_fn(g, renderer if source == "neural" else None)
+    render_fn = gaussian_render_fn(g, renderer if source == "neural" else None, device=device)
     return NeuralSimulator(
         NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz"), render_fn
     )
 
 
 def episode_scenes(
-    episodes, scenes_root: str | Path, source: str = "neural", renderer=None, goal_marker=None
+    episodes,
+    scenes_root: str | Path,
+    source: str = "neural",
+    renderer=None,
+    goal_marker=None,
+    device: str = "cpu",
 ) -> list[RolloutScene]:
     """One :class:`RolloutScene` per scene the episodes name (``<scenes_root>/<scene name>``, the
-    episode's ``scene_id`` stem), with the episodes as tasks (see :func:`tasks_from_episodes`)."""
+    episode's ``scene_id`` stem), with the episodes as tasks (see :func:`tasks_from_episodes`);
+    ``device``: where Gaussian scenes render (see :func:`scene_simulator`)."""
     groups: dict[str, list] = {}
     for ep in episodes:
         groups.setdefault(ep.scene_name, []).append(ep)
@@ -295,7 +302,7 @@ def episode_scenes(
         folder = Path(scenes_root) / name
         if not folder.is_dir():
             raise FileNotFoundError(f"scene {name!r}: {folder} not found (episodes reference it)")
-        sim = scene_simulator(folder, source, model)
+        sim = scene_simulator(folder, source, model, device=device)
         if goal_marker is not None:
             from image2sim.simulator.markers import MarkedRenderFn
 
