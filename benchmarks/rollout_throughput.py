@@ -82,6 +82,7 @@ def build_simulators(
     flow_steps: int,
     backend: str = "auto",
     house_preset: str = "tiny",
+    device: str = "cpu",
 ) -> tuple[dict, dict]:
     """The simulators of ``rows`` on one procedural house (shared navigation map and graph) and a
     description of the scene and renderers."""
@@ -111,15 +112,18 @@ def build_simulators(
         exact.navmap.save(folder / "navmap.npz")  # the same map and graph: identical kinematics
         exact.graph.save(folder / "navgraph.npz")
         info["gaussians"] = int(scene.manifest()["counts"]["gaussians"])
-        info["splat_backend"] = resolve_backend(backend, torch.device("cpu"))
+        info["splat_backend"] = resolve_backend(backend, torch.device(device))
+        info["device"] = device
         info["capture_frames"] = int(scene.manifest()["counts"]["frames"])
         if "splat_only" in rows:
-            sims["splat_only"] = NeuralSimulator.from_scene(folder, observations=spec, backend=backend)
+            sims["splat_only"] = NeuralSimulator.from_scene(
+                folder, observations=spec, backend=backend, device=device
+            )
         if "neural" in rows:
             torch.manual_seed(0)
             model = renderer if renderer else PixelFlowRenderer(renderer_tiny())
             sim = NeuralSimulator.from_scene(
-                folder, observations=spec, renderer=model, steps=flow_steps, backend=backend
+                folder, observations=spec, renderer=model, steps=flow_steps, backend=backend, device=device
             )
             net = sim.render_fn.model
             # The renderer is panoramic: it renders at its training resolution, the view is cut from it.
@@ -228,6 +232,7 @@ def run(
     threads: int = 1,
     backend: str = "auto",
     house_preset: str = "tiny",
+    device: str = "cpu",
 ) -> tuple[list[dict], dict, list[str]]:
     """Measure every (row, batch) setting; returns the rows, the report metadata and its Markdown."""
     from image2sim.navpolicy.rollout_scenes import sample_tasks
@@ -244,6 +249,8 @@ def run(
     warnings.filterwarnings("ignore", message=".*past_key_values.*deprecated", category=FutureWarning)
     load_start = load_average()
     hw = hardware()
+    if torch.device(device).type == "cuda":
+        hw += f"; Gaussian rows on {torch.cuda.get_device_name(torch.device(device))}"
     rows = [r for r in ROWS if r in rows]
     batches = sorted(set(int(b) for b in batches))
     with tempfile.TemporaryDirectory(prefix="bench_rollout_") as tmp:
@@ -254,7 +261,7 @@ def run(
             )
         hfov = float(cfg.observation.hfov_deg)
         sims, scene_info = build_simulators(
-            rows, obs, hfov, seed, Path(tmp), renderer, flow_steps, backend, house_preset
+            rows, obs, hfov, seed, Path(tmp), renderer, flow_steps, backend, house_preset, device
         )
         tasks = sample_tasks(sims[REFERENCE], max(batches), np.random.default_rng(seed), scene_id="bench")
         starts = np.stack([t.start for t in tasks])
@@ -455,6 +462,12 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
         help="procedural house preset ('default': the size of the sim2real pipeline's houses)",
     )
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared box)")
+    ap.add_argument(
+        "--device",
+        default="cpu",
+        help="where the Gaussian rows render (cpu, cuda); the exact renderer and the policy stay on the "
+        "CPU. A non-CPU run writes reports/rollout_throughput_<device>.*",
+    )
     ap.add_argument("--quick", action="store_true", help="smoke run: defaults B in {1, 2}, 4 steps, 1 repeat")
     args = ap.parse_args(argv)
     defaults = ([1, 2], 4, 1) if args.quick else ([1, 4], 32, 5)
@@ -476,8 +489,10 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
         threads=args.threads,
         backend=args.backend,
         house_preset=args.house_preset,
+        device=args.device,
     )
-    json_path, _ = write_report(NAME, rows, meta, markdown=lines, reports=reports)
+    name = NAME if args.device == "cpu" else f"{NAME}_{args.device.replace(':', '')}"
+    json_path, _ = write_report(name, rows, meta, markdown=lines, reports=reports)
     print("\n".join(lines))
     return {**meta, "rows": rows, "path": str(json_path)}
 

@@ -459,6 +459,19 @@ def test_restart_with_other_arguments_is_refused(scenes_root, full_run):
     merge_outputs(out, ["scene_000", "scene_001"], "train")  # still consistent after the refusal
 
 
+def test_the_render_device_is_validated_and_a_run_may_resume_on_another(scenes_root, full_run):
+    """``device`` says where frames render, not what is written: a finished run resumed with another
+    device is not refused (it skips its finished scenes); a device torch does not know is an error."""
+    for bad in ("gpu0", "tpu", "cuda:x"):
+        with pytest.raises(ValueError, match="EngineConfig.device"):
+            EngineConfig(**CFG, device=bad)
+    EngineConfig(**CFG, device="cuda:1")  # valid on any machine; rendering on it needs CUDA
+    out, _ = full_run
+    cuda = EngineConfig(**CFG, device="cuda")
+    summary = run_engine(scenes_root, out, cuda, executor="local", progress=False)
+    assert summary["scenes_done"] == 2 and not summary["failed"]
+
+
 def test_a_second_run_on_the_same_folder_is_refused_while_one_runs(scenes_root, tmp_path):
     """Two runs on one --out used to interleave (a race left seed-0 and seed-1 scenes in one file)."""
     import fcntl

@@ -160,6 +160,7 @@ def test_splat_only_and_neural_sources_open_the_engine_scene_cache(engine_run, t
     splat-only and as a neural simulator; the neural one renders its pinhole view from a panorama."""
     import shutil
 
+    import torch
     from image2sim.navpolicy.config import ObservationConfig
     from image2sim.navpolicy.rollout_scenes import render_observation, scene_simulator
     from image2sim.simulator.gaussians import build_scene, tiny
@@ -181,6 +182,12 @@ def test_splat_only_and_neural_sources_open_the_engine_scene_cache(engine_run, t
     neural.reset(np.asarray(neural.graph.nodes[:1]), np.array([0.0]), observe=False)
     rgb = render_observation(neural, obs)
     assert rgb.shape == (16, 16, 3) and rgb.dtype == np.uint8
+    # dagger.render_device reaches the render function; a GPU device on a machine without one is an
+    # error that names it, not a crash in the first rollout.
+    assert str(scene_simulator(cache, "splat_only", device="cpu").render_fn.device) == "cpu"
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            scene_simulator(cache, "splat_only", device="cuda")
 
 
 # ------------------------------------------------------------------------------------ exact backend
@@ -339,6 +346,15 @@ def test_flat_scaling_is_called_flat():
     pts = [{"episodes": e, "sr": s, "sr_ci": [s - 8, s + 8]} for e, s in [(50, 20.0), (400, 24.0)]]
     t = scaling_trend(pts)
     assert t["direction"] == "flat within the intervals" and not math.isnan(t["sr_change"])
+
+
+def test_dagger_render_device_is_validated():
+    from image2sim.navpolicy.config import load_config
+    from image2sim.simulator.config import ConfigError
+
+    assert load_config("tiny", {"dagger": {"render_device": "cuda:1"}}).dagger.render_device == "cuda:1"
+    with pytest.raises(ConfigError, match="dagger.render_device"):
+        load_config("tiny", {"dagger": {"render_device": "tpu"}})
 
 
 def test_paper_preset_has_the_papers_dagger_budget():

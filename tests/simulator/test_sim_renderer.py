@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
+import types
 
 import numpy as np
 import pytest
@@ -23,6 +24,9 @@ from image2sim.simulator.sim import (  # noqa: E402
     NeuralSimulator,
     ObservationSpec,
     PixelFlowRenderFn,
+    gaussian_render_fn,
+    gaussian_tensors,
+    panorama_height_for,
     views_from_panorama,
 )
 
@@ -152,6 +156,64 @@ def test_pixel_flow_render_fn_rejects_non_panoramic_cameras(scene_and_ckpt):
             load_renderer(ckpt),
             steps=0,
         )
+
+
+def test_gaussian_render_fn_picks_the_render_function_and_keeps_optional_features(scene_and_ckpt):
+    _, ckpt = scene_and_ckpt
+    g = _gaussians()
+    assert set(gaussian_tensors(g)) == {"means", "scales", "quats", "opacities", "colors", "features"}
+    no_features = types.SimpleNamespace(**{**g.__dict__, "features": None})  # a scene saved without them
+    assert "features" not in gaussian_tensors(no_features)
+    assert isinstance(gaussian_render_fn(g), GaussianRenderFn)
+    assert isinstance(gaussian_render_fn(g, ckpt, steps=2), PixelFlowRenderFn)
+    after = gaussian_render_fn(g, lambda out: out.rgb * 0)  # another callable: applied after splatting
+    assert isinstance(after, GaussianRenderFn) and after.renderer is not None
+    with pytest.raises(ValueError, match="missing"):
+        GaussianRenderFn({"means": g.means})
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_a_cuda_render_device_without_cuda_is_a_clear_error(scene_and_ckpt):
+    folder, ckpt = scene_and_ckpt
+    with pytest.raises(ValueError, match="render device 'cuda'.*no CUDA device"):
+        NeuralSimulator.from_scene(folder, renderer=ckpt, device="cuda")
+    with pytest.raises(ValueError, match="no CUDA device"):
+        gaussian_render_fn(_gaussians(), device="cuda:0")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (GPU machines only)")
+@pytest.mark.parametrize("with_renderer", [False, True])
+def test_cuda_observations_match_the_cpu_ones(scene_and_ckpt, with_renderer):
+    """The same scene and pose rendered on CUDA and on the CPU: the same numpy observations (the
+    per-pose noise is drawn on the CPU), up to float rounding of the two splat backends."""
+    folder, ckpt = scene_and_ckpt
+    renderer = ckpt if with_renderer else None
+    obs = {}
+    for device in ("cpu", "cuda"):
+        sim = NeuralSimulator.from_scene(folder, SPEC, renderer=renderer, backend="torch", device=device)
+        obs[device] = sim.reset(np.array([[3.0, 2.0, 0.0]]), np.array([0.3]))[0][0]
+    for view in ("panorama", "pinhole"):
+        for key in ("rgb", "depth"):
+            a, b = obs["cpu"][view][key], obs["cuda"][view][key]
+            assert isinstance(b, np.ndarray) and b.dtype == a.dtype and b.shape == a.shape
+            np.testing.assert_allclose(b, a, atol=2e-3 if key == "rgb" else 2e-3 * max(1.0, float(a.max())))
+
+
+@pytest.mark.parametrize(
+    "pixels, fov, height",
+    [(64, 90.0, 128), (48, 90.0, 96), (98, 180.0, 98), (100, 79.0, 228), (8, 90.0, 32), (512, 360.0, 256)],
+)
+def test_panorama_height_matches_the_views_angular_resolution(pixels, fov, height):
+    h = panorama_height_for(pixels, fov)
+    assert h == height
+    if h > 32:  # above the floor: one view pixel per panorama pixel across the view
+        assert abs(2 * h * fov / 360.0 - pixels) <= 1.0
+
+
+@pytest.mark.parametrize("pixels, fov", [(0, 90.0), (64, 0.0), (64, 400.0), (64, float("nan"))])
+def test_panorama_height_rejects_bad_views(pixels, fov):
+    with pytest.raises(ValueError, match="panorama_height_for"):
+        panorama_height_for(pixels, fov)
 
 
 def _analytic_pano(h: int) -> dict:

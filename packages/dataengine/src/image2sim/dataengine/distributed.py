@@ -116,13 +116,19 @@ def pending_scenes(scenes: Sequence[Path], out_dir: Path) -> list[Path]:
     return [s for s in scenes if not (out_dir / "scenes" / s.name / DONE_FILE).is_file()]
 
 
+# Fields that change where the work runs, not what it writes: a run may resume on another device.
+_PLACEMENT_FIELDS = ("device",)
+
+
 def _check_run_manifest(out_dir: Path, config: EngineConfig) -> None:
     path = out_dir / RUN_FILE
     cfg = config.to_dict()
     if path.is_file():
         old = json.loads(path.read_text()).get("config")
-        if old != cfg:
-            diff = sorted(k for k in set(old or {}) | set(cfg) if (old or {}).get(k) != cfg.get(k))
+        old = {k: v for k, v in (old or {}).items() if k not in _PLACEMENT_FIELDS}
+        new = {k: v for k, v in cfg.items() if k not in _PLACEMENT_FIELDS}
+        if old != new:
+            diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
             raise RunError(
                 f"{path}: an earlier run used a different config (fields {diff}); "
                 "use a new --out folder or the same arguments"

@@ -88,6 +88,12 @@ def episodes_command(
         "--renderer",
         help="Local pixel-flow renderer weights: Gaussians are splatted, then rendered by the renderer.",
     ),
+    device: str = typer.Option(
+        "cpu",
+        "--device",
+        help="Where Gaussian observations render: cpu, or cuda[:N] on a GPU machine (splat and pixel-flow "
+        "renderer; the exact renderer stays on the CPU).",
+    ),
     obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
     frame_stride: int = typer.Option(
         1,
@@ -173,6 +179,7 @@ def episodes_command(
             split=split,
             seed=seed,
             renderer=None if renderer is None else str(renderer),
+            device=device,
             rollout={} if min_steps is None else {"min_steps": min_steps},
             sampling=_parse_options(sampling),
             approach={"views": approach_views} if approach_views else {},

@@ -94,6 +94,10 @@ class EngineConfig:
     """Local pixel-flow renderer weights (an ``export-renderer`` folder, ``save_renderer`` safetensors
     or a Lightning checkpoint) applied after splatting (the simulator's ``PixelFlowRenderFn``); needs
     render=gaussians (or auto)."""
+    device: str = "cpu"
+    """Torch device the Gaussian observations render on: cpu, or cuda / cuda:N on a GPU machine (the
+    splat and the pixel-flow renderer; the exact procedural renderer, the navigation and the files stay
+    on the CPU). The frames match the CPU's up to float rounding."""
     detector: str = "gt"
     """Where goal objects come from: gt (a procedural capture's ground truth), yolo-world (mined with
     local weights), annotations (a person's objects file, :mod:`.objects_file`) or none (no objects:
@@ -149,6 +153,14 @@ class EngineConfig:
                 "detector none makes landmark-free path episodes, which only the template annotator "
                 "describes (VLM prompts ask about a goal object): use --annotator template"
             )
+        import torch
+
+        try:
+            torch_device = torch.device(self.device)
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(f"EngineConfig.device: {self.device!r} is not a torch device ({err})") from None
+        if torch_device.type not in ("cpu", "cuda"):
+            raise ValueError(f"EngineConfig.device must be cpu or cuda[:N], got {self.device!r}")
         if self.renderer is not None and self.render not in ("auto", "gaussians"):
             raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
 
@@ -261,21 +273,21 @@ def _to_uint8(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.asarray(rgb, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
-def _observation_spec(cfg: EngineConfig, pano_height: int):
-    from image2sim.simulator.sim import ObservationSpec
+def _observation_spec(cfg: EngineConfig):
+    """The stored view's spec. Its panorama height is the view's angular resolution
+    (:func:`~image2sim.simulator.sim.panorama_height_for`), which panoramic render functions (the
+    pixel-flow renderer) render at before cutting the view: without it they rendered at the spec's
+    default 256x512, 4x the pixels of a 64 px view and a scale the tiny renderer never trained on."""
+    from image2sim.simulator.sim import ObservationSpec, panorama_height_for
 
     h = int(cfg.obs_height)
     if cfg.view == "pinhole":
-        # pano_height matters for panoramic render functions (the pixel-flow renderer), which render
-        # the panorama and cut the view from it: without it they rendered at the spec's default
-        # 256x512, 4x the pixels of a 64 px view and a scale the tiny renderer never trained on.
-        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h, pano_height=pano_height)
+        spec = ObservationSpec(panorama=False, pinhole=True, pinhole_size=h)
+        return replace(spec, pano_height=panorama_height_for(h, spec.pinhole_hfov_deg))
+    width = int(round(h * 512 / 336))
+    pano_height = panorama_height_for(width, 180.0)  # the ultra-wide view spans 180 degrees
     return ObservationSpec(
-        panorama=False,
-        ultrawide=True,
-        pano_height=pano_height,
-        ultrawide_height=h,
-        ultrawide_width=int(round(h * 512 / 336)),
+        panorama=False, ultrawide=True, pano_height=pano_height, ultrawide_height=h, ultrawide_width=width
     )
 
 
@@ -357,14 +369,14 @@ def process_scene(
     render_fn, render_mode = (
         (None, "none")
         if cfg.render == "none"
-        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache)
+        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device)
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    fov = _field_of_view(_observation_spec(cfg, _pano_height(cfg)))  # the stored observation's
+    fov = _field_of_view(_observation_spec(cfg))  # the stored observation's
     goal_view = VisibilityConfig(
         max_distance=cfg.goal_view_distance,
         hfov_deg=fov[0],
@@ -538,19 +550,11 @@ def observation_steps(n_actions: int, stride: int) -> list[int]:
     return list(range(0, max(int(n_actions), 1), max(int(stride), 1)))
 
 
-def _pano_height(cfg: EngineConfig) -> int:
-    """Panorama height at the stored view's angular resolution (a 64 px, 90 degree pinhole view spans
-    a quarter of a 256-wide panorama), so a panoramic renderer is not upsampled into the view."""
-    if cfg.view == "pinhole":
-        return max(64, int(round(cfg.obs_height * 180.0 / 90.0)))
-    return max(64, int(round(cfg.obs_height * 512 / 336)))  # 180 degrees = half the panorama width
-
-
 def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> tuple[np.ndarray, list[int]]:
     """Observations of the rollout at :func:`observation_steps` (frames, their steps), by re-executing
     it with rendering on where a frame is stored."""
     sim.render_fn = render_fn
-    sim.spec = _observation_spec(cfg, pano_height=_pano_height(cfg))
+    sim.spec = _observation_spec(cfg)
     key = "pinhole" if cfg.view == "pinhole" else "ultrawide"
     steps = observation_steps(len(r.actions), cfg.frame_stride)
     wanted = set(steps)
@@ -576,7 +580,7 @@ def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
     config = EngineConfig.from_dict(cfg)
     inputs = resolve_scene(scene_dir)
     navmap, graph = scene_navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
-    render_fn, _ = scene_render_fn(inputs, Path(out), config.render, config.renderer)
+    render_fn, _ = scene_render_fn(inputs, Path(out), config.render, config.renderer, device=config.device)
     _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
 
 

@@ -147,9 +147,15 @@ def scene_objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
 
 
 def scene_render_fn(
-    inputs: SceneInputs, cache: Path, mode: str, renderer: str | None = None, asset_cache: str | None = None
+    inputs: SceneInputs,
+    cache: Path,
+    mode: str,
+    renderer: str | None = None,
+    asset_cache: str | None = None,
+    device: str = "cpu",
 ):
-    """(render function or None, mode actually used)."""
+    """(render function or None, mode actually used). ``device``: where Gaussian scenes render (cpu or
+    cuda); the exact procedural renderer always runs on the CPU."""
     if renderer is not None and mode == "auto":
         mode = "gaussians"
     if mode == "auto":
@@ -163,7 +169,7 @@ def scene_render_fn(
 
         return exact_render_fn(inputs.capture_dir, instances=True), mode
     from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
-    from image2sim.simulator.sim import GaussianRenderFn
+    from image2sim.simulator.sim import gaussian_render_fn
 
     folder = inputs.gaussian_dir
     if folder is None:
@@ -182,11 +188,6 @@ def scene_render_fn(
             lambda: build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True),
         )
     g = GaussianScene.load(folder).gaussians
-    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
-    if renderer is not None:
-        from image2sim.simulator.renderer.model import load_renderer
-        from image2sim.simulator.sim import PixelFlowRenderFn
-
-        # Panoramic: the simulator cuts the pinhole / ultra-wide views out of the rendered panorama.
-        return PixelFlowRenderFn(tensors, load_renderer(renderer)), "gaussians+pixel-flow"
-    return GaussianRenderFn(tensors), mode
+    # Panoramic with a renderer: the simulator cuts the pinhole / ultra-wide views out of the panorama.
+    fn = gaussian_render_fn(g, renderer, device=device)
+    return fn, ("gaussians+pixel-flow" if renderer is not None else mode)

@@ -423,12 +423,11 @@ def load_scene_backend(scene_dir: str | Path, protocol: Protocol, render: bool =
         if folder is None:
             raise RunnerError(f"{scene_dir}: the agent needs images but there is no gaussians.safetensors")
         from image2sim.simulator.gaussians import GaussianScene
-        from image2sim.simulator.sim import GaussianRenderFn
+        from image2sim.simulator.sim import GaussianRenderFn, gaussian_tensors
 
-        g = GaussianScene.load(folder).gaussians
-        render_fn = GaussianRenderFn(
-            {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")}
-        )
+        tensors = gaussian_tensors(GaussianScene.load(folder).gaussians)
+        tensors.pop("features", None)  # the agent sees colours: splatting feature channels is wasted work
+        render_fn = GaussianRenderFn(tensors)
     return NeuralSimBackend(NeuralSimulator(navmap, graph, render_fn), protocol, scene_dir.name)
 
 

@@ -286,6 +286,9 @@ class DaggerConfig:
     """Seed the aggregated dataset with the BC shards (``data.shards``) when they exist."""
     seed: int = 0
     """Seed of chunk sampling and episode order."""
+    render_device: str = "cpu"
+    """Where the rollouts' Gaussian scenes render (``neural`` / ``splat_only`` sources): cpu, or
+    cuda[:N] on a GPU machine; the observations match the CPU's up to rounding."""
 
 
 @dataclass
@@ -370,6 +373,8 @@ class NavPolicyConfig:
             )
         require_in_range(self, ("dagger.model_probability", "dagger.final_model_probability"), 0.0, 1.0)
         require_one_of(self, "dagger.schedule", ("constant", "linear", "exponential"))
+        if d.render_device.split(":")[0] not in ("cpu", "cuda"):
+            raise ConfigError(f"dagger.render_device must be cpu or cuda[:N], got {d.render_device!r}")
         require_at_least(self, ("dagger.rounds", "dagger.episodes_per_round", "dagger.max_steps"), 1)
         require_at_least(self, "dagger.train_steps_per_round", 0)
         require_one_of(self, "model.dtype", ("float32", "bfloat16", "float16"))

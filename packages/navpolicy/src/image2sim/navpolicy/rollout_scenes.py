@@ -49,9 +49,9 @@ def render_observation(sim, obs: ObservationConfig) -> np.ndarray:
     if obs.camera == "pinhole" and getattr(sim.render_fn, "panoramic", False):
         # A panoramic renderer (the pixel-flow renderer): render the panorama at the pinhole view's
         # angular resolution and cut the view out of it, as NeuralSimulator.observe does.
-        from image2sim.simulator.sim import ObservationSpec, views_from_panorama
+        from image2sim.simulator.sim import ObservationSpec, panorama_height_for, views_from_panorama
 
-        h = max(32, int(round(obs.width * 180.0 / obs.hfov_deg)))
+        h = panorama_height_for(obs.width, obs.hfov_deg)
         pano = sim.render_fn(EquirectCamera(h, 2 * h), pose)
         spec = ObservationSpec(
             panorama=False, pinhole=True, pinhole_size=obs.height, pinhole_hfov_deg=obs.hfov_deg
@@ -219,13 +219,14 @@ def tasks_from_episodes(episodes, sim, scene_id: str = "") -> list[NavTask]:
     return out
 
 
-def scene_simulator(folder: str | Path, source: str = "neural", renderer=None):
+def scene_simulator(folder: str | Path, source: str = "neural", renderer=None, device: str = "cpu"):
     """A :class:`NeuralSimulator` for DAgger rollouts from one scene folder.
 
     ``neural``: a built scene (``sim build-scene``: Gaussians + navigation map and graph) rendered by
     the pixel-flow renderer ``renderer`` (weights path; required); ``splat_only``: the same scene
     splatted, no learned renderer; ``exact``: a procedural capture rendered exactly (the navigation
-    map and graph from the folder when present, else extracted as the data engine does).
+    map and graph from the folder when present, else extracted as the data engine does). ``device``:
+    where Gaussian scenes render (cpu or cuda); the exact renderer runs on the CPU.
     """
     from image2sim.simulator.sim import NeuralSimulator
 
@@ -264,29 +265,28 @@ def scene_simulator(folder: str | Path, source: str = "neural", renderer=None):
     from image2sim.simulator.gaussians import GaussianScene
     from image2sim.simulator.navigation import NavMap
     from image2sim.simulator.navigation.graph import NavGraph
-    from image2sim.simulator.sim import GaussianRenderFn, PixelFlowRenderFn, load_pixel_flow
+    from image2sim.simulator.sim import gaussian_render_fn
 
     g = GaussianScene.load(gdir).gaussians
     if g is None:
         raise ValueError(f"{gdir}: the Gaussian scene is empty")
-    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
-    if tensors["features"] is None:
-        del tensors["features"]
-    render_fn = (
-        PixelFlowRenderFn(tensors, load_pixel_flow(renderer))
-        if source == "neural"
-        else GaussianRenderFn(tensors)
-    )
+    render_fn = gaussian_render_fn(g, renderer if source == "neural" else None, device=device)
     return NeuralSimulator(
         NavMap.load(folder / "navmap.npz"), NavGraph.load(folder / "navgraph.npz"), render_fn
     )
 
 
 def episode_scenes(
-    episodes, scenes_root: str | Path, source: str = "neural", renderer=None, goal_marker=None
+    episodes,
+    scenes_root: str | Path,
+    source: str = "neural",
+    renderer=None,
+    goal_marker=None,
+    device: str = "cpu",
 ) -> list[RolloutScene]:
     """One :class:`RolloutScene` per scene the episodes name (``<scenes_root>/<scene name>``, the
-    episode's ``scene_id`` stem), with the episodes as tasks (see :func:`tasks_from_episodes`)."""
+    episode's ``scene_id`` stem), with the episodes as tasks (see :func:`tasks_from_episodes`);
+    ``device``: where Gaussian scenes render (see :func:`scene_simulator`)."""
     groups: dict[str, list] = {}
     for ep in episodes:
         groups.setdefault(ep.scene_name, []).append(ep)
@@ -302,7 +302,7 @@ def episode_scenes(
         folder = Path(scenes_root) / name
         if not folder.is_dir():
             raise FileNotFoundError(f"scene {name!r}: {folder} not found (episodes reference it)")
-        sim = scene_simulator(folder, source, model)
+        sim = scene_simulator(folder, source, model, device=device)
         if goal_marker is not None:
             from image2sim.simulator.markers import MarkedRenderFn
 

@@ -261,7 +261,7 @@ def train_cmd(
     )
 
 
-def _dagger_episode_scenes(episodes: Path, scenes_root: Path, source: str, renderer, marker):
+def _dagger_episode_scenes(episodes: Path, scenes_root: Path, source: str, renderer, marker, device="cpu"):
     from image2sim.navpolicy.rollout_scenes import episode_scenes
 
     check_source(source, renderer)
@@ -270,7 +270,7 @@ def _dagger_episode_scenes(episodes: Path, scenes_root: Path, source: str, rende
     gt = episodes.with_name(episodes.name.replace(".json.gz", "_gt.json.gz"))
     try:
         eps = list(load_image2sim_episodes(episodes, gt if gt.is_file() else None).episodes)
-        return episode_scenes(eps, scenes_root, source, renderer, goal_marker=marker)
+        return episode_scenes(eps, scenes_root, source, renderer, goal_marker=marker, device=device)
     except (EpisodeFileError, FileNotFoundError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -320,7 +320,9 @@ def _train_dagger(
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
     if episode_source is not None:
-        sc = _dagger_episode_scenes(*episode_source, marker=cfg.task.active_marker())
+        sc = _dagger_episode_scenes(
+            *episode_source, marker=cfg.task.active_marker(), device=cfg.dagger.render_device
+        )
     else:
         sc = procedural_scenes(scenes, tasks_per_scene, seed=scene_seed, goal_marker=cfg.task.active_marker())
     try:

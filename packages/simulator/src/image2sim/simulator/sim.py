@@ -34,9 +34,31 @@ __all__ = [
     "RenderFn",
     "views_from_panorama",
     "load_pixel_flow",
+    "gaussian_tensors",
+    "gaussian_render_fn",
+    "panorama_height_for",
 ]
 
 RenderFn = Callable[[Camera, np.ndarray], dict]
+
+_GAUSSIAN_FIELDS = ("means", "scales", "quats", "opacities", "colors")
+
+
+def _render_device(device):
+    """``device`` as a ``torch.device``; a clear error for a device this machine does not have."""
+    import torch
+
+    dev = torch.device(device if device is not None else "cpu")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"render device {str(dev)!r}: torch sees no CUDA device on this machine")
+    return dev
+
+
+def _on_device(gaussians: dict, device, owner: str) -> dict:
+    missing = [k for k in _GAUSSIAN_FIELDS if k not in gaussians]
+    if missing:
+        raise ValueError(f"{owner}: gaussians are missing {missing}")
+    return {k: v.to(device) for k, v in gaussians.items() if v is not None}
 
 
 @dataclass(frozen=True)
@@ -85,14 +107,16 @@ class GaussianRenderFn:
 
     ``gaussians`` maps names to tensors: means (N, 3), scales (N, 3), quats (N, 4) (w, x, y, z),
     opacities (N,), colors (N, 3) and optionally features (N, C). ``renderer`` (optional) is a
-    callable ``renderer(splat_output) -> rgb (1, 3, H, W)`` applied after splatting.
+    callable ``renderer(splat_output) -> rgb (1, 3, H, W)`` applied after splatting. ``device``: where
+    the Gaussians live and the splat runs (``cuda`` on a GPU machine); observations come back as
+    CPU numpy arrays either way.
     """
 
-    def __init__(self, gaussians: dict, renderer: Callable | None = None, backend: str = "auto") -> None:
-        missing = [k for k in ("means", "scales", "quats", "opacities", "colors") if k not in gaussians]
-        if missing:
-            raise ValueError(f"GaussianRenderFn: gaussians are missing {missing}")
-        self.gaussians = gaussians
+    def __init__(
+        self, gaussians: dict, renderer: Callable | None = None, backend: str = "auto", device=None
+    ) -> None:
+        self.device = _render_device(device)
+        self.gaussians = _on_device(gaussians, self.device, "GaussianRenderFn")
         self.renderer = renderer
         self.backend = backend
 
@@ -101,7 +125,7 @@ class GaussianRenderFn:
         from image2sim.simulator.splatting import splat
 
         g = self.gaussians
-        pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype)
+        pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype, device=self.device)
         with torch.no_grad():
             out = splat(
                 g["means"],
@@ -117,8 +141,8 @@ class GaussianRenderFn:
             rgb = self.renderer(out) if self.renderer is not None else out.rgb
             depth = out.normalized_depth()
         return {
-            "rgb": rgb[0].permute(1, 2, 0).clamp(0, 1).float().numpy(),
-            "depth": depth[0, 0].float().numpy(),
+            "rgb": rgb[0].permute(1, 2, 0).clamp(0, 1).float().cpu().numpy(),
+            "depth": depth[0, 0].float().cpu().numpy(),
         }
 
 
@@ -131,19 +155,21 @@ class PixelFlowRenderFn:
     :meth:`~image2sim.simulator.renderer.model.PixelFlowRenderer.render` runs with noise seeded by
     the pose (:func:`~image2sim.simulator.renderer.meanflow.pose_noise`), so revisiting a pose renders
     the same image. Only equirectangular cameras with W = 2H are accepted: :class:`NeuralSimulator`
-    cuts pinhole and ultra-wide views from the panorama (``panoramic = True``).
+    cuts pinhole and ultra-wide views from the panorama (``panoramic = True``). ``device``: where the
+    Gaussians and the network live (``cuda`` on a GPU machine); the per-pose noise is drawn on the
+    CPU, so a pose renders the same noise on every device.
     """
 
     panoramic = True
 
-    def __init__(self, gaussians: dict, model, steps: int = 1, seed: int = 0, backend: str = "auto") -> None:
-        missing = [k for k in ("means", "scales", "quats", "opacities", "colors") if k not in gaussians]
-        if missing:
-            raise ValueError(f"PixelFlowRenderFn: gaussians are missing {missing}")
+    def __init__(
+        self, gaussians: dict, model, steps: int = 1, seed: int = 0, backend: str = "auto", device=None
+    ) -> None:
         if int(steps) < 1:
             raise ValueError(f"PixelFlowRenderFn: steps must be >= 1, got {steps}")
-        self.gaussians = gaussians
-        self.model = model.eval()
+        self.device = _render_device(device)
+        self.gaussians = _on_device(gaussians, self.device, "PixelFlowRenderFn")
+        self.model = model.to(self.device).eval()
         self.steps = int(steps)
         self.seed = int(seed)
         self.backend = backend
@@ -159,7 +185,7 @@ class PixelFlowRenderFn:
         feats = g.get("features")
         if feats is not None and (feats.dim() != 2 or feats.shape[-1] != CONDITION_FEATURES):
             feats = None  # features of another encoder width carry no meaning for this renderer
-        pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype)
+        pose = torch.as_tensor(np.asarray(cam_to_world), dtype=g["means"].dtype, device=self.device)
         with torch.no_grad():
             out = splat(
                 g["means"],
@@ -176,7 +202,11 @@ class PixelFlowRenderFn:
             rgb, depth = unpremultiply(out.rgb, out.depth, out.alpha, background=0.0)
             f = out.features if feats is not None else rgb.new_zeros(1, CONDITION_FEATURES, *rgb.shape[-2:])
             return build_condition(
-                f.float(), rgb.float(), depth.float(), out.alpha.float(), camera.ray_map(torch.float32)
+                f.float(),
+                rgb.float(),
+                depth.float(),
+                out.alpha.float(),
+                camera.ray_map(torch.float32).to(self.device),
             )
 
     def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
@@ -191,9 +221,27 @@ class PixelFlowRenderFn:
         with torch.no_grad():
             res = self.model.render(cond, steps=self.steps, poses=[pose], seed=self.seed)
         return {
-            "rgb": res.rgb[0].permute(1, 2, 0).clamp(0, 1).float().numpy(),
-            "depth": res.depth[0, 0].float().numpy(),
+            "rgb": res.rgb[0].permute(1, 2, 0).clamp(0, 1).float().cpu().numpy(),
+            "depth": res.depth[0, 0].float().cpu().numpy(),
         }
+
+
+MIN_PANORAMA_HEIGHT = 32
+"""The smallest panorama a panoramic render function is asked for (tiny views still get 32x64)."""
+
+
+def panorama_height_for(view_pixels: int, view_fov_deg: float) -> int:
+    """Height of the panorama at a view's angular resolution: ``view_pixels`` across ``view_fov_deg``
+    degrees is ``view_pixels * 360 / fov`` columns over the full circle, and the panorama's height is
+    half its width. A panoramic renderer (the pixel-flow renderer) renders at this height, so the view
+    is cut from it without up- or downsampling: 64 px over 90 degrees gives 128x256, the tiny
+    renderer's training size. The data engine and DAgger both ask for panoramas through this."""
+    if not (view_pixels >= 1 and 0 < view_fov_deg <= 360):
+        raise ValueError(
+            f"panorama_height_for: need view_pixels >= 1 and 0 < fov <= 360, got "
+            f"{view_pixels}, {view_fov_deg}"
+        )
+    return max(MIN_PANORAMA_HEIGHT, int(round(view_pixels * 180.0 / view_fov_deg)))
 
 
 def views_from_panorama(pano: dict, spec: ObservationSpec) -> dict:
@@ -263,6 +311,27 @@ def load_pixel_flow(renderer):
     return renderer if isinstance(renderer, PixelFlowRenderer) else None
 
 
+def gaussian_tensors(gaussians) -> dict:
+    """The render functions' tensor dict of a :class:`~image2sim.simulator.gaussians.scene.Gaussians`
+    (``features`` only when the scene carries them)."""
+    names = (*_GAUSSIAN_FIELDS, "features")
+    return {k: getattr(gaussians, k) for k in names if getattr(gaussians, k) is not None}
+
+
+def gaussian_render_fn(
+    gaussians, renderer=None, *, steps: int = 1, seed: int = 0, backend: str = "auto", device=None
+) -> RenderFn:
+    """The render function of a Gaussian scene: :class:`PixelFlowRenderFn` when ``renderer`` is
+    pixel-flow weights (a path or a ``PixelFlowRenderer``), else :class:`GaussianRenderFn` (splat
+    only, with ``renderer`` applied after splatting when it is another callable). ``gaussians``: a
+    scene's ``Gaussians`` or a tensor dict; ``device``: cpu (default) or cuda."""
+    tensors = gaussians if isinstance(gaussians, dict) else gaussian_tensors(gaussians)
+    model = load_pixel_flow(renderer)
+    if model is not None:
+        return PixelFlowRenderFn(tensors, model, steps=steps, seed=seed, backend=backend, device=device)
+    return GaussianRenderFn(tensors, renderer, backend, device=device)
+
+
 class NeuralSimulator:
     """A scene (navigation map + graph + optional renderer) and a batch of agents.
 
@@ -297,6 +366,7 @@ class NeuralSimulator:
         backend: str = "auto",
         steps: int = 1,
         seed: int = 0,
+        device=None,
     ) -> NeuralSimulator:
         """Open a scene folder: ``gaussians.safetensors`` (+ ``navmap.npz`` / ``navgraph.npz`` when
         present; otherwise the map is extracted from the Gaussians).
@@ -307,6 +377,7 @@ class NeuralSimulator:
         ``PixelFlowRenderer`` module = panoramas rendered by :class:`PixelFlowRenderFn` in ``steps``
         network evaluations with noise seeded by the pose and ``seed``; any other callable
         ``renderer(splat_output) -> rgb`` is applied after splatting (:class:`GaussianRenderFn`).
+        ``device``: where the Gaussians (and the renderer) render: cpu (default) or cuda.
         """
         from pathlib import Path
 
@@ -335,13 +406,8 @@ class NeuralSimulator:
                 np.array(cams) if cams else None,
             )
         graph = NavGraph.load(folder / "navgraph.npz") if (folder / "navgraph.npz").is_file() else None
-        tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")}
-        if tensors["features"] is None:
-            del tensors["features"]
-        if model is not None:
-            render_fn: RenderFn = PixelFlowRenderFn(tensors, model, steps=steps, seed=seed, backend=backend)
-        else:
-            render_fn = GaussianRenderFn(tensors, renderer, backend)
+        chosen = model if model is not None else renderer  # loaded once, above
+        render_fn = gaussian_render_fn(g, chosen, steps=steps, seed=seed, backend=backend, device=device)
         return cls(navmap, graph, render_fn, observations)
 
     @property

@@ -231,15 +231,9 @@ def render_command(
         if renderer is not None:
             # Splat -> condition C_p -> pixel flow with per-pose noise (the simulator's render path).
             from image2sim.simulator.renderer.model import load_renderer
-            from image2sim.simulator.sim import PixelFlowRenderFn
+            from image2sim.simulator.sim import gaussian_render_fn
 
-            g = sc.gaussians
-            fn = PixelFlowRenderFn(
-                {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors", "features")},
-                load_renderer(renderer),
-                steps=steps,
-                backend=backend,
-            )
+            fn = gaussian_render_fn(sc.gaussians, load_renderer(renderer), steps=steps, backend=backend)
             flow = fn(camera, np.asarray(c2w, dtype=np.float64))
     except (SceneError, ValueError, FileNotFoundError) as exc:
         typer.echo(f"error: {exc}", err=True)

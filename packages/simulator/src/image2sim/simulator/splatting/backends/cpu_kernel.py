@@ -5,17 +5,22 @@ vectorised pixel rows, hand-written backward for means2d, conics, opacities, val
 background, exposed as a ``torch.autograd.Function``; :func:`render` is the fused inference path
 (projection, depth sort, binning and rasterisation in one C++ call). The build is automatic and
 cached under ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/image2sim/torch_extensions`` (keyed by a hash
-of the source, the torch version, the compiler flags and this CPU's instruction-set flags, since
-it is built with ``-march=native``; edits rebuild). If the build fails, :func:`available` is False
-and ``backend="auto"`` falls back to the torch backend with a warning.
+of the source and its path, the torch version, the compiler flags and this CPU's instruction-set
+flags, since it is built with ``-march=native``; edits rebuild, and two checkouts never rebuild
+over each other's library). Builds of one folder are serialised by an ``flock`` that dies with its
+holder, and a lock file torch left behind by a killed build is cleared under it (torch would wait
+for it forever). If the build fails, :func:`available` is False and ``backend="auto"`` falls back
+to the torch backend with a warning.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import platform
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -46,11 +51,39 @@ def _cpu_flags() -> bytes:
 def _build_dir() -> Path:
     root = os.environ.get("TORCH_EXTENSIONS_DIR")
     base = Path(root) if root else Path.home() / ".cache" / "image2sim" / "torch_extensions"
-    key = _SOURCE.read_bytes() + torch.__version__.encode() + " ".join(_CFLAGS).encode() + _cpu_flags()
+    # The source's path is part of the key: torch's ninja file names it, so two checkouts sharing one
+    # folder would rebuild the library in place under each other's running processes.
+    key = (
+        _SOURCE.read_bytes()
+        + str(_SOURCE.resolve()).encode()
+        + torch.__version__.encode()
+        + " ".join(_CFLAGS).encode()
+        + _cpu_flags()
+    )
     digest = hashlib.sha256(key).hexdigest()[:12]
     path = base / f"image2sim_splat_cpu_{digest}"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+@contextlib.contextmanager
+def build_guard(build: Path) -> Iterator[None]:
+    """Hold ``build``'s builder lock (an ``flock``, released by the OS when its holder dies) and clear
+    the ``lock`` file of torch's ``FileBaton`` if one is left: every builder of the folder goes through
+    this guard, so under it such a file can only come from a killed build, and torch would wait for
+    it forever."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: torch's own baton only
+        yield
+        return
+    with open(build / "builder.flock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            (build / "lock").unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def load():
@@ -65,14 +98,15 @@ def load():
             from torch.utils.cpp_extension import load as _load
 
             build = _build_dir()
-            _module = _load(
-                name=f"image2sim_splat_cpu_{build.name.rsplit('_', 1)[-1]}",
-                sources=[str(_SOURCE)],
-                extra_cflags=_CFLAGS,
-                extra_ldflags=["-fopenmp"],
-                build_directory=str(build),
-                verbose=False,
-            )
+            with build_guard(build):
+                _module = _load(
+                    name=f"image2sim_splat_cpu_{build.name.rsplit('_', 1)[-1]}",
+                    sources=[str(_SOURCE)],
+                    extra_cflags=_CFLAGS,
+                    extra_ldflags=["-fopenmp"],
+                    build_directory=str(build),
+                    verbose=False,
+                )
         except Exception as err:  # compiler missing, headers missing, link error ...
             _error = f"{type(err).__name__}: {str(err).strip().splitlines()[-1] if str(err).strip() else err}"
             raise RuntimeError(_error) from err
