@@ -66,14 +66,17 @@ def test_panorama_house_is_reconstructed_as_a_rig_of_cube_faces(tmp_path):
 
 
 def test_unregistrable_frame_is_dropped_and_named(pinhole_house, tmp_path):
+    """A noise image among the frames is dropped and named; the real frames stay one reconstruction.
+    The noise is an extra frame: replacing a frame of the walk instead cut the sequence in two
+    whenever its neighbours happened not to match each other (seen once in CI: 4 of 9 registered)."""
     folder = rgb_folder(pinhole_house, tmp_path / "rgb", ids=[f"{i:05d}" for i in range(10)])
     rng = np.random.default_rng(0)
     import cv2
 
-    cv2.imwrite(str(folder / "00005.png"), rng.integers(0, 256, size=(240, 320, 3), dtype=np.uint8))
+    cv2.imwrite(str(folder / "00010.png"), rng.integers(0, 256, size=(240, 320, 3), dtype=np.uint8))
     result = run_sfm(load_frames(folder))
-    assert "00005" not in result.frame_ids and len(result.frame_ids) >= 8
-    assert [d for d, _ in result.dropped] == ["00005"]
+    assert "00010" not in result.frame_ids and len(result.frame_ids) >= 9
+    assert [d for d, _ in result.dropped] == ["00010"]
 
 
 def test_too_few_frames_and_unrelated_images_are_clear_errors(pinhole_house, tmp_path):
