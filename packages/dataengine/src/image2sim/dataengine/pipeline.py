@@ -51,7 +51,7 @@ from image2sim.dataengine.trajectories import (
     sample_plans,
     switch_plans,
 )
-from image2sim.simulator.config import config_from_dict
+from image2sim.simulator.config import config_from_dict, require_render_device
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
 
 __all__ = [
@@ -153,14 +153,7 @@ class EngineConfig:
                 "detector none makes landmark-free path episodes, which only the template annotator "
                 "describes (VLM prompts ask about a goal object): use --annotator template"
             )
-        import torch
-
-        try:
-            torch_device = torch.device(self.device)
-        except (RuntimeError, TypeError) as err:
-            raise ValueError(f"EngineConfig.device: {self.device!r} is not a torch device ({err})") from None
-        if torch_device.type not in ("cpu", "cuda"):
-            raise ValueError(f"EngineConfig.device must be cpu or cuda[:N], got {self.device!r}")
+        require_render_device(self, "device", where="EngineConfig.")
         if self.renderer is not None and self.render not in ("auto", "gaussians"):
             raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
 
@@ -282,8 +275,8 @@ def _observation_spec(cfg: EngineConfig):
 
     h = int(cfg.obs_height)
     if cfg.view == "pinhole":
-        spec = ObservationSpec(panorama=False, pinhole=True, pinhole_size=h)
-        return replace(spec, pano_height=panorama_height_for(h, spec.pinhole_hfov_deg))
+        pano_height = panorama_height_for(h, ObservationSpec.pinhole_hfov_deg)  # the spec's default fov
+        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h, pano_height=pano_height)
     width = int(round(h * 512 / 336))
     pano_height = panorama_height_for(width, 180.0)  # the ultra-wide view spans 180 degrees
     return ObservationSpec(

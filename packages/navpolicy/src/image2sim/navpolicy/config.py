@@ -18,6 +18,7 @@ from image2sim.simulator.config import (  # one error type and field checks repo
     require_at_least,
     require_in_range,
     require_one_of,
+    require_render_device,
 )
 from image2sim.simulator.markers import GoalMarker
 
@@ -373,8 +374,7 @@ class NavPolicyConfig:
             )
         require_in_range(self, ("dagger.model_probability", "dagger.final_model_probability"), 0.0, 1.0)
         require_one_of(self, "dagger.schedule", ("constant", "linear", "exponential"))
-        if d.render_device.split(":")[0] not in ("cpu", "cuda"):
-            raise ConfigError(f"dagger.render_device must be cpu or cuda[:N], got {d.render_device!r}")
+        require_render_device(self, "dagger.render_device")
         require_at_least(self, ("dagger.rounds", "dagger.episodes_per_round", "dagger.max_steps"), 1)
         require_at_least(self, "dagger.train_steps_per_round", 0)
         require_one_of(self, "model.dtype", ("float32", "bfloat16", "float16"))

@@ -173,6 +173,17 @@ def require_one_of(config: Any, name: str, choices: Sequence[Any], where: str = 
         raise ConfigError(f"{where}{name} must be one of {', '.join(map(str, choices))}; got {v!r}")
 
 
+_RENDER_DEVICE = re.compile(r"cpu|cuda(:\d+)?")
+
+
+def require_render_device(config: Any, name: str, where: str = "") -> None:
+    """Field ``name`` names a device scenes can render on: ``cpu``, ``cuda`` or ``cuda:N`` (whether
+    this machine has it is checked where the render function is built)."""
+    v = _field(config, name)
+    if not (isinstance(v, str) and _RENDER_DEVICE.fullmatch(v)):
+        raise ConfigError(f"{where}{name} must be cpu or cuda[:N], got {v!r}")
+
+
 _NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)")
 
 
