@@ -216,6 +216,20 @@ def test_ablation_switches_change_the_model_as_in_table_4():
     nosem = PixelFlowRenderer(small_cfg(ablation={"no_semantic": True}))
     assert nosem.aligner is None and nosem.decoder.injectors is None
     assert nosem.losses(cond, rgb, depth, noise, torch.zeros(2), torch.ones(2))["align"] == 0
+    # "w/o semantic features": the projected feature map no longer reaches the network at all.
+    other = cond.clone()
+    other[:, :16] = torch.randn_like(other[:, :16])
+    for model in (base, nosem):
+        torch.manual_seed(1)
+        for p in model.parameters():  # leave the zero-initialised heads, so features can matter
+            p.data.normal_(0.0, 0.2)
+    r, t = torch.zeros(2), torch.full((2,), 0.7)
+
+    def x(model, c):
+        return model.predict(noise, c, r, t, model.tokens(c)).x
+
+    assert not torch.allclose(x(base, cond), x(base, other))
+    assert torch.equal(x(nosem, cond), x(nosem, other))
 
     nogate = PixelFlowRenderer(small_cfg(ablation={"no_alpha_gate": True}))
     assert not any(s.gated for s in nogate.decoder.skips)

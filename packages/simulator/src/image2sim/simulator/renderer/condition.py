@@ -64,6 +64,14 @@ def build_condition(
     return torch.nan_to_num(cond, nan=0.0, posinf=0.0, neginf=0.0)
 
 
+def without_features(condition: torch.Tensor) -> torch.Tensor:
+    """``condition`` with its projected feature channels zeroed (a copy): the renderer's
+    "w/o semantic features" ablation, and what identity Gaussians give anyway."""
+    out = condition.clone()
+    out[:, FEATURES] = 0
+    return out
+
+
 def unpremultiply(
     rgb: torch.Tensor,
     depth: torch.Tensor,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from image2sim.simulator.renderer import meanflow as mf
 from image2sim.simulator.renderer.aligner import SemanticAligner, alignment_loss
-from image2sim.simulator.renderer.condition import from_state, prior_state, to_state
+from image2sim.simulator.renderer.condition import from_state, prior_state, to_state, without_features
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, STATE_CHANNELS, RendererConfig
 from image2sim.simulator.renderer.decoder import DecoderOutput, RenderingDecoder
 from image2sim.simulator.renderer.distill import distillation_loss
@@ -76,9 +76,14 @@ class PixelFlowRenderer(nn.Module):
         t: torch.Tensor,
         tokens: torch.Tensor | None,
     ) -> DecoderOutput:
-        """x_theta(z, r, t | C_p, tokens)."""
+        """x_theta(z, r, t | C_p, tokens). With ``no_semantic`` the condition's projected feature
+        map is zeroed first: Table 4's "w/o semantic features" removes the features, not only the
+        aligner and injectors (otherwise a learned encoder's features still enter the decoder's
+        input convolution)."""
         if self.decoder is None:
             raise RuntimeError("no_pixel_flow renderer has no network")
+        if self.cfg.ablation.no_semantic:
+            condition = without_features(condition)
         return self.decoder(z, condition, r, t, tokens)
 
     def source(self, condition: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
