@@ -323,8 +323,14 @@ def test_sim_train_records_its_conditions_and_eval_render_flags_a_different_prot
     run = tmp_path / "run"
     args = ["train", "--config", str(cfg_file), "--data", str(box_capture), "--out", str(run)]
     args += ["--holdout-every", "0", "--source-every", "2", "--splat-cache", str(tmp_path / "cache")]
-    result = CliRunner().invoke(sim_app, args)
+    result = CliRunner().invoke(sim_app, [*args, "--steps", "2"])
+    assert result.exit_code != 0 and "at least 3 steps" in result.output
+    result = CliRunner().invoke(sim_app, [*args, "--steps", "3"])
     assert result.exit_code == 0, result.output
+    # --steps scales the whole curriculum: the saved config ends its schedule there.
+    saved = json.loads((run / "config.json").read_text())["curriculum"]
+    assert (saved["stage2_start"], saved["stage3_start"], saved["total_steps"]) == (1, 2, 3)
+    assert (run / "checkpoints" / "last.ckpt").is_file()
     record = json.loads((run / sd.TRAINING_RECORD).read_text())
     assert record["captures"] == [str(box_capture)]
     assert record["splat_data"]["source_every"] == 2 and record["gaussians"]["encoder"]["scale_init"] > 0

@@ -82,6 +82,35 @@ def test_stage_schedule_and_weights():
     assert stage_weights(2, nod)["distill"] == 0.0
 
 
+def test_scaled_curriculum_keeps_the_stage_fractions_and_ends_the_schedule():
+    from image2sim.simulator.renderer.config import scaled_curriculum, tiny
+
+    c = tiny().curriculum  # 375 / 1125 / 1500: the paper's 1:2:1
+    s = scaled_curriculum(c, 300)
+    assert (s.stage2_start, s.stage3_start, s.total_steps) == (75, 225, 300)
+    assert (s.lr, s.min_lr, s.lambda_distill) == (c.lr, c.min_lr, c.lambda_distill)
+    assert scaled_curriculum(c, c.total_steps) == c
+    # Every stage keeps at least one step, however short the schedule.
+    tiny3 = scaled_curriculum(c, 3)
+    assert (tiny3.stage2_start, tiny3.stage3_start, tiny3.total_steps) == (1, 2, 3)
+    with pytest.raises(ValueError, match="at least 3 steps"):
+        scaled_curriculum(c, 2)
+    # The learning rate reaches its floor at the scaled end (the module's cosine reads total_steps).
+    cfg = train_cfg(stage2_start=c.stage2_start, stage3_start=c.stage3_start, total_steps=c.total_steps)
+    import dataclasses
+
+    short = dataclasses.replace(cfg, curriculum=scaled_curriculum(cfg.curriculum, 30))
+    opt = RendererModule(short).configure_optimizers()
+    sched = opt["lr_scheduler"]["scheduler"]
+    lrs = []
+    for _ in range(30):
+        lrs.append(opt["optimizer"].param_groups[0]["lr"])
+        opt["optimizer"].step()
+        sched.step()
+    assert lrs[0] == short.curriculum.lr
+    assert opt["optimizer"].param_groups[0]["lr"] == pytest.approx(short.curriculum.min_lr)
+
+
 def test_stage3_freezes_exactly_encoder_aligner_and_bottleneck():
     module = RendererModule(train_cfg())
     renderer = module.renderer

@@ -46,6 +46,11 @@ def train_command(
     data: list[Path] = typer.Option([], help="Capture directories with target panoramas (repeatable)."),
     out: Path = typer.Option(Path("runs/renderer"), help="Output directory (config, checkpoints, logs)."),
     max_steps: int = typer.Option(-1, help="Stop after this many steps (-1: the config's total_steps)."),
+    steps: int = typer.Option(
+        0,
+        help="Length of the curriculum: stage boundaries and the cosine schedule scaled to this many steps "
+        "(0: the config's total_steps). Unlike --max-steps, the run ends at the schedule's end.",
+    ),
     max_frames: int = typer.Option(-1, help="Use at most this many frames per capture (-1: all)."),
     holdout_every: int = typer.Option(8, help="Every n-th frame is held out from training (0: none)."),
     source_every: int = typer.Option(
@@ -87,7 +92,7 @@ def train_command(
 ) -> None:
     """Train the pixel-flow renderer with the three-stage curriculum."""
     import torch
-    from image2sim.simulator.renderer.config import load_renderer_config
+    from image2sim.simulator.renderer.config import load_renderer_config, scaled_curriculum
     from image2sim.simulator.renderer.data import DegradedPanoramaDataset
     from image2sim.simulator.renderer.module import fit
     from image2sim.simulator.renderer.splat_data import write_training_record
@@ -96,6 +101,9 @@ def train_command(
     cfg = load_renderer_config(config)
     try:
         import dataclasses
+
+        if steps:
+            cfg = dataclasses.replace(cfg, curriculum=scaled_curriculum(cfg.curriculum, steps))
 
         from image2sim.simulator.trainer import with_overrides
 

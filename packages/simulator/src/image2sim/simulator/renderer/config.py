@@ -230,6 +230,19 @@ class CurriculumConfig:
     """Per-device batch size."""
 
 
+def scaled_curriculum(curriculum: CurriculumConfig, steps: int) -> CurriculumConfig:
+    """``curriculum`` compressed or stretched to ``steps`` optimiser steps: both stage boundaries
+    keep their fraction of the schedule and the cosine learning rate reaches its floor at the new
+    end. Stopping a long schedule early (``sim train --max-steps``) instead leaves the model at a
+    high learning rate in stage 1, without the teacher or the refinement stage."""
+    if int(steps) < 3:
+        raise ValueError(f"a three-stage curriculum needs at least 3 steps, got {steps}")
+    total = max(1, curriculum.total_steps)
+    s2 = min(max(1, round(curriculum.stage2_start * steps / total)), steps - 2)
+    s3 = min(max(s2 + 1, round(curriculum.stage3_start * steps / total)), steps - 1)
+    return dataclasses.replace(curriculum, stage2_start=s2, stage3_start=s3, total_steps=int(steps))
+
+
 @dataclass
 class RendererConfig:
     """Complete pixel-flow renderer configuration."""
