@@ -405,28 +405,37 @@ class ShardReader:
         ).validate(f"{self.root} line {i + 1}")
 
 
+@dataclass(frozen=True)
+class SampleLayout:
+    """How a dataset turns a trajectory into a training sample: the arguments of
+    :func:`make_sample` other than the trajectory and the generator (see it for their meaning)."""
+
+    max_observations: int = 32
+    max_action_labels: int = 64
+    stride: int = 1
+    context: tuple[int, int] | None = None
+    end_cut_probability: float = 0.0
+    late_start_probability: float = 0.0
+
+    def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
+        return make_sample(
+            traj,
+            self.max_observations,
+            self.max_action_labels,
+            rng,
+            self.stride,
+            self.context,
+            self.end_cut_probability,
+            self.late_start_probability,
+        )
+
+
 class _SamplingDataset(torch.utils.data.Dataset):
     """What the shard and in-memory datasets share: item ``i`` of epoch ``e`` is
-    ``make_sample(trajectory i)`` with the generator of (seed, e, i), in this dataset's layout."""
+    ``layout.sample(trajectory i)`` with the generator of (seed, e, i) (no generator without jitter)."""
 
-    max_observations: int
-    max_action_labels: int
-    stride: int
-    context: tuple[int, int] | None
-    end_cut_probability: float
-    late_start_probability: float
-    jitter: bool
-    seed: int
-    epoch: int
-
-    def _set_layout(
-        self, max_observations, max_action_labels, jitter, seed, stride, context, end_cut, late_start
-    ) -> None:
-        """The sample layout both datasets take (see :func:`make_sample`); epoch 0."""
-        self.max_observations, self.max_action_labels = max_observations, max_action_labels
-        self.jitter, self.seed, self.epoch = jitter, seed, 0
-        self.stride, self.context = stride, context
-        self.end_cut_probability, self.late_start_probability = end_cut, late_start
+    def __init__(self, layout: SampleLayout, jitter: bool, seed: int) -> None:
+        self.layout, self.jitter, self.seed, self.epoch = layout, jitter, seed, 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -440,16 +449,7 @@ class _SamplingDataset(torch.utils.data.Dataset):
 
     def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
         """``traj`` as this dataset samples it (observation layout, stride, context)."""
-        return make_sample(
-            traj,
-            self.max_observations,
-            self.max_action_labels,
-            rng,
-            self.stride,
-            self.context,
-            self.end_cut_probability,
-            self.late_start_probability,
-        )
+        return self.layout.sample(traj, rng)
 
 
 class NavShardDataset(_SamplingDataset):
@@ -470,16 +470,10 @@ class NavShardDataset(_SamplingDataset):
         cache_frames: bool = False,
         shuffle_instructions: bool = False,
     ) -> None:
-        self._set_layout(
-            max_observations,
-            max_action_labels,
-            jitter,
-            seed,
-            stride,
-            context,
-            end_cut_probability,
-            late_start_probability,
+        layout = SampleLayout(
+            max_observations, max_action_labels, stride, context, end_cut_probability, late_start_probability
         )
+        super().__init__(layout, jitter, seed)
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s, cache_frames) for s in shards]
@@ -522,16 +516,10 @@ class InMemoryNavDataset(_SamplingDataset):
         end_cut_probability: float = 0.0,
         late_start_probability: float = 0.0,
     ) -> None:
-        self._set_layout(
-            max_observations,
-            max_action_labels,
-            jitter,
-            seed,
-            stride,
-            context,
-            end_cut_probability,
-            late_start_probability,
+        layout = SampleLayout(
+            max_observations, max_action_labels, stride, context, end_cut_probability, late_start_probability
         )
+        super().__init__(layout, jitter, seed)
         self.trajectories = list(trajectories)
 
     def __len__(self) -> int:
