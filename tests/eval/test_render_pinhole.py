@@ -102,9 +102,11 @@ def test_cli_render_with_pinhole_inputs(procedural, tmp_path):
     out = tmp_path / "render.json"
     args = ["render", "--condition-source", "gaussians", "--tier-data", f"none={path}"]
     args += ["--input-views", "pinhole6", "--holdout-every", "4", "--steps", "1"]
-    args += ["--warmup", "0", "--runs", "1", "--out", str(out), "--plot", str(tmp_path / "speed.png")]
+    args += ["--warmup", "0", "--runs", "1", "--out", str(out)]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
+    # Without --plot the speed plot lands beside --out, not in the working directory's plots/.
+    assert (tmp_path / "render_speed.png").read_bytes()[:4] == b"\x89PNG"
     doc = read_metrics_file(out)
     assert doc["protocol"]["input_views"] == "pinhole6"
     assert "six 90° pinhole views" in doc["protocol"]["condition_source"]

@@ -489,7 +489,10 @@ def render_cmd(
     runs: Annotated[int, typer.Option(help="Timed calls (FPS = 1 / median).")] = 5,
     threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
     out: Annotated[Path, typer.Option(help="Headline metrics file.")] = Path("metrics/render.json"),
-    plot: Annotated[Path | None, typer.Option(help="Speed-vs-PSNR PNG.")] = Path("plots/render_speed.png"),
+    plot: Annotated[
+        Path | None,
+        typer.Option(help="Speed-vs-PSNR PNG (default: beside --out, <out stem>_speed.png)."),
+    ] = None,
     wandb: Annotated[
         bool, typer.Option(help="Also log the headline metrics to W&B (offline by default).")
     ] = False,
@@ -535,8 +538,9 @@ def render_cmd(
     doc = run_render_bench(bench, out)
     typer.echo(render_markdown(doc))
     typer.echo(f"wrote {out}")
-    if plot is not None:
-        typer.echo(f"wrote {plot_speed_vs_error(doc, plot)}")
+    # Nothing lands outside --out unless asked: the pipeline names plots/render_speed.png itself.
+    plot = plot if plot is not None else out.with_name(f"{out.stem}_speed.png")
+    typer.echo(f"wrote {plot_speed_vs_error(doc, plot)}")
     if wandb:
         from dataclasses import asdict
 
