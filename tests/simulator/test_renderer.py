@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -533,6 +534,28 @@ def test_untrained_residual_renderer_reproduces_splat_only_where_alpha_is_one(st
     assert (out.rgb - cond[:, 16:19]).abs().mean() > 0.1
 
 
+@pytest.mark.parametrize("depth_head", ["relu", "log"])
+def test_gated_depth_keeps_the_splat_range_where_covered_and_corrects_holes(depth_head):
+    torch.manual_seed(0)
+    cond, *_ = make_batch(b=2, alpha=1.0)
+    cond[:, 20, 4:9, 10:20] = 0.0  # a hole
+    cond[:, 20, 9:11, 10:20] = 0.5  # half covered
+    gated = PixelFlowRenderer(small_cfg(decoder={"depth_gate": True, "depth_head": depth_head})).eval()
+    free = PixelFlowRenderer(small_cfg(decoder={"depth_gate": False, "depth_head": depth_head})).eval()
+    # A trained-looking depth head (non-zero corrections everywhere), the same in both models.
+    torch.nn.init.normal_(gated.decoder.depth_head.weight, std=0.5)
+    torch.nn.init.constant_(gated.decoder.depth_head.bias, 0.3)
+    free.load_state_dict(gated.state_dict())
+    noise = torch.randn(2, 4, H, W)
+    g, f = gated.render(cond, steps=1, noise=noise), free.render(cond, steps=1, noise=noise)
+    covered = cond[:, 20:21] == 1.0
+    assert torch.allclose(g.depth[covered], cond[:, 19:20][covered], atol=1e-5)
+    assert not torch.allclose(f.depth[covered], cond[:, 19:20][covered], atol=1e-2)
+    hole = cond[:, 20:21] == 0.0
+    assert torch.allclose(g.depth[hole], f.depth[hole], atol=1e-5)  # full correction in holes
+    assert torch.equal(g.rgb, f.rgb)  # colour is not gated
+
+
 def test_untrained_renderer_with_interpolated_prior_equals_the_hole_filling_baseline():
     from image2sim.simulator.renderer.holefill import fill_holes
 
@@ -557,7 +580,7 @@ def test_log_depth_head_is_a_bounded_multiplicative_correction_of_the_prior():
     cond, *_ = make_batch(b=1, alpha=1.0)
     cond[:, 20, :, :4] = 0.0  # nothing projected there: the base is depth_bias
     cond[:, 19, :, 4:8] = 0.0  # covered but at range 0: floored, not log(0)
-    model = PixelFlowRenderer(small_cfg(decoder={"depth_head": "log"})).eval()
+    model = PixelFlowRenderer(small_cfg(decoder={"depth_head": "log", "depth_gate": False})).eval()
     head = model.decoder.depth_head
     with torch.no_grad():
         out = model.render(cond, steps=1, noise=torch.zeros(1, 4, H, W))
@@ -668,3 +691,25 @@ def test_a_renderer_saved_before_residual_heads_existed_loads_with_the_plain_hea
     old = load_renderer(tmp_path / "old.safetensors")
     assert old.cfg.decoder.residual_heads is False and old.cfg == model.cfg
     assert load_renderer(tmp_path / "new.safetensors").cfg == model.cfg
+
+
+def test_a_renderer_saved_before_the_depth_gate_existed_loads_ungated(tmp_path):
+    import json
+
+    from image2sim.simulator.renderer.config import config_to_dict
+    from image2sim.simulator.renderer.model import load_renderer, save_renderer
+    from safetensors.torch import load_file
+
+    torch.manual_seed(0)
+    model = PixelFlowRenderer(small_cfg()).eval()
+    save_renderer(model, tmp_path / "new.safetensors")
+    config = config_to_dict(model.cfg)
+    del config["decoder"]["depth_gate"]  # as an older version wrote it
+    meta = {"format": "image2sim-renderer-v1", "config": json.dumps(config)}
+    save_file(load_file(tmp_path / "new.safetensors"), str(tmp_path / "old.safetensors"), metadata=meta)
+    # The tiny preset gates depth; a file written before the switch keeps the correction it trained.
+    assert small_cfg().decoder.depth_gate is True and model.cfg.name == "tiny"
+    old = load_renderer(tmp_path / "old.safetensors")
+    assert old.cfg.decoder.depth_gate is False
+    ungated = dataclasses.replace(model.cfg.decoder, depth_gate=False)
+    assert old.cfg == dataclasses.replace(model.cfg, decoder=ungated)

@@ -260,6 +260,7 @@ class RenderingDecoder(nn.Module):
         self.depth_fill = float(cfg.depth_bias)
         self.prior_fill = str(cfg.prior_fill)
         self.log_depth = cfg.depth_head == "log"
+        self.depth_gate = bool(cfg.depth_gate) and self.residual
         self.depth_scale = float(depth_scale)
         nn.init.zeros_(self.rgb_head.bias)
         if self.residual:  # corrections start at 0: the untrained network returns the prior
@@ -318,6 +319,8 @@ class RenderingDecoder(nn.Module):
             rgb_logits = rgb_logits + base_logits
             if self.log_depth:
                 base_depth = torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
+            if self.depth_gate:  # keep the splat's range where it covered the pixel
+                depth = depth * (1.0 - condition[:, ALPHA].clamp(0.0, 1.0))
             depth = depth + base_depth
         depth = torch.exp(depth.clamp(*_LOG_DEPTH_BOUNDS)) if self.log_depth else F.relu(depth)
         return DecoderOutput(torch.cat((torch.sigmoid(rgb_logits), depth), dim=1), features, rgb_logits)

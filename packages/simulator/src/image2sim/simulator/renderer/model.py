@@ -309,10 +309,12 @@ def export_renderer(
 
 def _saved_config(data: dict) -> dict:
     """A saved renderer config as it was trained: files written before ``decoder.residual_heads``
-    existed trained the paper's plain heads, so a missing key means False (the new default is True)."""
+    existed trained the paper's plain heads, and files written before ``decoder.depth_gate`` existed
+    trained an ungated depth correction, so a missing key means False (the presets may say True)."""
     data = dict(data)
     decoder = dict(data.get("decoder") or {})
     decoder.setdefault("residual_heads", False)
+    decoder.setdefault("depth_gate", False)
     data["decoder"] = decoder
     return data
 
