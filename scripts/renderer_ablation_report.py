@@ -60,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path, help="OUT folder of scripts/renderer_ablation.sh")
     ap.add_argument("--encoder-steps", type=int, default=None, help="stage-1 steps (for the header)")
     ap.add_argument("--reports", type=Path, default=None, help="report folder (default: reports/)")
+    ap.add_argument("--note", default="", help="a line added under the header (e.g. the code version)")
     args = ap.parse_args(argv)
 
     seeds = _seeds(args.out)
@@ -127,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     losses = enc_meta.get("losses") or []
     meta = {
         "seeds": seeds,
+        "note": args.note or None,
         "encoder_steps": args.encoder_steps,
         "encoder_loss_first_last": [losses[0], losses[-1]] if losses else None,
         "held_out_views": proto.get("held_out_views"),
@@ -160,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         "- Renderers: 400-step session curriculum (`configs/renderer/tiny_session.yaml`, ablations "
         "`configs/renderer/tiny_ablation_*.yaml`); `w/o semantic features` zeroes the projected feature "
         "map and drops the aligner and injectors. PSNR in dB; FPS of the method on this CPU.",
+        *([f"- {args.note}"] if args.note else []),
         "",
         "| " + " | ".join(cols) + " |",
         "|" + "---|" * len(cols),
