@@ -48,6 +48,17 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
 
 
+def _timed_pass(fn, camera, cams: list[np.ndarray], repeats: int):
+    """Time ``repeats`` passes of ``fn`` over every pose (one warm-up); the timing and the last
+    pass's observations."""
+    outs: list[dict] = []
+
+    def one_pass() -> None:
+        outs[:] = [fn(camera, pose) for pose in cams]
+
+    return time_it(one_pass, warmup=1, repeats=repeats), outs
+
+
 def _fidelity(outs: list[dict], targets: list[tuple[np.ndarray, np.ndarray]]) -> tuple[list, list]:
     """Per pose: PSNR of the colour, and AbsRel of the range where both ranges are valid."""
     psnr, absrel = [], []
@@ -125,14 +136,7 @@ def run(
             gs = build_scene(capture, cfg, encoder="identity")
             build_s = time.perf_counter() - t0
             tensors = gaussian_tensors(gs.gaussians)
-            fn = GaussianRenderFn(tensors)
-            outs: list[dict] = []
-
-            def one_pass(fn=fn, outs=outs) -> None:
-                outs.clear()
-                outs.extend(fn(camera, pose) for pose in cams)
-
-            t = time_it(one_pass, warmup=1, repeats=repeats)
+            t, outs = _timed_pass(GaussianRenderFn(tensors), camera, cams, repeats)
             psnr, absrel = _fidelity(outs, targets)
             if network_ms is None:
                 torch.manual_seed(0)
@@ -154,14 +158,7 @@ def run(
                 }
             )
             if trained is not None:
-                neural = PixelFlowRenderFn(tensors, trained)
-                n_outs: list[dict] = []
-
-                def neural_pass(fn=neural, outs=n_outs) -> None:
-                    outs.clear()
-                    outs.extend(fn(camera, pose) for pose in cams)
-
-                tn = time_it(neural_pass, warmup=1, repeats=repeats)
+                tn, n_outs = _timed_pass(PixelFlowRenderFn(tensors, trained), camera, cams, repeats)
                 n_psnr, n_absrel = _fidelity(n_outs, targets)
                 rows[-1].update(
                     neural_ms_per_frame=round(1e3 * tn.wall / poses, 1),
