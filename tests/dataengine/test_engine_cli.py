@@ -103,6 +103,24 @@ def test_cli_rejects_bad_arguments(scenes_root, tmp_path):
         ],
     )
     assert res.exit_code == 2 and "not found" in res.output
+    bad = tmp_path / "gauss.yaml"
+    bad.write_text("fusion:\n  footprint_factr: 2\n")
+    for config, says in ((str(bad), "footprint_factr"), (str(tmp_path / "none.yaml"), "none.yaml")):
+        res = runner.invoke(
+            app,
+            [
+                "data",
+                "episodes",
+                "--scenes",
+                str(scenes_root),
+                "--out",
+                str(tmp_path / "o"),
+                "--gaussian-config",
+                config,
+            ],
+        )
+        assert res.exit_code == 2 and "--gaussian-config" in res.output and says in res.output, res.output
+        assert not (tmp_path / "o").exists()  # refused before anything is written
 
 
 def test_cli_mine_writes_object_database(scenes_root, tmp_path):

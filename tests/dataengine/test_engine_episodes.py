@@ -459,6 +459,53 @@ def test_restart_with_other_arguments_is_refused(scenes_root, full_run):
     merge_outputs(out, ["scene_000", "scene_001"], "train")  # still consistent after the refusal
 
 
+def test_the_gaussian_config_sets_the_density_of_the_simulated_scenes(scenes_root, full_run, tmp_path):
+    """``gaussians`` (``data episodes --gaussian-config``) is the config of the identity scenes the
+    engine builds: a coarser fusion gives fewer Gaussians; the default is the tiny preset, which is
+    what the run above built; a run restarted with another one is refused."""
+    import dataclasses
+
+    from image2sim.dataengine.distributed import RunError
+    from image2sim.dataengine.scene_assets import resolve_scene, scene_render_fn
+    from image2sim.simulator.gaussians import GaussianScene, tiny
+    from image2sim.simulator.gaussians.config import config_to_dict
+
+    base = tiny()
+    coarse = config_to_dict(
+        dataclasses.replace(base, fusion=dataclasses.replace(base.fusion, footprint_factor=4.0))
+    )
+    inputs = resolve_scene(scenes_root / "scene_000")
+    counts = {}
+    for name, gaussians in (("default", {}), ("coarse", coarse)):
+        fn, mode = scene_render_fn(inputs, tmp_path / name, "gaussians", gaussians=gaussians)
+        assert fn is not None and mode == "gaussians"
+        counts[name] = len(GaussianScene.load(tmp_path / name / "gaussians").gaussians.means)
+    out, _ = full_run
+    built = len(GaussianScene.load(out / "scenes" / "scene_000" / "gaussians").gaussians.means)
+    assert built == counts["default"]
+    assert 0 < counts["coarse"] < counts["default"] / 2
+    with pytest.raises(RunError, match="gaussians"):
+        run_engine(scenes_root, out, EngineConfig(**CFG, gaussians=coarse), executor="local", progress=False)
+
+
+def test_a_run_written_before_a_config_field_existed_resumes(scenes_root, full_run):
+    """A run manifest without a field added since (here ``gaussians``) reads it as the default, which
+    is what that run did: resuming is not refused."""
+    from image2sim.dataengine.distributed import RUN_FILE
+
+    out, _ = full_run
+    path = out / RUN_FILE
+    saved = path.read_text()
+    doc = json.loads(saved)
+    doc["config"].pop("gaussians")
+    try:
+        path.write_text(json.dumps(doc))
+        summary = run_engine(scenes_root, out, EngineConfig(**CFG), executor="local", progress=False)
+        assert summary["scenes_done"] == 2 and not summary["failed"]
+    finally:
+        path.write_text(saved)
+
+
 def test_the_render_device_is_validated_and_a_run_may_resume_on_another(scenes_root, full_run):
     """``device`` says where frames render, not what is written: a finished run resumed with another
     device is not refused (it skips its finished scenes); a device torch does not know is an error."""

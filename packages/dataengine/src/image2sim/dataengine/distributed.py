@@ -125,7 +125,9 @@ def _check_run_manifest(out_dir: Path, config: EngineConfig) -> None:
     cfg = config.to_dict()
     if path.is_file():
         old = json.loads(path.read_text()).get("config")
-        old = {k: v for k, v in (old or {}).items() if k not in _PLACEMENT_FIELDS}
+        # A field added since that run reads as its default (what that run did).
+        old = {**EngineConfig().to_dict(), **(old or {})}
+        old = {k: v for k, v in old.items() if k not in _PLACEMENT_FIELDS}
         new = {k: v for k, v in cfg.items() if k not in _PLACEMENT_FIELDS}
         if old != new:
             diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))

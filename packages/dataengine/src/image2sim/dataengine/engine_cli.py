@@ -63,6 +63,16 @@ def mine_command(
     typer.echo(json.dumps({"objects": len(objs), **stats, "file": str(path)}))
 
 
+def _gaussian_overrides(name_or_file: str) -> dict:
+    """The engine's ``gaussians`` field for ``--gaussian-config``: empty for the ``tiny`` preset (the
+    default, so earlier runs resume unchanged), else the whole resolved config as plain data."""
+    from image2sim.simulator.gaussians.config import config_to_dict, load_gaussian_config
+
+    if name_or_file == "tiny":
+        return {}
+    return config_to_dict(load_gaussian_config(name_or_file))
+
+
 @app.command("episodes")
 def episodes_command(
     scenes: Path = typer.Option(
@@ -110,6 +120,12 @@ def episodes_command(
     ),
     language: str = typer.Option("en-US", "--language", help="rxr-ce: the instructions' language tag."),
     seed: int = typer.Option(0, "--seed", help="Base seed."),
+    gaussian_config: str = typer.Option(
+        "tiny",
+        "--gaussian-config",
+        help="gaussians: preset name or YAML of the identity Gaussian scenes built from the captures "
+        "(e.g. a coarser fusion.footprint_factor for cheaper frames).",
+    ),
     executor: str = typer.Option(
         "local",
         "--executor",
@@ -168,6 +184,11 @@ def episodes_command(
         typer.echo(f"error: --per-scene must be auto or an integer, got {per_scene!r}", err=True)
         raise typer.Exit(2) from None
     try:
+        gaussians = _gaussian_overrides(gaussian_config)
+    except ValueError as err:  # ConfigError is a ValueError
+        typer.echo(f"error: --gaussian-config: {err}", err=True)
+        raise typer.Exit(2) from None
+    try:
         cfg = EngineConfig(
             per_scene=n,
             annotator=annotator,
@@ -180,6 +201,7 @@ def episodes_command(
             seed=seed,
             renderer=None if renderer is None else str(renderer),
             device=device,
+            gaussians=gaussians,
             rollout={} if min_steps is None else {"min_steps": min_steps},
             sampling=_parse_options(sampling),
             approach={"views": approach_views} if approach_views else {},

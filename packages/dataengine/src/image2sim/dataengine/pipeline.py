@@ -94,6 +94,12 @@ class EngineConfig:
     """Local pixel-flow renderer weights (an ``export-renderer`` folder, ``save_renderer`` safetensors
     or a Lightning checkpoint) applied after splatting (the simulator's ``PixelFlowRenderFn``); needs
     render=gaussians (or auto)."""
+    gaussians: dict = field(default_factory=dict)
+    """Gaussian config of the identity scenes built from captures for ``render=gaussians``, as plain
+    data over a preset (``gaussian_config_from_dict``; ``data episodes --gaussian-config`` reads a
+    preset name or YAML into it). Empty: the ``tiny`` preset. A coarser fusion
+    (``fusion.footprint_factor``) makes fewer Gaussians and cheaper frames
+    (``reports/scene_density.md``)."""
     device: str = "cpu"
     """Torch device the Gaussian observations render on: cpu, or cuda / cuda:N on a GPU machine (the
     splat and the pixel-flow renderer; the exact procedural renderer, the navigation and the files stay
@@ -362,7 +368,7 @@ def process_scene(
     render_fn, render_mode = (
         (None, "none")
         if cfg.render == "none"
-        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device)
+        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device, cfg.gaussians)
     )
     if vlm and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
@@ -573,7 +579,9 @@ def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
     config = EngineConfig.from_dict(cfg)
     inputs = resolve_scene(scene_dir)
     navmap, graph = scene_navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
-    render_fn, _ = scene_render_fn(inputs, Path(out), config.render, config.renderer, device=config.device)
+    render_fn, _ = scene_render_fn(
+        inputs, Path(out), config.render, config.renderer, device=config.device, gaussians=config.gaussians
+    )
     _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
 
 

@@ -153,9 +153,11 @@ def scene_render_fn(
     renderer: str | None = None,
     asset_cache: str | None = None,
     device: str = "cpu",
+    gaussians: dict | None = None,
 ):
     """(render function or None, mode actually used). ``device``: where Gaussian scenes render (cpu or
-    cuda); the exact procedural renderer always runs on the CPU."""
+    cuda); the exact procedural renderer always runs on the CPU. ``gaussians``: the Gaussian config of
+    scenes built from a capture (plain data over a preset; None or empty: ``tiny``)."""
     if renderer is not None and mode == "auto":
         mode = "gaussians"
     if mode == "auto":
@@ -168,7 +170,8 @@ def scene_render_fn(
         from image2sim.dataengine.procedural.exact import exact_render_fn
 
         return exact_render_fn(inputs.capture_dir, instances=True), mode
-    from image2sim.simulator.gaussians import GaussianScene, build_scene, tiny
+    from image2sim.simulator.gaussians import GaussianScene, build_scene
+    from image2sim.simulator.gaussians.config import gaussian_config_from_dict
     from image2sim.simulator.sim import gaussian_render_fn
 
     folder = inputs.gaussian_dir
@@ -179,13 +182,14 @@ def scene_render_fn(
         folder = cache / "gaussians"
         # The key names the whole Gaussian config, so a cache built under other fusion settings
         # (e.g. before best-view selection) is never reused.
-        config = json.dumps(config_to_dict(tiny()), sort_keys=True)
+        gcfg = gaussian_config_from_dict(gaussians or {})
+        config = json.dumps(config_to_dict(gcfg), sort_keys=True)
         cached(
             asset_cache,
             lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}"),
             ["gaussians"],
             cache,
-            lambda: build_scene(inputs.capture_dir, tiny(), encoder="identity").save(folder, overwrite=True),
+            lambda: build_scene(inputs.capture_dir, gcfg, encoder="identity").save(folder, overwrite=True),
         )
     g = GaussianScene.load(folder).gaussians
     # Panoramic with a renderer: the simulator cuts the pinhole / ultra-wide views out of the panorama.
