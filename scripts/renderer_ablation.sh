@@ -4,6 +4,9 @@
 #
 #   PATH=.venv/bin:$PATH bash scripts/renderer_ablation.sh [OUT=/tmp/renderer-ablation] [SEEDS="0 1"] [ENCODER_STEPS=100]
 #
+# ENCODER_CONFIG=configs/gaussians/tiny_labels.yaml gives stage 1 the captures' per-pixel categories
+# as its semantic target (train.w_labels); the default `tiny` has none without DINOv3 weights.
+#
 # 1. three procedural houses (noise tier `middle`, 16 panoramas of 128x256 each, as in
 #    reports/renderer_tiny.md's Table-4 run);
 # 2. the stage-1 encoder (`sim train-geometry`, ENCODER_STEPS steps), frozen afterwards;
@@ -21,6 +24,7 @@ cd "$(dirname "$0")/.."
 O=${1:-/tmp/renderer-ablation}
 SEEDS=${2:-"0 1"}
 ENCODER_STEPS=${3:-100}
+ENCODER_CONFIG=${ENCODER_CONFIG:-tiny}
 export WANDB_MODE=${WANDB_MODE:-disabled}
 mkdir -p "$O"
 stamp() { echo "[$(date +%T)] $*"; }
@@ -31,7 +35,7 @@ D=()
 for s in "$O"/synth/scene_*; do D+=(--data "$s"); done
 ENC="$O/encoder/encoder.safetensors"
 [ -f "$ENC" ] || { stamp "stage-1 encoder ($ENCODER_STEPS steps)"; rm -rf "$O/encoder"; \
-  image2sim sim train-geometry "$O"/synth/scene_* --config tiny --steps "$ENCODER_STEPS" --out "$O/encoder" >/dev/null; }
+  image2sim sim train-geometry "$O"/synth/scene_* --config "$ENCODER_CONFIG" --steps "$ENCODER_STEPS" --out "$O/encoder" >/dev/null; }
 
 train() {  # seed name config encoder
   local run="$O/run/seed$1/$2"
@@ -62,4 +66,4 @@ for seed in $SEEDS; do
       --out "$O/eval/seed${seed}_identity.json" >"$O/eval_seed${seed}_identity.log" 2>&1; }
 done
 stamp "report"
-python scripts/renderer_ablation_report.py "$O" --encoder-steps "$ENCODER_STEPS"
+python scripts/renderer_ablation_report.py "$O" --encoder-steps "$ENCODER_STEPS" --encoder-config "$ENCODER_CONFIG"

@@ -55,10 +55,18 @@ def _method(doc: dict, key: str, path: Path) -> dict:
     return methods[key]
 
 
+def _label_target(config: str) -> bool:
+    """Whether the stage-1 config trains the category target (train.w_labels > 0)."""
+    from image2sim.simulator.gaussians.config import load_gaussian_config
+
+    return load_gaussian_config(config).train.w_labels > 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path, help="OUT folder of scripts/renderer_ablation.sh")
     ap.add_argument("--encoder-steps", type=int, default=None, help="stage-1 steps (for the header)")
+    ap.add_argument("--encoder-config", default="tiny", help="stage-1 preset or YAML (for the header)")
     ap.add_argument("--reports", type=Path, default=None, help="report folder (default: reports/)")
     ap.add_argument("--note", default="", help="a line added under the header (e.g. the code version)")
     args = ap.parse_args(argv)
@@ -130,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         "seeds": seeds,
         "note": args.note or None,
         "encoder_steps": args.encoder_steps,
+        "encoder_config": args.encoder_config,
         "encoder_loss_first_last": [losses[0], losses[-1]] if losses else None,
         "held_out_views": proto.get("held_out_views"),
         "resolution": proto.get("resolution"),
@@ -154,11 +163,18 @@ def main(argv: list[str] | None = None) -> int:
         "(every 8th frame) of "
         f"three procedural houses (noise tier `middle`), {rows[0]['views'] if rows else '?'} views per seed, "
         f"resolution {proto.get('resolution')}.",
-        f"- Stage-1 encoder: `sim train-geometry --config tiny --steps {args.encoder_steps}` on the same "
+        "- Stage-1 encoder: "
+        f"`sim train-geometry --config {args.encoder_config} --steps {args.encoder_steps}` on the same "
         "captures, frozen; its 16-channel feature Gaussians condition every row except the last "
-        "(identity Gaussians, zero features). No semantic backbone weights exist here, so the stage-1 "
-        "features get no alignment target: they are the trained encoder's feature head over its "
-        "geometry-trained trunk, not DINOv3-aligned semantics.",
+        "(identity Gaussians, zero features). No DINOv3 weights exist here, so the features are "
+        "not DINOv3-aligned: "
+        + (
+            "the stage-1 category target (`train.w_labels`) trains them to predict each pixel's "
+            "category from the captures' `semantics/`."
+            if _label_target(args.encoder_config)
+            else "they are the trained encoder's feature head over its geometry-trained trunk, with no "
+            "semantic target."
+        ),
         "- Renderers: 400-step session curriculum (`configs/renderer/tiny_session.yaml`, ablations "
         "`configs/renderer/tiny_ablation_*.yaml`); `w/o semantic features` zeroes the projected feature "
         "map and drops the aligner and injectors. PSNR in dB; FPS of the method on this CPU.",

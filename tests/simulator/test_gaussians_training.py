@@ -71,6 +71,70 @@ def test_a_few_steps_reduce_the_reconstruction_loss(procedural):
     assert last < 0.95 * first
 
 
+def test_frames_carry_the_captures_categories_at_the_encoder_resolution(procedural):
+    """Category ids are resized by nearest sample (never blended into ids that do not exist)."""
+    import numpy as np
+    from image2sim.simulator.io.registry import open_capture
+
+    out, frames = procedural
+    raw = open_capture(out)[0].semantics
+    labels = frames[0].labels
+    assert raw is not None and labels is not None and labels.shape == (1, 1, 64, 128)
+    assert labels.dtype == torch.int64
+    assert set(np.unique(labels.numpy())) <= set(np.unique(raw)) and len(np.unique(labels.numpy())) > 3
+    assert "tgt_labels" in GeometryDataset([frames], 2, 1, seed=0)[0]
+
+
+def test_the_category_target_teaches_the_features_what_the_objects_are(procedural):
+    """``train.w_labels``: a linear head over the splatted features learns the target's categories
+    (the features are trained through it), and the reconstruction terms stay in the total."""
+    from image2sim.simulator.gaussians.train_geometry import label_classes
+
+    _, frames = procedural
+    cfg = _cfg(w_labels=1.0)
+    torch.manual_seed(0)
+    enc = GaussianEncoder(cfg)
+    head = torch.nn.Linear(cfg.encoder.feature_dim, label_classes(cfg, [frames]))
+    batch = GeometryDataset([frames], 2, 1, seed=0)[0]
+    camera = camera_from_dict(json.loads(batch["camera"]))
+    opt = torch.optim.AdamW([*enc.parameters(), *head.parameters()], lr=1e-2)
+    with torch.no_grad():
+        first, _ = stage1_losses(enc, batch, camera, label_head=head)
+    for _ in range(12):
+        losses, _ = stage1_losses(enc, batch, camera, label_head=head)
+        opt.zero_grad()
+        losses["total"].backward()
+        opt.step()
+    with torch.no_grad():
+        last, _ = stage1_losses(enc, batch, camera, label_head=head)
+    print(
+        f"category loss {float(first['labels']):.3f} -> {float(last['labels']):.3f}, "
+        f"accuracy {float(first['label_acc']):.2f} -> {float(last['label_acc']):.2f}"
+    )
+    assert float(last["labels"]) < 0.7 * float(first["labels"])
+    assert float(last["label_acc"]) > float(first["label_acc"])
+    assert torch.isclose(
+        first["total"],
+        first["rgb"]
+        + cfg.train.w_depth * first["depth"]
+        + cfg.train.w_scale * first["scale"]
+        + first["labels"],
+    )
+
+
+def test_a_category_target_without_labelled_frames_is_an_error(procedural):
+    from image2sim.simulator.gaussians.train_geometry import label_classes
+
+    _, frames = procedural
+    unlabelled = [dataclasses.replace(f, labels=None) for f in frames]
+    assert label_classes(_cfg(), [unlabelled]) == 0  # no target asked: nothing needed
+    assert label_classes(_cfg(w_labels=1.0), [frames]) > 3
+    with pytest.raises(ValueError, match="semantics"):
+        label_classes(_cfg(w_labels=1.0), [unlabelled])
+    with pytest.raises(ValueError, match="w_labels"):
+        _cfg(w_labels=-1.0).validate()
+
+
 def test_dataset_samples_are_deterministic_and_hold_out_the_target(procedural):
     _, frames = procedural
     ds = GeometryDataset([frames], 2, 50, seed=7)

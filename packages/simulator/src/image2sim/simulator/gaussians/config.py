@@ -185,6 +185,11 @@ class Stage1Config:
     w_align: float = 0.1
     """Weight of the cosine alignment of projected features to the target's DINOv3 tokens (only with a
     semantic backbone)."""
+    w_labels: float = 0.0
+    """Weight of the category target: a linear head over the splatted features predicts the held-out
+    target's per-pixel category (cross-entropy over covered, labelled pixels). Needs captures with
+    ``semantics/`` (procedural ones have them). A weights-free semantic target where no DINOv3 is at
+    hand, so the features carry what the object is; 0 = off."""
     w_scale: float = 0.01
     """Weight of the scale regulariser (mean log of scale / footprint, squared)."""
     min_alpha: float = 0.5
@@ -274,6 +279,7 @@ class GaussianConfig:
         t = self.train
         if t.num_sources < 1 or t.steps < 0 or t.lr <= 0:
             raise ConfigError("train.num_sources >= 1, steps >= 0 and lr > 0 are required")
+        require_at_least(self, ("train.w_labels",), 0)
         return self
 
 

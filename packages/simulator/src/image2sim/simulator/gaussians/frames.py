@@ -56,8 +56,17 @@ def prepare_frame(frame: Frame, height: int, width: int, edge_tolerance: float =
     depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32))[None, None]
     rgb, depth = resize_rgbd(rgb, depth, height, width, edge_tolerance)
     pose = torch.as_tensor(np.asarray(frame.cam_to_world, dtype=np.float64))
+    labels = None
+    if frame.semantics is not None:  # ids are categorical: nearest sample, never a blend
+        sem = torch.from_numpy(np.ascontiguousarray(frame.semantics, dtype=np.float32))[None, None]
+        labels = F.interpolate(sem, size=(height, width), mode="nearest-exact").long()
     return FrameInputs(
-        rgb.contiguous(), depth.contiguous(), resize_camera(frame.camera, height, width), pose, frame.frame_id
+        rgb.contiguous(),
+        depth.contiguous(),
+        resize_camera(frame.camera, height, width),
+        pose,
+        frame.frame_id,
+        labels,
     )
 
 

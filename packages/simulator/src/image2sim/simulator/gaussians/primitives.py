@@ -135,3 +135,6 @@ class FrameInputs:
     """(4, 4) float64 camera-to-world pose."""
     frame_id: str = ""
     """Identifier of the source frame."""
+    labels: torch.Tensor | None = None
+    """(1, 1, H, W) int64 category ids at this resolution (0 = unknown), from the capture's
+    ``semantics/``; None when the capture has none. Stage 1's label target reads them."""

@@ -4,8 +4,10 @@ One sample = one scene, K source frames and a held-out target frame. The encoder
 into Gaussians (no fusion: everything stays differentiable), they are splatted at the target pose,
 and the loss is the paper's masked L1 reconstruction of RGB and depth (+ the cosine alignment of
 tokenised projected features to the target's DINOv3 tokens when a semantic backbone is
-configured, + a scale regulariser). The sample order is a pure function of (seed, step), so a run
-resumed from ``last.ckpt`` continues exactly where it stopped.
+configured, + with ``train.w_labels`` the cross-entropy of a linear category head over the
+splatted features against the target's per-pixel categories, + a scale regulariser). The sample
+order is a pure function of (seed, step), so a run resumed from ``last.ckpt`` continues exactly
+where it stopped.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ __all__ = [
     "stage1_losses",
     "train_stage1",
     "load_scene_frames",
+    "label_classes",
 ]
 
 
@@ -92,6 +95,7 @@ class GeometryDataset(Dataset):
             "tgt_pose": tgt.cam_to_world,
             "camera": json.dumps(tgt.camera.to_dict()),
             "index": int(index),
+            **({} if tgt.labels is None else {"tgt_labels": tgt.labels[0, 0]}),
         }
 
 
@@ -122,8 +126,11 @@ def stage1_losses(
     batch: dict,
     camera: Camera,
     align_head: torch.nn.Module | None = None,
+    label_head: torch.nn.Module | None = None,
 ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-    """Loss terms and the splatted target images of one sample (see the module docstring)."""
+    """Loss terms and the splatted target images of one sample (see the module docstring).
+    ``label_head`` (features -> category logits) adds the category term when the batch has
+    ``tgt_labels``."""
     cfg = encoder.cfg
     t, e = cfg.train, cfg.encoder
     maps = encoder.forward_maps(batch["src_rgb"], batch["src_depth"], camera)
@@ -150,6 +157,19 @@ def stage1_losses(
         l_align = (1 - F.cosine_similarity(proj, tokens, dim=1)).mean()
         losses["align"] = l_align
         total = total + t.w_align * l_align
+    if label_head is not None and "tgt_labels" in batch and out.features.shape[1]:
+        feats = (out.features / safe[None])[0].permute(1, 2, 0)  # (H, W, C)
+        labels = batch["tgt_labels"].to(feats.device)
+        keep = mask.reshape(labels.shape).bool() & (labels > 0) & (labels < label_head.out_features)
+        if keep.any():
+            logits = label_head(feats[keep])
+            l_labels = F.cross_entropy(logits, labels[keep])
+            with torch.no_grad():
+                losses["label_acc"] = (logits.argmax(-1) == labels[keep]).float().mean()
+        else:  # nothing labelled in view: a zero that keeps the graph
+            l_labels = feats.sum() * 0
+        losses["labels"] = l_labels
+        total = total + t.w_labels * l_labels
     losses["total"] = total
     with torch.no_grad():
         mse = (((pred_rgb - tgt_rgb) ** 2) * mask).sum() / (3 * denom)
@@ -168,17 +188,26 @@ class GeometryModule(L.LightningModule):
         semantic_model: torch.nn.Module | None = None,
         panoramic: bool = True,
         image_dir: str | None = None,
+        label_classes: int = 0,
     ) -> None:
         super().__init__()
         from image2sim.simulator.gaussians.semantic import build_semantic
 
-        self.save_hyperparameters({"config": config_to_dict(cfg), "panoramic": bool(panoramic)})
+        self.save_hyperparameters(
+            {"config": config_to_dict(cfg), "panoramic": bool(panoramic), "label_classes": int(label_classes)}
+        )
         self.cfg = cfg
         semantic = build_semantic(cfg.semantic, semantic_model)
         self.encoder = GaussianEncoder(cfg, semantic, panoramic=panoramic)
         self.align_head = (
             torch.nn.Linear(cfg.encoder.feature_dim, semantic.dim)
             if semantic is not None and cfg.encoder.feature_dim
+            else None
+        )
+        # The category head only trains the features; the encoder file leaves it out.
+        self.label_head = (
+            torch.nn.Linear(cfg.encoder.feature_dim, int(label_classes))
+            if cfg.train.w_labels > 0 and cfg.encoder.feature_dim and label_classes > 1
             else None
         )
         self.image_dir = image_dir
@@ -201,7 +230,7 @@ class GeometryModule(L.LightningModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         camera = camera_from_dict(json.loads(batch["camera"]))
-        losses, images = stage1_losses(self.encoder, batch, camera, self.align_head)
+        losses, images = stage1_losses(self.encoder, batch, camera, self.align_head, self.label_head)
         t = self.cfg.train
         self.log_dict(
             {f"train/{k}": v.detach() for k, v in losses.items()}, on_step=True, prog_bar=False, batch_size=1
@@ -226,6 +255,20 @@ def _write_grid(path: Path, images: dict[str, torch.Tensor]) -> None:
     grid = torch.cat((images["tgt_rgb"], images["pred_rgb"], alpha), dim=1).clamp(0, 1)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_rgb_png(path, (grid.permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+
+
+def label_classes(cfg: GaussianConfig, scenes: Sequence[Sequence[FrameInputs]]) -> int:
+    """Classes of the category head: the largest category id in the scenes + 1 (0 without
+    ``train.w_labels``). A label target without labelled frames is an error, not a silent no-op."""
+    if cfg.train.w_labels <= 0:
+        return 0
+    ids = [int(f.labels.max()) for s in scenes for f in s if f.labels is not None]
+    if not ids or max(ids) < 1:
+        raise ValueError(
+            "train.w_labels > 0 needs captures with per-pixel categories (semantics/<frame>_category.png); "
+            "none of the training frames has any"
+        )
+    return max(ids) + 1
 
 
 def train_stage1(
@@ -263,7 +306,13 @@ def train_stage1(
         )
     write_json_atomic(out / "config.json", config_to_dict(cfg))
     L.seed_everything(cfg.train.seed, workers=True, verbose=False)
-    module = GeometryModule(cfg, semantic_model, panoramic=panoramic, image_dir=str(out / "images"))
+    module = GeometryModule(
+        cfg,
+        semantic_model,
+        panoramic=panoramic,
+        image_dir=str(out / "images"),
+        label_classes=label_classes(cfg, scenes),
+    )
     data = GeometryDataModule(scenes, cfg)
     last = out / "checkpoints" / "last.ckpt"
     ckpt_path = resume_checkpoint("last", out) if resume and last.is_file() else None
