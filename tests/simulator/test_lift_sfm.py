@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from image2sim.simulator.lift.frames import load_frames
 from image2sim.simulator.lift.scale import ate, rotation_errors_deg, umeyama
-from image2sim.simulator.lift.sfm import SfmError, run_sfm
+from image2sim.simulator.lift.sfm import SfmError, SfmOptions, run_sfm
 
 from tests.simulator.lift_helpers import PANO_WALK, WALK, gt_poses, rgb_folder, synth_house
 
@@ -104,5 +104,8 @@ def test_a_camera_that_only_rotates_is_refused(tmp_path):
     scene = synth_house(tmp_path / "rot", camera="pinhole", views=8, height=240, width=320, config=still)
     centres = np.stack([p[:3, 3] for p in gt_poses(scene).values()])
     assert np.ptp(centres, axis=0).max() == 0.0  # one position, eight headings
+    # One thread: COLMAP's multi-threaded verification and mapping are not reproducible run to run.
+    # Under load, a 2-thread run once registered this capture with a spurious baseline (a rare false
+    # negative of the check, recorded in docs/lift.md); this test pins the reproducible path.
     with pytest.raises(SfmError, match=r"rot/rgb: the cameras barely move .* only rotates"):
-        run_sfm(load_frames(rgb_folder(scene, tmp_path / "rot" / "rgb")))
+        run_sfm(load_frames(rgb_folder(scene, tmp_path / "rot" / "rgb")), SfmOptions(num_threads=1))
