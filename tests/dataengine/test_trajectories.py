@@ -131,6 +131,25 @@ def test_plans_respect_buckets_radii_and_walls(world):
     )
 
 
+def test_goal_categories_restrict_the_goals_not_the_scene(world):
+    m, g, planner = world
+    cfg = SamplingConfig(goal_categories=["bed"])  # a JSON list from `-S goal_categories=[...]`
+    assert cfg.goal_categories == ("bed",)
+    plans, stats = sample_plans(g, planner, OBJECTS, 12, cfg, np.random.default_rng(0))
+    assert len(plans) >= 8, stats
+    assert {p.goal_object["category"] for p in plans} == {"bed"}
+    assert {p.goal_object["object_id"] for p in plans} == {3, 4}  # both beds are drawn
+    assert stats["goal_category_excluded"] == 2
+    # No object of the named categories: no plans, and the statistics say why.
+    none, stats = sample_plans(
+        g, planner, OBJECTS, 4, SamplingConfig(goal_categories=("fridge",)), np.random.default_rng(0)
+    )
+    assert none == [] and stats["no_objects"] == 1 and stats["goal_category_excluded"] == 4
+    for bad in ("bed", [""], [3]):
+        with pytest.raises(ValueError, match="goal_categories"):
+            SamplingConfig(goal_categories=bad)
+
+
 def _sees(ids):
     """A visibility test that sees exactly the objects (of ``OBJECTS``) with these ids."""
     want = np.array([[o.position[0], o.position[1]] for o in OBJECTS if o.object_id in ids]).reshape(-1, 2)

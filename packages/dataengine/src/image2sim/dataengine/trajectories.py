@@ -97,10 +97,19 @@ class SamplingConfig:
     """Path episodes (no goal object): start and goal nodes keep at least the agent radius plus this
     (metres) from obstacles. On the HM3D sample, 26 of 76 unfiltered episodes began or ended within
     0.25 m of a wall (clearance 0.15-0.25 m for a 0.15 m radius) and their rollouts collided."""
+    goal_categories: tuple[str, ...] = ()
+    """Object categories that may be an episode's goal (names as the detector reports them); empty:
+    every detected category. Other objects stay in the scene and may still be named as landmarks.
+    A task whose goals are few, large, visually distinct categories is one a small policy can
+    learn to ground (docs/sim2real.md, "distinct goals" pilot)."""
     seed: int = 0
     """Base seed (combined with the scene id)."""
 
     def __post_init__(self) -> None:
+        cats = self.goal_categories
+        if isinstance(cats, str) or not all(isinstance(c, str) and c for c in cats):
+            raise ValueError(f"SamplingConfig.goal_categories must be a list of category names, got {cats!r}")
+        object.__setattr__(self, "goal_categories", tuple(cats))
         if not self.buckets:
             raise ValueError("SamplingConfig.buckets must not be empty")
         for b in self.buckets:
@@ -236,6 +245,11 @@ def sample_plans(
     ``to_map`` converts world points to the map frame (identity when None).
     """
     stats = Counter()
+    if config.goal_categories:
+        allowed = set(config.goal_categories)
+        kept = [o for o in objects if o.category in allowed]
+        stats["goal_category_excluded"] += len(objects) - len(kept)
+        objects = kept
     if graph.num_nodes == 0 or not objects:
         stats["no_nodes" if graph.num_nodes == 0 else "no_objects"] += 1
         return [], dict(stats)
