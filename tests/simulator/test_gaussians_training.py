@@ -41,7 +41,7 @@ def procedural(tmp_path_factory):
     sc = dataclasses.replace(sc, capture=dataclasses.replace(sc.capture, views=5))
     out = tmp_path_factory.mktemp("cap") / "scene"
     write_scene(generate_scene(sc, seed=4), out)
-    frames = [prepare_frame(f, 64, 128) for f in open_capture(out)]
+    frames = [prepare_frame(f, 64, 128, labels=True) for f in open_capture(out)]
     return out, frames
 
 
@@ -83,6 +83,8 @@ def test_frames_carry_the_captures_categories_at_the_encoder_resolution(procedur
     assert labels.dtype == torch.int64
     assert set(np.unique(labels.numpy())) <= set(np.unique(raw)) and len(np.unique(labels.numpy())) > 3
     assert "tgt_labels" in GeometryDataset([frames], 2, 1, seed=0)[0]
+    # Only asked for: fusion and condition builds never read them.
+    assert prepare_frame(open_capture(out)[0], 64, 128).labels is None
 
 
 def test_the_category_target_teaches_the_features_what_the_objects_are(procedural):

@@ -50,23 +50,29 @@ def resize_rgbd(
     return rgb_s, torch.where(den >= 0.5, out, torch.zeros_like(out))
 
 
-def prepare_frame(frame: Frame, height: int, width: int, edge_tolerance: float = 0.1) -> FrameInputs:
-    """A :class:`Frame` (uint8 RGB, float depth, pose) -> :class:`FrameInputs` at ``height x width``."""
+def prepare_frame(
+    frame: Frame, height: int, width: int, edge_tolerance: float = 0.1, labels: bool = False
+) -> FrameInputs:
+    """A :class:`Frame` (uint8 RGB, float depth, pose) -> :class:`FrameInputs` at ``height x width``.
+
+    ``labels``: also resize the frame's per-pixel categories (when it has them) into
+    ``FrameInputs.labels``; only stage-1 training with a label target reads them, so fusion and
+    condition builds skip the work."""
     rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb)).permute(2, 0, 1)[None].float() / 255.0
     depth = torch.from_numpy(np.ascontiguousarray(frame.depth, dtype=np.float32))[None, None]
     rgb, depth = resize_rgbd(rgb, depth, height, width, edge_tolerance)
     pose = torch.as_tensor(np.asarray(frame.cam_to_world, dtype=np.float64))
-    labels = None
-    if frame.semantics is not None:  # ids are categorical: nearest sample, never a blend
+    categories = None
+    if labels and frame.semantics is not None:  # ids are categorical: nearest sample, never a blend
         sem = torch.from_numpy(np.ascontiguousarray(frame.semantics, dtype=np.float32))[None, None]
-        labels = F.interpolate(sem, size=(height, width), mode="nearest-exact").long()
+        categories = F.interpolate(sem, size=(height, width), mode="nearest-exact").long()
     return FrameInputs(
         rgb.contiguous(),
         depth.contiguous(),
         resize_camera(frame.camera, height, width),
         pose,
         frame.frame_id,
-        labels,
+        categories,
     )
 
 

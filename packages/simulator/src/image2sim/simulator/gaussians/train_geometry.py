@@ -48,7 +48,8 @@ def load_scene_frames(
     cap = open_capture(path)
     n = len(cap) if max_frames is None else min(len(cap), max_frames)
     e = cfg.encoder
-    return [prepare_frame(cap[i], e.height, e.width, cfg.fusion.edge_tolerance) for i in range(n)]
+    labels = cfg.train.w_labels > 0
+    return [prepare_frame(cap[i], e.height, e.width, cfg.fusion.edge_tolerance, labels) for i in range(n)]
 
 
 class GeometryDataset(Dataset):
