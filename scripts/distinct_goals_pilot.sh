@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # "Distinct goals" pilot (issue 19, docs/sim2real.md): is the instruction learnable by the tiny policy
-# when episode goals are few, large, visually distinct categories, one per room type
-# (`data episodes -S goal_categories=[...]`)? BC with the right instructions against BC with shuffled
+# when episode goals are few, large, visually distinct categories (`data episodes -S
+# goal_categories=[...]`; default: the six goal categories of Habitat's HM3D ObjectNav task, whose
+# procedural hues lie >= 32 degrees apart)? BC with the right instructions against BC with shuffled
 # ones (the instruction-blind control), both on exact renders of the same training houses, evaluated
 # with the exact renderer on the pipeline's held-out houses under the same goal restriction.
 # Not part of CI or the pipeline; a rerun reuses what exists under $O.
@@ -15,7 +16,7 @@ cd "$(dirname "$0")/.."
 O=${1:-/tmp/goals-pilot}
 HOUSES=${2:-32}
 SEED=${3:-0}
-GOALS=${GOALS:-'["bed","sofa","toilet","desk","fridge"]'}
+GOALS=${GOALS:-'["chair","bed","plant","toilet","tv","sofa"]'}
 export WANDB_MODE=${WANDB_MODE:-disabled}
 H=outputs/sim2real/captures/heldout
 [ -e "$H" ] || { echo "missing $H: run dvc repro pipelines/sim2real/dvc.yaml:heldout_houses" >&2; exit 2; }
@@ -31,7 +32,7 @@ cfg["train"].update(batch_size=16, max_steps=1500, seed=int(sys.argv[2]))
 yaml.safe_dump(cfg, open(sys.argv[1], "w"))
 EOF
 
-[ -d "$O/captures" ] || { stamp "synth $HOUSES houses"; image2sim data synth --scenes "$HOUSES" --seed 0 --noise middle --out "$O/captures"; }
+[ -d "$O/captures" ] || { stamp "synth $HOUSES houses"; image2sim data synth --scenes "$HOUSES" --seed 0 --noise middle --workers 2 --out "$O/captures"; }
 [ -f "$O/episodes/shards.json" ] || { stamp "episodes (exact renders, 64 px, goals $GOALS)"; image2sim data episodes --scenes "$O/captures" \
   --out "$O/episodes" --render procedural --obs-height 64 --frame-stride 2 --workers 2 -S "goal_categories=$GOALS"; }
 [ -f "$O/heldout/train/train.json.gz" ] || { stamp "held-out episodes"; image2sim data episodes --scenes "$H" \
