@@ -208,8 +208,10 @@ def pose_scores(est: np.ndarray, true: np.ndarray) -> dict:
 def depth_scores(lifted: dict, ids: list[str], truth_of: Callable[[str], np.ndarray], s: float) -> dict:
     """AbsRel of the lifted metric depth against ``truth_of(frame_id)`` (exact depth of the lifted
     frame's size), pooled over pixels; ``s`` the pose alignment's scale (for the shape-only AbsRel)."""
-    num = {"conf": 0.0, "conf05": 0.0, "aligned": 0.0}
-    cnt = {"conf": 0, "conf05": 0}
+    from image2sim.simulator.lift.planes import PLANE_FILL_CONFIDENCE
+
+    num = {"conf": 0.0, "conf05": 0.0, "plane": 0.0, "aligned": 0.0}
+    cnt = {"conf": 0, "conf05": 0, "plane": 0}
     valid_px = 0
     for fid in ids:
         truth = truth_of(fid).astype(np.float64)
@@ -221,7 +223,12 @@ def depth_scores(lifted: dict, ids: list[str], truth_of: Callable[[str], np.ndar
         conf = frame.confidence if frame.confidence is not None else (depth > 0).astype(np.float32)
         ok = truth > 0
         valid_px += int(ok.sum())
-        for key, m in (("conf", ok & (depth > 0) & (conf > 0)), ("conf05", ok & (depth > 0) & (conf >= 0.5))):
+        plane = np.abs(conf - PLANE_FILL_CONFIDENCE) < 1e-6
+        for key, m in (
+            ("conf", ok & (depth > 0) & (conf > 0)),
+            ("conf05", ok & (depth > 0) & (conf >= 0.5)),
+            ("plane", ok & (depth > 0) & plane),
+        ):
             rel = np.abs(depth[m] - truth[m]) / truth[m]
             num[key] += float(rel.sum())
             cnt[key] += int(m.sum())
@@ -236,6 +243,8 @@ def depth_scores(lifted: dict, ids: list[str], truth_of: Callable[[str], np.ndar
         "coverage": cnt["conf"] / max(valid_px, 1),
         "absrel_conf05": ratio(num["conf05"], cnt["conf05"]),
         "coverage_conf05": cnt["conf05"] / max(valid_px, 1),
+        "absrel_plane": ratio(num["plane"], cnt["plane"]),
+        "coverage_plane": cnt["plane"] / max(valid_px, 1),
         "absrel_scale_removed": ratio(num["aligned"], cnt["conf"]),
     }
 
@@ -306,7 +315,9 @@ def lift_case(name: str, images: Path, out: Path, camera_height: float, depth_kw
         "scale_s": timings["scale"],
         "write_s": timings["write"],
         "frames_s": timings["frames"],
+        "planes_s": timings.get("planes", 0.0),
         "floor_fill_px": rep.record.get("floor_fill", {}).get("pixels"),
+        "plane_fill_px": rep.record.get("plane_fill", {}).get("pixels"),
         "dropped_no_depth": [
             d["frame_id"] for d in rep.record["dropped"] if d["reason"].startswith("no valid depth")
         ],
@@ -440,7 +451,8 @@ def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
         "`surface_detail 0.3`, walking camera (`yaw_step_max_deg 25`). Scored against the same house "
         "at tier `none` (exact poses and depth). `--camera-height` = the capture's recorded eye height.",
         "- Depth AbsRel: written metric depth vs exact, pooled over pixels with confidence > 0 "
-        "(MVS zeroes the rest; this includes the floor-plane fill, confidence 0.02); coverage = those "
+        "(MVS zeroes the rest; this includes the floor-plane fill, confidence 0.02, and the plane fill of "
+        "textureless segments, confidence 0.03); coverage = those "
         "pixels / pixels with exact depth, registered frames (a frame left out for lack of depth counts "
         "as uncovered).",
         "- Navigable F: `extract_navmap` defaults (as `sim navmap`) on the lifted capture, carried into "
@@ -463,13 +475,14 @@ def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
         "## Per stage: seconds and error",
         "",
         "| case | registered | SfM s (extract / match / map) | ATE | rot median / max | scale err "
-        "(± est.) | depth s | AbsRel (conf>0) | coverage | AbsRel / cov. (conf≥0.5) | AbsRel scale removed "
-        "| scale s | write s | navmap s | nav F (P / R) | nav F vs registered frames' map |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "(± est.) | depth s | AbsRel (conf>0) | coverage | AbsRel / cov. (conf≥0.5) | AbsRel / cov. "
+        "(plane fill) | AbsRel scale removed | scale s | planes s | write s | navmap s | nav F (P / R) "
+        "| nav F vs registered frames' map |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | failed: {r['error']} |" + " |" * 14)
+            lines.append(f"| {r['case']} | failed: {r['error']} |" + " |" * 16)
             continue
         sfm = f"{r['sfm_s']:.1f} ({r['sfm_extract_s']:.1f} / {r['sfm_match_s']:.1f} / {r['sfm_map_s']:.1f})"
         lines.append(
@@ -477,8 +490,9 @@ def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
             f"{r['rot_median_deg']:.2f}° / {r['rot_max_deg']:.2f}° | {fmt('scale_error', r['scale_error'])} "
             f"(± {r['scale_uncertainty'] * 100:.1f} %) | {r['depth_s']:.0f} | {fmt('absrel', r['absrel'])} | "
             f"{fmt('coverage', r['coverage'])} | {fmt('absrel', r['absrel_conf05'])} / "
-            f"{fmt('coverage', r['coverage_conf05'])} | {fmt('absrel', r['absrel_scale_removed'])} | "
-            f"{r['scale_s']:.1f} | {r['write_s']:.1f} | {r['navmap_s']:.1f} | "
+            f"{fmt('coverage', r['coverage_conf05'])} | {fmt('absrel', r.get('absrel_plane'))} / "
+            f"{fmt('coverage', r.get('coverage_plane'))} | {fmt('absrel', r['absrel_scale_removed'])} | "
+            f"{r['scale_s']:.1f} | {r.get('planes_s', 0.0):.1f} | {r['write_s']:.1f} | {r['navmap_s']:.1f} | "
             f"{r['nav_f']:.3f} ({r.get('nav_precision', 0):.3f} / {r.get('nav_recall', 0):.3f}) | "
             f"{fmt('f', r.get('nav_f_registered_frames'))} |"
         )
@@ -489,6 +503,7 @@ def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
             lines.append(
                 f"- {r['case']}: frames left out for lack of any valid depth: {no_depth}; "
                 f"pixels given the floor plane's depth (floor fill): {r.get('floor_fill_px', '–')}; "
+                f"pixels completed from their segment's plane (plane fill): {r.get('plane_fill_px', '–')}; "
                 f"frames the capture reader refused: {len(r.get('frames_refused_by_reader') or [])}."
             )
     lines += ["", *meta.get("notes", [])]

@@ -76,7 +76,8 @@ def test_lift_pinhole_house_writes_a_metric_capture(tmp_path, run_main, monkeypa
     for item in record["dropped"]:
         assert f"dropped {item['frame_id']}: not registered by structure-from-motion" in text
     assert 0 < record["scale_uncertainty"] < 0.03
-    assert set(record["timings_s"]) == {"frames", "sfm", "depth", "scale", "write"}
+    assert set(record["timings_s"]) == {"frames", "sfm", "depth", "scale", "planes", "write"}
+    assert record["plane_fill"]["confidence"] == 0.03 and record["plane_fill"]["pixels"] >= 0
     # An existing output is refused before any work, naming it.
     code, text = run_main(["data", "lift", str(images), "--out", str(out), "--camera-height", "1.5"])
     assert code == 2 and "lifted: already exists" in text and "Traceback" not in text

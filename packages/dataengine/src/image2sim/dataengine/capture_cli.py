@@ -336,6 +336,13 @@ def lift(
     max_frames: Annotated[
         int | None, typer.Option("--max-frames", min=1, help="Keep at most N frames (spread evenly).")
     ] = None,
+    plane_fill: Annotated[
+        bool,
+        typer.Option(
+            "--plane-fill/--no-plane-fill",
+            help="Complete textureless segments whose confident depth lies on one plane (docs/lift.md).",
+        ),
+    ] = True,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Lift RGB-only photos, a video or panoramas to a metric posed RGB-D capture (docs/lift.md).
@@ -373,8 +380,9 @@ def lift(
         panorama=panorama,
         fps=fps,
         max_frames=max_frames,
+        plane_fill=plane_fill,
     )
-    stages = ("frames", "sfm", "depth", "scale", "write")
+    stages = ("frames", "sfm", "depth", "scale", "planes", "write")
     with _progress() as bar:
         tasks = {s: bar.add_task(s, total=1, start=False) for s in stages}
         current: dict[str, str] = {}

@@ -9,7 +9,9 @@ frames SfM did not register, and frames left with no valid depth pixel, which th
 would refuse), ``floor_fill`` and ``timings_s`` per stage.
 
 After the scale stage, pixels without depth that the floor plane explains get its depth
-(:func:`fill_floor`, confidence :data:`FLOOR_FILL_CONFIDENCE`).
+(:func:`fill_floor`, confidence :data:`FLOOR_FILL_CONFIDENCE`), and textureless colour segments whose
+confident depth lies on one plane get that plane's depth (:mod:`.planes`, stage ``planes``,
+confidence :data:`~image2sim.simulator.lift.planes.PLANE_FILL_CONFIDENCE`).
 
 Pinhole frames keep their images and get the shared SfM intrinsics (z-depth). Panoramas get depth
 per cube face, converted to range and assembled into the equirectangular frame (each panorama pixel
@@ -60,6 +62,9 @@ class LiftOptions:
     the sparse points alone show none)."""
     floor_fill: bool = True
     """Give pixels without depth that see the floor the floor plane's depth (:func:`fill_floor`)."""
+    plane_fill: bool = True
+    """Then complete textureless segments whose confident depth (the view's own and its neighbours')
+    lies on one plane (:func:`~image2sim.simulator.lift.planes.fill_planes`)."""
     sfm: SfmOptions = field(default_factory=SfmOptions)
     """Structure-from-motion settings."""
 
@@ -264,6 +269,17 @@ def lift(
     timings["scale"] = time.perf_counter() - t
     sim = scale.transform
 
+    plane_fill: dict = {"pixels": 0, "confidence": None}
+    if opts.plane_fill:
+        from image2sim.simulator.lift.planes import PLANE_FILL_CONFIDENCE, fill_planes
+
+        t = time.perf_counter()
+        say("planes", "completing textureless segments from their planes")
+        estimates, plane_stats = fill_planes(views, estimates)
+        plane_fill = {**plane_stats, "confidence": PLANE_FILL_CONFIDENCE}
+        timings["planes"] = time.perf_counter() - t
+        say("planes", f"{plane_stats['pixels']} pixels in {plane_stats['segments']} segments")
+
     t = time.perf_counter()
     notes_of: dict[str, list[str]] = {}
     out_frames: list[Frame] = []
@@ -352,6 +368,7 @@ def lift(
         ],
         "depth_beyond_range_px": clipped,
         "floor_fill": floor_fill,
+        "plane_fill": plane_fill,
         "panorama": frames.panorama,
     }
     record.pop("camera_heights_m", None)
