@@ -223,7 +223,8 @@ def depth_scores(lifted: dict, ids: list[str], truth_of: Callable[[str], np.ndar
         conf = frame.confidence if frame.confidence is not None else (depth > 0).astype(np.float32)
         ok = truth > 0
         valid_px += int(ok.sum())
-        plane = np.abs(conf - PLANE_FILL_CONFIDENCE) < 1e-6
+        # Confidence is stored as uint8 (0..255): the plane fill's 0.03 reads back as 8 / 255.
+        plane = np.abs(conf - round(PLANE_FILL_CONFIDENCE * 255) / 255) < 0.25 / 255
         for key, m in (
             ("conf", ok & (depth > 0) & (conf > 0)),
             ("conf05", ok & (depth > 0) & (conf >= 0.5)),

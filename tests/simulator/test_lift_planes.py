@@ -145,6 +145,49 @@ def test_a_plane_floating_in_space_another_view_sees_is_refused():
     assert ((bad0.depth > 0) & (e0.depth <= 0) & (pid0 == 3)).any()
 
 
+def _back_wall_view():
+    """A view facing the wall at y = +2 squarely, that wall (plane id 3) and its pixel mask."""
+    T = _pose([0.0, -1.0, 1.2], 0)
+    depth, pid, image = _render(T)
+    return T, depth, image, pid == 3
+
+
+def test_support_along_one_line_fixes_no_plane():
+    """Confident depth only along a diagonal of the wall: every plane through that 3D line fits it."""
+    T, depth, image, wall = _back_wall_view()
+    rows, cols = np.nonzero(wall)
+    r0, r1, c0, c1 = rows.min(), rows.max(), cols.min(), cols.max()
+    line = np.zeros_like(wall)
+    for k in range(200):
+        line[r0 + (r1 - r0) * k // 199, c0 + (c1 - c0) * k // 199] = True
+    est = DepthEstimate(
+        depth=np.where(line, depth, 0).astype(np.float32),
+        confidence=np.where(line, 0.6, 0).astype(np.float32),
+    )
+    (new,), stats = fill_planes([PinholeView(image, K, T)], [est])
+    assert stats["line_support"] == 1 and not ((new.depth > 0) & ~line & wall).any()
+
+
+def test_a_plane_is_not_extrapolated_beyond_its_support():
+    """Support on the left half of the wall only: the right half stays empty (and is filled, exactly,
+    when extrapolation is allowed)."""
+    T, depth, image, wall = _back_wall_view()
+    cols = np.nonzero(wall)[1]
+    left = wall & (np.arange(W)[None, :] < (cols.min() + cols.max()) // 2)
+    sup = left & (np.random.default_rng(3).random(left.shape) < 0.2)
+    est = DepthEstimate(
+        depth=np.where(sup, depth, 0).astype(np.float32), confidence=np.where(sup, 0.6, 0).astype(np.float32)
+    )
+    (new,), _ = fill_planes([PinholeView(image, K, T)], [est])
+    right = wall & ~left
+    assert ((new.depth > 0) & left & ~sup).mean() > 0.5 * (left & ~sup).mean()
+    assert not ((new.depth > 0) & right)[:, (np.nonzero(right)[1].min() + 3) :].any()
+    (far,), _ = fill_planes([PinholeView(image, K, T)], [est], PlaneFillConfig(interpolate_only=False))
+    filled = (far.depth > 0) & right
+    assert filled.sum() > 0.9 * right.sum()
+    assert np.abs(far.depth[filled] - depth[filled]).max() < 1e-3 * depth[filled].max()
+
+
 def test_bad_inputs():
     T = _pose([0.0, -1.0, 1.5], 0)
     depth, _, image = _render(T)

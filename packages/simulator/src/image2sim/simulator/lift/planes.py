@@ -53,6 +53,14 @@ class PlaneFillConfig:
     tenth of it in the other (a cluster in one corner does not fix a plane far from it)."""
     inlier_tolerance: float = 0.03
     """A support point is on the plane when its distance to it is within this share of its depth."""
+    min_support_spread: float = 0.3
+    """The plane's inliers must spread in two directions: the second singular value of the centred
+    inlier points at least this share of the first. Support along one line (a ceiling seen only
+    at its edge with one wall) fits every plane through that line."""
+    interpolate_only: bool = True
+    """Fill only empty pixels inside the convex hull (in the image) of the plane's inliers: a segment
+    may hold a second, unmatched surface beside the matched one (the far side of a doorway in the
+    same colour), and extrapolating a plane beyond its support is where it goes wrong."""
     min_inlier_fraction: float = 0.7
     """Share of the support on the plane for the segment to be filled (a segment spanning two
     surfaces, e.g. a wall and a door of the same colour seen at an angle, is refused)."""
@@ -81,7 +89,7 @@ class PlaneFillConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PlaneFillConfig.{name} must be a positive number, got {v!r}")
-        for name in ("min_support_extent", "min_inlier_fraction", "min_confidence"):
+        for name in ("min_support_extent", "min_inlier_fraction", "min_confidence", "min_support_spread"):
             v = getattr(self, name)
             if not (math.isfinite(v) and 0 <= v <= 1):
                 raise ValueError(f"PlaneFillConfig.{name} must lie in [0, 1], got {v!r}")
@@ -195,10 +203,13 @@ def fill_planes(
         "few_support": 0,
         "narrow_support": 0,
         "not_planar": 0,
+        "line_support": 0,
+        "outside_support": 0,
         "free_space": 0,
     }
     # Pass 1: per view, candidate fills (flat pixel indices, depths) per segment.
     confident = [_confident_depth(e, cfg) for e in estimates]
+    projected: list[np.ndarray | None] = [None] * len(views)
     centres = (
         np.stack([np.asarray(v.cam_to_world, dtype=np.float64)[:3, 3] for v in views]) if views else None
     )
@@ -211,8 +222,9 @@ def fill_planes(
     candidates: list[list[tuple[np.ndarray, np.ndarray]]] = []
     for i, (view, est) in enumerate(zip(views, estimates, strict=True)):
         support = confident[i]
+        projected[i] = _projected_depth(i, views, confident, near[i])
         if cfg.cross_view_support:
-            support = np.where(support > 0, support, _projected_depth(i, views, confident, near[i]))
+            support = np.where(support > 0, support, projected[i])
         candidates.append(_segment_fills(i, view, est, support, cfg, cos_min, stats))
     # Pass 2: drop segments whose plane puts points where other views see empty space.
     out = []
@@ -220,7 +232,7 @@ def fill_planes(
         depth = np.asarray(est.depth, dtype=np.float32).copy()
         conf = np.asarray(est.confidence, dtype=np.float32).copy()
         for idx, z in candidates[i]:
-            if _violates_free_space(i, views, confident, near[i], idx, z, cfg):
+            if _violates_free_space(i, views, confident, near[i], idx, z, cfg, projected[i]):
                 stats["free_space"] += 1
                 continue
             depth.ravel()[idx] = z.astype(np.float32)
@@ -319,8 +331,18 @@ def _segment_fills(
         if fit is None or fit[2].mean() < cfg.min_inlier_fraction:
             stats["not_planar"] += 1
             continue
-        n, d, _ = fit
+        n, d, inliers = fit
+        q = pts[inliers] - pts[inliers].mean(axis=0)
+        sv = np.linalg.svd(q, compute_uv=False)
+        if not sv[1] >= cfg.min_support_spread * sv[0]:
+            stats["line_support"] += 1
+            continue
         holes = seg_pixels[flat_empty[seg_pixels]]
+        if cfg.interpolate_only:
+            holes = holes[_inside_hull(sup[inliers], holes, w)]
+            if not len(holes):
+                stats["outside_support"] += 1
+                continue
         r = rays[holes]
         denom = r @ n
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -331,6 +353,21 @@ def _segment_fills(
     return fills
 
 
+def _inside_hull(support: np.ndarray, pixels: np.ndarray, width: int) -> np.ndarray:
+    """Which ``pixels`` (flat indices) lie in the image-plane convex hull of the ``support`` pixels."""
+    from scipy.spatial import ConvexHull, Delaunay, QhullError
+
+    sr, sc = np.divmod(support, width)
+    pts = np.column_stack([sc, sr]).astype(np.float64)
+    try:
+        hull = pts[ConvexHull(pts).vertices]
+        tri = Delaunay(hull)
+    except (QhullError, ValueError):  # collinear support: no area to interpolate in
+        return np.zeros(len(pixels), dtype=bool)
+    pr, pc = np.divmod(pixels, width)
+    return tri.find_simplex(np.column_stack([pc, pr]).astype(np.float64), tol=0.5) >= 0
+
+
 def _violates_free_space(
     i: int,
     views: list[PinholeView],
@@ -339,20 +376,25 @@ def _violates_free_space(
     idx: np.ndarray,
     z: np.ndarray,
     cfg: PlaneFillConfig,
+    projected: np.ndarray,
 ) -> bool:
     """Whether more than ``max_free_space_violations`` of a segment's filled points (view ``i``'s flat
-    pixel indices ``idx`` at z-depths ``z``) lie in front of another view's confident depth."""
+    pixel indices ``idx`` at z-depths ``z``) contradict what the ``others`` see confidently: a point in
+    front of another view's depth lies in space that view sees empty, and a point behind another
+    view's confident surface (``projected`` into view ``i``) would be hidden by it."""
     h, w = confident[i].shape
     rows, cols = np.divmod(idx, w)
     keep = (rows % cfg.free_space_stride == 0) & (cols % cfg.free_space_stride == 0)
     if not keep.any():
         keep[:] = True
     rows, cols, z = rows[keep], cols[keep], z[keep].astype(np.float64)
+    seen_here = projected[rows, cols].astype(np.float64)
+    hidden = (seen_here > 0) & (seen_here < z * (1.0 - cfg.free_space_margin))
     K = np.asarray(views[i].K, dtype=np.float64)
     cam = np.stack([(cols + 0.5 - K[0, 2]) / K[0, 0] * z, (rows + 0.5 - K[1, 2]) / K[1, 1] * z, z], axis=1)
     T = np.asarray(views[i].cam_to_world, dtype=np.float64)
     world = cam @ T[:3, :3].T + T[:3, 3]
-    violated = np.zeros(len(z), dtype=bool)
+    violated = hidden.copy()
     for j in others:
         other = views[j]
         inv = np.linalg.inv(np.asarray(other.cam_to_world, dtype=np.float64))
