@@ -202,3 +202,29 @@ def test_bad_inputs():
     for bad in ({"inlier_tolerance": 0.0}, {"min_inlier_fraction": 1.5}, {"min_ray_angle_deg": 90.0}):
         with pytest.raises(ValueError, match="PlaneFillConfig"):
             PlaneFillConfig(**bad)
+
+
+def test_cube_faces_of_one_panorama_do_not_crowd_out_the_neighbours():
+    """Faces sharing a centre split the sphere: none lends support to another, so the nearest-view
+    list skips them; a same-centre view that overlaps (rotated 30 degrees) is kept."""
+    from image2sim.simulator.lift.planes import _neighbours
+
+    size = 32
+    Kf = np.array([[size / 2, 0, size / 2], [0, size / 2, size / 2], [0, 0, 1.0]])  # 90 degrees
+    img = np.zeros((size, size, 3), np.uint8)
+    faces = [_pose([0.0, 0.0, 1.5], yaw) for yaw in (0, 90, 180, 270)]
+    for pitch in (90, -90):  # up and down: rotate the level camera about its x axis
+        T = _pose([0.0, 0.0, 1.5], 0)
+        a = np.radians(pitch)
+        rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        T[:3, :3] = T[:3, :3] @ rx
+        faces.append(T)
+    views = [PinholeView(img, Kf, T) for T in faces]
+    views.append(PinholeView(img, Kf, _pose([0.0, 0.0, 1.5], 30)))  # same centre, overlaps face 0
+    views.append(PinholeView(img, Kf, _pose([1.0, 0.0, 1.5], 0)))  # another panorama's face
+    centres = np.stack([v.cam_to_world[:3, 3] for v in views])
+    assert _neighbours(0, views, centres, 12) == [6, 7]
+    assert _neighbours(1, views, centres, 12) == [6, 7]  # 90 + 30 degrees: overlaps the rotated view
+    assert _neighbours(2, views, centres, 12) == [
+        7
+    ]  # opposite face 0: disjoint from both at 0 and 30 degrees

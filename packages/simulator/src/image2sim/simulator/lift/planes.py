@@ -213,12 +213,7 @@ def fill_planes(
     centres = (
         np.stack([np.asarray(v.cam_to_world, dtype=np.float64)[:3, 3] for v in views]) if views else None
     )
-    near = [
-        [int(j) for j in np.argsort(np.linalg.norm(centres - centres[i], axis=1), kind="stable") if j != i][
-            : cfg.neighbour_views
-        ]
-        for i in range(len(views))
-    ]
+    near = [_neighbours(i, views, centres, cfg.neighbour_views) for i in range(len(views))]
     candidates: list[list[tuple[np.ndarray, np.ndarray]]] = []
     for i, (view, est) in enumerate(zip(views, estimates, strict=True)):
         support = confident[i]
@@ -241,6 +236,51 @@ def fill_planes(
             stats["segments"] += 1
         out.append(est if not candidates[i] else DepthEstimate(depth=depth, confidence=conf))
     return out, stats
+
+
+def _neighbours(i: int, views: list[PinholeView], centres: np.ndarray, k: int) -> list[int]:
+    """The ``k`` views with camera centres nearest view ``i``'s whose fields of view can overlap it.
+    Cube faces of one panorama share a centre and split the sphere: they never see the same point,
+    so they are skipped rather than taking the places of views that can."""
+    dist = np.linalg.norm(centres - centres[i], axis=1)
+    out = []
+    for j in np.argsort(dist, kind="stable"):
+        j = int(j)
+        if j == i:
+            continue
+        if dist[j] <= 1e-9 * max(float(dist.max()), 1e-300) and _disjoint_fields(views[i], views[j]):
+            continue
+        out.append(j)
+        if len(out) == k:
+            break
+    return out
+
+
+def _disjoint_fields(a: PinholeView, b: PinholeView) -> bool:
+    """Whether two views at one centre see disjoint directions: no ray through a 9 x 9 grid of ``b``'s
+    pixel centres (its borders included) lands inside ``a``'s image. Adjacent cube faces touch only
+    along an edge, which lands on the border of the other face, not inside it."""
+    hb, wb = b.image.shape[:2]
+    Kb = np.asarray(b.K, dtype=np.float64)
+    u = np.linspace(0.5, wb - 0.5, 9)
+    v = np.linspace(0.5, hb - 0.5, 9)
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack([(uu - Kb[0, 2]) / Kb[0, 0], (vv - Kb[1, 2]) / Kb[1, 1], np.ones_like(uu)], -1).reshape(
+        -1, 3
+    )
+    Ra = np.asarray(a.cam_to_world, dtype=np.float64)[:3, :3]
+    Rb = np.asarray(b.cam_to_world, dtype=np.float64)[:3, :3]
+    d = rays @ (Ra.T @ Rb).T  # b's rays in a's camera frame
+    ha, wa = a.image.shape[:2]
+    Ka = np.asarray(a.K, dtype=np.float64)
+    front = d[:, 2] > 1e-9
+    if not front.any():
+        return True
+    pu = Ka[0, 0] * d[front, 0] / d[front, 2] + Ka[0, 2]
+    pv = Ka[1, 1] * d[front, 1] / d[front, 2] + Ka[1, 2]
+    margin = 1.0  # pixels: rays on the shared edge fall on the border, not inside
+    inside = (pu > margin) & (pu < wa - margin) & (pv > margin) & (pv < ha - margin)
+    return not inside.any()
 
 
 def _confident_depth(est: DepthEstimate, cfg: PlaneFillConfig) -> np.ndarray:
