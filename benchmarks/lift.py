@@ -74,7 +74,7 @@ HM3D_TARGETS = {
 }
 WALK = {"yaw_step_max_deg": 25.0}
 LIMITS = [
-    "## What limits the missed targets (read from the run of 2026-11-27 13:03Z; recheck when rerunning)",
+    "## What limits the missed targets (read from the run of 2026-11-27 13:33Z; recheck when rerunning)",
     "",
     "- **Fixed since the first run (27.7 % pinhole scale error, map F 0):** the floor search took a slice "
     "of the walls for the floor (the floor, seen only at grazing angles, held fewer points). It now "
@@ -83,26 +83,26 @@ LIMITS = [
     "(panorama), and `lift` stops with an error suggesting `--baseline` when no floor stands out. "
     "Frames left without any valid depth are now dropped and named by `lift` (none in this run), so "
     "the reader refuses nothing.",
-    "- **Coverage, with the plane fill (2026-11-27): pinhole 22.7 -> 66.5 %, panorama 37.9 -> 59.6 %, "
-    "HM3D 28.7 -> 63.8 % (target 60 %); AbsRel 0.026 -> 0.018, 0.025 -> 0.037, 0.031 -> 0.027.** The "
-    "plane sweep marks plain walls, ceilings and the floor at grazing angles unconfident (ZNCC needs "
-    "texture; docs/lift.md, Depth); the plane fill completes colour segments whose confident depth "
-    "lies on one plane (docs/lift.md, Plane fill): its pixels score AbsRel 0.012 / 0.059 / 0.023. The "
-    "panorama misses the target by 0.4 points: its cube faces overlap few other views, so fewer "
-    "segments have support and the visibility checks have less to test against.",
-    "- **Navigable maps (pinhole F 0.195 -> 0.495, panorama 0.672 -> 0.631, HM3D 0.130 -> 0.249 with "
-    "the plane fill):** the filled walls and floor give the pinhole map recall 0.11 -> 0.33 at "
-    "precision 1.00. On the panorama the map lost precision (1.00 -> 0.82, recall 0.51 -> 0.51): the "
-    "plane-filled pixels are the only change, so some of its wrong fills (AbsRel 0.059 there) land at "
-    "floor height; not analysed further yet. On the pinhole house the exact capture's own map covers "
-    "only 3.1 m² (level 90-degree views see the floor in a strip at the bottom).",
-    "- **HM3D (8 of 43 panoramas registered; F 0.249, 0.783 against the 8 registered frames' own map):** "
+    "- **Coverage, with the plane fill (2026-11-27): pinhole 22.7 -> 66.8 %, panorama 37.9 -> 62.1 %, "
+    "HM3D 28.7 -> 63.8 % (target 60 %, met); AbsRel 0.026 -> 0.017, 0.025 -> 0.032, 0.031 -> 0.025.** "
+    "The plane sweep marks plain walls, ceilings and the floor at grazing angles unconfident (ZNCC "
+    "needs texture; docs/lift.md, Depth); the plane fill completes colour segments whose confident "
+    "depth lies on one plane (docs/lift.md, Plane fill): its pixels (44 / 24 / 35 % of all) score "
+    "AbsRel 0.011 / 0.043 / 0.021.",
+    "- **Navigable maps (pinhole F 0.195 -> 0.494, panorama 0.672 -> 0.662, HM3D 0.130 -> 0.244 with "
+    "the plane fill; target 0.8):** the filled walls and floor give the pinhole map recall 0.11 -> 0.33 "
+    "at precision 1.00; the panorama's recall is unchanged (0.51) and its precision fell to 0.93 (a "
+    "few wrong fills at floor height). What is left is floor no view sees at all: on the pinhole "
+    "house the exact capture's own map covers only 3.1 m² (level 90-degree views see the floor in a "
+    "strip at the bottom); on the panorama house exact depth on the sweep's confident pixels gave "
+    "F 0.68, the missing floor lying through doorways and under tables.",
+    "- **HM3D (8 of 43 panoramas registered; F 0.244, 0.773 against the 8 registered frames' own map):** "
     "the sample's panoramas are metres apart over two storeys; SIFT on their cube faces splits them "
     "into several small models and the largest is kept. Registered poses are within 3 mm of the given "
     "ones. The full 86 panoramas exceed the exhaustive matcher's 80-frame limit and the sequential "
     "matcher needs ordered frames, which these are not.",
-    "- **Time:** the scale stage includes the floor fill (three plane warps per view): 6-15 s; the "
-    "plane fill takes 5-13 s.",
+    "- **Time:** the scale stage includes the floor fill (three plane warps per view): 6-16 s; the "
+    "plane fill takes 6-15 s.",
 ]
 
 
