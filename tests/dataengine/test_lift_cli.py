@@ -105,9 +105,12 @@ def test_frames_without_valid_depth_are_dropped_and_named(tmp_path, run_main, mo
     images = rgb_folder(scene, tmp_path / "photos")
     out = tmp_path / "lifted"
     eye = eye_height(scene)
-    code, text = run_main(["data", "lift", str(images), "--out", str(out), "--camera-height", f"{eye}"])
+    # So could the plane fill, from the neighbours' depth projected into it (checked below).
+    args = ["data", "lift", str(images), "--camera-height", f"{eye}"]
+    code, text = run_main([*args, "--out", str(out), "--no-plane-fill"])
     assert code == 0, text
     record = json.loads((out / "manifest.json").read_text())["metadata"]["lift"]
+    assert record["plane_fill"] == {"pixels": 0, "confidence": None} and "planes" not in record["timings_s"]
     empty = [d for d in record["dropped"] if d["reason"].startswith("no valid depth")]
     assert len(empty) == 1 and record["written"] == record["registered"] - 1
     assert f"dropped {empty[0]['frame_id']}: no valid depth" in text
@@ -116,6 +119,16 @@ def test_frames_without_valid_depth_are_dropped_and_named(tmp_path, run_main, mo
     assert empty[0]["frame_id"] not in cap.frame_ids and len(cap) == record["written"]
     for i in range(len(cap)):
         assert cap[i].depth.any()  # every written frame reads under the strict reader
+    # With the plane fill, the neighbours' depth may complete the blank view's planar segments (a
+    # fresh-clone CI run wrote it so); whatever depth it then has is the plane fill's alone.
+    filled_out = tmp_path / "lifted_planes"
+    code, text = run_main([*args, "--out", str(filled_out)])
+    assert code == 0, text
+    refilled = open_capture(filled_out)
+    if empty[0]["frame_id"] in refilled.frame_ids:  # written: its depth is the plane fill's alone
+        frame = refilled[refilled.frame_ids.index(empty[0]["frame_id"])]
+        conf = frame.confidence[frame.depth > 0]
+        assert conf.size and np.all(np.abs(conf - 8 / 255) < 0.5 / 255)
     # No frame with any depth: an error naming the input, nothing written.
     monkeypatch.setattr(
         lift_capture,
