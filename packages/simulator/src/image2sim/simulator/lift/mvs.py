@@ -32,13 +32,13 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from image2sim.simulator.io.resample import sample_bilinear
-from image2sim.simulator.lift.types import DepthEstimate, PinholeView, SparseDepth
+from image2sim.simulator.lift.types import DepthEstimate, PinholeView, SparseDepth, options_from_kwargs
 
 __all__ = [
     "MVSConfig",
@@ -161,11 +161,7 @@ class MVSConfig:
     @classmethod
     def from_kwargs(cls, **kw) -> MVSConfig:
         """Build from keyword arguments; an unknown name is an error that lists the known ones."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(kw) - known)
-        if unknown:
-            raise ValueError(f"unknown multi-view stereo option(s) {unknown}; known: {sorted(known)}")
-        return cls(**kw)
+        return options_from_kwargs(cls, kw, "multi-view stereo")
 
 
 # ---------------------------------------------------------------------------------------------- inputs

@@ -16,10 +16,10 @@ than ``max_depth_ratio`` times the view's confident depth range are not filled.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
-from image2sim.simulator.lift.types import DepthEstimate, PinholeView
+from image2sim.simulator.lift.types import DepthEstimate, PinholeView, options_from_kwargs
 
 __all__ = [
     "PLANE_FILL_CONFIDENCE",
@@ -114,11 +114,8 @@ class PlaneFillConfig:
 
     @classmethod
     def from_kwargs(cls, **kw) -> PlaneFillConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(kw) - known)
-        if unknown:
-            raise ValueError(f"unknown plane-fill option(s) {unknown}; known: {sorted(known)}")
-        return cls(**kw)
+        """Build from keyword arguments; an unknown name is an error that lists the known ones."""
+        return options_from_kwargs(cls, kw, "plane-fill")
 
 
 def segment_image(image: np.ndarray, config: PlaneFillConfig | None = None) -> np.ndarray:

@@ -8,11 +8,14 @@ poses, pixel centres at +0.5, z-depth for pinhole views, 0 = invalid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Any, TypeVar
 
 import numpy as np
 
-__all__ = ["PinholeView", "SparseDepth", "DepthEstimate"]
+__all__ = ["PinholeView", "SparseDepth", "DepthEstimate", "options_from_kwargs"]
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -54,3 +57,13 @@ class DepthEstimate:
 
     depth: np.ndarray
     confidence: np.ndarray
+
+
+def options_from_kwargs(cls: type[T], kw: dict[str, Any], what: str) -> T:
+    """The settings dataclass ``cls`` from keyword options; an unknown name is an error naming ``what``
+    (e.g. "multi-view stereo") and listing the known ones."""
+    known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(kw) - known)
+    if unknown:
+        raise ValueError(f"unknown {what} option(s) {unknown}; known: {sorted(known)}")
+    return cls(**kw)
