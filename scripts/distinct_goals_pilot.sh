@@ -8,6 +8,7 @@
 # Not part of CI or the pipeline; a rerun reuses what exists under $O.
 #
 #   PATH=.venv/bin:$PATH bash scripts/distinct_goals_pilot.sh [OUT=/tmp/goals-pilot] [HOUSES=32] [SEED=0]
+#   GOALS= bash scripts/distinct_goals_pilot.sh /tmp/route-pilot   # the default task (every category)
 #
 # Needs the sim2real pipeline's held-out captures (outputs/sim2real/captures/heldout). About 55 min on
 # a 2-core CPU at the defaults (synth 6, episodes 8, the two BC runs side by side ~30, evaluations ~10).
@@ -16,7 +17,8 @@ cd "$(dirname "$0")/.."
 O=${1:-/tmp/goals-pilot}
 HOUSES=${2:-32}
 SEED=${3:-0}
-GOALS=${GOALS:-'["chair","bed","plant","toilet","tv","sofa"]'}
+GOALS=${GOALS-'["chair","bed","plant","toilet","tv","sofa"]'}  # GOALS= (empty): every category
+RESTRICT=(); [ -n "$GOALS" ] && RESTRICT=(-S "goal_categories=$GOALS")
 export WANDB_MODE=${WANDB_MODE:-disabled}
 H=outputs/sim2real/captures/heldout
 [ -e "$H" ] || { echo "missing $H: run dvc repro pipelines/sim2real/dvc.yaml:heldout_houses" >&2; exit 2; }
@@ -34,9 +36,9 @@ EOF
 
 [ -d "$O/captures" ] || { stamp "synth $HOUSES houses"; image2sim data synth --scenes "$HOUSES" --seed 0 --noise middle --workers 2 --out "$O/captures"; }
 [ -f "$O/episodes/shards.json" ] || { stamp "episodes (exact renders, 64 px, goals $GOALS)"; image2sim data episodes --scenes "$O/captures" \
-  --out "$O/episodes" --render procedural --obs-height 64 --frame-stride 2 --workers 2 -S "goal_categories=$GOALS"; }
+  --out "$O/episodes" --render procedural --obs-height 64 --frame-stride 2 --workers 2 "${RESTRICT[@]}"; }
 [ -f "$O/heldout/train/train.json.gz" ] || { stamp "held-out episodes"; image2sim data episodes --scenes "$H" \
-  --out "$O/heldout" --render none --workers 2 -S "goal_categories=$GOALS"; }
+  --out "$O/heldout" --render none --workers 2 "${RESTRICT[@]}"; }
 shards=$(for d in "$O"/episodes/scenes/*/shard; do printf -- "--shard %s " "$d"; done)
 stamp "BC: instructed and blind, side by side (1 thread each)"
 # shellcheck disable=SC2086

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -410,6 +411,12 @@ def test_every_template_and_fill_renders_a_grammatical_instruction():
                 for k, moves in enumerate(seqs):
                     for room in ("kitchen", None):
                         for seed in range(12):
+                            # Every other request carries the engine's geometry (distances, turns,
+                            # doorways), which R2R routes are built from.
+                            geo = seed % 4 < 2 and bool(moves)
+                            dist = [
+                                0.0 if m.startswith("turn") else 0.8 + 0.7 * j for j, m in enumerate(moves)
+                            ]
                             req = AnnotationRequest(
                                 episode_id="g",
                                 movements=[*moves, "stop"],
@@ -422,6 +429,13 @@ def test_every_template_and_fill_renders_a_grammatical_instruction():
                                 tone=tone,
                                 seed=seed + 100 * k,
                                 near=["sofa", "floor_lamp"] if seed % 2 else [],
+                                distances=[*dist, 0.0] if geo else [],
+                                turns=[(-1) ** j * 40.0 * (j + 1) for j in range(len(moves))] + [0.0]
+                                if geo
+                                else [],
+                                features=[["doorway"] if j == 1 else [] for j in range(len(moves) + 1)]
+                                if geo
+                                else [],
                             )
                             text = compose(req)
                             n += 1
@@ -442,6 +456,39 @@ def test_every_template_and_fill_renders_a_grammatical_instruction():
 )
 def test_the_grammar_rules_catch_the_reported_sentences(text):
     assert _grammar_problems(text)
+
+
+def test_r2r_routes_from_geometry_give_distances_turns_doorways_landmarks_and_the_goal():
+    """With the engine's geometry an R2R instruction is a followable route: walks summed into metres,
+    turns of 30 degrees or more, doorways, objects seen along a walk (never the goal), then the goal."""
+    moves = ["walk forward"] * 3 + ["turn left", "walk forward", "walk forward", "stop"]
+    texts = []
+    for seed in range(30):
+        req = AnnotationRequest(
+            episode_id="r",
+            movements=moves,
+            images=[],
+            goal={"category": "fridge", "room_type": "kitchen"},
+            visible=[["sofa"], ["sofa"], ["chair"], [], ["fridge"], ["fridge"], ["fridge"]],
+            rooms=["living_room"] * 4 + ["kitchen"] * 3,
+            style="r2r",
+            structure="sequential",
+            tone="neutral",
+            seed=seed,
+            distances=[1.0, 1.0, 1.0, 0.0, 1.0, 1.0, 0.0],
+            turns=[0.0, 0.0, 0.0, 90.0, 0.0, 0.0, 0.0],
+            features=[[], [], [], [], ["doorway"], [], []],
+        )
+        text = compose(req)
+        texts.append(text)
+        assert "3 meters" in text and "left" in text and "door" in text and "fridge" in text, text
+        assert text.index("3 meters") < text.index("left") < text.index("door") < text.index("fridge"), text
+        assert text.count("fridge") == 1, text  # the goal is never a landmark of the route
+    assert any("sofa" in t or "chair" in t for t in texts)  # landmarks appear
+    assert not all("sofa" in t or "chair" in t for t in texts)  # but not always
+    # The compact structure keeps the whole route and names no landmark.
+    compact = compose(dataclasses.replace(req, structure="compact"))
+    assert "3 meters" in compact and "door" in compact and "sofa" not in compact and "chair" not in compact
 
 
 def test_template_near_names_only_objects_near_the_goal():

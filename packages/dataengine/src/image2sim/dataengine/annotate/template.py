@@ -4,7 +4,9 @@ Three styles (R2R, REVERIE, Demand) with structure and tone variants and synonym
 per-episode seed, so instructions vary lexically but the same request always gives the same text.
 Only objects of the request's allow-list (visible at a macro-step start, or the goal) are named.
 A request without a goal object (``data episodes --detector none``) gets a landmark-free R2R-style
-path instruction: turns, distances, doorways and stairs (:func:`compose_path`).
+path instruction: turns, distances, doorways and stairs (:func:`compose_path`). An R2R instruction to a
+goal object is the same route (:func:`route_clauses`) with landmarks seen along it, then the goal,
+when the request carries the macro-steps' geometry (the engine's always do).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from image2sim.dataengine.annotate.prompts import Annotation, AnnotationRequest
 
-__all__ = ["TemplateAnnotator", "compose", "compose_path"]
+__all__ = ["TemplateAnnotator", "compose", "compose_path", "route_clauses"]
 
 _VERB_SYNONYMS = {
     "walk forward": ["walk forward", "go straight", "head straight ahead", "continue forward", "move ahead"],
@@ -146,17 +148,27 @@ def _turn_words(deg: float) -> str | None:
     return "left" if deg > 0 else "right"
 
 
-def compose_path(req: AnnotationRequest) -> str:
-    """A landmark-free R2R-style instruction from the macro-steps alone (no goal object).
+def _has_geometry(req: AnnotationRequest) -> bool:
+    """Whether the request carries each macro-step's distance and turn (the engine's requests do;
+    hand-made ones and older callers may give movement texts only)."""
+    n = len([m for m in req.movements if m != "stop"])
+    return n > 0 and len(req.distances) >= n and len(req.turns) >= n
+
+
+def route_clauses(
+    req: AnnotationRequest, rng: np.random.Generator, landmark_probability: float = 0.0
+) -> list[str]:
+    """The route as imperative clauses, from the macro-steps' geometry.
 
     Turns in place are summed into one clause ("turn left", "turn around"); walking steps are summed
     into one distance ("walk forward about 4 meters") until the heading has drifted by 60 degrees, a
-    doorway or stairs come, or a turn in place; turns under 30 degrees are not mentioned. Every clause
-    is an imperative verb phrase joined like :func:`compose`'s R2R style, so the tones apply unchanged
-    (the ``compact`` structure keeps every clause: without landmarks each one is needed)."""
-    rng = np.random.default_rng([req.seed, 11])
+    doorway or stairs come, or a turn in place; turns under 30 degrees are not mentioned. With
+    ``landmark_probability`` > 0 a walk may name one object visible at one of its macro-steps
+    ("... past the sofa"; never the goal, each object once)."""
     clauses: list[str] = []
     walk, drift, turn = 0.0, 0.0, 0.0
+    seen: list[str] = []
+    used: set[str] = {req.goal.get("category", "")}
 
     def say(clause: str) -> None:
         if not clauses or clauses[-1] != clause:
@@ -166,10 +178,19 @@ def compose_path(req: AnnotationRequest) -> str:
         """Say the walk; its heading drift is said as a turn, or added to the pending turn in place
         (a curve to the right and a turn right read as one "turn right")."""
         nonlocal walk, drift, turn
+        clause = None
         if walk >= 1.5:
-            say(_pick(rng, _WALK_DISTANCE).format(n=int(round(walk))))
+            clause = _pick(rng, _WALK_DISTANCE).format(n=int(round(walk)))
         elif walk > 0.2:
-            say(_pick(rng, _WALK_SHORT))
+            clause = _pick(rng, _WALK_SHORT)
+        if clause is not None:
+            marks = [v for v in seen if v not in used]
+            if marks and landmark_probability > 0 and rng.random() < landmark_probability:
+                mark = marks[int(rng.integers(len(marks)))]
+                used.add(mark)
+                clause += " " + _pick(rng, _PASS).format(l=_name(mark))
+            say(clause)
+        seen.clear()
         side = None if merge_drift else _turn_words(drift)
         if merge_drift:
             turn += drift
@@ -206,6 +227,7 @@ def compose_path(req: AnnotationRequest) -> str:
             drift, turn = drift + turn, 0.0
         walk += dist
         drift += deg
+        seen.extend(v for v in (req.visible[i] if i < len(req.visible) else []) if v not in seen)
         if "doorway" in features:
             flush_walk()
             say(_pick(rng, _DOORWAY))
@@ -213,11 +235,42 @@ def compose_path(req: AnnotationRequest) -> str:
             flush_walk()
     flush_walk(merge_drift=_turn_words(turn) is not None)
     flush_turn()
-    # No "compact" cut here: without landmarks every turn and distance is needed to follow the path.
-    joins = [", " if req.tone == "terse" else f", {_pick(rng, _JOIN)} " for _ in clauses[1:]]
-    body = clauses[0] + "".join(j + c for j, c in zip(joins, clauses[1:], strict=True)) if clauses else ""
+    return clauses
+
+
+def _join(rng: np.random.Generator, clauses: list[str], tone: str) -> str:
+    joins = [", " if tone == "terse" else f", {_pick(rng, _JOIN)} " for _ in clauses[1:]]
+    return clauses[0] + "".join(j + c for j, c in zip(joins, clauses[1:], strict=True)) if clauses else ""
+
+
+def compose_path(req: AnnotationRequest) -> str:
+    """A landmark-free R2R-style instruction from the macro-steps alone (no goal object): the
+    :func:`route_clauses` joined like :func:`compose`'s R2R style, so the tones apply unchanged (the
+    ``compact`` structure keeps every clause: without landmarks each one is needed)."""
+    rng = np.random.default_rng([req.seed, 11])
+    body = _join(rng, route_clauses(req, rng), req.tone)
     stop = _pick(rng, _PATH_STOP)
     return _imperative(rng, (body + ", and " + stop) if body else stop, req.tone)
+
+
+_R2R_LANDMARK_PROBABILITY = 0.6
+"""Chance that an R2R clause names an object seen along it."""
+
+
+def _r2r_sentence(
+    req: AnnotationRequest, rng: np.random.Generator, clauses: list[str], goal: str, room: str
+) -> str:
+    """The route's clauses, then the stop at the goal (optionally led by "Your target is ...")."""
+    # "your destination is ..." only joins a route ("walk ..., and your destination is ..."): alone
+    # it is no imperative.
+    stops = _STOP if clauses else [t for t in _STOP if not t.startswith("your")]
+    stop = _pick(rng, stops).format(g=goal) + (f" in the {room}" if room and rng.random() < 0.5 else "")
+    if req.structure == "landmark_first":
+        head = _sentence(f"your target is the {goal}" + (f" in the {room}" if room else "")) + " "
+    else:
+        head = ""
+    body = _join(rng, clauses, req.tone)
+    return head + _imperative(rng, (body + ", and " if body else "") + stop, req.tone)
 
 
 def compose(req: AnnotationRequest) -> str:
@@ -242,7 +295,12 @@ def compose(req: AnnotationRequest) -> str:
         if merged and merged[-1][0] == m:
             continue
         merged.append((m, i))
-    if req.style == "r2r":
+    if req.style == "r2r" and _has_geometry(req):
+        # The route as walked: distances, turns, doorways and stairs, with landmarks (none in the
+        # compact structure, which otherwise keeps every clause: each one is needed to follow it).
+        clauses = route_clauses(req, rng, 0.0 if req.structure == "compact" else _R2R_LANDMARK_PROBABILITY)
+        text = _r2r_sentence(req, rng, clauses, goal, room)
+    elif req.style == "r2r":  # movement texts only (no geometry): one clause per kind of movement
         clauses = []
         used: set[str] = set()
         for m, i in merged:
@@ -252,24 +310,14 @@ def compose(req: AnnotationRequest) -> str:
                 for v in (req.visible[i] if i < len(req.visible) else [])
                 if v not in used and v != req.goal.get("category")
             ]
-            if marks and req.structure != "compact" and rng.random() < 0.6:
+            if marks and req.structure != "compact" and rng.random() < _R2R_LANDMARK_PROBABILITY:
                 lm = marks[int(rng.integers(len(marks)))]
                 used.add(lm)
                 c += " " + _pick(rng, _AT if m in _TURNS_IN_PLACE else _PASS).format(l=_name(lm))
             clauses.append(c)
         if req.structure == "compact" and len(clauses) > 3:
             clauses = [clauses[0], clauses[len(clauses) // 2], clauses[-1]]
-        # "your destination is ..." only joins a route ("walk ..., and your destination is ..."): alone
-        # it is no imperative.
-        stops = _STOP if clauses else [t for t in _STOP if not t.startswith("your")]
-        stop = _pick(rng, stops).format(g=goal) + (f" in the {room}" if room and rng.random() < 0.5 else "")
-        if req.structure == "landmark_first":
-            head = _sentence(f"your target is the {goal}" + (f" in the {room}" if room else "")) + " "
-        else:
-            head = ""
-        joins = [", " if req.tone == "terse" else f", {_pick(rng, _JOIN)} " for _ in clauses[1:]]
-        body = clauses[0] + "".join(j + c for j, c in zip(joins, clauses[1:], strict=True)) if clauses else ""
-        text = head + _imperative(rng, (body + ", and " if body else "") + stop, req.tone)
+        text = _r2r_sentence(req, rng, clauses, goal, room)
     elif req.style == "reverie":
         where = f" in the {room}" if room else ""
         near = [v for v in req.near if v != req.goal.get("category")]
