@@ -83,6 +83,53 @@ def test_lift_pinhole_house_writes_a_metric_capture(tmp_path, run_main, monkeypa
     assert code == 2 and "lifted: already exists" in text and "Traceback" not in text
 
 
+def _true_length(scene, frame_id: str, a, b) -> float:
+    """Metres between the surface points seen at pixels ``a`` and ``b`` (column, row) of a pinhole frame."""
+    gt = open_capture(scene)
+    frame = gt[gt.frame_ids.index(frame_id)]
+    cam, pose = gt.camera, gt_poses(scene)[frame_id]
+    ends = []
+    for x, y in (a, b):
+        z = float(frame.depth[y, x])
+        assert z > 0
+        p = np.array([(x + 0.5 - cam.cx) / cam.fx * z, (y + 0.5 - cam.cy) / cam.fy * z, z])
+        ends.append(pose[:3, :3] @ p + pose[:3, 3])
+    return float(np.linalg.norm(ends[1] - ends[0]))
+
+
+def test_a_known_object_size_sets_the_scale(tmp_path, run_main, monkeypatch):
+    """Two lengths measured between pixels of two photos (here from the house's exact depth, as a
+    user would from a tape measure) scale the capture to metres, recorded with their uncertainty."""
+    scene = synth_house(tmp_path / "pin", camera="pinhole", views=20, height=240, width=320, config=WALK)
+    monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: truth_depth_fn(scene))
+    images = rgb_folder(scene, tmp_path / "photos")
+    gt = open_capture(scene)
+    ids = gt.frame_ids
+    # The two photos that see farthest (a view facing a bare wall may not register).
+    far = sorted(ids, key=lambda f: -float(np.median(gt[ids.index(f)].depth)))[:2]
+    sizes = []
+    for fid, a, b in ((far[0], (60, 150), (260, 200)), (far[1], (40, 120), (280, 120))):
+        sizes += ["--object-size", f"{fid}:{a[0]},{a[1]}:{b[0]},{b[1]}={_true_length(scene, fid, a, b):.4f}"]
+    out = tmp_path / "lifted"
+    code, text = run_main(["data", "lift", str(images), "--out", str(out), *sizes])
+    assert code == 0, text
+    _check_lifted(out, scene, max_scale_error=0.03, max_abs_rel=0.03)
+    record = json.loads((out / "manifest.json").read_text())["metadata"]["lift"]
+    assert record["scale_method"] == "object_size" and len(record["object_sizes"]) == 2
+    assert 0 < record["scale_uncertainty"] < 0.03
+    # Bad sizes are one-line errors before any work: an unknown image, a pixel outside it.
+    for bad, message in [
+        ("nope:1,1:5,5=1", "no input image 'nope'"),
+        (f"{ids[0]}:1,1:500,5=1", "pixel (500, 5) lies outside the 320x240 image"),
+        (f"{ids[0]}:1,1:5,5", "expected FRAME:X0,Y0:X1,Y1=METRES"),
+    ]:
+        code, text = run_main(
+            ["data", "lift", str(images), "--out", str(tmp_path / "o"), "--object-size", bad]
+        )
+        assert code == 2 and message in text and "Traceback" not in text, (bad, text)
+        assert not (tmp_path / "o").exists()
+
+
 def test_frames_without_valid_depth_are_dropped_and_named(tmp_path, run_main, monkeypatch):
     """A view the depth source leaves empty (a plain wall: MVS has no confident pixel) is not written:
     the strict reader refuses an all-invalid depth image, so the capture would not open."""
@@ -166,6 +213,10 @@ def test_bad_options_are_one_line_errors(tmp_path, run_main):
         (["--depth", "model"], "--depth model needs --depth-model"),
         (["--baseline", "1.0"], "--baseline needs --baseline-frames"),
         (["--camera-height", "1.5", "--baseline", "1", "--baseline-frames", "a", "b"], "not both"),
+        (
+            ["--camera-height", "1.5", "--object-size", "a:1,1:2,2=1"],
+            "not both --camera-height and --object-size",
+        ),
         ([], "no images (.png, .jpg, .jpeg) in this folder"),
     ]
     for extra, message in cases:

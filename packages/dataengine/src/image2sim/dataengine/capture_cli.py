@@ -320,6 +320,14 @@ def lift(
         tuple[str, str] | None,
         typer.Option("--baseline-frames", help="The two frame ids --baseline is measured between."),
     ] = None,
+    object_size: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--object-size",
+            help="A known length between two pixels of one input image, FRAME:X0,Y0:X1,Y1=METRES "
+            "(pixel column,row; sets the scale; repeat for several, e.g. a door and a table).",
+        ),
+    ] = None,
     depth: Annotated[str, typer.Option("--depth", help="Depth source: mvs (no weights) or model.")] = "mvs",
     depth_model: Annotated[
         Path | None,
@@ -349,7 +357,8 @@ def lift(
 
     Poses and intrinsics by structure-from-motion (pycolmap), depth from multi-view stereo or a
     depth model fitted to the sparse points, gravity from the cameras and the floor, metric scale
-    from --camera-height or --baseline; frames SfM cannot register are dropped and listed."""
+    from --camera-height, --baseline or --object-size; frames SfM cannot register are dropped and
+    listed."""
     from image2sim.simulator.lift.capture import LiftOptions
     from image2sim.simulator.lift.capture import lift as run_lift
     from rich.console import Console
@@ -359,16 +368,24 @@ def lift(
         _fail(f"--depth must be mvs or model, got {depth!r}")
     if depth == "model" and depth_model is None:
         _fail("--depth model needs --depth-model DIR (a local transformers depth model folder)")
-    if camera_height is not None and baseline is not None:
-        _fail("give --camera-height or --baseline, not both")
+    from image2sim.simulator.lift.measure import parse_object_size
+
+    try:
+        sizes = tuple(parse_object_size(text) for text in object_size or ())
+    except ValueError as exc:
+        _fail(str(exc))
+    given = [n for n, v in (("--camera-height", camera_height), ("--baseline", baseline)) if v is not None]
+    given += ["--object-size"] if sizes else []
+    if len(given) > 1:
+        _fail(f"give one scale source, not both {' and '.join(given)}")
     if baseline is not None and baseline_frames is None:
         _fail("--baseline needs --baseline-frames A B (the frames it is measured between)")
     if out.exists() and not overwrite:
         _fail(f"{out}: already exists (pass --overwrite to replace it)")
-    if camera_height is None and baseline is None:
+    if not given:
         console.print(
-            "[yellow]warning:[/] no --camera-height or --baseline: the capture keeps the reconstruction's "
-            "arbitrary units, not metres",
+            "[yellow]warning:[/] no --camera-height, --baseline or --object-size: the capture keeps the "
+            "reconstruction's arbitrary units, not metres",
             highlight=False,
         )
     options = LiftOptions(
@@ -377,6 +394,7 @@ def lift(
         camera_height=camera_height,
         baseline=baseline,
         baseline_frames=baseline_frames,
+        object_sizes=sizes,
         panorama=panorama,
         fps=fps,
         max_frames=max_frames,

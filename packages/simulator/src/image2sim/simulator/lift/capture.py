@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 from image2sim.simulator.lift.frames import FrameSet, load_frames
-from image2sim.simulator.lift.scale import ScaleResult, estimate_metric_frame
+from image2sim.simulator.lift.measure import ObjectLength, ObjectSize, measure_object
+from image2sim.simulator.lift.scale import ScaleError, ScaleResult, estimate_metric_frame
 from image2sim.simulator.lift.sfm import SfmOptions, SfmResult, run_sfm
 from image2sim.simulator.lift.types import DepthEstimate, PinholeView, SparseDepth
 
@@ -51,6 +52,9 @@ class LiftOptions:
     """Distance in metres between the centres of ``baseline_frames``: sets the metric scale."""
     baseline_frames: tuple[str, str] | None = None
     """The two frame ids ``baseline`` is measured between."""
+    object_sizes: tuple[ObjectSize, ...] = ()
+    """Known lengths between two pixels of an input image: set the metric scale
+    (:mod:`~image2sim.simulator.lift.measure`)."""
     panorama: bool | None = None
     """True/False forces equirect/pinhole; None detects 2:1 images as panoramas."""
     fps: float = 2.0
@@ -189,6 +193,46 @@ def _default_depth_fn() -> DepthFn:
     return estimate_depth
 
 
+def check_object_sizes(sizes, frames: FrameSet) -> None:
+    """Refuse, before any work, an object size whose image does not exist or whose pixels lie outside
+    it (``ScaleError`` naming the size)."""
+    h, w = frames.size
+    for size in sizes:
+        if size.frame_id not in frames.ids:
+            raise ScaleError(
+                f"--object-size {size.label()}: no input image {size.frame_id!r} (ids: {frames.ids[:6]}...)"
+            )
+        for x, y in (size.a, size.b):
+            if not (0 <= x < w and 0 <= y < h):
+                raise ScaleError(
+                    f"--object-size {size.label()}: pixel ({x:g}, {y:g}) lies outside the {w}x{h} image"
+                )
+
+
+def measure_objects(sizes, frames: FrameSet, sfm: SfmResult, views, estimates) -> list[ObjectLength]:
+    """Each known object size measured on the dense depth of its frame (``ScaleError`` naming the
+    size when its frame was not registered or no confident depth lies near an end)."""
+    out = []
+    for size in sizes:
+        if size.frame_id not in sfm.frame_ids:
+            raise ScaleError(
+                f"--object-size {size.label()}: frame {size.frame_id!r} was not registered by "
+                "structure-from-motion; measure in another image"
+            )
+        own = [
+            (v, e)
+            for sv, v, e in zip(sfm.views, views, estimates, strict=True)
+            if sv.frame_id == size.frame_id
+        ]
+        pose = sfm.cam_to_world[sfm.frame_ids.index(size.frame_id)]
+        camera = frames.size if frames.panorama else own[0][0].K
+        try:
+            out.append(measure_object(size, camera, pose, own, float(own[0][0].K[0, 0])))
+        except ValueError as exc:
+            raise ScaleError(str(exc)) from exc
+    return out
+
+
 def lift(
     source: str | Path,
     out: str | Path,
@@ -219,6 +263,7 @@ def lift(
     t = time.perf_counter()
     say("frames", f"reading {source}")
     frames = load_frames(source, panorama=opts.panorama, fps=opts.fps, max_frames=opts.max_frames)
+    check_object_sizes(opts.object_sizes, frames)
     timings["frames"] = time.perf_counter() - t
     say("frames", f"{len(frames)} frames ({'panoramas' if frames.panorama else 'pinhole'})")
 
@@ -249,6 +294,7 @@ def lift(
     t = time.perf_counter()
     say("scale", "gravity, floor and metric scale")
     K0 = sfm.K if sfm.K is not None else sfm.views[0].K
+    lengths = measure_objects(opts.object_sizes, frames, sfm, views, estimates)
     scale = estimate_metric_frame(
         sfm.cam_to_world,
         sfm.points,
@@ -260,6 +306,7 @@ def lift(
         reprojection_error_px=float(sfm.stats.get("mean_reprojection_error_px", 0.5)),
         focal_px=float(K0[0, 0]),
         source=str(source),
+        object_lengths=lengths,
     )
     if opts.floor_fill and scale.floor is not None:
         estimates, filled = fill_floor(views, estimates, scale.floor.normal, scale.floor.offset)

@@ -13,6 +13,9 @@ Scale, one of:
 * ``baseline``: a stated distance between the centres of two named frames. Uncertainty: the
   triangulation precision of that distance (reprojection error over focal length, times the median
   scene depth) relative to it.
+* ``object_size``: stated lengths between two pixels of an input image, measured on the dense depth
+  (:mod:`~image2sim.simulator.lift.measure`, ``--object-size``). Uncertainty: the ends' depth spread
+  and one pixel of localisation, combined over the lengths.
 * ``none``: reconstruction units, uncertainty 0 and a warning from the caller.
 
 The result is a similarity ``x -> s R x + t`` into the canonical world: Z up, metres, floor at
@@ -24,9 +27,11 @@ Scoring helpers (pure functions): :func:`umeyama` (Sim(3) / SE(3) least squares)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from image2sim.simulator.lift.measure import ObjectLength, scale_from_lengths
 
 __all__ = [
     "ScaleError",
@@ -379,9 +384,10 @@ def estimate_metric_frame(
     seed: int = 0,
     source: str = "reconstruction",
     dense_points: np.ndarray | None = None,
+    object_lengths: Sequence[ObjectLength] = (),
 ) -> ScaleResult:
     """Gravity, floor and scale of a reconstruction (poses (N, 4, 4), points (P, 3)); see the module
-    docstring. At most one of ``camera_height`` and ``baseline`` is given.
+    docstring. At most one of ``camera_height``, ``baseline`` and ``object_lengths`` is given.
 
     ``points`` are the sparse SfM points; ``dense_points`` (confident dense depth), when given, join
     them only when the sparse points alone show no floor: triangulated feature points hold floor
@@ -391,8 +397,10 @@ def estimate_metric_frame(
     error 0.13 % against 0.64 %)."""
     poses = np.asarray(cam_to_world, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if camera_height is not None and baseline is not None:
-        raise ScaleError(f"{source}: give --camera-height or --baseline, not both")
+    given = [n for n, v in (("--camera-height", camera_height), ("--baseline", baseline)) if v is not None]
+    given += ["--object-size"] if len(object_lengths) else []
+    if len(given) > 1:
+        raise ScaleError(f"{source}: give one scale source, not both {' and '.join(given)}")
     cam_up = camera_up_mean(poses)
     tried: list[dict] = []
     floor = find_floor(pts, poses, cam_up, seed=seed, candidates=tried)
@@ -473,6 +481,10 @@ def estimate_metric_frame(
         uncertainty = float(np.sqrt(2.0) * reprojection_error_px / focal_px * depth / dist)
         method = "baseline"
         details.update({"baseline_m": float(baseline), "baseline_frames": [a, b]})
+    elif len(object_lengths):
+        scale, uncertainty = scale_from_lengths(object_lengths)
+        method = "object_size"
+        details["object_sizes"] = [x.record() for x in object_lengths]
     else:
         scale, uncertainty, method = 1.0, 0.0, "none"
     # Canonical frame: up -> +Z, the first camera's forward -> +X, floor at z = 0, first camera at x = y = 0.
