@@ -340,6 +340,14 @@ def lift(
             help="Force equirect panoramas or pinhole frames (default: 2:1 = panorama).",
         ),
     ] = None,
+    camera_model: Annotated[
+        str,
+        typer.Option(
+            "--camera-model",
+            help="COLMAP model of pinhole frames: distortion-free SIMPLE_PINHOLE or PINHOLE, or with "
+            "radial lens distortion (wide lenses; frames are undistorted) SIMPLE_RADIAL or RADIAL.",
+        ),
+    ] = "SIMPLE_PINHOLE",
     fps: Annotated[float, typer.Option("--fps", min=0.01, help="Video: frames sampled per second.")] = 2.0,
     max_frames: Annotated[
         int | None, typer.Option("--max-frames", min=1, help="Keep at most N frames (spread evenly).")
@@ -366,6 +374,10 @@ def lift(
     console = Console(stderr=True)
     if depth not in ("mvs", "model"):
         _fail(f"--depth must be mvs or model, got {depth!r}")
+    from image2sim.simulator.lift.sfm import CAMERA_MODELS, SfmOptions
+
+    if camera_model not in CAMERA_MODELS:
+        _fail(f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
     if depth == "model" and depth_model is None:
         _fail("--depth model needs --depth-model DIR (a local transformers depth model folder)")
     from image2sim.simulator.lift.measure import parse_object_size
@@ -399,6 +411,7 @@ def lift(
         fps=fps,
         max_frames=max_frames,
         plane_fill=plane_fill,
+        sfm=SfmOptions(camera_model=camera_model),
     )
     stages = ("frames", "sfm", "depth", "scale", "planes", "write")
     with _progress() as bar:
