@@ -94,21 +94,8 @@ def truth_depth_fn(scene: Path):
             face_pose[:3, :3] = pose[:3, :3] @ rot[k]
             truth[faces[k].tobytes()] = ((face_rng[k] / factor).astype(np.float32), face_pose)
 
-    keys = list(truth)
-
-    def match(image: np.ndarray):
-        """The exact entry of a view's image; an undistorted image (a radial lens model that found a
-        little distortion) is matched to its nearest original instead."""
-        key = image.tobytes()
-        if key in truth:
-            return truth[key]
-        flat = image.reshape(-1).astype(np.float32)
-        same = [k for k in keys if len(k) == len(key)]
-        best = min(same, key=lambda k: float(np.abs(np.frombuffer(k, dtype=np.uint8) - flat).mean()))
-        return truth[best]
-
     def estimate(views, *, source="mvs", model_dir=None, sparse=None, progress=True, **kw):
-        matched = [match(v.image) for v in views]
+        matched = [truth[v.image.tobytes()] for v in views]
         est_c = np.stack([v.cam_to_world[:3, 3] for v in views])
         true_c = np.stack([m[1][:3, 3] for m in matched])
         s, _, _ = umeyama(est_c, true_c)

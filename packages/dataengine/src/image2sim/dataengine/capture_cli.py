@@ -374,22 +374,18 @@ def lift(
     console = Console(stderr=True)
     if depth not in ("mvs", "model"):
         _fail(f"--depth must be mvs or model, got {depth!r}")
-    from image2sim.simulator.lift.sfm import CAMERA_MODELS, SfmOptions
-
-    if camera_model not in CAMERA_MODELS:
-        _fail(f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
     if depth == "model" and depth_model is None:
         _fail("--depth model needs --depth-model DIR (a local transformers depth model folder)")
     from image2sim.simulator.lift.measure import parse_object_size
+    from image2sim.simulator.lift.scale import scale_sources
+    from image2sim.simulator.lift.sfm import SfmOptions
 
     try:
         sizes = tuple(parse_object_size(text) for text in object_size or ())
+        given = scale_sources(camera_height, baseline, sizes, str(src))
+        sfm_options = SfmOptions(camera_model=camera_model)
     except ValueError as exc:
         _fail(str(exc))
-    given = [n for n, v in (("--camera-height", camera_height), ("--baseline", baseline)) if v is not None]
-    given += ["--object-size"] if sizes else []
-    if len(given) > 1:
-        _fail(f"give one scale source, not both {' and '.join(given)}")
     if baseline is not None and baseline_frames is None:
         _fail("--baseline needs --baseline-frames A B (the frames it is measured between)")
     if out.exists() and not overwrite:
@@ -411,7 +407,7 @@ def lift(
         fps=fps,
         max_frames=max_frames,
         plane_fill=plane_fill,
-        sfm=SfmOptions(camera_model=camera_model),
+        sfm=sfm_options,
     )
     stages = ("frames", "sfm", "depth", "scale", "planes", "write")
     with _progress() as bar:

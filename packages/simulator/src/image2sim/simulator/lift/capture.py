@@ -28,10 +28,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from image2sim.simulator.lift.distortion import radial_coefficients, undistort_pixels
+from image2sim.simulator.lift.distortion import undistort_pixels
 from image2sim.simulator.lift.frames import FrameSet, load_frames
 from image2sim.simulator.lift.measure import ObjectLength, ObjectSize, measure_object
-from image2sim.simulator.lift.scale import ScaleError, ScaleResult, estimate_metric_frame
+from image2sim.simulator.lift.scale import ScaleError, ScaleResult, estimate_metric_frame, scale_sources
 from image2sim.simulator.lift.sfm import SfmOptions, SfmResult, run_sfm
 from image2sim.simulator.lift.types import DepthEstimate, PinholeView, SparseDepth
 
@@ -226,10 +226,11 @@ def measure_objects(sizes, frames: FrameSet, sfm: SfmResult, views, estimates) -
             for sv, v, e in zip(sfm.views, views, estimates, strict=True)
             if sv.frame_id == size.frame_id
         ]
-        if sfm.stats.get("undistorted"):  # the user's pixels are in the distorted input image
-            K, cam = own[0][0].K, sfm.stats["camera"]
-            k = radial_coefficients(cam["model"], cam["params"])
-            a, b = (tuple(undistort_pixels(np.add(xy, 0.5), K, k) - 0.5) for xy in (size.a, size.b))
+        if sfm.distortion != (0.0, 0.0):  # the user's pixels are in the distorted input image
+            K = own[0][0].K
+            a, b = (
+                tuple(undistort_pixels(np.add(xy, 0.5), K, sfm.distortion) - 0.5) for xy in (size.a, size.b)
+            )
             size = dataclasses.replace(size, a=a, b=b)
         pose = sfm.cam_to_world[sfm.frame_ids.index(size.frame_id)]
         camera = frames.size if frames.panorama else own[0][0].K
@@ -269,6 +270,7 @@ def lift(
 
     t = time.perf_counter()
     say("frames", f"reading {source}")
+    scale_sources(opts.camera_height, opts.baseline, opts.object_sizes, str(source))
     frames = load_frames(source, panorama=opts.panorama, fps=opts.fps, max_frames=opts.max_frames)
     check_object_sizes(opts.object_sizes, frames)
     timings["frames"] = time.perf_counter() - t

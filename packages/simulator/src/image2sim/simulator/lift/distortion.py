@@ -19,6 +19,8 @@ import numpy as np
 
 __all__ = [
     "RADIAL_MODELS",
+    "NEGLIGIBLE_PX",
+    "max_displacement_px",
     "radial_coefficients",
     "distort",
     "undistort",
@@ -40,8 +42,7 @@ def max_displacement_px(K: np.ndarray, k: tuple[float, float], height: int, widt
     """The largest distance, in pixels, between where the lens and the pinhole camera ``K`` put a
     point seen at the frame's corners (the radial model's largest displacement inside the frame)."""
     corners = np.array([[0.0, 0.0], [width, 0.0], [0.0, height], [float(width), float(height)]])
-    xy = (corners - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
-    moved = distort(xy, k) * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    moved = _to_pixels(distort(_normalise(corners, K), k), K)
     return float(np.max(np.linalg.norm(moved - corners, axis=1)))
 
 
@@ -79,13 +80,18 @@ def undistort(xy_d: np.ndarray, k: tuple[float, float], iterations: int = 12) ->
 
 
 def _normalise(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel coordinates -> normalised camera coordinates of the pinhole camera ``K``."""
     return (np.asarray(uv, dtype=np.float64) - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+
+
+def _to_pixels(xy: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Normalised camera coordinates -> pixel coordinates of the pinhole camera ``K``."""
+    return xy * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
 
 
 def undistort_pixels(uv: np.ndarray, K: np.ndarray, k: tuple[float, float]) -> np.ndarray:
     """Pixel coordinates (..., 2) of the distorted image -> where the pinhole camera ``K`` sees them."""
-    xy = undistort(_normalise(uv, K), k)
-    return xy * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    return _to_pixels(undistort(_normalise(uv, K), k), K)
 
 
 def undistort_image(image: np.ndarray, K: np.ndarray, k: tuple[float, float]) -> np.ndarray:
@@ -95,7 +101,7 @@ def undistort_image(image: np.ndarray, K: np.ndarray, k: tuple[float, float]) ->
 
     h, w = image.shape[:2]
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    src = distort(_normalise(np.stack([u, v], axis=-1), K), k) * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    src = _to_pixels(distort(_normalise(np.stack([u, v], axis=-1), K), k), K)
     map_x = (src[..., 0] - 0.5).astype(np.float32)  # OpenCV's pixel centres are at integers
     map_y = (src[..., 1] - 0.5).astype(np.float32)
     return cv2.remap(image, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)

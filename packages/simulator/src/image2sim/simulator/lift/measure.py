@@ -124,8 +124,7 @@ def _local_depth(z: np.ndarray, du: np.ndarray, dv: np.ndarray) -> tuple[float, 
     (robustly: refitted once without points beyond 3 MADs); the spread is the residuals' MAD, not the
     slope of a tilted surface. With fewer than 6 points: the median and its MAD."""
     if len(z) < 6:
-        med = float(np.median(z))
-        return med, 1.4826 * float(np.median(np.abs(z - med)))
+        return _median_spread(z)
     A = np.stack([np.ones_like(du), du, dv], axis=1)
     inv = 1.0 / z
     keep = np.ones(len(z), dtype=bool)
@@ -136,9 +135,14 @@ def _local_depth(z: np.ndarray, du: np.ndarray, dv: np.ndarray) -> tuple[float, 
         keep = np.abs(res) <= 3 * mad + 1e-12 * abs(coef[0])
     inv0 = float(coef[0])
     if not inv0 > 0:  # a fit through the window's edge of a surface: fall back to the median
-        med = float(np.median(z))
-        return med, 1.4826 * float(np.median(np.abs(z - med)))
+        return _median_spread(z)
     return 1.0 / inv0, mad / inv0**2
+
+
+def _median_spread(z: np.ndarray) -> tuple[float, float]:
+    """Median and robust standard deviation (1.4826 x MAD) of depths."""
+    med = float(np.median(z))
+    return med, 1.4826 * float(np.median(np.abs(z - med)))
 
 
 def _lift_end(

@@ -47,6 +47,7 @@ __all__ = [
     "find_floor",
     "rotation_taking",
     "estimate_metric_frame",
+    "scale_sources",
 ]
 
 
@@ -370,6 +371,16 @@ def rotation_taking(up: np.ndarray, forward: np.ndarray | None = None) -> np.nda
     return np.stack([x, y, z])  # rows: world axes expressed in reconstruction coordinates
 
 
+def scale_sources(camera_height, baseline, object_sizes, source: str = "lift") -> list[str]:
+    """The scale options given (``--camera-height``, ``--baseline``, ``--object-size``); ``ScaleError``
+    naming them when more than one is."""
+    given = [n for n, v in (("--camera-height", camera_height), ("--baseline", baseline)) if v is not None]
+    given += ["--object-size"] if len(object_sizes) else []
+    if len(given) > 1:
+        raise ScaleError(f"{source}: give one scale source, not both {' and '.join(given)}")
+    return given
+
+
 def estimate_metric_frame(
     cam_to_world: np.ndarray,
     points: np.ndarray,
@@ -397,10 +408,7 @@ def estimate_metric_frame(
     error 0.13 % against 0.64 %)."""
     poses = np.asarray(cam_to_world, dtype=np.float64)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    given = [n for n, v in (("--camera-height", camera_height), ("--baseline", baseline)) if v is not None]
-    given += ["--object-size"] if len(object_lengths) else []
-    if len(given) > 1:
-        raise ScaleError(f"{source}: give one scale source, not both {' and '.join(given)}")
+    scale_sources(camera_height, baseline, object_lengths, source)
     cam_up = camera_up_mean(poses)
     tried: list[dict] = []
     floor = find_floor(pts, poses, cam_up, seed=seed, candidates=tried)

@@ -91,6 +91,12 @@ class SfmOptions:
     seed: int = 0
     """COLMAP's random seed (RANSAC, mapping order)."""
 
+    def __post_init__(self) -> None:
+        if self.camera_model not in CAMERA_MODELS:
+            raise SfmError(
+                f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {self.camera_model!r}"
+            )
+
 
 @dataclass
 class SfmView:
@@ -137,6 +143,7 @@ class SfmResult:
         dropped: ``(frame_id, reason)`` for frames SfM could not register.
         panorama: True when the frames are equirectangular panoramas.
         stats: numbers for the record (timings, reprojection error, matcher, residuals).
+        distortion: radial lens coefficients removed from the views (see the field).
     """
 
     frame_ids: list[str]
@@ -148,6 +155,9 @@ class SfmResult:
     dropped: list[tuple[str, str]] = field(default_factory=list)
     panorama: bool = False
     stats: dict = field(default_factory=dict)
+    distortion: tuple[float, float] = (0.0, 0.0)
+    """Radial coefficients (k1, k2) removed from the input frames: the views are undistorted to
+    :attr:`K`, the input images are not ((0, 0): nothing was removed)."""
 
     def frame_pose(self, frame_id: str) -> np.ndarray:
         return self.cam_to_world[self.frame_ids.index(frame_id)]
@@ -177,6 +187,7 @@ class SfmResult:
             dropped=list(self.dropped),
             panorama=self.panorama,
             stats=dict(self.stats),
+            distortion=self.distortion,
         )
 
 
@@ -240,8 +251,6 @@ def run_sfm(
     import pycolmap
 
     opts = options or SfmOptions()
-    if opts.camera_model not in CAMERA_MODELS:
-        raise SfmError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}, got {opts.camera_model!r}")
     n = len(frames)
     if n < opts.min_registered:
         raise SfmError(
@@ -472,6 +481,7 @@ def _pinhole_result(rec, frames: FrameSet) -> SfmResult:
             "undistorted": distorted,
             "max_distortion_px": displacement,
         },
+        distortion=k if distorted else (0.0, 0.0),
     )
 
 
