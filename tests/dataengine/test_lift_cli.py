@@ -217,6 +217,7 @@ def test_bad_options_are_one_line_errors(tmp_path, run_main):
             ["--camera-height", "1.5", "--object-size", "a:1,1:2,2=1"],
             "not both --camera-height and --object-size",
         ),
+        (["--camera-model", "FISHEYE"], "--camera-model must be one of SIMPLE_PINHOLE, PINHOLE"),
         ([], "no images (.png, .jpg, .jpeg) in this folder"),
     ]
     for extra, message in cases:
