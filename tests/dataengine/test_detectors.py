@@ -200,6 +200,23 @@ def test_detector_none_makes_path_episodes_that_replay_and_stay_valid(house, tmp
     assert done["objects"] == 0 and "collision" not in done.get("plan_stats", {})
 
 
+def test_detector_none_renders_its_shards_at_the_default_stride(house, tmp_path):
+    """Path episodes have no goal object: their shards are written without goal-in-view labels (a
+    render of them once failed on the missing goal position), one frame per two steps by default."""
+    from image2sim.navpolicy.data import ShardReader
+
+    out = tmp_path / "none_rendered"
+    cfg = EngineConfig(detector="none", render="procedural", obs_height=16, per_scene=3, seed=1)
+    summary = run_engine(house.parent, out, cfg, progress=False)
+    assert summary["episodes"] >= 2 and summary["shards"] == 1, summary
+    reader = ShardReader(out / "scenes" / house.name / "shard")
+    assert len(reader) == summary["episodes"]
+    for i in range(len(reader)):
+        t = reader[i]
+        assert list(t.frame_steps) == list(range(0, len(t.actions), 2))
+        assert t.frames.shape[1:] == (16, 16, 3) and "goal_in_view" not in t.extra
+
+
 def test_detector_annotations_names_the_annotated_objects(house, tmp_path):
     gt = json.loads((house / "gt" / "objects.json").read_text())
     items = gt["objects"] if isinstance(gt, dict) else gt

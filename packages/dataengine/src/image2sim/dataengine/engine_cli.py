@@ -106,10 +106,11 @@ def episodes_command(
     ),
     obs_height: int = typer.Option(336, "--obs-height", help="Observation height in pixels."),
     frame_stride: int = typer.Option(
-        1,
+        2,
         "--frame-stride",
         min=1,
-        help="Store the observation of every n-th step (2 = what the streaming policy sees).",
+        help="Store the observation of every n-th step (2, the default: what the policy sees, two "
+        "actions per observation; 1: every step, twice the rendering).",
     ),
     split: str = typer.Option("train", "--split", help="Split name of the episode files."),
     episode_format: str = typer.Option(
