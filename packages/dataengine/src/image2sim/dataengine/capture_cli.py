@@ -344,8 +344,9 @@ def lift(
         str,
         typer.Option(
             "--camera-model",
-            help="COLMAP model of pinhole frames: distortion-free SIMPLE_PINHOLE or PINHOLE, or with "
-            "radial lens distortion (wide lenses; frames are undistorted) SIMPLE_RADIAL or RADIAL.",
+            help="COLMAP model of pinhole frames: distortion-free SIMPLE_PINHOLE or PINHOLE; with lens "
+            "distortion (frames are undistorted) SIMPLE_RADIAL, RADIAL, OPENCV (+ tangential), or a "
+            "fisheye SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE.",
         ),
     ] = "SIMPLE_PINHOLE",
     fps: Annotated[float, typer.Option("--fps", min=0.01, help="Video: frames sampled per second.")] = 2.0,

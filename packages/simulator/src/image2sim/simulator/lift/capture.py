@@ -226,7 +226,7 @@ def measure_objects(sizes, frames: FrameSet, sfm: SfmResult, views, estimates) -
             for sv, v, e in zip(sfm.views, views, estimates, strict=True)
             if sv.frame_id == size.frame_id
         ]
-        if sfm.distortion != (0.0, 0.0):  # the user's pixels are in the distorted input image
+        if not sfm.distortion.is_pinhole:  # the user's pixels are in the distorted input image
             K = own[0][0].K
             a, b = (
                 tuple(undistort_pixels(np.add(xy, 0.5), K, sfm.distortion) - 0.5) for xy in (size.a, size.b)

@@ -1,8 +1,8 @@
 """Camera poses and intrinsics by structure-from-motion (pycolmap, CPU).
 
 Pinhole frames: SIFT features, exhaustive (few frames) or sequential (video) matching, incremental
-mapping with one shared camera whose intrinsics bundle adjustment refines. With a radial-distortion
-camera model (``SfmOptions.camera_model``: ``SIMPLE_RADIAL``, ``RADIAL``) the registered frames and
+mapping with one shared camera whose intrinsics bundle adjustment refines. With a camera model that
+has lens distortion (``SfmOptions.camera_model``: radial, OpenCV or fisheye) the registered frames and
 their observations are undistorted to the pinhole camera of the same focal length afterwards.
 
 Panoramas: each equirectangular frame is split into the six 90-degree cube faces of
@@ -29,10 +29,13 @@ from pathlib import Path
 
 import numpy as np
 from image2sim.simulator.lift.distortion import (
+    FISHEYE_MODELS,
+    LENS_MODELS,
     NEGLIGIBLE_PX,
-    RADIAL_MODELS,
+    PINHOLE_LENS,
+    Lens,
+    lens_of_camera,
     max_displacement_px,
-    radial_coefficients,
     undistort_image,
     undistort_pixels,
 )
@@ -55,7 +58,7 @@ ROTATION_SPREAD_SURE = 0.02
 ROTATION_SPREAD_MAX, ROTATION_PAIR_SHARE = 0.1, 0.95
 """Below this spread, a pinhole capture whose verified pairs are at least this share rotation-like
 only rotates too (a free lens model can fake a small baseline)."""
-CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", *RADIAL_MODELS)
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", *LENS_MODELS)
 """COLMAP camera models the lift accepts for pinhole frames."""
 
 
@@ -72,14 +75,17 @@ class SfmOptions:
     """Successors each frame is matched with by the sequential matcher."""
     camera_model: str = "SIMPLE_PINHOLE"
     """COLMAP camera model of pinhole frames: distortion-free SIMPLE_PINHOLE (f, cx, cy) or PINHOLE
-    (fx, fy, cx, cy); or with radial lens distortion SIMPLE_RADIAL (f, cx, cy, k) or RADIAL (f, cx,
-    cy, k1, k2), whose frames are undistorted to the pinhole camera after mapping when the lens moves
-    a pixel by more than ``NEGLIGIBLE_PX`` (:mod:`~image2sim.simulator.lift.distortion`). On a
+    (fx, fy, cx, cy); or with lens distortion: radial SIMPLE_RADIAL (f, cx, cy, k) or RADIAL (f, cx,
+    cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2: tangential terms too), or the equidistant
+    fisheye SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE (k1..k4 on the ray angle). Their
+    frames are undistorted to the pinhole camera after mapping when the lens moves a pixel by more
+    than ``NEGLIGIBLE_PX`` (:mod:`~image2sim.simulator.lift.distortion`; a fisheye always does). On a
     procedural house through a barrel lens (k1 = -0.12) SIMPLE_RADIAL gave pose ATE 2.0 mm where
     SIMPLE_PINHOLE gave 21 cm. The default stays SIMPLE_PINHOLE: on a small distortion-free capture
     (10 views) the free coefficient bent the sparse points enough to hide the floor plane."""
     focal_prior: float | None = None
-    """Initial focal length in pixels (default: COLMAP's 1.2 x the larger image side)."""
+    """Initial focal length in pixels (default: COLMAP's 1.2 x the larger image side; fisheye models:
+    half the larger side)."""
     max_features: int = 8192
     """SIFT features per image at most."""
     min_registered: int = 3
@@ -143,7 +149,7 @@ class SfmResult:
         dropped: ``(frame_id, reason)`` for frames SfM could not register.
         panorama: True when the frames are equirectangular panoramas.
         stats: numbers for the record (timings, reprojection error, matcher, residuals).
-        distortion: radial lens coefficients removed from the views (see the field).
+        distortion: the lens removed from the views (see the field).
     """
 
     frame_ids: list[str]
@@ -155,9 +161,9 @@ class SfmResult:
     dropped: list[tuple[str, str]] = field(default_factory=list)
     panorama: bool = False
     stats: dict = field(default_factory=dict)
-    distortion: tuple[float, float] = (0.0, 0.0)
-    """Radial coefficients (k1, k2) removed from the input frames: the views are undistorted to
-    :attr:`K`, the input images are not ((0, 0): nothing was removed)."""
+    distortion: Lens = PINHOLE_LENS
+    """The lens removed from the input frames: the views are undistorted to :attr:`K`, the input
+    images are not (the pinhole lens: nothing was removed)."""
 
     def frame_pose(self, frame_id: str) -> np.ndarray:
         return self.cam_to_world[self.frame_ids.index(frame_id)]
@@ -189,6 +195,15 @@ class SfmResult:
             stats=dict(self.stats),
             distortion=self.distortion,
         )
+
+
+def _initial_params(model: str, f: float, width: int, height: int) -> str:
+    """COLMAP's parameter string for ``model`` with focal length ``f``, the principal point at the
+    centre and no distortion."""
+    focal = f"{f},{f}" if model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE") else f"{f}"
+    coefficients = {"SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4, "SIMPLE_RADIAL_FISHEYE": 1}
+    coefficients |= {"RADIAL_FISHEYE": 2, "OPENCV_FISHEYE": 4}
+    return ",".join([focal, f"{width / 2}", f"{height / 2}", *["0"] * coefficients.get(model, 0)])
 
 
 def face_rotations() -> np.ndarray:
@@ -284,15 +299,14 @@ def run_sfm(
             for fid, img in zip(frames.ids, frames.images, strict=True):
                 _write_png(image_dir / f"{fid}.png", img)
             params = ""
+            h, w = frames.size
             if opts.focal_prior is not None:
-                h, w = frames.size
-                f = float(opts.focal_prior)
-                params = {
-                    "SIMPLE_PINHOLE": f"{f},{w / 2},{h / 2}",
-                    "PINHOLE": f"{f},{f},{w / 2},{h / 2}",
-                    "SIMPLE_RADIAL": f"{f},{w / 2},{h / 2},0",
-                    "RADIAL": f"{f},{w / 2},{h / 2},0,0",
-                }[opts.camera_model]
+                params = _initial_params(opts.camera_model, float(opts.focal_prior), w, h)
+            elif opts.camera_model in FISHEYE_MODELS:
+                # COLMAP's guess (1.2 x the larger side, a 45-degree view) found no model at all on a
+                # fisheye house whose f was 220 px for 320 px; half the larger side (a 115-degree view)
+                # and 280 px both recovered it.
+                params = _initial_params(opts.camera_model, max(w, h) / 2.0, w, h)
             reader = pycolmap.ImageReaderOptions(camera_model=opts.camera_model, camera_params=params)
             camera_mode = pycolmap.CameraMode.SINGLE
         extraction = pycolmap.FeatureExtractionOptions()
@@ -449,10 +463,10 @@ def _pinhole_result(rec, frames: FrameSet) -> SfmResult:
         raise SfmError(f"{frames.source}: expected one shared camera, the reconstruction has {len(cams)}")
     camera = rec.cameras[cams.pop()]
     K = np.asarray(camera.calibration_matrix(), dtype=np.float64)
-    # A lens with radial distortion: the views become the undistorted pinhole frames of K.
-    k = radial_coefficients(camera.model.name, camera.params)
+    # A lens with distortion: the views become the undistorted pinhole frames of K.
+    lens = lens_of_camera(camera.model.name, camera.params)
     h, w = frames.size
-    displacement = max_displacement_px(K, k, h, w)
+    displacement = max_displacement_px(K, lens, h, w)
     distorted = displacement > NEGLIGIBLE_PX
     ids, poses, views, dropped = [], [], [], []
     for fid, img in zip(frames.ids, frames.images, strict=True):
@@ -463,7 +477,9 @@ def _pinhole_result(rec, frames: FrameSet) -> SfmResult:
         T = np.linalg.inv(_rigid_to_matrix(im.cam_from_world()))
         uv, pid = _observations(im)
         if distorted:
-            img, uv = undistort_image(img, K, k), undistort_pixels(uv, K, k)
+            img, uv = undistort_image(img, K, lens), undistort_pixels(uv, K, lens)
+            seen = np.isfinite(uv).all(axis=1)  # a fisheye's rays past 90 degrees have no pinhole image
+            uv, pid = uv[seen], np.asarray(pid)[seen]
         ids.append(fid)
         poses.append(T)
         views.append(SfmView(fid, None, K, T, uv, np.array([index[p] for p in pid], dtype=np.int64), img))
@@ -481,7 +497,7 @@ def _pinhole_result(rec, frames: FrameSet) -> SfmResult:
             "undistorted": distorted,
             "max_distortion_px": displacement,
         },
-        distortion=k if distorted else (0.0, 0.0),
+        distortion=lens if distorted else PINHOLE_LENS,
     )
 
 
