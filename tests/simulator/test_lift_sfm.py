@@ -53,6 +53,28 @@ def test_pinhole_house_poses_and_intrinsics_match_the_truth(pinhole_house, tmp_p
     assert np.median(np.linalg.norm(uv - sparse.uv, axis=1)) < 1.0
 
 
+def test_an_unordered_folder_beyond_the_exhaustive_cap_is_paired_by_retrieval(pinhole_house, tmp_path):
+    """Frames renamed into a shuffled order, more than ``exhaustive_max``: auto picks retrieval (not
+    the sequential matcher, which needs file order), matches far fewer pairs than exhaustive and
+    still reconstructs the walk."""
+    import shutil
+
+    src = rgb_folder(pinhole_house, tmp_path / "rgb")
+    shuffled = tmp_path / "shuffled"
+    shuffled.mkdir()
+    order = np.random.default_rng(5).permutation(24)
+    for new, old in enumerate(order):
+        shutil.copy(src / f"{old:05d}.png", shuffled / f"img_{new:02d}.png")
+    frames = load_frames(shuffled)
+    result = run_sfm(frames, SfmOptions(exhaustive_max=10, retrieval_neighbours=5, vocabulary=128))
+    assert result.stats["matcher"] == "retrieval"
+    assert 24 * 5 / 2 <= result.stats["retrieval_pairs"] <= 24 * 5 < 24 * 23 / 2
+    assert len(result.frame_ids) >= 20
+    truth = {f"img_{new:02d}": gt_poses(pinhole_house)[f"{old:05d}"] for new, old in enumerate(order)}
+    err, rot, _ = _scores(result, truth)
+    assert err < 0.02 and rot < 0.6
+
+
 def test_panorama_house_is_reconstructed_as_a_rig_of_cube_faces(tmp_path):
     scene = synth_house(
         tmp_path / "pano", camera="equirect", views=10, height=256, width=512, config=PANO_WALK

@@ -67,12 +67,18 @@ class SfmOptions:
     """Settings of :func:`run_sfm`."""
 
     matcher: str = "auto"
-    """"exhaustive", "sequential" (video: each frame with its ``overlap`` successors) or "auto"
-    (exhaustive up to ``exhaustive_max`` frames)."""
+    """"exhaustive", "sequential" (video: each frame with its ``overlap`` successors), "retrieval"
+    (unordered frames: each with its ``retrieval_neighbours`` most alike in SIFT words,
+    :mod:`~image2sim.simulator.lift.pairs`) or "auto" (exhaustive up to ``exhaustive_max`` frames,
+    beyond it sequential for video and retrieval for a folder)."""
     exhaustive_max: int = 80
     """Largest number of frames (panorama faces count once per panorama) matched exhaustively."""
     overlap: int = 10
     """Successors each frame is matched with by the sequential matcher."""
+    retrieval_neighbours: int = 20
+    """Most alike frames each frame is matched with by the retrieval matcher."""
+    vocabulary: int = 512
+    """Visual words of the retrieval matcher's vocabulary (k-means over the capture's descriptors)."""
     camera_model: str = "SIMPLE_PINHOLE"
     """COLMAP camera model of pinhole frames: distortion-free SIMPLE_PINHOLE (f, cx, cy) or PINHOLE
     (fx, fy, cx, cy); or with lens distortion: radial SIMPLE_RADIAL (f, cx, cy, k) or RADIAL (f, cx,
@@ -101,6 +107,11 @@ class SfmOptions:
         if self.camera_model not in CAMERA_MODELS:
             raise SfmError(
                 f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {self.camera_model!r}"
+            )
+        if self.retrieval_neighbours < 1 or self.vocabulary < 2:
+            raise SfmError(
+                f"SfmOptions: retrieval_neighbours must be >= 1 and vocabulary >= 2, got "
+                f"{self.retrieval_neighbours} and {self.vocabulary}"
             )
 
 
@@ -330,15 +341,18 @@ def run_sfm(
             matching.skip_image_pairs_in_same_frame = True
         matcher = opts.matcher
         if matcher == "auto":
-            matcher = "exhaustive" if n <= opts.exhaustive_max else "sequential"
+            unordered = "sequential" if frames.fps is not None else "retrieval"
+            matcher = "exhaustive" if n <= opts.exhaustive_max else unordered
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(db_path, matching_options=matching)
+        elif matcher == "retrieval":
+            stats["retrieval_pairs"] = _match_retrieval(db_path, tmp / "pairs.txt", matching, opts)
         elif matcher == "sequential":
             pairing = pycolmap.SequentialPairingOptions()
             pairing.overlap = opts.overlap * (6 if frames.panorama else 1)
             pycolmap.match_sequential(db_path, matching_options=matching, pairing_options=pairing)
         else:
-            raise SfmError(f"matcher must be auto, exhaustive or sequential, got {opts.matcher!r}")
+            raise SfmError(f"matcher must be auto, exhaustive, sequential or retrieval, got {opts.matcher!r}")
         stats["matcher"] = matcher
         stats["match_s"] = time.perf_counter() - t1
         stats["pair_geometry"] = _pair_configurations(db_path)
@@ -400,6 +414,41 @@ def run_sfm(
     for fid, reason in result.dropped:
         log.warning("%s: frame %s dropped: %s", frames.source, fid, reason)
     return result
+
+
+def _match_retrieval(db_path: Path, pairs_file: Path, matching, opts: SfmOptions) -> int:
+    """Match each frame's images with those of its ``opts.retrieval_neighbours`` most alike frames
+    (a panorama's six faces pooled into one frame); returns the number of frame pairs."""
+    import pycolmap
+    from image2sim.simulator.lift.pairs import assign_words, kmeans, retrieval_pairs, tfidf
+
+    with pycolmap.Database.open(db_path) as db:
+        images = db.read_all_images()
+        desc = {im.image_id: np.asarray(db.read_descriptors(im.image_id).data) for im in images}
+    frame_of = {im.image_id: im.name.rsplit("/", 1)[-1] for im in images}  # faces share the file name
+    names = sorted(set(frame_of.values()))
+    images_of: dict[str, list[str]] = {name: [] for name in names}
+    for im in images:
+        images_of[frame_of[im.image_id]].append(im.name)
+    found = [d for d in desc.values() if len(d)]
+    if not found:
+        raise SfmError("retrieval matching: no image has a SIFT feature")
+    pool = np.concatenate(found).astype(np.float32)
+    rng = np.random.default_rng(opts.seed)
+    sample = pool[rng.choice(len(pool), size=min(len(pool), 50_000), replace=False)]
+    centres = kmeans(sample, opts.vocabulary, seed=opts.seed)
+    words: dict[str, list[np.ndarray]] = {name: [] for name in names}
+    for iid, d in desc.items():
+        if len(d):
+            words[frame_of[iid]].append(assign_words(d, centres))
+    vectors = tfidf([np.concatenate(w) if w else np.zeros(0, np.int64) for w in words.values()], len(centres))
+    frame_pairs = retrieval_pairs(vectors, opts.retrieval_neighbours)
+    lines = [f"{a} {b}" for i, j in frame_pairs for a in images_of[names[i]] for b in images_of[names[j]]]
+    pairs_file.write_text("\n".join(lines) + "\n")
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(pairs_file)
+    pycolmap.match_image_pairs(db_path, matching_options=matching, pairing_options=pairing)
+    return len(frame_pairs)
 
 
 def _pair_configurations(db_path: Path) -> dict[str, int]:
