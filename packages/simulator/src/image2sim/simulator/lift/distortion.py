@@ -35,6 +35,7 @@ __all__ = [
     "Lens",
     "lens_of_camera",
     "max_displacement_px",
+    "initial_camera_params",
     "distort",
     "undistort",
     "undistort_pixels",
@@ -109,6 +110,15 @@ def lens_of_camera(model: str, params) -> Lens:
     if model in _FISHEYE:
         return Lens(tuple(p[start : start + _FISHEYE[model]]), fisheye=True)
     raise ValueError(f"camera model {model!r} is not one the lift can undistort (known: {LENS_MODELS})")
+
+
+def initial_camera_params(model: str, f: float, width: int, height: int) -> str:
+    """COLMAP's parameter string for ``model`` with focal length ``f``, the principal point at the
+    centre and no distortion (the same tables as :func:`lens_of_camera`)."""
+    focal = f"{f},{f}" if model in _SEPARATE_FOCALS else f"{f}"
+    n, tangential = _BROWN.get(model, (_FISHEYE.get(model, 0), False))
+    zeros = ["0"] * (n + (2 if tangential else 0))
+    return ",".join([focal, f"{width / 2}", f"{height / 2}", *zeros])
 
 
 def distort(xy: np.ndarray, lens: Lens) -> np.ndarray:

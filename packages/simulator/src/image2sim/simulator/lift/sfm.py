@@ -34,6 +34,7 @@ from image2sim.simulator.lift.distortion import (
     NEGLIGIBLE_PX,
     PINHOLE_LENS,
     Lens,
+    initial_camera_params,
     lens_of_camera,
     max_displacement_px,
     undistort_image,
@@ -208,15 +209,6 @@ class SfmResult:
         )
 
 
-def _initial_params(model: str, f: float, width: int, height: int) -> str:
-    """COLMAP's parameter string for ``model`` with focal length ``f``, the principal point at the
-    centre and no distortion."""
-    focal = f"{f},{f}" if model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE") else f"{f}"
-    coefficients = {"SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4, "SIMPLE_RADIAL_FISHEYE": 1}
-    coefficients |= {"RADIAL_FISHEYE": 2, "OPENCV_FISHEYE": 4}
-    return ",".join([focal, f"{width / 2}", f"{height / 2}", *["0"] * coefficients.get(model, 0)])
-
-
 def face_rotations() -> np.ndarray:
     """(6, 3, 3) rotations taking cube-face camera directions to the panorama camera frame."""
     import torch
@@ -312,12 +304,12 @@ def run_sfm(
             params = ""
             h, w = frames.size
             if opts.focal_prior is not None:
-                params = _initial_params(opts.camera_model, float(opts.focal_prior), w, h)
+                params = initial_camera_params(opts.camera_model, float(opts.focal_prior), w, h)
             elif opts.camera_model in FISHEYE_MODELS:
                 # COLMAP's guess (1.2 x the larger side, a 45-degree view) found no model at all on a
                 # fisheye house whose f was 220 px for 320 px; half the larger side (a 115-degree view)
                 # and 280 px both recovered it.
-                params = _initial_params(opts.camera_model, max(w, h) / 2.0, w, h)
+                params = initial_camera_params(opts.camera_model, max(w, h) / 2.0, w, h)
             reader = pycolmap.ImageReaderOptions(camera_model=opts.camera_model, camera_params=params)
             camera_mode = pycolmap.CameraMode.SINGLE
         extraction = pycolmap.FeatureExtractionOptions()
