@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from image2sim.simulator.lift.pairs import assign_words, kmeans, retrieval_pairs, tfidf
+from image2sim.simulator.lift.pairs import assign_words, content_sample, kmeans, retrieval_pairs, tfidf
 
 
 def test_kmeans_finds_separated_clusters_and_words_are_nearest_centres():
@@ -20,6 +20,23 @@ def test_kmeans_finds_separated_clusters_and_words_are_nearest_centres():
     assert len(kmeans(x[:3], 10)) == 3  # never more centres than samples
     with pytest.raises(ValueError, match="non-empty"):
         kmeans(np.zeros((0, 4)), 2)
+
+
+def test_content_sample_ignores_row_order_and_is_not_biased_towards_small_rows():
+    """The vocabulary sample must not depend on the order SIFT's threads wrote features in: the same
+    rows shuffled within and across chunks give the same sample, in the same order. A hash, not a
+    projection: the chosen rows' mean is the pool's (a smallest-projection pick would be darkest)."""
+    rng = np.random.default_rng(0)
+    pool = rng.integers(0, 256, size=(6000, 128), dtype=np.uint8)
+    a = content_sample([pool[:1000], pool[1000:4000], pool[4000:]], 500, seed=3)
+    shuffled = pool[rng.permutation(len(pool))]
+    b = content_sample([shuffled[:2500], shuffled[2500:]], 500, seed=3)
+    assert a.shape == (500, 128) and a.dtype == np.float32
+    assert np.array_equal(a, b)
+    assert abs(a.mean() - pool.mean()) < 2.0  # pool mean 127.5; per-row sd ~6.5, /sqrt(500)
+    assert not np.array_equal(a, content_sample([pool], 500, seed=4))  # the seed picks the sample
+    assert len(content_sample([pool[:10]], 500)) == 10  # never more than there is
+    assert content_sample([np.zeros((0, 128), np.uint8)], 5).shape[0] == 0
 
 
 def test_tfidf_rows_are_unit_and_shared_words_weigh_nothing():

@@ -66,9 +66,11 @@ def test_an_unordered_folder_beyond_the_exhaustive_cap_is_paired_by_retrieval(pi
     for new, old in enumerate(order):
         shutil.copy(src / f"{old:05d}.png", shuffled / f"img_{new:02d}.png")
     frames = load_frames(shuffled)
-    result = run_sfm(frames, SfmOptions(exhaustive_max=10, retrieval_neighbours=5, vocabulary=128))
+    # 8 neighbours: with 5, one CI machine registered 18 frames (its SIFT features differ in the
+    # last bits); this machine registered all 24 at 5 and 8 neighbours, seeds 0-3 (2026-11-27).
+    result = run_sfm(frames, SfmOptions(exhaustive_max=10, retrieval_neighbours=8, vocabulary=128))
     assert result.stats["matcher"] == "retrieval"
-    assert 24 * 5 / 2 <= result.stats["retrieval_pairs"] <= 24 * 5 < 24 * 23 / 2
+    assert 24 * 8 / 2 <= result.stats["retrieval_pairs"] <= 24 * 8 < 24 * 23 / 2
     assert len(result.frame_ids) >= 20
     truth = {f"img_{new:02d}": gt_poses(pinhole_house)[f"{old:05d}"] for new, old in enumerate(order)}
     err, rot, _ = _scores(result, truth)

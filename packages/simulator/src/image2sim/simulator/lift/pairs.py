@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["kmeans", "assign_words", "tfidf", "retrieval_pairs"]
+__all__ = ["content_sample", "kmeans", "assign_words", "tfidf", "retrieval_pairs"]
 
 
 def _sq_distances(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -29,6 +29,42 @@ def assign_words(descriptors: np.ndarray, centres: np.ndarray, chunk: int = 6553
     out = np.empty(len(x), dtype=np.int64)
     for s in range(0, len(x), chunk):
         out[s : s + chunk] = np.argmin(_sq_distances(x[s : s + chunk], c), axis=1)
+    return out
+
+
+_HASH_PRIME = 2**31 - 1
+
+
+def content_sample(chunks: list[np.ndarray], size: int, seed: int = 0) -> np.ndarray:
+    """Up to ``size`` rows of the row-stacked ``chunks`` (each (N_i, D)) as float32, chosen by their
+    content, not their position: the rows with the smallest seeded universal hash
+    ``(row . w) mod p`` of their integer values (float rows are quantised to 1/1024 first), so a
+    uniform sample, in the same order, whatever order the rows come in.
+
+    A vocabulary sampled by position changed with the order in which SIFT's threads wrote a frame's
+    features, and with it the retrieval pairs (81-92 pairs for one 24-frame folder, 2026-11-27).
+    Rows are hashed chunk by chunk, so an 86-panorama pool (4 M uint8 descriptors) is never copied
+    as float32. Exact duplicate rows tie and keep their stacking order.
+    """
+    chunks = [np.asarray(c) for c in chunks if len(c)]
+    if not chunks:
+        return np.zeros((0, 0), dtype=np.float32)
+    weights = np.random.default_rng(seed).integers(1, _HASH_PRIME, size=chunks[0].shape[1], dtype=np.int64)
+
+    def integers(c: np.ndarray) -> np.ndarray:
+        return c.astype(np.int64) if c.dtype.kind in "iub" else np.round(c * 1024.0).astype(np.int64)
+
+    # uint8 x 2^31 x 128 dimensions < 2^46: no overflow for SIFT; reduce per column otherwise.
+    keys = np.concatenate(
+        [((integers(c) % _HASH_PRIME) * weights % _HASH_PRIME).sum(1) % _HASH_PRIME for c in chunks]
+    )
+    chosen = np.argsort(keys, kind="stable")[: int(size)]  # in hash order, so k-means' start is too
+    offsets = np.cumsum([0] + [len(c) for c in chunks])
+    which = np.searchsorted(offsets, chosen, side="right") - 1
+    out = np.empty((len(chosen), chunks[0].shape[1]), dtype=np.float32)
+    for k, c in enumerate(chunks):
+        rank = np.flatnonzero(which == k)
+        out[rank] = c[chosen[rank] - offsets[k]]
     return out
 
 

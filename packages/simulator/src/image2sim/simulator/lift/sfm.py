@@ -412,7 +412,7 @@ def _match_retrieval(db_path: Path, pairs_file: Path, matching, opts: SfmOptions
     """Match each frame's images with those of its ``opts.retrieval_neighbours`` most alike frames
     (a panorama's six faces pooled into one frame); returns the number of frame pairs."""
     import pycolmap
-    from image2sim.simulator.lift.pairs import assign_words, kmeans, retrieval_pairs, tfidf
+    from image2sim.simulator.lift.pairs import assign_words, content_sample, kmeans, retrieval_pairs, tfidf
 
     with pycolmap.Database.open(db_path) as db:
         images = db.read_all_images()
@@ -425,9 +425,7 @@ def _match_retrieval(db_path: Path, pairs_file: Path, matching, opts: SfmOptions
     found = [d for d in desc.values() if len(d)]
     if not found:
         raise SfmError("retrieval matching: no image has a SIFT feature")
-    pool = np.concatenate(found).astype(np.float32)
-    rng = np.random.default_rng(opts.seed)
-    sample = pool[rng.choice(len(pool), size=min(len(pool), 50_000), replace=False)]
+    sample = content_sample(found, 50_000, seed=opts.seed)
     centres = kmeans(sample, opts.vocabulary, seed=opts.seed)
     words: dict[str, list[np.ndarray]] = {name: [] for name in names}
     for iid, d in desc.items():
