@@ -83,3 +83,57 @@ def test_degenerate_inputs(fill):
         fill_holes(img, torch.ones(1, 2, H, W))
     with pytest.raises(ValueError, match="does not match"):
         fill_holes(img, torch.ones(1, 1, H, W // 2))
+
+
+def test_splat_modes_from_a_composite_with_gaps():
+    """A surface of known colour and range seen through gaps (alpha 0.3-1) and one empty block:
+    raw darkens the gaps towards the black background; normalised returns the surface's own colour
+    and range wherever anything was projected and 0 in the empty block; filled also completes the
+    empty block from its surroundings; normalised depth equals the splat's depth / alpha."""
+    from image2sim.simulator.renderer.holefill import splat_rgbd
+
+    colour, rng = _smooth(), 2.0 + _smooth(1)
+    alpha = 0.3 + 0.7 * torch.rand(1, 1, H, W, generator=torch.Generator().manual_seed(0))
+    alpha[..., 10:14, 20:26] = 0.0
+    composite, weighted = colour * alpha, rng * alpha  # over background 0
+    raw, raw_depth = splat_rgbd(composite, weighted, alpha, "raw")
+    assert torch.equal(raw, composite.clamp(0, 1))
+    norm, norm_depth = splat_rgbd(composite, weighted, alpha, "normalised")
+    seen = (alpha > 0).expand_as(colour)
+    assert torch.allclose(norm[seen], colour[seen], atol=1e-6)
+    assert torch.allclose(norm_depth[alpha > 0], rng[alpha > 0], atol=1e-5)
+    assert torch.allclose(raw_depth, norm_depth, atol=1e-5)
+    assert not norm[..., 10:14, 20:26].any() and not norm_depth[..., 10:14, 20:26].any()
+    err = lambda x: float((x - colour)[seen].pow(2).mean())  # noqa: E731
+    assert err(norm) < 1e-10 < err(raw)
+    filled, filled_depth = splat_rgbd(composite, weighted, alpha, "filled")
+    hole = (slice(None), slice(None), slice(10, 14), slice(20, 26))
+    assert (
+        float((filled - colour)[hole].abs().max()) < 0.1
+        and float((filled_depth - rng)[hole].abs().max()) < 0.1
+    )
+    # Over a grey background the composite is un-mixed with that background.
+    grey, _ = splat_rgbd(composite + (1 - alpha) * 0.5, weighted, alpha, "normalised", background=0.5)
+    assert torch.allclose(grey[seen], colour[seen], atol=1e-5)
+    with pytest.raises(ValueError, match="splat mode"):
+        splat_rgbd(composite, weighted, alpha, "premultiplied")
+
+
+def test_filled_mode_is_eval_renders_splat_fill():
+    """One concept, one place: the simulator's filled image is the benchmark's splat_fill of the same
+    splat (the condition's unpremultiplied channels filled by fill_condition)."""
+    from image2sim.simulator.renderer.condition import build_condition, unpremultiply
+    from image2sim.simulator.renderer.holefill import fill_condition, splat_rgbd
+
+    g = torch.Generator().manual_seed(1)
+    alpha = torch.rand(1, 1, H, W, generator=g)
+    alpha[..., 5:9, :8] = 0.0
+    composite, weighted = (
+        torch.rand(1, 3, H, W, generator=g) * alpha,
+        (1 + torch.rand(1, 1, H, W, generator=g)) * alpha,
+    )
+    rgb, depth = unpremultiply(composite, weighted, alpha)
+    cond = build_condition(torch.zeros(1, 16, H, W), rgb, depth, alpha, torch.zeros(1, 3, H, W))
+    ref_rgb, ref_depth = fill_condition(cond)
+    out_rgb, out_depth = splat_rgbd(composite, weighted, alpha, "filled")
+    assert torch.allclose(out_rgb, ref_rgb.clamp(0, 1)) and torch.allclose(out_depth, ref_depth.clamp_min(0))

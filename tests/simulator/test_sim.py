@@ -101,6 +101,16 @@ def test_gaussian_render_fn_goes_through_splat():
     assert centre[0] > 0.5 and centre[1] < 0.3  # the red Gaussian straight ahead
     assert pano["depth"][8, 16] == pytest.approx(1.0, abs=0.2)
     assert pano["rgb"][8, 0, 0] < 0.1  # behind the agent: background
+    # At the Gaussian's fringe (alpha < 0.5) the default image shows its colour, not a darkened one.
+    fringe = (pano["rgb"][..., 0] > 0.9) & (pano["rgb"].sum(-1) < 1.1)
+    raw_fn = GaussianRenderFn(g, backend="torch", mode="raw")
+    raw = NeuralSimulator(navmap(), render_fn=raw_fn, observations=ObservationSpec(pano_height=16))
+    raw_obs, _ = raw.reset(np.array([[3.0, 2.0, 0.0]]), np.array([0.0]))
+    raw_red = raw_obs[0]["panorama"]["rgb"][..., 0]
+    assert (fringe & (raw_red < 0.5)).any()  # partly covered pixels: raw darkens them towards black
+    assert np.allclose(raw_obs[0]["panorama"]["depth"], pano["depth"], atol=1e-5)
+    with pytest.raises(ValueError, match="mode must be one of"):
+        GaussianRenderFn(g, mode="premultiplied")
 
 
 def test_nav_env_reward_and_termination():

@@ -123,15 +123,19 @@ def test_without_renderer_splat_only_is_used(scene_and_ckpt):
     )
     assert isinstance(sim.render_fn, GaussianRenderFn) and sim.render_fn.renderer is None
     obs, _ = sim.reset(np.array([[3.0, 2.0, 0.0]]), np.array([0.0]))
-    # Splat-only equals a direct splat of the scene at the agent's camera pose.
+    # Splat-only equals a direct splat of the scene at the agent's camera pose, as expected colour
+    # and range (the composite divided by alpha: eval render's splat_only).
+    from image2sim.simulator.renderer.condition import unpremultiply
+
     scene = GaussianScene.load(folder)
     ref = scene.render(
         EquirectCamera(PANO_H, 2 * PANO_H),
         torch.as_tensor(sim.camera_pose(0), dtype=torch.float32),
         backend="torch",
     )
-    want = ref.rgb[0].permute(1, 2, 0).clamp(0, 1).numpy()
-    np.testing.assert_allclose(obs[0]["panorama"]["rgb"], want, atol=1e-6)
+    rgb, depth = unpremultiply(ref.rgb, ref.depth, ref.alpha)
+    np.testing.assert_allclose(obs[0]["panorama"]["rgb"], rgb[0].permute(1, 2, 0).numpy(), atol=1e-6)
+    np.testing.assert_allclose(obs[0]["panorama"]["depth"], depth[0, 0].numpy(), atol=1e-5)
 
 
 def test_bad_renderer_path_names_the_file(scene_and_ckpt, tmp_path):
@@ -268,3 +272,45 @@ def test_cli_sim_render_with_renderer_matches_the_simulator_render_fn(scene_and_
     np.testing.assert_array_equal(read_rgb(out), want)
     res = CliRunner().invoke(sim_app, [*args, "--renderer", str(tmp_path / "missing.safetensors")])
     assert res.exit_code == 2 and "missing.safetensors" in res.output
+
+
+def test_cli_sim_render_writes_the_simulators_splat_image_in_each_mode(scene_and_ckpt, tmp_path):
+    """Without --renderer, `sim render` writes what the splat-only simulator shows (`--splat
+    normalised` by default, GaussianRenderFn's image); raw and filled differ where alpha < 1; a bad
+    mode is a clear error."""
+    from image2sim.simulator.cli import sim_app
+    from image2sim.simulator.io.images import read_rgb
+    from typer.testing import CliRunner
+
+    folder, _ = scene_and_ckpt
+    g = GaussianScene.load(folder).gaussians
+    tensors = {k: getattr(g, k) for k in ("means", "scales", "quats", "opacities", "colors")}
+    pose = np.eye(4)
+    pose[:3, 3] = (3.0, 2.0, 1.25)
+    images = {}
+    for mode in ("normalised", "raw", "filled"):
+        out = tmp_path / f"{mode}.png"
+        args = ["render", str(folder), "--pose", "3 2 1.25 1 0 0 0", "--out", str(out), "--backend", "torch"]
+        res = CliRunner().invoke(
+            sim_app,
+            [*args, "--height", str(PANO_H), "--width", str(2 * PANO_H)]
+            + ([] if mode == "normalised" else ["--splat", mode]),
+        )
+        assert res.exit_code == 0, res.output
+        assert f"splat {mode}" in res.output
+        images[mode] = read_rgb(out)
+        fn = GaussianRenderFn(tensors, backend="torch", mode=mode)
+        want = (fn(EquirectCamera(PANO_H, 2 * PANO_H), pose)["rgb"] * 255 + 0.5).astype(np.uint8)
+        np.testing.assert_array_equal(images[mode], want)
+    alpha = read_rgb(tmp_path / "raw_alpha.png")[..., 0]
+    partial = (alpha > 0) & (alpha < 250)
+    assert partial.any()
+    assert (
+        images["raw"][partial].astype(int).sum(-1) < images["normalised"][partial].astype(int).sum(-1)
+    ).mean() > 0.9
+    assert (images["filled"][partial] != images["normalised"][partial]).any()
+    res = CliRunner().invoke(
+        sim_app,
+        ["render", str(folder), "--frame", "0", "--out", str(tmp_path / "x.png"), "--splat", "premultiplied"],
+    )
+    assert res.exit_code == 2 and "--splat must be one of raw, normalised, filled" in res.output

@@ -109,19 +109,33 @@ class GaussianRenderFn:
     opacities (N,), colors (N, 3) and optionally features (N, C). ``renderer`` (optional) is a
     callable ``renderer(splat_output) -> rgb (1, 3, H, W)`` applied after splatting. ``device``: where
     the Gaussians live and the splat runs (``cuda`` on a GPU machine); observations come back as
-    CPU numpy arrays either way.
+    CPU numpy arrays either way. ``mode``: how the splat becomes an image without a renderer,
+    :func:`~image2sim.simulator.renderer.holefill.splat_rgbd`'s ``raw``, ``normalised`` (default:
+    the expected colour, as ``eval render``'s ``splat_only``) or ``filled`` (holes completed, as
+    its ``splat_fill``).
     """
 
     def __init__(
-        self, gaussians: dict, renderer: Callable | None = None, backend: str = "auto", device=None
+        self,
+        gaussians: dict,
+        renderer: Callable | None = None,
+        backend: str = "auto",
+        device=None,
+        mode: str = "normalised",
     ) -> None:
+        from image2sim.simulator.renderer.holefill import SPLAT_MODES
+
+        if mode not in SPLAT_MODES:
+            raise ValueError(f"GaussianRenderFn: mode must be one of {SPLAT_MODES}, got {mode!r}")
         self.device = _render_device(device)
         self.gaussians = _on_device(gaussians, self.device, "GaussianRenderFn")
         self.renderer = renderer
         self.backend = backend
+        self.mode = mode
 
     def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
         import torch
+        from image2sim.simulator.renderer.holefill import splat_rgbd
         from image2sim.simulator.splatting import splat
 
         g = self.gaussians
@@ -138,8 +152,10 @@ class GaussianRenderFn:
                 pose,
                 backend=self.backend,
             )
-            rgb = self.renderer(out) if self.renderer is not None else out.rgb
-            depth = out.normalized_depth()
+            panoramic = isinstance(camera, EquirectCamera)
+            rgb, depth = splat_rgbd(out.rgb, out.depth, out.alpha, self.mode, panoramic)
+            if self.renderer is not None:
+                rgb = self.renderer(out)
         return {
             "rgb": rgb[0].permute(1, 2, 0).clamp(0, 1).float().cpu().numpy(),
             "depth": depth[0, 0].float().cpu().numpy(),
@@ -319,17 +335,25 @@ def gaussian_tensors(gaussians) -> dict:
 
 
 def gaussian_render_fn(
-    gaussians, renderer=None, *, steps: int = 1, seed: int = 0, backend: str = "auto", device=None
+    gaussians,
+    renderer=None,
+    *,
+    steps: int = 1,
+    seed: int = 0,
+    backend: str = "auto",
+    device=None,
+    mode: str = "normalised",
 ) -> RenderFn:
     """The render function of a Gaussian scene: :class:`PixelFlowRenderFn` when ``renderer`` is
     pixel-flow weights (a path or a ``PixelFlowRenderer``), else :class:`GaussianRenderFn` (splat
     only, with ``renderer`` applied after splatting when it is another callable). ``gaussians``: a
-    scene's ``Gaussians`` or a tensor dict; ``device``: cpu (default) or cuda."""
+    scene's ``Gaussians`` or a tensor dict; ``device``: cpu (default) or cuda; ``mode``: the splat-only
+    image (:class:`GaussianRenderFn`)."""
     tensors = gaussians if isinstance(gaussians, dict) else gaussian_tensors(gaussians)
     model = load_pixel_flow(renderer)
     if model is not None:
         return PixelFlowRenderFn(tensors, model, steps=steps, seed=seed, backend=backend, device=device)
-    return GaussianRenderFn(tensors, renderer, backend, device=device)
+    return GaussianRenderFn(tensors, renderer, backend, device=device, mode=mode)
 
 
 class NeuralSimulator:

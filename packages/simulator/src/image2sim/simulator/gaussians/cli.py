@@ -202,15 +202,27 @@ def render_command(
         help="Pixel-flow renderer (export folder, .safetensors or .ckpt): RGB-D from the renderer.",
     ),
     steps: int = typer.Option(1, "--steps", help="Pixel-flow network evaluations (with --renderer)."),
+    splat_mode: str = typer.Option(
+        "normalised",
+        "--splat",
+        help="Without --renderer, the splat as an image: normalised (expected colour: the composite "
+        "divided by alpha, so gaps between Gaussians are not darkened; what the simulator shows), "
+        "filled (holes completed from their surroundings, eval render's splat_fill) or raw (the "
+        "composite over black).",
+    ),
 ) -> None:
     """Render a saved scene at a frame's pose or a given pose: RGB, depth and alpha images."""
     import numpy as np
     import torch
     from image2sim.simulator.gaussians.frames import resize_camera
     from image2sim.simulator.gaussians.scene import GaussianScene, SceneError
+    from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.io.images import write_rgb_png, write_uint16_png
+    from image2sim.simulator.renderer.holefill import SPLAT_MODES, splat_rgbd
 
     try:
+        if splat_mode not in SPLAT_MODES:
+            raise ValueError(f"--splat must be one of {', '.join(SPLAT_MODES)}, got {splat_mode!r}")
         sc = GaussianScene.load(scene)
         if (frame >= 0) == bool(pose):
             raise ValueError("give exactly one of --frame or --pose")
@@ -238,9 +250,14 @@ def render_command(
     except (SceneError, ValueError, FileNotFoundError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    rgb_f = res.rgb[0].permute(1, 2, 0).clamp(0, 1).numpy() if flow is None else flow["rgb"]
-    rgb = (rgb_f * 255 + 0.5).astype(np.uint8)
-    depth = res.normalized_depth()[0, 0].numpy() if flow is None else flow["depth"]
+    if flow is None:
+        splat_rgb, splat_depth = splat_rgbd(
+            res.rgb, res.depth, res.alpha, splat_mode, isinstance(camera, EquirectCamera)
+        )
+        rgb_f, depth = splat_rgb[0].permute(1, 2, 0).numpy(), splat_depth[0, 0].numpy()
+    else:
+        rgb_f, depth = flow["rgb"], flow["depth"]
+    rgb = (np.clip(rgb_f, 0, 1) * 255 + 0.5).astype(np.uint8)
     alpha = (res.alpha[0, 0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_rgb_png(out, rgb)
@@ -252,7 +269,11 @@ def render_command(
     typer.echo(
         f"{out}: {camera.width}x{camera.height}, {len(sc)} Gaussians, alpha>0.5 on {cover:.1%} of pixels "
         f"({res.backend} backend)"
-        + ("" if flow is None else f", pixel-flow renderer {renderer} in {steps} step(s)")
+        + (
+            f", splat {splat_mode}"
+            if flow is None
+            else f", pixel-flow renderer {renderer} in {steps} step(s)"
+        )
     )
 
 
