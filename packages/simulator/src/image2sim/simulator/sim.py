@@ -152,10 +152,11 @@ class GaussianRenderFn:
                 pose,
                 backend=self.backend,
             )
-            panoramic = isinstance(camera, EquirectCamera)
-            rgb, depth = splat_rgbd(out.rgb, out.depth, out.alpha, self.mode, panoramic)
-            if self.renderer is not None:
-                rgb = self.renderer(out)
+            if self.renderer is not None:  # the renderer makes the colour; depth as the splat has it
+                rgb, depth = self.renderer(out), out.normalized_depth()
+            else:
+                panoramic = isinstance(camera, EquirectCamera)
+                rgb, depth = splat_rgbd(out.rgb, out.depth, out.alpha, self.mode, panoramic)
         return {
             "rgb": rgb[0].permute(1, 2, 0).clamp(0, 1).float().cpu().numpy(),
             "depth": depth[0, 0].float().cpu().numpy(),

@@ -129,7 +129,7 @@ def splat_rgbd(
       splatting's per-pixel normalisation; :func:`~image2sim.simulator.renderer.condition.unpremultiply`),
       so a partly covered pixel shows its surface's colour; background 0 where alpha < 1e-3. This is
       ``eval render``'s ``splat_only`` and the renderer's prior. On held-out panoramas of three
-      procedural houses it scores 0.6-0.9 dB above ``raw`` (docs/gaussians.md).
+      procedural houses it scores 0.6-0.9 dB above ``raw`` (docs/scenes.md).
     - ``filled``: ``normalised`` with the holes (alpha < 1) completed from their surroundings by
       :func:`fill_holes`, grey where nothing at all was projected: ``eval render``'s ``splat_fill``.
     """
