@@ -19,6 +19,7 @@ from image2sim.navpolicy.train import (
     train_bc,
     warmup_cosine,
 )
+from image2sim.simulator.config import ConfigError
 from image2sim.simulator.sampling import StepSampler
 
 
@@ -84,6 +85,21 @@ def test_bc_reduces_the_loss(tiny_cfg, trajs, tmp_path):
     saved = load_config(tmp_path / "run" / "config.yaml")
     assert saved.to_dict() == cfg.to_dict()
     assert (tmp_path / "run" / "logs" / "version_0" / "metrics.csv").is_file()
+
+
+def test_a_wall_clock_cap_stops_training_early_and_still_exports(tiny_cfg, trajs, tmp_path):
+    """``train.max_minutes``: a time-boxed run (a lent GPU's minutes) stops at the cap, keeps a
+    checkpoint and exports a loadable policy; 0 (the default) means no cap; negative is refused."""
+    cfg = _cfg(tiny_cfg, 10_000)
+    cfg.train.max_minutes = 0.05  # 3 s: far fewer than 10 000 steps on any machine
+    res = train_bc(cfg, tmp_path / "run", dataset=InMemoryNavDataset(trajs, 4, 8), export=True)
+    assert 0 < res.global_step < 10_000
+    assert res.last_checkpoint is not None and res.export_dir is not None
+    assert (res.export_dir / "model.safetensors").is_file()
+    bad = copy.deepcopy(cfg)
+    bad.train.max_minutes = -1.0
+    with pytest.raises(ConfigError, match="train.max_minutes"):
+        bad.validate()
 
 
 def test_resume_continues_with_the_same_step_and_data(tiny_cfg, trajs, tmp_path):

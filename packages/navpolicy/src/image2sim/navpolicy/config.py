@@ -188,6 +188,11 @@ class TrainConfig:
     """Gradient accumulation."""
     max_steps: int = 20
     """Optimizer steps."""
+    max_minutes: float = 0.0
+    """Wall-clock cap on fitting, in minutes (0: none). Training stops at the cap, keeps its last
+    checkpoint and exports as if it had finished; the LR schedule still spans ``max_steps``, and
+    ``nav train`` prints the step reached (``global_step``). For time-boxed machines (a lent GPU's
+    minutes), not for results that must be reproducible step for step."""
     lr: float = 1e-3
     """Peak AdamW learning rate."""
     weight_decay: float = 0.0
@@ -377,6 +382,7 @@ class NavPolicyConfig:
         require_render_device(self, "dagger.render_device")
         require_at_least(self, ("dagger.rounds", "dagger.episodes_per_round", "dagger.max_steps"), 1)
         require_at_least(self, "dagger.train_steps_per_round", 0)
+        require_at_least(self, "train.max_minutes", 0.0)
         require_one_of(self, "model.dtype", ("float32", "bfloat16", "float16"))
         return self
 

@@ -18,6 +18,7 @@ import json
 import math
 import os
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 
 import lightning as L
@@ -470,6 +471,7 @@ def train_bc(
         strategy=strategy,
         precision=tc.precision,
         max_steps=max_steps if max_steps is not None else tc.max_steps,
+        max_time=timedelta(minutes=tc.max_minutes) if tc.max_minutes > 0 else None,
         accumulate_grad_batches=tc.accumulate_grad_batches,
         gradient_clip_val=tc.grad_clip if tc.grad_clip > 0 else None,
         log_every_n_steps=tc.log_every,
