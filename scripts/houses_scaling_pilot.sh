@@ -45,7 +45,7 @@ train() {  # <name> <seed> <shuffle> <variant> <shards json>...
   [ -d "$W/bc_$name/export" ] && return 0
   local args=()
   for f in "$@"; do
-    for s in $(python -c "import json,sys; print(' '.join(json.load(open(sys.argv[1]))['shards']))" "$f"); do
+    for s in $(python3 -c "import json,sys; print(' '.join(json.load(open(sys.argv[1]))['shards']))" "$f"); do
       args+=(--shard "$(dirname "$f")/$s"); done; done
   log "train $name (${#args[@]} shard args)"
   local blind=false; [ "$shuffle" = 1 ] && blind=true
@@ -106,7 +106,7 @@ wait  # the trainings and the evaluation houses
 for d in "$W"/bc_*/export; do n=$(basename "$(dirname "$d")"); evaluate "${n#bc_}" "$d" "$(dirname "$d")/config.yaml" & done
 evaluate baselines "" "" &
 wait
-python - "$W" <<'PY'
+python3 - "$W" <<'PY'
 import json, pathlib, sys
 w = pathlib.Path(sys.argv[1])
 rows = {}
