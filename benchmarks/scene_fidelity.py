@@ -96,15 +96,17 @@ def surface_area(scene, cell: float = 0.05) -> float:
     return max(1, torch.unique(keys, dim=0).shape[0]) * cell * cell
 
 
-def procedural_captures(tmp: Path, houses: int) -> list[tuple[str, Path]]:
+def procedural_captures(tmp: Path, seeds: list[int], sparse_house: bool = True) -> list[tuple[str, Path]]:
     from image2sim.dataengine.procedural import generate_scene, preset, write_scene
 
     sc = dataclasses.replace(preset("default"), noise="middle")
     out = []
-    for seed in range(houses):
+    for seed in seeds:
         path = tmp / f"house_{seed}"
-        write_scene(generate_scene(sc, seed=9000 + seed), path)
-        out.append((f"procedural middle, seed {9000 + seed}", path))
+        write_scene(generate_scene(sc, seed=seed), path)
+        out.append((f"procedural middle, seed {seed}", path))
+    if not sparse_house:
+        return out
     # The demo's regime: clean depth, 12 panoramas per house, so some walls are seen frontally only by
     # a held-out frame (the case of fusion.owner_cos).
     sparse = dataclasses.replace(preset("default"), noise="none")
@@ -212,7 +214,19 @@ def main() -> None:
         help="refinement step counts of the best scene, comma-separated ('' = none)",
     )
     ap.add_argument("--skip-hm3d", action="store_true", help="procedural houses only (a quick run)")
+    ap.add_argument(
+        "--seeds",
+        default="",
+        help="seeds of the procedural middle-tier houses, comma-separated (default: 9000.. for --houses)",
+    )
+    ap.add_argument("--skip-sparse", action="store_true", help="leave out the 12-panorama house (seed 9100)")
+    ap.add_argument(
+        "--report",
+        default="scene_fidelity",
+        help="report name under reports/ (a partial run: another name keeps the full report)",
+    )
     args = ap.parse_args()
+    seeds = [int(v) for v in args.seeds.split(",") if v.strip()] or [9000 + i for i in range(args.houses)]
     refine_steps = sorted(int(v) for v in args.refine.split(",") if v.strip())
     torch.set_num_threads(1)
     load = load_average()
@@ -221,7 +235,7 @@ def main() -> None:
         captures = (
             [("HM3D 00000-kfPV7w3FaU5 (86 panoramas)", HM3D)] if HM3D.is_dir() and not args.skip_hm3d else []
         )
-        captures += procedural_captures(Path(tmp), args.houses)
+        captures += procedural_captures(Path(tmp), seeds, sparse_house=not args.skip_sparse)
         for name, path in captures:
             rows.extend(run_capture(name, path, refine_steps))
     lines = [
@@ -257,7 +271,7 @@ def main() -> None:
             f"(raw: {r['own_gap_db_raw']}) | {r['own_absrel']} |"
         )
     write_report(
-        "scene_fidelity",
+        args.report,
         rows,
         {"statistic": "mean over frames; build time one run", "load_average": load},
         markdown=lines,
