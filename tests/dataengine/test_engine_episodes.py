@@ -640,6 +640,8 @@ def test_shard_frames_are_labelled_goal_in_view(full_run):
             rec = json.loads(line)
             seen = rec["extra"]["goal_in_view"]
             assert len(seen) == len(rec["frame_steps"]) and set(seen) <= {0, 1}
+            # the goal's category, which the policy's wrong-goal end samples swap instructions by
+            assert rec["extra"]["goal_category"] == extras[rec["episode_id"]]["goal_object"]["category"]
             start = navmap.to_map(np.asarray(rec["extra"]["start_world"]))
             sim.reset(start[None], np.array([rec["extra"]["heading_world"]]), observe=False)
             pos, head = [start], [rec["extra"]["heading_world"]]

@@ -506,6 +506,7 @@ def process_scene(
                         goal, eyes_of(r)[frame_steps], r.headings[frame_steps], occupancy, goal_view
                     )
                     extra["goal_in_view"] = [int(v) for v in seen]
+                    extra["goal_category"] = str(plan.goal_object.get("category", ""))
                 shard.add(req.episode_id, inputs.name, ann.text, r.actions, frames, frame_steps, extra)
         for w in (writer, approach_writer):
             if w is not None:

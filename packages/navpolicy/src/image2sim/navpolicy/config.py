@@ -168,6 +168,14 @@ class DataConfig:
     had been placed there, with the number of frames seen drawn independently of whether the cut is
     the end: the context's length is then no cue to STOP, only the view is. 0 = every sample starts at
     the episode's start."""
+    wrong_goal_stop_probability: float = 0.0
+    """Probability that a sample is replaced by a *wrong-goal end sample*: the trajectory cut at its
+    end (where the expert stops beside its goal), told the instruction of a trajectory whose goal is
+    another category (same scene when one exists), with no action labels, only a penalty on the
+    model's probability of STOP there (``-log(1 - P(STOP))``). With the regular end samples it
+    makes STOP depend on the instruction, not only on the view. Needs the data engine's
+    ``extra.goal_category`` in the shard records (written since 2026-11-28); trajectories without
+    one are never swapped. 0 = off."""
     num_workers: int = 0
     """DataLoader worker processes."""
     cache_frames: bool = False
@@ -357,7 +365,7 @@ class NavPolicyConfig:
         ):
             raise ConfigError("data.max_trajectories must be >= 1 and cannot be used with data.shard_weights")
         require_in_range(self, "data.end_cut_probability", 0.0, 1.0)
-        require_in_range(self, "data.late_start_probability", 0.0, 1.0)
+        require_in_range(self, ("data.late_start_probability", "data.wrong_goal_stop_probability"), 0.0, 1.0)
         if self.data.sampling == "streaming" and (
             self.agent.sparse_frames + self.agent.dense_frames
             > min(self.data.max_observations, self.data.max_action_labels // 2)

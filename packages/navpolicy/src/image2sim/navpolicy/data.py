@@ -19,6 +19,7 @@ only the frames it will ever sample). Every file is written to a temp name and r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -41,6 +42,9 @@ class ShardError(ValueError):
 
 
 GOAL_IN_VIEW = "goal_in_view"
+GOAL_CATEGORY = "goal_category"
+"""Key of ``Trajectory.extra`` naming the goal object's category (the data engine's episodes with a
+goal object); the wrong-goal end samples of ``data.wrong_goal_stop_probability`` swap by it."""
 """Optional per-frame record field (``extra``): 1 where the instruction's goal object is in the
 frame's view (the data engine's ``goal_in_view``); the target of ``train.goal_aux_weight``."""
 
@@ -113,6 +117,9 @@ class NavSample:
     episode_id: str = ""
     goal_in_view: list[int] | None = None
     """Per observation: 1 if the goal is in view, 0 if not (None: the trajectory has no such labels)."""
+    stop_negative: bool = False
+    """A wrong-goal end sample: the instruction names a goal that is not where the trajectory ends,
+    so its actions are not labels; only STOP at the last observation is penalised."""
 
     @property
     def num_labels(self) -> int:
@@ -178,6 +185,7 @@ def sample_options(cfg) -> dict:
         "context": context,
         "end_cut_probability": d.end_cut_probability,
         "late_start_probability": d.late_start_probability,
+        "wrong_goal_stop_probability": d.wrong_goal_stop_probability,
     }
 
 
@@ -432,10 +440,19 @@ class SampleLayout:
 
 class _SamplingDataset(torch.utils.data.Dataset):
     """What the shard and in-memory datasets share: item ``i`` of epoch ``e`` is
-    ``layout.sample(trajectory i)`` with the generator of (seed, e, i) (no generator without jitter)."""
+    ``layout.sample(trajectory i)`` with the generator of (seed, e, i) (no generator without jitter),
+    or, with ``wrong_goal_stop_probability``, sometimes a wrong-goal end sample of it."""
 
-    def __init__(self, layout: SampleLayout, jitter: bool, seed: int) -> None:
+    def __init__(
+        self, layout: SampleLayout, jitter: bool, seed: int, wrong_goal_stop_probability: float = 0.0
+    ):
         self.layout, self.jitter, self.seed, self.epoch = layout, jitter, seed, 0
+        if not 0.0 <= wrong_goal_stop_probability <= 1.0:
+            raise ValueError(
+                f"wrong_goal_stop_probability must be in [0, 1], got {wrong_goal_stop_probability}"
+            )
+        self.wrong_goal_stop_probability = float(wrong_goal_stop_probability)
+        self._goals: list[tuple[str, str]] | None = None
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -443,13 +460,53 @@ class _SamplingDataset(torch.utils.data.Dataset):
     def trajectory(self, i: int) -> Trajectory:
         raise NotImplementedError
 
+    def goal_of(self, i: int) -> tuple[str, str]:
+        """(scene id, goal category) of trajectory ``i`` without loading its frames ("" if unknown)."""
+        raise NotImplementedError
+
+    def instruction_of(self, i: int) -> str:
+        raise NotImplementedError
+
     def __getitem__(self, i: int) -> NavSample:
-        rng = np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None
+        return self.item(i, np.random.default_rng([self.seed, self.epoch, i]) if self.jitter else None)
+
+    def item(self, i: int, rng: np.random.Generator | None) -> NavSample:
+        """Trajectory ``i`` sampled with ``rng``: a wrong-goal end sample with probability
+        ``wrong_goal_stop_probability`` (never without a generator), else :meth:`sample`."""
+        # Drawn only when enabled, so runs without it keep their sample stream.
+        if rng is not None and self.wrong_goal_stop_probability > 0:
+            if rng.random() < self.wrong_goal_stop_probability:
+                other = self.wrong_goal_source(i, rng)
+                if other is not None:
+                    return self.wrong_goal_sample(self.trajectory(i), self.instruction_of(other), rng)
         return self.sample(self.trajectory(i), rng)
 
     def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
         """``traj`` as this dataset samples it (observation layout, stride, context)."""
         return self.layout.sample(traj, rng)
+
+    def wrong_goal_source(self, i: int, rng: np.random.Generator) -> int | None:
+        """A trajectory whose goal category differs from trajectory ``i``'s, from the same scene when
+        the scene has one (its instruction then names an object of this house, elsewhere), else from
+        any scene; None when ``i`` has no known category or no other category exists."""
+        if self._goals is None:
+            self._goals = [self.goal_of(j) for j in range(len(self))]
+        scene, category = self._goals[i]
+        if not category:
+            return None
+        others = [j for j, (_, c) in enumerate(self._goals) if c and c != category]
+        same = [j for j in others if self._goals[j][0] == scene]
+        pool = same or others
+        return int(pool[int(rng.integers(len(pool)))]) if pool else None
+
+    def wrong_goal_sample(self, traj: Trajectory, instruction: str, rng: np.random.Generator) -> NavSample:
+        """``traj`` cut at its end (the expert's STOP beside its goal) under ``instruction``, which
+        names another goal: a sample whose only training signal is "do not STOP here"."""
+        if self.layout.context is None:  # whole-trajectory layout: unjittered, so it ends at the end
+            end = self.layout.sample(traj, None)
+        else:
+            end = dataclasses.replace(self.layout, end_cut_probability=1.0).sample(traj, rng)
+        return dataclasses.replace(end, instruction=instruction, goal_in_view=None, stop_negative=True)
 
 
 class NavShardDataset(_SamplingDataset):
@@ -469,11 +526,12 @@ class NavShardDataset(_SamplingDataset):
         max_trajectories: int | None = None,
         cache_frames: bool = False,
         shuffle_instructions: bool = False,
+        wrong_goal_stop_probability: float = 0.0,
     ) -> None:
         layout = SampleLayout(
             max_observations, max_action_labels, stride, context, end_cut_probability, late_start_probability
         )
-        super().__init__(layout, jitter, seed)
+        super().__init__(layout, jitter, seed, wrong_goal_stop_probability)
         if not shards:
             raise ShardError("no shard folders given")
         self.readers = [ShardReader(s, cache_frames) for s in shards]
@@ -500,6 +558,17 @@ class NavShardDataset(_SamplingDataset):
             traj.extra = {k: v for k, v in traj.extra.items() if k != GOAL_IN_VIEW}
         return traj
 
+    def _record(self, i: int) -> dict:
+        r, j = self.index[i]
+        return self.readers[r].records[j]
+
+    def goal_of(self, i: int) -> tuple[str, str]:
+        rec = self._record(i)
+        return str(rec.get("scene_id", "")), str((rec.get("extra") or {}).get(GOAL_CATEGORY, ""))
+
+    def instruction_of(self, i: int) -> str:
+        return str(self._record(i)["instruction"])
+
 
 class InMemoryNavDataset(_SamplingDataset):
     """Samples over trajectories held in memory (tests, DAgger's online buffer)."""
@@ -515,11 +584,12 @@ class InMemoryNavDataset(_SamplingDataset):
         context: tuple[int, int] | None = None,
         end_cut_probability: float = 0.0,
         late_start_probability: float = 0.0,
+        wrong_goal_stop_probability: float = 0.0,
     ) -> None:
         layout = SampleLayout(
             max_observations, max_action_labels, stride, context, end_cut_probability, late_start_probability
         )
-        super().__init__(layout, jitter, seed)
+        super().__init__(layout, jitter, seed, wrong_goal_stop_probability)
         self.trajectories = list(trajectories)
 
     def __len__(self) -> int:
@@ -527,6 +597,13 @@ class InMemoryNavDataset(_SamplingDataset):
 
     def trajectory(self, i: int) -> Trajectory:
         return self.trajectories[i]
+
+    def goal_of(self, i: int) -> tuple[str, str]:
+        t = self.trajectories[i]
+        return t.scene_id, str((t.extra or {}).get(GOAL_CATEGORY, ""))
+
+    def instruction_of(self, i: int) -> str:
+        return self.trajectories[i].instruction
 
 
 # -------------------------------------------------------------------------------------------- collator
@@ -593,7 +670,7 @@ def patchify_batch(images: Sequence[np.ndarray], processor) -> tuple[torch.Tenso
     return pixel_values, grid
 
 
-TRAINING_ONLY_KEYS = ("episode_ids", "goal_in_view", "image_end")
+TRAINING_ONLY_KEYS = ("episode_ids", "goal_in_view", "image_end", "stop_negative_mask")
 """Entries of a :class:`NavCollator` batch for the training module (losses, logging), not the model."""
 
 
@@ -650,12 +727,18 @@ class NavCollator:
         labels = torch.full((b, length), IGNORE_INDEX, dtype=torch.long)
         mm = torch.zeros((b, length), dtype=torch.long)
         attn = torch.zeros((b, length), dtype=torch.long)
+        stop_negative = (
+            torch.zeros((b, length), dtype=torch.bool) if any(s.stop_negative for s in samples) else None
+        )
         for i, e in enumerate(encs):
             n = len(e)
             input_ids[i, :n] = torch.tensor(e.input_ids)
             labels[i, :n] = torch.tensor(e.labels)
             mm[i, :n] = torch.tensor(e.mm_token_type_ids)
             attn[i, :n] = 1
+            if samples[i].stop_negative:
+                stop_negative[i, self.final_stop_positions(e.labels, samples[i].targets[-1])] = True
+                labels[i] = IGNORE_INDEX  # the actions followed another goal: no labels
         # Belt and braces: no label may ever sit on an image token.
         labels[mm != 0] = IGNORE_INDEX
         batch = {
@@ -672,7 +755,23 @@ class NavCollator:
                 dtype=torch.float32,
             )
             batch["image_end"] = image_end_positions(mm)
+        if stop_negative is not None:
+            batch["stop_negative_mask"] = stop_negative
         return batch
+
+    def final_stop_positions(self, labels: Sequence[int], target: Sequence[int]) -> list[int]:
+        """Token positions of the STOP action in the last reply (``target``), read off the labelled
+        positions (every reply's action pieces are labelled, in order); [] when it has no STOP."""
+        from image2sim.navpolicy.actions import Action
+
+        if int(Action.STOP) not in [int(a) for a in target]:
+            return []
+        pieces = self.prompts.codec.encode(tuple(target))
+        labelled = [p for p, v in enumerate(labels) if v != IGNORE_INDEX]
+        last = labelled[len(labelled) - sum(len(pc) for pc in pieces) :]
+        k = [int(a) for a in target].index(int(Action.STOP))
+        start = sum(len(pc) for pc in pieces[:k])
+        return last[start : start + len(pieces[k])]
 
 
 # --------------------------------------------------------------------------------- observations

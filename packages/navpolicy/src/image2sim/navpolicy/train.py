@@ -163,9 +163,8 @@ class PositionDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, position: int):
         epoch, i = self.locate(int(position))
-        traj = self.base.trajectory(i)
         rng = np.random.default_rng([self.seed, epoch, i]) if self.base.jitter else None
-        sample = self.base.sample(traj, rng)
+        sample = self.base.item(i, rng)
         sample.episode_id = sample.episode_id or f"#{i}"
         return sample
 
@@ -248,6 +247,25 @@ def action_accuracy(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return (pred[mask] == tgt[mask]).float().mean()
 
 
+def stop_unlikelihood(
+    logits: torch.Tensor, input_ids: torch.Tensor, mask: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Unlikelihood of STOP on wrong-goal end samples: ``-log(1 - P(STOP))`` averaged over the samples
+    with a marked STOP, where P(STOP) is the product of the probabilities the model gives the STOP
+    piece's tokens (``mask``, (B, L) True at their positions; each token is predicted by the logits of
+    the position before it). Returns (loss, mean P(STOP)), or None when nothing is marked. Only the
+    marked rows are put through the softmax, so the cost does not grow with the vocabulary x length."""
+    if mask is None or not bool(mask.any()):
+        return None
+    b, t = mask[:, 1:].nonzero(as_tuple=True)  # token t + 1 predicted at position t
+    logp = torch.log_softmax(logits[b, t].float(), dim=-1).gather(-1, input_ids[b, t + 1].unsqueeze(-1))
+    per_sample = torch.zeros(mask.shape[0], dtype=logp.dtype, device=logp.device).index_add(0, b, logp[:, 0])
+    marked = torch.unique(b)
+    p_stop = per_sample[marked].exp()
+    # The (1 - 1e-6) caps the loss at ~13.8 where P(STOP) rounds to 1, keeping its gradient finite.
+    return -torch.log1p(-p_stop * (1.0 - 1e-6)).mean(), p_stop.mean().detach()
+
+
 class NavBCModule(L.LightningModule):
     """Behaviour cloning: cross-entropy on the action tokens of interleaved image/action prompts."""
 
@@ -302,9 +320,8 @@ class NavBCModule(L.LightningModule):
         tc, shards = self.cfg.train, self.cfg.data.val_shards
         if not shards:
             return []
-        val = NavShardDataset(
-            shards, seed=tc.seed, cache_frames=self.cfg.data.cache_frames, **sample_options(self.cfg)
-        )
+        opts = sample_options(self.cfg) | {"wrong_goal_stop_probability": 0.0}  # labelled samples only
+        val = NavShardDataset(shards, seed=tc.seed, cache_frames=self.cfg.data.cache_frames, **opts)
         count = min(len(val), tc.val_batches * tc.batch_size)
         order = epoch_permutation(len(val), tc.seed, 0)[:count]
         return torch.utils.data.DataLoader(
@@ -358,12 +375,22 @@ class NavBCModule(L.LightningModule):
         bsz = batch["input_ids"].shape[0]
         self.seen.append(list(batch["episode_ids"]))
         loss = out.loss
+        wrong = stop_unlikelihood(out.logits, batch["input_ids"], batch.get("stop_negative_mask"))
+        if wrong is not None:
+            # Each wrong-goal sample counts as one more label of the token mean, so its "not STOP"
+            # weighs what the expert's STOP label weighs (not a whole sample's worth of labels).
+            n_tok = int((batch["labels"][:, 1:] != IGNORE_INDEX).sum())
+            n_neg = int(batch["stop_negative_mask"].any(1).sum())
+            action = out.loss * n_tok if n_tok else out.logits.sum() * 0.0  # no labels: the mean is NaN
+            loss = (action + wrong[0] * n_neg) / (n_tok + n_neg)
+            self.log("train/wrong_goal_stop_loss", wrong[0], batch_size=bsz)
+            self.log("train/wrong_goal_p_stop", wrong[1], batch_size=bsz)
         goal = self.goal_loss(batch, out)
         if goal is not None:
             loss = loss + self.cfg.train.goal_aux_weight * goal[0]
             self.log("train/goal_loss", goal[0], batch_size=bsz)
             self.log("train/goal_acc", goal[1], batch_size=bsz)
-        self.losses.append(float(out.loss.detach()))
+        self.losses.append(float(loss.detach()) if wrong is not None else float(out.loss.detach()))
         self.log("train/loss", out.loss, prog_bar=True, batch_size=bsz)
         self.log("train/action_acc", action_accuracy(out.logits.detach(), batch["labels"]), batch_size=bsz)
         return loss
