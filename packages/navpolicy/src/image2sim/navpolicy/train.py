@@ -374,15 +374,15 @@ class NavBCModule(L.LightningModule):
         out = self(batch)
         bsz = batch["input_ids"].shape[0]
         self.seen.append(list(batch["episode_ids"]))
-        loss = out.loss
+        # Wrong-goal samples carry no labels: a batch of only those has no action loss (its mean is NaN).
+        n_tok = int((batch["labels"][:, 1:] != IGNORE_INDEX).sum())
+        loss = out.loss if n_tok else out.logits.sum() * 0.0
         wrong = stop_unlikelihood(out.logits, batch["input_ids"], batch.get("stop_negative_mask"))
         if wrong is not None:
             # Each wrong-goal sample counts as one more label of the token mean, so its "not STOP"
             # weighs what the expert's STOP label weighs (not a whole sample's worth of labels).
-            n_tok = int((batch["labels"][:, 1:] != IGNORE_INDEX).sum())
             n_neg = int(batch["stop_negative_mask"].any(1).sum())
-            action = out.loss * n_tok if n_tok else out.logits.sum() * 0.0  # no labels: the mean is NaN
-            loss = (action + wrong[0] * n_neg) / (n_tok + n_neg)
+            loss = (loss * n_tok + wrong[0] * n_neg) / (n_tok + n_neg)
             self.log("train/wrong_goal_stop_loss", wrong[0], batch_size=bsz)
             self.log("train/wrong_goal_p_stop", wrong[1], batch_size=bsz)
         goal = self.goal_loss(batch, out)
@@ -390,7 +390,9 @@ class NavBCModule(L.LightningModule):
             loss = loss + self.cfg.train.goal_aux_weight * goal[0]
             self.log("train/goal_loss", goal[0], batch_size=bsz)
             self.log("train/goal_acc", goal[1], batch_size=bsz)
-        self.losses.append(float(loss.detach()) if wrong is not None else float(out.loss.detach()))
+        self.losses.append(
+            float(loss.detach()) if wrong is not None or not n_tok else float(out.loss.detach())
+        )
         self.log("train/loss", out.loss, prog_bar=True, batch_size=bsz)
         self.log("train/action_acc", action_accuracy(out.logits.detach(), batch["labels"]), batch_size=bsz)
         return loss
