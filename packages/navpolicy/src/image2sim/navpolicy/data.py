@@ -42,11 +42,11 @@ class ShardError(ValueError):
 
 
 GOAL_IN_VIEW = "goal_in_view"
+"""Optional per-frame record field (``extra``): 1 where the instruction's goal object is in the
+frame's view (the data engine's ``goal_in_view``); the target of ``train.goal_aux_weight``."""
 GOAL_CATEGORY = "goal_category"
 """Key of ``Trajectory.extra`` naming the goal object's category (the data engine's episodes with a
 goal object); the wrong-goal end samples of ``data.wrong_goal_stop_probability`` swap by it."""
-"""Optional per-frame record field (``extra``): 1 where the instruction's goal object is in the
-frame's view (the data engine's ``goal_in_view``); the target of ``train.goal_aux_weight``."""
 
 
 @dataclass
@@ -452,7 +452,7 @@ class _SamplingDataset(torch.utils.data.Dataset):
                 f"wrong_goal_stop_probability must be in [0, 1], got {wrong_goal_stop_probability}"
             )
         self.wrong_goal_stop_probability = float(wrong_goal_stop_probability)
-        self._goals: list[tuple[str, str]] | None = None
+        self._goals: dict[str, list[tuple[int, str]]] | None = None
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -489,14 +489,18 @@ class _SamplingDataset(torch.utils.data.Dataset):
         """A trajectory whose goal category differs from trajectory ``i``'s, from the same scene when
         the scene has one (its instruction then names an object of this house, elsewhere), else from
         any scene; None when ``i`` has no known category or no other category exists."""
-        if self._goals is None:
-            self._goals = [self.goal_of(j) for j in range(len(self))]
-        scene, category = self._goals[i]
+        if self._goals is None:  # scene -> [(trajectory, category)], read once
+            self._goals = {}
+            for j in range(len(self)):
+                scene_j, category_j = self.goal_of(j)
+                if category_j:
+                    self._goals.setdefault(scene_j, []).append((j, category_j))
+        scene, category = self.goal_of(i)
         if not category:
             return None
-        others = [j for j, (_, c) in enumerate(self._goals) if c and c != category]
-        same = [j for j in others if self._goals[j][0] == scene]
-        pool = same or others
+        pool = [j for j, c in self._goals.get(scene, []) if c != category]  # this house first
+        if not pool:
+            pool = [j for entries in self._goals.values() for j, c in entries if c != category]
         return int(pool[int(rng.integers(len(pool)))]) if pool else None
 
     def wrong_goal_sample(self, traj: Trajectory, instruction: str, rng: np.random.Generator) -> NavSample:
@@ -762,14 +766,13 @@ class NavCollator:
     def final_stop_positions(self, labels: Sequence[int], target: Sequence[int]) -> list[int]:
         """Token positions of the STOP action in the last reply (``target``), read off the labelled
         positions (every reply's action pieces are labelled, in order); [] when it has no STOP."""
-        from image2sim.navpolicy.actions import Action
-
-        if int(Action.STOP) not in [int(a) for a in target]:
+        actions = [int(a) for a in target]
+        if int(Action.STOP) not in actions:
             return []
-        pieces = self.prompts.codec.encode(tuple(target))
+        pieces = self.prompts.codec.encode(actions)
         labelled = [p for p, v in enumerate(labels) if v != IGNORE_INDEX]
         last = labelled[len(labelled) - sum(len(pc) for pc in pieces) :]
-        k = [int(a) for a in target].index(int(Action.STOP))
+        k = actions.index(int(Action.STOP))
         start = sum(len(pc) for pc in pieces[:k])
         return last[start : start + len(pieces[k])]
 

@@ -385,14 +385,13 @@ class NavBCModule(L.LightningModule):
             loss = (loss * n_tok + wrong[0] * n_neg) / (n_tok + n_neg)
             self.log("train/wrong_goal_stop_loss", wrong[0], batch_size=bsz)
             self.log("train/wrong_goal_p_stop", wrong[1], batch_size=bsz)
+        action_loss = loss  # the action part, before the auxiliary grounding loss
         goal = self.goal_loss(batch, out)
         if goal is not None:
             loss = loss + self.cfg.train.goal_aux_weight * goal[0]
             self.log("train/goal_loss", goal[0], batch_size=bsz)
             self.log("train/goal_acc", goal[1], batch_size=bsz)
-        self.losses.append(
-            float(loss.detach()) if wrong is not None or not n_tok else float(out.loss.detach())
-        )
+        self.losses.append(float(action_loss.detach()))
         self.log("train/loss", out.loss, prog_bar=True, batch_size=bsz)
         self.log("train/action_acc", action_accuracy(out.logits.detach(), batch["labels"]), batch_size=bsz)
         return loss
