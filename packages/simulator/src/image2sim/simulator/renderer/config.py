@@ -11,9 +11,17 @@ import dataclasses
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
-from image2sim.simulator.config import require_at_least, require_in_range, require_one_of
+from image2sim.simulator.config import (
+    ConfigError,
+    config_to_dict,
+    merge_config,
+    read_mapping,
+    require_at_least,
+    require_in_range,
+    require_one_of,
+)
 from image2sim.simulator.gaussians.config import SemanticConfig
 from image2sim.simulator.trainer import TrainerConfig, check_trainer_config
 
@@ -406,66 +414,19 @@ def paper() -> RendererConfig:
 PRESETS: dict[str, typing.Callable[[], RendererConfig]] = {"tiny": tiny, "paper": paper}
 
 
-def _coerce(value: Any, annotation: Any, where: str) -> Any:
-    """Convert YAML data to the annotated type (nested dataclasses, tuples), naming ``where``."""
-    origin = typing.get_origin(annotation)
-    if dataclasses.is_dataclass(annotation):
-        return _merge(annotation(), value, where) if not isinstance(value, annotation) else value
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ValueError(f"{where}: expected a list, got {type(value).__name__}")
-        args = typing.get_args(annotation)
-        item = args[0] if args else Any
-        if len(args) == 2 and args[1] is Ellipsis or len(args) == 1:
-            return tuple(_coerce(v, item, f"{where}[{i}]") for i, v in enumerate(value))
-        if len(args) != len(value):
-            raise ValueError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(
-            _coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=False))
-        )
-    if annotation is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if annotation in (int, float, bool, str) and not isinstance(value, annotation):
-        raise ValueError(f"{where}: expected {annotation.__name__}, got {value!r}")
-    return value
-
-
-def _merge(base: Any, data: Any, where: str) -> Any:
-    """Return a copy of dataclass ``base`` with ``data`` (a mapping) applied, rejecting unknown keys."""
-    if not isinstance(data, dict):
-        raise ValueError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(type(base))
-    names = {f.name for f in dataclasses.fields(base)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        prefix = f"{where}." if where else ""
-        raise ValueError(f"unknown config key(s) {[prefix + k for k in unknown]}; allowed: {sorted(names)}")
-    updates = {}
-    for key, value in data.items():
-        sub = f"{where}.{key}" if where else key
-        current = getattr(base, key)
-        if dataclasses.is_dataclass(current):
-            updates[key] = _merge(current, value, sub)
-        else:
-            updates[key] = _coerce(value, hints[key], sub)
-    try:
-        return dataclasses.replace(base, **updates)
-    except ValueError as exc:
-        raise ValueError(f"{where or 'config'}: {exc}") from exc
-
-
 def renderer_config_from_dict(data: dict | None, preset: str | None = None) -> RendererConfig:
-    """Build a config from ``data`` on top of ``preset`` (default: ``data['name']`` or ``tiny``)."""
+    """Build a config from ``data`` on top of ``preset`` (default: ``data['name']`` or ``tiny``);
+    unknown keys and wrong types raise :class:`ConfigError` naming the dotted field."""
     data = dict(data or {})
     name = preset or data.get("name", "tiny")
     if name not in PRESETS:
-        raise ValueError(f"unknown renderer preset {name!r}; choose from {sorted(PRESETS)}")
+        raise ConfigError(f"unknown renderer preset {name!r}; choose from {sorted(PRESETS)}")
     data.setdefault("name", name)
-    return _merge(PRESETS[name](), data, "")
+    return merge_config(PRESETS[name](), data)
 
 
 def load_renderer_config(path_or_name: str | Path) -> RendererConfig:
-    """A preset name (``tiny``/``paper``) or a YAML file with a mapping of overrides."""
+    """A preset name (``tiny``/``paper``) or a YAML/JSON file with a mapping of overrides."""
     if str(path_or_name) in PRESETS:
         return PRESETS[str(path_or_name)]()
     path = Path(path_or_name)
@@ -473,26 +434,8 @@ def load_renderer_config(path_or_name: str | Path) -> RendererConfig:
         raise FileNotFoundError(
             f"renderer config {path} does not exist (and is not one of {sorted(PRESETS)})"
         )
-    import yaml
-
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: invalid YAML: {exc}") from exc
+    data = read_mapping(path)
     try:
         return renderer_config_from_dict(data)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from exc
-
-
-def config_to_dict(cfg: RendererConfig) -> dict:
-    """Plain nested dict (tuples as lists) suitable for YAML/JSON."""
-
-    def convert(obj: Any) -> Any:
-        if isinstance(obj, tuple):
-            return [convert(v) for v in obj]
-        if isinstance(obj, dict):
-            return {k: convert(v) for k, v in obj.items()}
-        return obj
-
-    return convert(dataclasses.asdict(cfg))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
