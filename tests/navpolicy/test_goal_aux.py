@@ -73,6 +73,13 @@ def test_bad_labels_are_refused_and_borrowed_instructions_drop_them(trajs, tmp_p
     assert all(GOAL_IN_VIEW not in shuffled.trajectory(i).extra for i in range(len(shuffled)))
 
 
+def head_loss_by_hand(module, batch, out, layer: int) -> torch.Tensor:
+    """The grounding loss written out: the head on hidden state ``layer`` at each image's last token."""
+    h = out.hidden_states[layer][batch["image_end"][:, 0], batch["image_end"][:, 1]]
+    logits = module.goal_head(h).squeeze(-1)
+    return torch.nn.functional.binary_cross_entropy_with_logits(logits, batch["goal_in_view"])
+
+
 def test_training_adds_the_heads_loss_and_learns_it(tiny_cfg, trajs, tmp_path):
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.train import NavBCModule, train_bc
@@ -87,11 +94,7 @@ def test_training_adds_the_heads_loss_and_learns_it(tiny_cfg, trajs, tmp_path):
     batch = module._collate([make_sample(t, 4, 8, None) for t in trajs[:4]])
     out = module(batch)
     bce, _ = module.goal_loss(batch, out)
-    h = out.hidden_states[-1][batch["image_end"][:, 0], batch["image_end"][:, 1]]
-    manual = torch.nn.functional.binary_cross_entropy_with_logits(
-        module.goal_head(h).squeeze(-1), batch["goal_in_view"]
-    )
-    torch.testing.assert_close(bce, manual)
+    torch.testing.assert_close(bce, head_loss_by_hand(module, batch, out, layer=-1))
     module.log = lambda *a, **k: None  # outside a Trainer
     module.seen, module.losses = [], []
     total = module.training_step(batch, 0)
@@ -115,3 +118,34 @@ def test_without_the_weight_there_is_no_head(tiny_cfg, tiny_policy):
     assert NavBCModule(copy.deepcopy(tiny_policy), tiny_cfg).goal_head is None
     with pytest.raises(ConfigError, match="goal_aux_weight"):
         from_dict({"train": {"goal_aux_weight": -1.0}})
+
+
+def test_the_head_can_read_a_state_that_later_tokens_attend_to(tiny_cfg, trajs):
+    """``goal_aux_layer=-2`` reads the output of the layer before the last: the loss then trains no
+    weight of the last layer (whose output at the image's last token no later token can read), and
+    an index past the embeddings, or a non-negative one, is refused by name."""
+    from image2sim.navpolicy.config import ConfigError, from_dict
+    from image2sim.navpolicy.model import build_policy
+    from image2sim.navpolicy.train import NavBCModule
+
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.train.goal_aux_weight, cfg.train.goal_aux_layer = 1.0, -2
+    cfg.data.max_observations, cfg.data.max_action_labels = 4, 8
+    module = NavBCModule(build_policy(cfg, seed=0), cfg)
+    batch = module._collate([make_sample(t, 4, 8, None) for t in trajs[:4]])
+    out = module(batch)
+    bce, _ = module.goal_loss(batch, out)
+    torch.testing.assert_close(bce, head_loss_by_hand(module, batch, out, layer=-2))
+    bce.backward()
+    layers = module.model.model.language_model.layers
+    last = [p.grad for p in layers[-1].parameters() if p.requires_grad]
+    first = [p.grad for p in layers[0].parameters() if p.requires_grad]
+    assert all(g is None or float(g.abs().max()) == 0.0 for g in last)
+    assert any(g is not None and float(g.abs().max()) > 0.0 for g in first)
+
+    cfg.train.goal_aux_layer = -(len(layers) + 1)  # the embeddings: not a layer's output
+    module = NavBCModule(build_policy(cfg, seed=0), cfg)
+    with pytest.raises(ValueError, match="goal_aux_layer"):
+        module.goal_loss(batch, module(batch))
+    with pytest.raises(ConfigError, match="goal_aux_layer"):
+        from_dict({"train": {"goal_aux_layer": 0}})

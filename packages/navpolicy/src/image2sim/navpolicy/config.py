@@ -211,6 +211,12 @@ class TrainConfig:
     cross-entropy; labels from the shard records' ``goal_in_view``; samples without them add
     nothing). Only a model that ties the instruction's words to the image can lower it. The head is
     for training only and is not exported. 0: off."""
+    goal_aux_layer: int = -1
+    """Which language-model state the grounding head reads, as an index into the model's hidden
+    states (embeddings, then each layer's output): -1 the final state, -2 the output of the layer
+    before the last, and so on. In a causal model no later token can read the final state of the
+    image's last token, so a fact the head finds there can never reach the action tokens; -2 asks
+    for it where the last layer's attention at the action tokens can read it."""
     warmup_steps: int = 2
     """Linear warm-up steps before cosine decay."""
     min_lr_ratio: float = 0.1
@@ -358,6 +364,11 @@ class NavPolicyConfig:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
         require_at_least(self, "train.goal_aux_weight", 0)
+        if self.train.goal_aux_layer >= 0:
+            raise ConfigError(
+                f"train.goal_aux_layer must be a negative index into the hidden states (-1: the final "
+                f"state), got {self.train.goal_aux_layer}"
+            )
         require_at_least(self, ("train.val_every", "train.val_batches", "data.observation_stride"), 1)
         require_one_of(self, "data.sampling", ("uniform", "streaming"))
         if self.data.max_trajectories is not None and (

@@ -364,7 +364,12 @@ class NavBCModule(L.LightningModule):
         known = y >= 0
         if not bool(known.any()):
             return None
-        h = out.hidden_states[-1][ends[known, 0], ends[known, 1]]
+        layer = self.cfg.train.goal_aux_layer
+        if -layer > len(out.hidden_states) - 1:  # index 0 holds the embeddings, not a layer's output
+            raise ValueError(
+                f"train.goal_aux_layer={layer}: the language model has {len(out.hidden_states) - 1} layers"
+            )
+        h = out.hidden_states[layer][ends[known, 0], ends[known, 1]]
         logits = self.goal_head(h.to(self.goal_head.weight.dtype)).squeeze(-1)
         loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[known])
         acc = ((logits.detach() > 0).float() == y[known]).float().mean()
