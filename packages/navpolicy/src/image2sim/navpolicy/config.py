@@ -364,11 +364,7 @@ class NavPolicyConfig:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
         require_at_least(self, "train.goal_aux_weight", 0)
-        if self.train.goal_aux_layer >= 0:
-            raise ConfigError(
-                f"train.goal_aux_layer must be a negative index into the hidden states (-1: the final "
-                f"state), got {self.train.goal_aux_layer}"
-            )
+        require_in_range(self, "train.goal_aux_layer", float("-inf"), -1)  # a negative hidden-state index
         require_at_least(self, ("train.val_every", "train.val_batches", "data.observation_stride"), 1)
         require_one_of(self, "data.sampling", ("uniform", "streaming"))
         if self.data.max_trajectories is not None and (
