@@ -17,7 +17,7 @@ from image2sim.navpolicy.data import (
     synthetic_trajectories,
 )
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
-from image2sim.navpolicy.train import stop_unlikelihood, train_bc
+from image2sim.navpolicy.train import stop_unlikelihood, stop_weighted_token_loss, train_bc
 
 CATEGORY_TINT = {"sofa": np.array([255, 60, 60]), "bed": np.array([60, 60, 255])}
 
@@ -95,6 +95,59 @@ def test_the_collator_marks_only_the_final_stop_and_drops_the_labels(tiny_policy
     last_reply = labelled[len(labelled) - sum(len(pc) for pc in tiny_policy.codec.encode(neg.targets[-1])) :]
     assert set(mask[0].nonzero()[:, 0].tolist()) <= set(last_reply)
     assert "stop_negative_mask" not in col([pos])
+    # The regular sample's own final STOP is marked for train.stop_weight, at its labelled tokens.
+    plus = batch["stop_positive_mask"]
+    assert not plus[0].any() and plus[1].any()
+    assert (batch["labels"][1][plus[1]] != IGNORE_INDEX).all()
+    piece = tiny_policy.codec.encode(pos.targets[-1])[list(pos.targets[-1]).index(int(Action.STOP))]
+    assert batch["input_ids"][1][plus[1]].tolist() == list(piece)
+
+
+def test_stop_weighted_token_loss_matches_a_reference():
+    g = torch.Generator().manual_seed(1)
+    logits = torch.randn(2, 9, 13, generator=g, dtype=torch.float64)
+    labels = torch.randint(0, 13, (2, 9), generator=g)
+    labels[0, :3] = IGNORE_INDEX
+    labels[1, 7:] = IGNORE_INDEX
+    stop = torch.zeros(2, 9, dtype=torch.bool)
+    stop[0, 6:8] = True  # a two-token STOP piece
+    plain = torch.nn.functional.cross_entropy(logits[:, :-1].reshape(-1, 13), labels[:, 1:].reshape(-1))
+    total, count = stop_weighted_token_loss(logits, labels, stop, 1.0)
+    assert float(total / count) == pytest.approx(float(plain), rel=1e-6)
+    assert count == int((labels[:, 1:] != IGNORE_INDEX).sum())
+    # Reference: a loop over the labelled positions, the marked ones counted five times.
+    num, den = 0.0, 0.0
+    logp = torch.log_softmax(logits, -1)
+    for b in range(2):
+        for t in range(1, 9):
+            if labels[b, t] == IGNORE_INDEX:
+                continue
+            w = 5.0 if stop[b, t] else 1.0
+            num += -w * float(logp[b, t - 1, labels[b, t]])
+            den += w
+    total, count = stop_weighted_token_loss(logits, labels, stop, 5.0)
+    assert float(total) == pytest.approx(num, rel=1e-6) and count == pytest.approx(den)
+
+
+def test_the_training_loss_weighs_both_stop_decisions_by_stop_weight(tiny_policy, tiny_cfg):
+    from image2sim.navpolicy.train import NavBCModule
+
+    trajs = _trajs()
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.train.stop_weight = 7.0
+    module = NavBCModule(copy.deepcopy(tiny_policy), cfg)
+    module.log = lambda *a, **k: None  # outside a Trainer
+    batch = module._collate([_ds(trajs, 1.0)[0], _ds(trajs, 0.0)[1], _ds(trajs, 0.0)[2]])
+    assert batch["stop_positive_mask"].any()
+    out = module(batch)
+    total, count = stop_weighted_token_loss(out.logits, batch["labels"], batch["stop_positive_mask"], 7.0)
+    wrong, _ = stop_unlikelihood(out.logits, batch["input_ids"], batch["stop_negative_mask"])
+    expected = (total + 7.0 * wrong) / (count + 7.0)  # one wrong-goal sample, seven labels' worth
+    torch.testing.assert_close(module.training_step(batch, 0), expected)
+    # At weight 1 the same batch gives the earlier rule: the token mean plus one label per wrong goal.
+    cfg.train.stop_weight = 1.0
+    n_tok = int((batch["labels"][:, 1:] != IGNORE_INDEX).sum())
+    torch.testing.assert_close(module.training_step(batch, 0), (out.loss * n_tok + wrong) / (n_tok + 1))
 
 
 def _reference(logits, ids, mask):

@@ -217,6 +217,12 @@ class TrainConfig:
     before the last, and so on. In a causal model no later token can read the final state of the
     image's last token, so a fact the head finds there can never reach the action tokens; -2 asks
     for it where the last layer's attention at the action tokens can read it."""
+    stop_weight: float = 1.0
+    """Weight of the STOP decision in the action loss: the tokens of the expert's final STOP and each
+    wrong-goal sample's "not STOP" (``data.wrong_goal_stop_probability``) count this many labels in
+    the token mean. A streaming sample holds ~100 movement tokens and at most one STOP decision, the
+    one place where the named goal must be matched against the view, so at 1 that decision is about
+    1 % of the gradient. 1: the plain token mean."""
     warmup_steps: int = 2
     """Linear warm-up steps before cosine decay."""
     min_lr_ratio: float = 0.1
@@ -363,7 +369,7 @@ class NavPolicyConfig:
         if self.data.max_action_labels < 2 * 1 or self.data.max_observations < 1:
             raise ConfigError("data.max_observations and data.max_action_labels must be positive")
         self._validate_shard_weights()
-        require_at_least(self, "train.goal_aux_weight", 0)
+        require_at_least(self, ("train.goal_aux_weight", "train.stop_weight"), 0)
         require_in_range(self, "train.goal_aux_layer", float("-inf"), -1)  # a negative hidden-state index
         require_at_least(self, ("train.val_every", "train.val_batches", "data.observation_stride"), 1)
         require_one_of(self, "data.sampling", ("uniform", "streaming"))

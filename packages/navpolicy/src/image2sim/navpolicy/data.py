@@ -674,7 +674,7 @@ def patchify_batch(images: Sequence[np.ndarray], processor) -> tuple[torch.Tenso
     return pixel_values, grid
 
 
-TRAINING_ONLY_KEYS = ("episode_ids", "goal_in_view", "image_end", "stop_negative_mask")
+TRAINING_ONLY_KEYS = ("episode_ids", "goal_in_view", "image_end", "stop_negative_mask", "stop_positive_mask")
 """Entries of a :class:`NavCollator` batch for the training module (losses, logging), not the model."""
 
 
@@ -734,6 +734,7 @@ class NavCollator:
         stop_negative = (
             torch.zeros((b, length), dtype=torch.bool) if any(s.stop_negative for s in samples) else None
         )
+        stop_positive = torch.zeros((b, length), dtype=torch.bool)
         for i, e in enumerate(encs):
             n = len(e)
             input_ids[i, :n] = torch.tensor(e.input_ids)
@@ -743,6 +744,8 @@ class NavCollator:
             if samples[i].stop_negative:
                 stop_negative[i, self.final_stop_positions(e.labels, samples[i].targets[-1])] = True
                 labels[i] = IGNORE_INDEX  # the actions followed another goal: no labels
+            else:
+                stop_positive[i, self.final_stop_positions(e.labels, samples[i].targets[-1])] = True
         # Belt and braces: no label may ever sit on an image token.
         labels[mm != 0] = IGNORE_INDEX
         batch = {
@@ -761,6 +764,8 @@ class NavCollator:
             batch["image_end"] = image_end_positions(mm)
         if stop_negative is not None:
             batch["stop_negative_mask"] = stop_negative
+        if bool(stop_positive.any()):
+            batch["stop_positive_mask"] = stop_positive
         return batch
 
     def final_stop_positions(self, labels: Sequence[int], target: Sequence[int]) -> list[int]:

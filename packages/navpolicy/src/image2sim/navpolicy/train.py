@@ -266,6 +266,22 @@ def stop_unlikelihood(
     return -torch.log1p(-p_stop * (1.0 - 1e-6)).mean(), p_stop.mean().detach()
 
 
+def stop_weighted_token_loss(
+    logits: torch.Tensor, labels: torch.Tensor, stop_mask: torch.Tensor | None, weight: float
+) -> tuple[torch.Tensor, float]:
+    """(sum, count) of the next-token cross-entropy over the labelled positions, where the tokens
+    marked in ``stop_mask`` ((B, L), the expert's STOP piece) count ``weight`` times: their ratio is
+    the action loss with the STOP decision weighted. At ``weight`` 1 (or no mask) the ratio is the
+    plain token mean the model's own loss computes."""
+    tgt = labels[:, 1:]
+    known = tgt != IGNORE_INDEX
+    ce = torch.nn.functional.cross_entropy(logits[:, :-1][known].float(), tgt[known], reduction="none")
+    w = torch.ones_like(ce)
+    if stop_mask is not None:
+        w = torch.where(stop_mask[:, 1:][known], torch.full_like(ce, float(weight)), w)
+    return (w * ce).sum(), float(w.sum())
+
+
 class NavBCModule(L.LightningModule):
     """Behaviour cloning: cross-entropy on the action tokens of interleaved image/action prompts."""
 
@@ -381,15 +397,22 @@ class NavBCModule(L.LightningModule):
         self.seen.append(list(batch["episode_ids"]))
         # Wrong-goal samples carry no labels: a batch of only those has no action loss (its mean is NaN).
         n_tok = int((batch["labels"][:, 1:] != IGNORE_INDEX).sum())
-        loss = out.loss if n_tok else out.logits.sum() * 0.0
+        stop_weight = self.cfg.train.stop_weight
+        if stop_weight != 1.0 and n_tok and "stop_positive_mask" in batch:
+            total, count = stop_weighted_token_loss(
+                out.logits, batch["labels"], batch["stop_positive_mask"], stop_weight
+            )
+        else:
+            total, count = (out.loss * n_tok, float(n_tok)) if n_tok else (out.logits.sum() * 0.0, 0.0)
         wrong = stop_unlikelihood(out.logits, batch["input_ids"], batch.get("stop_negative_mask"))
         if wrong is not None:
-            # Each wrong-goal sample counts as one more label of the token mean, so its "not STOP"
-            # weighs what the expert's STOP label weighs (not a whole sample's worth of labels).
-            n_neg = int(batch["stop_negative_mask"].any(1).sum())
-            loss = (loss * n_tok + wrong[0] * n_neg) / (n_tok + n_neg)
+            # Each wrong-goal sample counts as stop_weight more labels of the token mean, so its
+            # "not STOP" weighs what the expert's STOP label weighs (not a whole sample's labels).
+            n_neg = int(batch["stop_negative_mask"].any(1).sum()) * stop_weight
+            total, count = total + wrong[0] * n_neg, count + n_neg
             self.log("train/wrong_goal_stop_loss", wrong[0], batch_size=bsz)
             self.log("train/wrong_goal_p_stop", wrong[1], batch_size=bsz)
+        loss = total / count if count > 0 else out.logits.sum() * 0.0
         action_loss = loss  # the action part, before the auxiliary grounding loss
         goal = self.goal_loss(batch, out)
         if goal is not None:
