@@ -17,8 +17,9 @@ import numpy as np
 import torch
 from harness import hardware, time_it, write_report
 from image2sim.navpolicy.agent import Image2NavAgent
+from image2sim.navpolicy.collate import NavCollator
 from image2sim.navpolicy.config import tiny_config
-from image2sim.navpolicy.data import NavCollator, make_sample, synthetic_trajectories
+from image2sim.navpolicy.data import make_sample, synthetic_trajectories
 from image2sim.navpolicy.model import build_policy
 from image2sim.navpolicy.prompting import PromptBuilder
 

@@ -35,15 +35,9 @@ def main() -> None:
 
     import torch
     from image2sim.eval.nav_summary import wilson_interval
+    from image2sim.navpolicy.collate import NavCollator, model_inputs
     from image2sim.navpolicy.config import load_config
-    from image2sim.navpolicy.data import (
-        NavCollator,
-        NavSample,
-        ShardReader,
-        make_sample,
-        model_inputs,
-        next_actions,
-    )
+    from image2sim.navpolicy.data import NavSample, ShardReader, make_sample, next_actions
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 

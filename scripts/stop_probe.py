@@ -34,8 +34,9 @@ def main() -> None:
 
     import numpy as np
     import torch
+    from image2sim.navpolicy.collate import NavCollator, model_inputs
     from image2sim.navpolicy.config import load_config
-    from image2sim.navpolicy.data import NavCollator, NavShardDataset, model_inputs, sample_options
+    from image2sim.navpolicy.data import NavShardDataset, sample_options
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.prompting import PromptBuilder
     from image2sim.navpolicy.train import stop_unlikelihood

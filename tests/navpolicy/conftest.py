@@ -37,7 +37,8 @@ def tiny_policy(tiny_cfg):
 def batch(tiny_policy, tiny_cfg):
     """A collated batch of two synthetic samples (6 observations, 12 action labels each)."""
     import numpy as np
-    from image2sim.navpolicy.data import NavCollator, make_sample, synthetic_trajectories
+    from image2sim.navpolicy.collate import NavCollator
+    from image2sim.navpolicy.data import make_sample, synthetic_trajectories
     from image2sim.navpolicy.prompting import PromptBuilder
 
     trajs = synthetic_trajectories(2, min_len=8, max_len=30, seed=5)

@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from image2sim.navpolicy.collate import patchify_batch
 from image2sim.navpolicy.config import tiny_config
-from image2sim.navpolicy.data import patchify_batch
 from image2sim.navpolicy.model import make_image_processor
 
 

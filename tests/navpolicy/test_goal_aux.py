@@ -8,10 +8,10 @@ import copy
 import numpy as np
 import pytest
 import torch
+from image2sim.navpolicy.collate import NavCollator
 from image2sim.navpolicy.data import (
     GOAL_IN_VIEW,
     InMemoryNavDataset,
-    NavCollator,
     NavShardDataset,
     ShardError,
     make_sample,

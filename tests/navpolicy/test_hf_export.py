@@ -9,7 +9,8 @@ import json
 import pytest
 import torch
 import yaml
-from image2sim.navpolicy.data import NavCollator, image_token_counts, make_sample, synthetic_trajectories
+from image2sim.navpolicy.collate import NavCollator, image_token_counts
+from image2sim.navpolicy.data import make_sample, synthetic_trajectories
 from image2sim.navpolicy.model import ADAPTER_DIR, build_policy, export_policy
 from image2sim.navpolicy.prompting import PromptBuilder, Turn, chat_template
 

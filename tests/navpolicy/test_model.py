@@ -6,8 +6,9 @@ import copy
 
 import pytest
 import torch
+from image2sim.navpolicy.collate import NavCollator
 from image2sim.navpolicy.config import ConfigError, load_config, paper_config
-from image2sim.navpolicy.data import NavCollator, make_sample, synthetic_trajectories
+from image2sim.navpolicy.data import make_sample, synthetic_trajectories
 from image2sim.navpolicy.model import (
     base_qwen,
     build_policy,

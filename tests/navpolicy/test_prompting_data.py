@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from image2sim.navpolicy.collate import NavCollator
 from image2sim.navpolicy.data import (
     InMemoryNavDataset,
-    NavCollator,
     NavShardDataset,
     ShardError,
     ShardReader,

@@ -7,8 +7,9 @@ import copy
 import numpy as np
 import pytest
 import torch
+from image2sim.navpolicy.collate import NavCollator
 from image2sim.navpolicy.config import ObservationConfig
-from image2sim.navpolicy.data import NavCollator, Trajectory, make_sample, observation_from_panorama
+from image2sim.navpolicy.data import Trajectory, make_sample, observation_from_panorama
 from image2sim.navpolicy.model import make_image_processor
 from image2sim.navpolicy.prompting import PromptBuilder
 

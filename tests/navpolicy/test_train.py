@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from image2sim.navpolicy.collate import NavCollator
 from image2sim.navpolicy.config import load_config
-from image2sim.navpolicy.data import InMemoryNavDataset, NavCollator, make_sample, synthetic_trajectories
+from image2sim.navpolicy.data import InMemoryNavDataset, make_sample, synthetic_trajectories
 from image2sim.navpolicy.prompting import PromptBuilder
 from image2sim.navpolicy.train import (
     PositionDataset,

@@ -55,7 +55,7 @@ def test_token_labels_threshold_nothing_hit_and_bad_shapes():
 
 def test_cells_are_in_the_order_of_the_merged_tokens(tiny_policy):
     """Row k of the labels must describe the pixels that Qwen3-VL merges into token k."""
-    from image2sim.navpolicy.data import patchify_batch
+    from image2sim.navpolicy.collate import patchify_batch
     from image2sim.navpolicy.model import MERGE_SIZE
 
     proc = tiny_policy.image_processor

@@ -10,12 +10,8 @@ import numpy as np
 import pytest
 import torch
 from image2sim.navpolicy.actions import Action
-from image2sim.navpolicy.data import (
-    GOAL_CATEGORY,
-    InMemoryNavDataset,
-    NavCollator,
-    synthetic_trajectories,
-)
+from image2sim.navpolicy.collate import NavCollator
+from image2sim.navpolicy.data import GOAL_CATEGORY, InMemoryNavDataset, synthetic_trajectories
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.navpolicy.train import stop_unlikelihood, stop_weighted_token_loss, train_bc
 
@@ -199,7 +195,7 @@ def _p_stop(policy, cfg, sample, instruction) -> float:
     batch = col([dataclasses.replace(sample, instruction=instruction, stop_negative=True)])
     policy.model.eval()
     with torch.no_grad():
-        from image2sim.navpolicy.data import model_inputs
+        from image2sim.navpolicy.collate import model_inputs
 
         logits = policy.model(**model_inputs(batch)).logits
     return float(stop_unlikelihood(logits, batch["input_ids"], batch["stop_negative_mask"])[1])

@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from image2sim.navpolicy.actions import ACTIONS_PER_STEP, parse_actions
+from image2sim.navpolicy.collate import image_token_counts
 from image2sim.navpolicy.config import AgentConfig
-from image2sim.navpolicy.data import image_token_counts, select_context_frames
+from image2sim.navpolicy.data import select_context_frames
 from image2sim.navpolicy.model import NavPolicy, base_qwen
 from image2sim.navpolicy.prompting import IMAGE_TOKEN, PromptBuilder, Turn, common_prefix_length
 from image2sim.simulator.conventions import Action

@@ -77,7 +77,8 @@ def inspect_cmd(
     config: Annotated[str, typer.Option(help="Preset or YAML.")] = "tiny",
 ) -> None:
     """Print the training prompt of one sample, marking the labelled (action) tokens with [[...]]."""
-    from image2sim.navpolicy.data import NavCollator, NavShardDataset, sample_options
+    from image2sim.navpolicy.collate import NavCollator
+    from image2sim.navpolicy.data import NavShardDataset, sample_options
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 

@@ -24,14 +24,9 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+from image2sim.navpolicy.collate import NavCollator, model_inputs
 from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
-from image2sim.navpolicy.data import (
-    InMemoryNavDataset,
-    NavCollator,
-    NavShardDataset,
-    model_inputs,
-    sample_options,
-)
+from image2sim.navpolicy.data import InMemoryNavDataset, NavShardDataset, sample_options
 from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler

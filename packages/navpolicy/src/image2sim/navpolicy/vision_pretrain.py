@@ -163,7 +163,7 @@ def pretrain_vision(
     (config, the policy's tiny sizes, held-out mean average precision over the object categories at
     every evaluation) and returns the latter."""
     from image2sim.dataengine.procedural.views import load_views
-    from image2sim.navpolicy.data import patchify_batch
+    from image2sim.navpolicy.collate import patchify_batch
     from image2sim.navpolicy.model import MERGE_SIZE, base_qwen, build_policy
     from image2sim.navpolicy.train import warmup_cosine
     from image2sim.simulator.io.atomic import atomic_dir
