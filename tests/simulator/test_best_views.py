@@ -15,11 +15,12 @@ import torch
 from image2sim.simulator.gaussians import tiny
 from image2sim.simulator.gaussians.config import ConfigError
 from image2sim.simulator.gaussians.encoder import identity_gaussians
-from image2sim.simulator.gaussians.primitives import FrameInputs
+from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
 from image2sim.simulator.gaussians.scene import GaussianScene
 from image2sim.simulator.gaussians.views import (
     _pixel_index,
     best_view_mask,
+    extent_points,
     keep_best,
     own_geometry,
     select_best_views,
@@ -232,6 +233,64 @@ def test_points_another_view_saw_through_are_carved_and_silhouettes_are_not():
     holed.depth[..., H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1] = 0.0
     views[0] = view_map(holed, c.fusion)
     assert best_view_mask(pts, iv, normals, 1, views, 0.02, 1.0, carve_views=1)[0]
+
+
+def _gaussians(means, scales, quats) -> GaussianSet:
+    n = len(means)
+    return GaussianSet(
+        means=torch.tensor(means, dtype=torch.float32),
+        scales=torch.tensor(scales, dtype=torch.float32),
+        quats=torch.tensor(quats, dtype=torch.float32),
+        opacities=torch.ones(n),
+        colors=torch.zeros(n, 3),
+        features=torch.zeros(n, 0),
+        footprints=torch.ones(n),
+        weights=torch.ones(n),
+        levels=torch.zeros(n, dtype=torch.int64),
+    )
+
+
+def test_extent_points_lie_k_sigma_out_along_the_two_largest_axes():
+    s = math.sqrt(0.5)
+    g = _gaussians(
+        [[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]],
+        [[0.1, 0.3, 0.01], [0.2, 0.05, 0.01]],
+        [[1.0, 0.0, 0.0, 0.0], [s, 0.0, 0.0, s]],  # identity; 90 degrees about Z (local x -> world y)
+    )
+    pts = extent_points(g, 3.0)
+    assert pts.shape == (2, 4, 3)
+    off = (pts - g.means.double()[:, None]).numpy().round(6)
+    # First: largest axis local y (0.3), then local x (0.1); both ways.
+    assert sorted(map(tuple, off[0].tolist())) == sorted(
+        [(0.0, 0.9, 0.0), (0.3, 0.0, 0.0), (0.0, -0.9, 0.0), (-0.3, 0.0, 0.0)]
+    )
+    # Second: local x (0.2) is world y after the rotation, local y (0.05) is world -x.
+    assert sorted(map(tuple, off[1].tolist())) == sorted(
+        [(0.0, 0.6, 0.0), (-0.15, 0.0, 0.0), (0.0, -0.6, 0.0), (0.15, 0.0, 0.0)]
+    )
+
+
+def test_a_splat_reaching_across_a_silhouette_is_carved_by_its_extent():
+    """Frame 0 sees a plate 2 m ahead on its left half (world +Y) and the wall 3 m ahead on its right.
+    Frame 1's Gaussian sits on the plate 1-2 pixels from the silhouette, so its centre passes the
+    carving; its 3-sigma reach (0.3 m along Y) lies in front of the wall where frame 0 saw through."""
+    c = cfg(carve_views=1)
+    scene = plane_frame(0.0, 3.0)
+    scene.depth[..., : W // 2] = 2.0  # image columns grow towards world -Y: the left half is +Y
+    views = [view_map(scene, c.fusion), view_map(plane_frame(-1.0, 3.0), c.fusion)]
+    g = _gaussians([[2.0, 0.15, 0.0]], [[0.01, 0.1, 0.1]], [[1.0, 0.0, 0.0, 0.0]])
+    iv = torch.full((1,), 0.01, dtype=torch.float64)
+    normals = torch.tensor([[-1.0, 0.0, 0.0]], dtype=torch.float64)
+    args = (g.means, iv, normals, 1, views, c.fusion.same_surface_tolerance, 1.0)
+    assert best_view_mask(*args, carve_views=1).tolist() == [True]  # the centre alone passes
+    assert best_view_mask(*args, carve_views=1, extent=extent_points(g, 3.0)).tolist() == [False]
+    # Kept when the reach stays on the plate (the Gaussian farther from the silhouette), or when
+    # frame 0 does not carve.
+    inner = _gaussians([[2.0, 0.6, 0.0]], [[0.01, 0.1, 0.1]], [[1.0, 0.0, 0.0, 0.0]])
+    assert best_view_mask(
+        inner.means, iv, normals, 1, views, 0.02, 1.0, carve_views=1, extent=extent_points(inner, 3.0)
+    ).tolist() == [True]
+    assert best_view_mask(*args, carve_views=0, extent=extent_points(g, 3.0)).tolist() == [True]
 
 
 def test_a_grazing_view_does_not_replace_a_frontal_one_it_samples_more_finely():

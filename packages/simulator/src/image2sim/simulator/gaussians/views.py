@@ -37,6 +37,7 @@ from image2sim.simulator.geometry.normals import pad_image, point_normals
 
 __all__ = [
     "ViewMap",
+    "extent_points",
     "view_map",
     "sampling_interval",
     "best_view_mask",
@@ -173,6 +174,7 @@ def best_view_mask(
     step: float = 1.0,
     carve_views: int = 0,
     owner_cos: float = 0.0,
+    extent: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Which of frame ``own``'s Gaussians no other view models better or sees through, (N,) bool.
 
@@ -190,7 +192,9 @@ def best_view_mask(
     the view is less than that view's :attr:`ViewMap.free` depth at its projection by more than the
     same tolerance. These are the colour halos that every view leaves along its silhouettes (mixed
     pixels given the foreground depth) and floaters of noisy depth, which the other views would
-    otherwise see in front of the surface.
+    otherwise see in front of the surface. ``extent`` ((N, P, 3) world points per Gaussian, e.g.
+    :func:`extent_points`): carving also drops a Gaussian when a carving view saw empty space through
+    any of its points, i.e. when its splat reaches across that view's silhouette onto what lies behind.
     """
     n = means.shape[0]
     keep = torch.ones(n, dtype=torch.bool, device=means.device)
@@ -209,6 +213,9 @@ def best_view_mask(
             continue
         if i in carvers:
             _carve(pts, keep, view, tolerance)
+            if extent is not None:
+                for p in range(extent.shape[1]):
+                    _carve(extent[:, p].double(), keep, view, tolerance)
         centre = view.centre.to(pts.device)
         offset = centre - pts
         # A view can only be better where distance x its finest pixel angle beats the interval,
@@ -260,6 +267,20 @@ def _carve(pts: torch.Tensor, keep: torch.Tensor, view: ViewMap, tolerance: floa
     keep[idx[seen_through]] = False
 
 
+def extent_points(gaussians: GaussianSet, k: float) -> torch.Tensor:
+    """(N, 4, 3) world points ``k`` standard deviations out from each mean along its two largest
+    axes, both ways: where its splat still shows (a disc's rim; the third axis is its thickness)."""
+    from image2sim.simulator.geometry.se3 import quat_to_matrix
+
+    R = quat_to_matrix(gaussians.quats.double())  # (N, 3, 3), columns = local axes in the world
+    order = torch.argsort(gaussians.scales, dim=1, descending=True)[:, :2]  # (N, 2)
+    axes = torch.gather(R, 2, order[:, None, :].expand(-1, 3, -1))  # (N, 3, 2)
+    reach = axes * (k * torch.gather(gaussians.scales.double(), 1, order))[:, None, :]
+    m = gaussians.means.double()[:, None, :]
+    r = reach.transpose(1, 2)  # (N, 2, 3)
+    return torch.cat((m + r, m - r), dim=1)
+
+
 def keep_best(
     gaussians: GaussianSet, own: int, views: Sequence[ViewMap], fusion: FusionConfig
 ) -> GaussianSet:
@@ -281,6 +302,7 @@ def keep_best(
         fusion.interval_step,
         fusion.carve_views,
         fusion.owner_cos,
+        extent_points(gaussians, fusion.carve_extent) if fusion.carve_extent > 0 else None,
     )
     return gaussians.index(keep)
 
