@@ -139,7 +139,7 @@ class FusionConfig:
     Gaussian's two largest axes (its splat's reach), not only its centre: a foreground Gaussian whose
     splat reaches across another frame's silhouette onto a background that frame saw is dropped
     (0: the centre only). At 3, against 0: own-pose gap -0.4 to -1.2 dB, held-out -0.05 to +0.30 dB,
-    build +27-38 % (docs/scenes.md)."""
+    build +27-65 % (docs/scenes.md)."""
     owner_cos: float = 0.5
     """``views: best``: a frame replaces others' Gaussians only where it sees the surface at a viewing
     cosine of at least this (a grazing frame samples a surface in sparse rows, and alone leaves
