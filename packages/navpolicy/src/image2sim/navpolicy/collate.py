@@ -146,11 +146,12 @@ class NavCollator:
             labels[i, :n] = torch.tensor(e.labels)
             mm[i, :n] = torch.tensor(e.mm_token_type_ids)
             attn[i, :n] = 1
+            stop = self.final_stop_positions(e.labels, samples[i].targets[-1])
             if samples[i].stop_negative:
-                stop_negative[i, self.final_stop_positions(e.labels, samples[i].targets[-1])] = True
+                stop_negative[i, stop] = True
                 labels[i] = IGNORE_INDEX  # the actions followed another goal: no labels
             else:
-                stop_positive[i, self.final_stop_positions(e.labels, samples[i].targets[-1])] = True
+                stop_positive[i, stop] = True
         # Belt and braces: no label may ever sit on an image token.
         labels[mm != 0] = IGNORE_INDEX
         batch = {
