@@ -168,7 +168,17 @@ def test_semantic_floor_labels_restrict_floor():
     m = extract_navmap_from_points(
         w.points, w.normals, labels, w.camera_positions, config=NavMapConfig(floor_labels=(1,))
     )
-    assert m.points[:, 0].min() > 3.0
+    # The rug's columns hold no floor: no cell centre lies on it (the boundary cell straddles x = 3).
+    assert m.points[:, 0].min() >= 3.0 - 0.5 * m.voxel_size - 1e-9
+    # Counted as unseen space with the safety buffer, they also keep the agent's radius away.
+    buffered = extract_navmap_from_points(
+        w.points,
+        w.normals,
+        labels,
+        w.camera_positions,
+        config=NavMapConfig(floor_labels=(1,), unknown_clearance=None),
+    )
+    assert buffered.points[:, 0].min() > 3.0 + RADIUS - m.voxel_size
 
 
 def test_save_load_round_trip(tmp_path):

@@ -138,9 +138,18 @@ class NavMapConfig(_DictMixin):
     outlier_min_neighbors: int = 2
     """Obstacle voxels with fewer other obstacle voxels within ``outlier_radius`` are dropped."""
     safety_buffer: float | None = None
-    """Navigable cells keep at least this clearance (metres) to obstacles/unknown; None = agent radius."""
-    closing_radius_cells: int = 2
-    """Radius (cells) of the disk used by the morphological closing that fills floor holes."""
+    """Navigable cells keep at least this clearance (metres) to obstacles; None = agent radius."""
+    unknown_clearance: float | None = 0.0
+    """Clearance (metres) navigable cells on a storey's plane keep to columns with no floor at any
+    height (unseen space); None = the safety buffer (the default before 2026-11-28). Drops (floor at
+    another height, and unseen columns within a buffer of one) and every cell off a storey's plane
+    (treads, ramps) keep the safety buffer. Unseen space counts as an obstacle standing
+    ``safety_buffer - this`` farther out than it is. 0 is the paper's rule, where only obstacles
+    project the buffer; the agent may stand there, as its centre needs floor and its footprint no
+    obstacle."""
+    closing_radius_cells: int = 4
+    """Radius (cells) of the disk used by the morphological closing that fills floor holes (4 since
+    2026-11-28, was 2: more of the seen floor of procedural houses, ``benchmarks/navmap_recall.py``)."""
     min_level_area: float = 2.0
     """A height cluster of floor cells becomes a storey when its area is at least this (m^2)."""
     level_tolerance: float = 0.1
@@ -171,8 +180,9 @@ class NavMapConfig(_DictMixin):
         _check_nonnegative(self, "min_component_area", "min_camera_height", "outlier_min_neighbors")
         if not -1.0 <= self.normal_z_min <= 1.0:
             raise ConfigError(f"NavMapConfig.normal_z_min must lie in [-1, 1], got {self.normal_z_min}")
-        if self.safety_buffer is not None:
-            _check_nonnegative(self, "safety_buffer")
+        for name in ("safety_buffer", "unknown_clearance"):
+            if getattr(self, name) is not None:
+                _check_nonnegative(self, name)
         for name in ("pixel_stride", "ransac_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"NavMapConfig.{name} must be >= 1, got {getattr(self, name)!r}")

@@ -539,17 +539,41 @@ def _build_navmap(
     )
     # 7. Clearance per floor-height bin: exact horizontal distance to the obstacle points in the body
     # band, and EDT distance to unsupported columns minus half a cell (the floor reaches the edge of
-    # its last cell). Cells with clearance >= the safety buffer are navigable.
+    # its last cell). Unsupported columns holding floor at another height are drops and keep the
+    # safety buffer; for floor on a storey's plane, other columns with no floor (unseen) count as
+    # standing ``safety_buffer - unknown_clearance`` farther out. Cells with clearance >= the safety
+    # buffer are navigable.
     heights, cell_bin = navmap.height_bins()
     clearance = np.zeros(len(floor_z))
+    unknown_slack = navmap.safety_buffer - navmap.unknown_clearance
+    floor_anywhere = np.zeros(navmap.shape2d, dtype=bool)
+    floor_anywhere[floor_ij[:, 0], floor_ij[:, 1]] = True
+    floor_anywhere[support_ij[:, 0], support_ij[:, 1]] = True
+    near_drop = _disk(int(math.ceil(navmap.safety_buffer / vox - 1e-9)))
+    on_level = (
+        np.abs(floor_z - level_heights[floor_level]) <= cfg.level_tolerance
+        if len(level_heights)
+        else (np.zeros(len(floor_z), dtype=bool))
+    )
     cell_xy = navmap.cell_xy(floor_ij)
     bound = 5.0 * emb.radius + 2.0 * vox
     for b, h in enumerate(heights):
         sel = np.flatnonzero(cell_bin == b)
         void = navmap.unsupported_mask(float(h))
-        c = np.maximum(
-            ndimage.distance_transform_edt(~void)[floor_ij[sel, 0], floor_ij[sel, 1]] * vox - 0.5 * vox, 0.0
-        )
+        if unknown_slack > 0:
+            # Unseen columns within a buffer of a drop (between stair treads seen at grazing angles,
+            # at a landing's edge) may hide the same height change: they count as the drop does.
+            drop = void & floor_anywhere
+            if drop.any():
+                drop |= void & ndimage.binary_dilation(drop, structure=near_drop)
+            # Only floor on a storey's plane gets the slack: treads and ramps keep the buffer.
+            slack = np.where(on_level[sel], unknown_slack, 0.0)
+            c = np.minimum(
+                _edge_distance(drop, floor_ij[sel], vox),
+                _edge_distance(void & ~drop, floor_ij[sel], vox) + slack,
+            )
+        else:
+            c = _edge_distance(void, floor_ij[sel], vox)
         band = navmap.band_obstacles(float(h))
         if band.any():
             # Exact distance to the obstacle points near the cell; beyond ``bound`` (no effect on
@@ -568,6 +592,15 @@ def _build_navmap(
     if not navmap.navigable.any():
         notes.append("no floor cell has the required clearance: the map has no navigable cell")
     return navmap
+
+
+def _edge_distance(blocked: np.ndarray, ij: np.ndarray, vox: float) -> np.ndarray:
+    """Distance (metres) from the cells ``ij`` to the nearest ``blocked`` column's edge (its centre
+    minus half a cell, at least 0); infinite when nothing is blocked."""
+    if not blocked.any():
+        return np.full(len(ij), np.inf)
+    d = ndimage.distance_transform_edt(~blocked)[ij[:, 0], ij[:, 1]] * vox - 0.5 * vox
+    return np.maximum(d, 0.0)
 
 
 def _covered_from_above(f_ijk: np.ndarray, o_ijk: np.ndarray, n_above: int) -> np.ndarray:

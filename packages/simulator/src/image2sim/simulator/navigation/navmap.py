@@ -153,6 +153,12 @@ class NavMap:
         buf = self.config.safety_buffer
         return self.embodiment.radius if buf is None else float(buf)
 
+    @property
+    def unknown_clearance(self) -> float:
+        """Clearance navigable cells keep to columns without floor (``NavMapConfig.unknown_clearance``)."""
+        buf = self.config.unknown_clearance
+        return self.safety_buffer if buf is None else min(float(buf), self.safety_buffer)
+
     # --- per-height-band blocked masks (the body-band view of the 3D occupancy) --------------
     def height_bins(self) -> tuple[np.ndarray, np.ndarray]:
         """Floor-height bins used for the body-band masks: (bin heights (B,), bin of each cell (F,))."""
