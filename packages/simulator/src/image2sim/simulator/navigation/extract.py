@@ -12,10 +12,12 @@ Pipeline (seed paper, appendix "Navigable Area Extraction and Denoising"):
    other islands are dropped and become obstacles);
 5. storeys by height clustering, one RANSAC plane per storey; morphological closing of each storey's
    2D floor mask fills occlusion holes, the filled cells are re-projected onto the storey plane;
-6. radius outlier removal of obstacle voxels; per floor-height band, the obstacle columns (obstacles
-   between the step height and the body height above that floor) plus unsupported/unknown columns
-   form a 2D blocked mask whose Euclidean distance transform is the clearance; cells with clearance
-   >= the safety buffer (default: the agent radius) are navigable.
+6. radius outlier removal of obstacle voxels; per floor-height band, the clearance is the distance
+   to the obstacle columns (obstacles between the step height and the body height above that floor)
+   and to unsupported columns (:func:`_floor_clearance`); cells with clearance >= the safety buffer
+   (default: the agent radius) are navigable. As in the paper, only obstacles project the buffer
+   onto a storey's floor (``NavMapConfig.unknown_clearance`` 0): unseen columns there do not, while
+   drops and floor off a storey's plane (treads) keep it to every unsupported column.
 
 Everything is expressed in the *map frame*: the gravity-aligned world (identical to the world frame
 when ``rotation`` is the identity, i.e. for Z-up captures). :attr:`NavMap.points` is returned in world
@@ -537,12 +539,23 @@ def _build_navmap(
         config=cfg,
         notes=notes,
     )
-    # 7. Clearance per floor-height bin: exact horizontal distance to the obstacle points in the body
-    # band, and EDT distance to unsupported columns minus half a cell (the floor reaches the edge of
-    # its last cell). Unsupported columns holding floor at another height are drops and keep the
-    # safety buffer; for floor on a storey's plane, other columns with no floor (unseen) count as
-    # standing ``safety_buffer - unknown_clearance`` farther out. Cells with clearance >= the safety
-    # buffer are navigable.
+    # 7. Clearance; cells with clearance >= the safety buffer are navigable.
+    navmap.clearance = _floor_clearance(navmap)
+    navmap.navigable = navmap.clearance >= navmap.safety_buffer - 1e-9
+    if not navmap.navigable.any():
+        notes.append("no floor cell has the required clearance: the map has no navigable cell")
+    return navmap
+
+
+def _floor_clearance(navmap: NavMap) -> np.ndarray:
+    """Clearance (metres) of every floor cell, per floor-height bin: the exact horizontal distance to
+    the obstacle points in the body band, and the EDT distance to unsupported columns minus half a
+    cell (the floor reaches the edge of its last cell). Unsupported columns holding floor at another
+    height are drops and count as they are; for floor on a storey's plane, other columns with no
+    floor (unseen) count as standing ``safety_buffer - unknown_clearance`` farther out."""
+    vox, emb, cfg = navmap.voxel_size, navmap.embodiment, navmap.config
+    floor_ij, floor_z, support_ij = navmap.floor_ij, navmap.floor_z, navmap.support_ij
+    level_heights, obstacle_ij, obstacle_xyz = navmap.level_heights, navmap.obstacle_ij, navmap.obstacle_xyz
     heights, cell_bin = navmap.height_bins()
     clearance = np.zeros(len(floor_z))
     unknown_slack = navmap.safety_buffer - navmap.unknown_clearance
@@ -551,9 +564,9 @@ def _build_navmap(
     floor_anywhere[support_ij[:, 0], support_ij[:, 1]] = True
     near_drop = _disk(int(math.ceil(navmap.safety_buffer / vox - 1e-9)))
     on_level = (
-        np.abs(floor_z - level_heights[floor_level]) <= cfg.level_tolerance
+        np.abs(floor_z - level_heights[navmap.floor_level]) <= cfg.level_tolerance
         if len(level_heights)
-        else (np.zeros(len(floor_z), dtype=bool))
+        else np.zeros(len(floor_z), dtype=bool)
     )
     cell_xy = navmap.cell_xy(floor_ij)
     bound = 5.0 * emb.radius + 2.0 * vox
@@ -587,11 +600,7 @@ def _build_navmap(
                 d_obs[far] = np.maximum(edt[floor_ij[sel[far], 0], floor_ij[sel[far], 1]], bound)
             c = np.minimum(c, d_obs)
         clearance[sel] = c
-    navmap.clearance = clearance
-    navmap.navigable = clearance >= navmap.safety_buffer - 1e-9
-    if not navmap.navigable.any():
-        notes.append("no floor cell has the required clearance: the map has no navigable cell")
-    return navmap
+    return clearance
 
 
 def _edge_distance(blocked: np.ndarray, ij: np.ndarray, vox: float) -> np.ndarray:
