@@ -195,11 +195,17 @@ def test_scene_task_with_openai_annotator_applies_the_gate(scenes_root, tmp_path
 
 
 def test_cli_episodes_exits_non_zero_when_no_scene_yields_an_episode(tmp_path):
-    """A one-room house (~2.6 m^2) holds no path of the shortest bucket (3 m): 0 episodes is an error,
-    with the per-scene reason, not a silent empty dataset."""
+    """A one-room house of 2.6 m x 2.6 m holds no path of the shortest bucket (3 m): 0 episodes is an
+    error, with the per-scene reason, not a silent empty dataset."""
+    import dataclasses
+
     from image2sim.dataengine.procedural import preset, synthesize
 
-    synthesize(preset("tiny"), tmp_path / "s", scenes=1, seed=0, progress=False)
+    cfg = preset("tiny")
+    one_room = dataclasses.replace(
+        cfg.layout, rooms_min=1, rooms_max=1, room_size_max=cfg.layout.room_size_min
+    )
+    synthesize(dataclasses.replace(cfg, layout=one_room), tmp_path / "s", scenes=1, seed=0, progress=False)
     res = CliRunner().invoke(
         build_app(),
         ["data", "episodes", "--scenes", str(tmp_path / "s" / "scene_000"), "--out", str(tmp_path / "o"),

@@ -42,8 +42,8 @@ def test_none_keeps_the_safety_buffer_to_unseen_space():
     assert (clearance >= RADIUS - 1e-9).all()
 
 
-def test_the_default_is_the_papers_buffer_from_obstacles_only():
-    assert NavMapConfig().unknown_clearance == 0.0
+def test_the_default_keeps_the_buffer_to_unseen_space():
+    assert NavMapConfig().unknown_clearance is None
 
 
 @pytest.mark.parametrize("unknown", [0.0, 0.05])

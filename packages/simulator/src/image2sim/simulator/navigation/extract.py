@@ -15,9 +15,10 @@ Pipeline (seed paper, appendix "Navigable Area Extraction and Denoising"):
 6. radius outlier removal of obstacle voxels; per floor-height band, the clearance is the distance
    to the obstacle columns (obstacles between the step height and the body height above that floor)
    and to unsupported columns (:func:`_floor_clearance`); cells with clearance >= the safety buffer
-   (default: the agent radius) are navigable. As in the paper, only obstacles project the buffer
-   onto a storey's floor (``NavMapConfig.unknown_clearance`` 0): unseen columns there do not, while
-   drops and floor off a storey's plane (treads) keep it to every unsupported column.
+   (default: the agent radius) are navigable. ``NavMapConfig.unknown_clearance`` (default None: the
+   buffer) sets how near a storey's floor may come to unseen columns (0: the paper's rule, where only
+   obstacles project the buffer); drops and floor off a storey's plane (treads) keep the buffer to
+   every unsupported column.
 
 Everything is expressed in the *map frame*: the gravity-aligned world (identical to the world frame
 when ``rotation`` is the identity, i.e. for Z-up captures). :attr:`NavMap.points` is returned in world
