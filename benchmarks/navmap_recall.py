@@ -60,15 +60,15 @@ def grid_points(mask: np.ndarray, res: float, origin: np.ndarray) -> np.ndarray:
 
 def seen_floor(scene: Path, shape: tuple[int, int], res: float, origin: np.ndarray) -> np.ndarray:
     """(H, W) cells of the ``gt`` grid whose floor some pixel of the capture at ``scene`` sees."""
+    from image2sim.simulator.gaussians.frames import world_points
     from image2sim.simulator.io import open_capture
 
     seen = np.zeros(shape, dtype=bool)
     for frame in open_capture(scene):
-        depth = np.asarray(frame.depth, dtype=np.float32)
-        depth = np.where(np.isfinite(depth), depth, 0.0)
-        pts = frame.camera.unproject(torch.from_numpy(depth)).reshape(-1, 3).double().numpy()
-        pose = np.asarray(frame.cam_to_world, dtype=np.float64)
-        pw = pts[depth.reshape(-1) > 0] @ pose[:3, :3].T + pose[:3, 3]
+        depth = torch.as_tensor(np.asarray(frame.depth), dtype=torch.float64).nan_to_num(0.0, 0.0, 0.0)
+        pose = torch.as_tensor(np.asarray(frame.cam_to_world), dtype=torch.float64)
+        pw = world_points(depth[None, None], frame.camera, pose)[0].reshape(-1, 3).numpy()
+        pw = pw[(depth.reshape(-1) > 0).numpy()]
         pw = pw[np.abs(pw[:, 2]) <= FLOOR_TOLERANCE]
         ix = np.floor((pw[:, 0] - origin[0]) / res).astype(np.int64)
         iy = np.floor((pw[:, 1] - origin[1]) / res).astype(np.int64)

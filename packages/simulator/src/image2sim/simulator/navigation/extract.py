@@ -560,15 +560,16 @@ def _floor_clearance(navmap: NavMap) -> np.ndarray:
     heights, cell_bin = navmap.height_bins()
     clearance = np.zeros(len(floor_z))
     unknown_slack = navmap.safety_buffer - navmap.unknown_clearance
-    floor_anywhere = np.zeros(navmap.shape2d, dtype=bool)
-    floor_anywhere[floor_ij[:, 0], floor_ij[:, 1]] = True
-    floor_anywhere[support_ij[:, 0], support_ij[:, 1]] = True
-    near_drop = _disk(int(math.ceil(navmap.safety_buffer / vox - 1e-9)))
-    on_level = (
-        np.abs(floor_z - level_heights[navmap.floor_level]) <= cfg.level_tolerance
-        if len(level_heights)
-        else np.zeros(len(floor_z), dtype=bool)
-    )
+    if unknown_slack > 0:  # only then do drops and unseen columns differ
+        floor_anywhere = np.zeros(navmap.shape2d, dtype=bool)
+        floor_anywhere[floor_ij[:, 0], floor_ij[:, 1]] = True
+        floor_anywhere[support_ij[:, 0], support_ij[:, 1]] = True
+        near_drop = _disk(int(math.ceil(navmap.safety_buffer / vox - 1e-9)))
+        on_level = (
+            np.abs(floor_z - level_heights[navmap.floor_level]) <= cfg.level_tolerance
+            if len(level_heights)
+            else np.zeros(len(floor_z), dtype=bool)
+        )
     cell_xy = navmap.cell_xy(floor_ij)
     bound = 5.0 * emb.radius + 2.0 * vox
     for b, h in enumerate(heights):
