@@ -34,11 +34,11 @@ from harness import hardware, load_average, time_it, write_report
 from scipy import ndimage
 
 VARIANTS: dict[str, dict] = {
-    "default (closing 2, unseen = buffer)": {},
-    "paper's buffer: unknown clearance 0 + closing 4": {"unknown_clearance": 0.0, "closing_radius_cells": 4},
-    "closing 4 only": {"closing_radius_cells": 4},
-    "unknown clearance 0 only": {"unknown_clearance": 0.0},
-    "pixel stride 1": {"pixel_stride": 1},
+    "default": {},
+    "before 2026-11-28: closing 2, unseen = buffer": {"closing_radius_cells": 2, "unknown_clearance": None},
+    "closing 4 only": {"unknown_clearance": None},
+    "unknown clearance 0 only": {"closing_radius_cells": 2},
+    "before + pixel stride 1": {"closing_radius_cells": 2, "unknown_clearance": None, "pixel_stride": 1},
 }
 """Extraction settings compared with the defaults (``NavMapConfig`` field overrides)."""
 

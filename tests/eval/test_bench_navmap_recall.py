@@ -32,10 +32,10 @@ def test_quick_run_scores_every_variant_against_the_exact_floor(bench, tmp_path)
         assert r["P"] >= 0.9, r
         assert 0.4 <= r["R seen"] <= 1.0, r
         assert 0 < r["seen"] <= 1 and 0 < r["R"] <= 1 and r["extract s"] > 0
-    # Without the buffer to unseen space, the map keeps more of the floor the views saw.
+    # Unseen space no longer projects the buffer: the defaults keep more of the seen floor than before.
     by_name = {r["variant"]: r for r in rows}
-    paper = by_name["paper's buffer: unknown clearance 0 + closing 4"]
-    assert paper["R seen"] > by_name["default (closing 2, unseen = buffer)"]["R seen"] + 0.1
+    before = by_name["before 2026-11-28: closing 2, unseen = buffer"]
+    assert by_name["default"]["R seen"] > before["R seen"] + 0.1
     assert "R seen" in (tmp_path / "navmap_recall.md").read_text()
 
 

@@ -12,7 +12,7 @@ from image2sim.simulator.conventions import Action
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.agent import Agent, CollisionWorld
 from image2sim.simulator.navigation.extract import extract_navmap_from_points
-from image2sim.simulator.navigation.follower import OracleFollower, smooth_path
+from image2sim.simulator.navigation.follower import OracleFollower, ReferencePathFollower, smooth_path
 from image2sim.simulator.navigation.graph import NavGraph, edge_costs, ray_march_free
 from image2sim.simulator.navigation.planner import Planner
 
@@ -304,3 +304,29 @@ def test_oracle_follower_reaches_goals_without_collisions():
 def test_oracle_follower_smoke():
     rate, collisions = run_follower("gap", 15, seed=10)
     assert rate == 1.0 and collisions == 0
+
+
+def test_reference_follower_walks_a_detour_that_passes_its_own_end():
+    """A route out to W and back to its end G, which it passed on the way out: the follower must
+    neither stop at G on the way out nor skip to the way back where both legs run side by side."""
+    w, m, g, pl = setup("box")
+    world = CollisionWorld(m)
+    z = float(g.nodes[0, 2])
+    start, end, far = np.array([1.0, 2.0, z]), np.array([2.2, 2.0, z]), np.array([4.5, 2.0, z])
+    out = np.linspace(start, far, 36)
+    back = np.linspace(far, end, 24)[1:]
+    route = np.vstack((out, back))
+    agent = Agent(world)
+    agent.reset(start, 0.0)
+    follower = ReferencePathFollower(pl, route, kinematics=agent.kinematics)
+    follower.reset(start)
+    xs, hit, action = [], False, None
+    for _ in range(400):
+        action = follower.act(agent.state, hit)
+        if action == Action.STOP:
+            break
+        hit = agent.step(action).collided
+        xs.append(agent.state.position[0])
+    assert action == Action.STOP
+    assert max(xs) > far[0] - 0.3  # went out to W
+    assert np.linalg.norm(agent.state.position[:2] - end[:2]) <= 0.25  # and stopped at the end

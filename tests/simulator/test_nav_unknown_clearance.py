@@ -42,8 +42,9 @@ def test_none_keeps_the_safety_buffer_to_unseen_space():
     assert (clearance >= RADIUS - 1e-9).all()
 
 
-def test_the_default_keeps_the_buffer_to_unseen_space():
-    assert NavMapConfig().unknown_clearance is None
+def test_the_default_is_the_papers_rule():
+    # Since 2026-11-28 only obstacles and drops project the buffer by default (None: the old rule).
+    assert NavMapConfig().unknown_clearance == 0.0
 
 
 @pytest.mark.parametrize("unknown", [0.0, 0.05])

@@ -19,7 +19,7 @@ from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling
 
 __all__ = ["content_key", "cached"]
 
-ASSET_VERSIONS = {"navigation": 1, "gaussians": 1}
+ASSET_VERSIONS = {"navigation": 2, "gaussians": 1}
 """Bump when the way an asset is built changes: old entries are then never used again."""
 
 

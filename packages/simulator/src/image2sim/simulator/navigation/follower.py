@@ -68,6 +68,7 @@ class OracleFollower:
         )
         self.goal: np.ndarray | None = None
         self.path: np.ndarray = np.zeros((0, 3))
+        self._arc: np.ndarray | None = None  # of ``path``; reset whenever the path changes
         self.result: PathResult | None = None
         self._progress = 0
 
@@ -84,6 +85,7 @@ class OracleFollower:
             if self.result.reachable
             else np.zeros((0, 3))
         )
+        self._arc = None
         self._progress = 0
         self._blocked_at, self._cycling = [], False
         return self.result
@@ -93,18 +95,17 @@ class OracleFollower:
         if self.goal is None:
             raise RuntimeError("OracleFollower.act called before reset(start, goal)")
         pos = state.position
-        if np.linalg.norm(self.goal[:2] - pos[:2]) <= self.config.stop_radius:
+        if self._arrived(pos):
             return int(Action.STOP)
         if len(self.path) == 0:
             return int(Action.STOP)
         dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
-        # Progress is monotone along the path so loops back to passed points cannot trap the agent.
-        nearest = self._progress + int(np.argmin(dist[self._progress :]))
+        nearest = self._nearest_ahead(dist)
         if collided or dist[nearest] > self.config.replan_distance:
             if not self._plan(pos).reachable:
                 return int(Action.STOP)
             dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
-            nearest = int(np.argmin(dist))
+            nearest = self._nearest_ahead(dist)
         if nearest > self._progress:
             self._blocked_at, self._cycling = [], False
         self._progress = nearest
@@ -135,6 +136,11 @@ class OracleFollower:
         self._blocked_turn = None
         return action
 
+    def _arrived(self, pos: np.ndarray) -> bool:
+        """Within ``stop_radius`` of the goal (horizontally)."""
+        assert self.goal is not None
+        return bool(np.linalg.norm(self.goal[:2] - pos[:2]) <= self.config.stop_radius)
+
     def _forward_blocked(self, state: AgentState, target: np.ndarray) -> bool:
         """Would MOVE_FORWARD collide? Once avoidance cycles (blocked ``config.slide_when_cycling``
         times at the same spot without path progress), a colliding step that still gets closer to
@@ -151,13 +157,34 @@ class OracleFollower:
         after = np.linalg.norm(target[:2] - new.position[:2])
         return not after < before - 0.25 * self.embodiment.micro_step
 
+    def _arc_length(self) -> np.ndarray:
+        """Cumulative length (metres) of the smoothed path at each of its points."""
+        if self._arc is None:
+            seg = np.linalg.norm(np.diff(self.path, axis=0), axis=1)
+            self._arc = np.concatenate(([0.0], np.cumsum(seg)))
+        return self._arc
+
+    def _nearest_ahead(self, dist: np.ndarray) -> int:
+        """Nearest path point at or after the progress made so far, searched only over the next
+        ``lookahead + replan_distance`` metres *of path*. Progress is monotone, so loops back to passed
+        points cannot trap the agent; the window keeps a path that turns back on itself (a detour
+        out to a point and back) from being skipped where its two legs run side by side."""
+        arc = self._arc_length()
+        window = self.config.lookahead + self.config.replan_distance
+        end = int(np.searchsorted(arc, arc[self._progress] + window, side="right"))
+        return self._progress + int(np.argmin(dist[self._progress : max(end, self._progress + 1)]))
+
     def _target(self, pos: np.ndarray, dist: np.ndarray, nearest: int) -> np.ndarray:
-        """Farthest path point within the lookahead that the agent sees through navigable cells.
+        """Farthest path point within the lookahead (metres along the path from the nearest point)
+        that the agent sees through navigable cells.
 
         Plain pure pursuit cuts corners (door frames); requiring line of sight over navigable cells
-        (clearance >= radius) keeps the straight-line motion collision-free.
+        (clearance >= radius) keeps the straight-line motion collision-free. Measuring the lookahead
+        along the path, not from the agent, keeps the target from jumping to a later part of the
+        path that happens to lie near (the way back of a detour).
         """
-        beyond = np.flatnonzero(dist[nearest:] >= self.config.lookahead)
+        arc = self._arc_length()
+        beyond = np.flatnonzero(arc[nearest:] - arc[nearest] >= self.config.lookahead)
         last = nearest + int(beyond[0]) if len(beyond) else len(self.path) - 1
         for j in range(last, nearest, -1):
             if self._line_of_sight(pos, self.path[j]):
@@ -231,6 +258,18 @@ class ReferencePathFollower(OracleFollower):
         ahead = np.flatnonzero(np.cumsum(seg) >= self.rejoin_ahead)
         return j + 1 + int(ahead[0]) if len(ahead) else len(ref) - 1
 
+    def _arrived(self, pos: np.ndarray) -> bool:
+        """Near the goal *and* at the end of the route: a reference path may pass its own end
+        earlier (a loop, a detour that comes back), and stopping there would skip the rest."""
+        if not super()._arrived(pos):
+            return False
+        if len(self.path) == 0:
+            return True
+        arc = self._arc_length()
+        dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
+        remaining = arc[-1] - arc[self._nearest_ahead(dist)]
+        return bool(remaining <= self.config.lookahead + self.config.stop_radius)
+
     def _plan(self, start: np.ndarray) -> PathResult:
         assert self.goal is not None
         k = self.rejoin_index(start)
@@ -243,6 +282,7 @@ class ReferencePathFollower(OracleFollower):
         )
         self.result = PathResult(pts, head.nodes, length, head.cost, "")
         self.path = smooth_path(pts, self.config.smoothing_window)
+        self._arc = None
         self._progress = 0
         self._blocked_at, self._cycling = [], False
         return self.result
