@@ -126,12 +126,14 @@ def test_without_renderer_splat_only_is_used(scene_and_ckpt):
     # Splat-only equals a direct splat of the scene at the agent's camera pose, as expected colour
     # and range (the composite divided by alpha: eval render's splat_only).
     from image2sim.simulator.renderer.condition import unpremultiply
+    from image2sim.simulator.sim import OBSERVATION_MIN_TRANSMITTANCE
 
     scene = GaussianScene.load(folder)
     ref = scene.render(
         EquirectCamera(PANO_H, 2 * PANO_H),
         torch.as_tensor(sim.camera_pose(0), dtype=torch.float32),
         backend="torch",
+        min_transmittance=OBSERVATION_MIN_TRANSMITTANCE,
     )
     rgb, depth = unpremultiply(ref.rgb, ref.depth, ref.alpha)
     np.testing.assert_allclose(obs[0]["panorama"]["rgb"], rgb[0].permute(1, 2, 0).numpy(), atol=1e-6)
@@ -276,10 +278,12 @@ def test_cli_sim_render_with_renderer_matches_the_simulator_render_fn(scene_and_
 
 def test_cli_sim_render_writes_the_simulators_splat_image_in_each_mode(scene_and_ckpt, tmp_path):
     """Without --renderer, `sim render` writes what the splat-only simulator shows (`--splat
-    normalised` by default, GaussianRenderFn's image); raw and filled differ where alpha < 1; a bad
-    mode is a clear error."""
+    normalised` by default, GaussianRenderFn's image) at metric precision (min_transmittance 1e-4,
+    not the observations' early finish); raw and filled differ where alpha < 1; a bad mode is a
+    clear error."""
     from image2sim.simulator.cli import sim_app
     from image2sim.simulator.io.images import read_rgb
+    from image2sim.simulator.splatting.project import T_MIN
     from typer.testing import CliRunner
 
     folder, _ = scene_and_ckpt
@@ -299,7 +303,7 @@ def test_cli_sim_render_writes_the_simulators_splat_image_in_each_mode(scene_and
         assert res.exit_code == 0, res.output
         assert f"splat {mode}" in res.output
         images[mode] = read_rgb(out)
-        fn = GaussianRenderFn(tensors, backend="torch", mode=mode)
+        fn = GaussianRenderFn(tensors, backend="torch", mode=mode, min_transmittance=T_MIN)
         want = (fn(EquirectCamera(PANO_H, 2 * PANO_H), pose)["rgb"] * 255 + 0.5).astype(np.uint8)
         np.testing.assert_array_equal(images[mode], want)
     alpha = read_rgb(tmp_path / "raw_alpha.png")[..., 0]

@@ -67,7 +67,7 @@ def loss_of(out: SplatOutput, seed: int = 7) -> torch.Tensor:
 # --- an independent per-pixel oracle (plain Python loops) for the compositing rules -------------
 
 
-def loop_oracle(means2d, conics, opac, values, bg, height, width, wrap):
+def loop_oracle(means2d, conics, opac, values, bg, height, width, wrap, t_min=T_MIN):
     """Literal transcription of the semantics, one pixel and one Gaussian at a time."""
     d = values.shape[1]
     img = torch.zeros(d, height, width, dtype=torch.float64)
@@ -91,7 +91,7 @@ def loop_oracle(means2d, conics, opac, values, bg, height, width, wrap):
                     acc[c] += a * T * float(values[k, c])
                 asum += a * T
                 T *= 1 - a
-                if T < T_MIN:
+                if T < t_min:
                     break
             for c in range(d):
                 img[c, j, i] = acc[c] + (1 - asum) * float(bg[c])
@@ -100,7 +100,8 @@ def loop_oracle(means2d, conics, opac, values, bg, height, width, wrap):
 
 
 @pytest.mark.parametrize("wrap", [0.0, 12.0])
-def test_dense_reference_matches_loop_oracle(wrap):
+@pytest.mark.parametrize("t_min", [T_MIN, 0.05])
+def test_dense_reference_matches_loop_oracle(wrap, t_min):
     g = torch.Generator().manual_seed(3)
     m = 7
     means2d = torch.rand(m, 2, generator=g, dtype=torch.float64) * torch.tensor([12.0, 8.0])
@@ -114,8 +115,8 @@ def test_dense_reference_matches_loop_oracle(wrap):
     opac[1] = 1.0  # exercises the 0.99 clamp and early termination
     values = torch.randn(m, 4, generator=g, dtype=torch.float64)
     bg = torch.tensor([0.1, 0.2, 0.3, 0.0], dtype=torch.float64)
-    want = loop_oracle(means2d, conics, opac, values, bg, 8, 12, wrap)
-    got = reference.rasterize(means2d, conics, opac, values, bg, 8, 12, wrap)
+    want = loop_oracle(means2d, conics, opac, values, bg, 8, 12, wrap, t_min)
+    got = reference.rasterize(means2d, conics, opac, values, bg, 8, 12, wrap, t_min)
     for w, h in zip(want, got, strict=True):
         torch.testing.assert_close(h, w, atol=1e-12, rtol=0)
 
@@ -142,6 +143,57 @@ def test_backend_matches_reference_values(backend, camera, c, seed):
         if want.numel() == 0:
             continue
         assert (got - want).abs().max() <= tol, (name, float((got - want).abs().max()))
+
+
+# --- min_transmittance: the inference option that finishes pixels earlier ------------------------
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("camera", [EQ, PH], ids=["equirect", "pinhole"])
+@pytest.mark.parametrize("grad", [False, True], ids=["fused", "training"])
+def test_backends_match_reference_at_a_larger_min_transmittance(backend, camera, grad):
+    scene = make_scene(80, 3, camera, 4, dtype=torch.float32, opaque=True)
+    if grad:
+        scene = [t.requires_grad_() for t in scene]
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    with torch.set_grad_enabled(grad):
+        ref = splat(*scene, camera, EYE, background=bg, backend="reference", min_transmittance=0.02)
+        out = splat(*scene, camera, EYE, background=bg, backend=backend, min_transmittance=0.02)
+    rng = float(ref.normalized_depth().max())
+    for name, want in planes(ref).items():
+        tol = 1e-4 * max(rng, 1.0) if name == "depth" else 1e-4
+        assert (planes(out)[name] - want).abs().max() <= tol, name
+    if grad:
+        g_ref = torch.autograd.grad(loss_of(ref), scene)
+        g_out = torch.autograd.grad(loss_of(out), scene)
+        for got, want in zip(g_out, g_ref, strict=True):
+            assert (got - want).abs().max() <= 1e-3 * want.abs().max().clamp_min(1e-6)
+
+
+@pytest.mark.parametrize("camera", [EQ, PH], ids=["equirect", "pinhole"])
+@pytest.mark.parametrize("t_min", [1e-2, 0.1])
+def test_min_transmittance_moves_every_output_by_at_most_its_bound(camera, t_min):
+    """A finished pixel leaves out Gaussians whose weights sum to less than T < t_min, and the
+    background's share shrinks by as much: each plane moves by at most t_min times the spread of its
+    values (the background counted as one of them)."""
+    scene = make_scene(120, 4, camera, 5, dtype=torch.float64, opaque=True)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    exact = splat(*scene, camera, EYE, background=bg, backend="reference")
+    early = splat(*scene, camera, EYE, background=bg, backend="reference", min_transmittance=t_min)
+    means, _, _, _, colors, feats = scene
+    rng = means.norm(dim=1).max()  # depth values lie in [0, max range]; background depth is 0
+    spread = {
+        "rgb": torch.maximum(colors.max(0).values, bg) - torch.minimum(colors.min(0).values, bg),
+        "depth": rng.reshape(1),
+        "alpha": torch.ones(1, dtype=torch.float64),
+        "features": feats.max(0).values.clamp_min(0) - feats.min(0).values.clamp_max(0),
+    }
+    moved = 0.0
+    for name, want in planes(exact).items():
+        diff = (planes(early)[name] - want).abs().amax(dim=(0, 2, 3))  # per channel
+        assert (diff <= t_min * spread[name] + 1e-12).all(), (name, diff, t_min * spread[name])
+        moved = max(moved, float(diff.max()))
+    assert moved > 0.0  # the option changed something: the scene has pixels that finish early
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -554,6 +606,9 @@ def test_bad_arguments_are_named():
         splat(*scene, PH, torch.eye(3))
     with pytest.raises(TypeError, match="camera"):
         splat(*scene, "pinhole", EYE)
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="min_transmittance"):
+            splat(*scene, PH, EYE, min_transmittance=bad)
 
 
 def test_far_culling_and_projection_validity():

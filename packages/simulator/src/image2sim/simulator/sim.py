@@ -26,6 +26,7 @@ from image2sim.simulator.navigation.navmap import NavMap
 from image2sim.simulator.navigation.planner import DistanceField, Planner
 
 __all__ = [
+    "OBSERVATION_MIN_TRANSMITTANCE",
     "ObservationSpec",
     "GaussianRenderFn",
     "PixelFlowRenderFn",
@@ -102,6 +103,13 @@ class ObservationSpec(_DictMixin):
         return self.panorama or self.pinhole or self.ultrawide
 
 
+OBSERVATION_MIN_TRANSMITTANCE = 2e-3
+"""``splat``'s ``min_transmittance`` for simulator observations (images for an agent, stored as 8-bit
+frames): a pixel is finished once its transmittance is below this. What it leaves out moves a colour
+by at most 0.002, half an 8-bit level, and nearly opaque scenes splat faster than at 3DGS's 1e-4
+(``benchmarks/splatting.py``'s "min_transmittance" rows). Metrics (``eval render``) splat at 1e-4."""
+
+
 class GaussianRenderFn:
     """Render function over a Gaussian scene via ``splat`` (+ optional pixel-flow renderer).
 
@@ -112,7 +120,8 @@ class GaussianRenderFn:
     CPU numpy arrays either way. ``mode``: how the splat becomes an image without a renderer,
     :func:`~image2sim.simulator.renderer.holefill.splat_rgbd`'s ``raw``, ``normalised`` (default:
     the expected colour, as ``eval render``'s ``splat_only``) or ``filled`` (holes completed, as
-    its ``splat_fill``).
+    its ``splat_fill``). ``min_transmittance``: ``splat``'s early finish
+    (:data:`OBSERVATION_MIN_TRANSMITTANCE`).
     """
 
     def __init__(
@@ -122,6 +131,7 @@ class GaussianRenderFn:
         backend: str = "auto",
         device=None,
         mode: str = "normalised",
+        min_transmittance: float = OBSERVATION_MIN_TRANSMITTANCE,
     ) -> None:
         from image2sim.simulator.renderer.holefill import SPLAT_MODES
 
@@ -132,6 +142,7 @@ class GaussianRenderFn:
         self.renderer = renderer
         self.backend = backend
         self.mode = mode
+        self.min_transmittance = float(min_transmittance)
 
     def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
         import torch
@@ -151,6 +162,7 @@ class GaussianRenderFn:
                 camera,
                 pose,
                 backend=self.backend,
+                min_transmittance=self.min_transmittance,
             )
             if self.renderer is not None:  # the renderer makes the colour; depth as the splat has it
                 rgb, depth = self.renderer(out), out.normalized_depth()
@@ -174,13 +186,21 @@ class PixelFlowRenderFn:
     the same image. Only equirectangular cameras with W = 2H are accepted: :class:`NeuralSimulator`
     cuts pinhole and ultra-wide views from the panorama (``panoramic = True``). ``device``: where the
     Gaussians and the network live (``cuda`` on a GPU machine); the per-pose noise is drawn on the
-    CPU, so a pose renders the same noise on every device.
+    CPU, so a pose renders the same noise on every device. ``min_transmittance``: ``splat``'s early
+    finish for the condition (:data:`OBSERVATION_MIN_TRANSMITTANCE`).
     """
 
     panoramic = True
 
     def __init__(
-        self, gaussians: dict, model, steps: int = 1, seed: int = 0, backend: str = "auto", device=None
+        self,
+        gaussians: dict,
+        model,
+        steps: int = 1,
+        seed: int = 0,
+        backend: str = "auto",
+        device=None,
+        min_transmittance: float = OBSERVATION_MIN_TRANSMITTANCE,
     ) -> None:
         if int(steps) < 1:
             raise ValueError(f"PixelFlowRenderFn: steps must be >= 1, got {steps}")
@@ -190,6 +210,7 @@ class PixelFlowRenderFn:
         self.steps = int(steps)
         self.seed = int(seed)
         self.backend = backend
+        self.min_transmittance = float(min_transmittance)
 
     def condition(self, camera: EquirectCamera, cam_to_world: np.ndarray):
         """The (1, 24, H, W) condition C_p of the Gaussians splatted at ``cam_to_world``."""
@@ -215,6 +236,7 @@ class PixelFlowRenderFn:
                 pose,
                 background=0.0,
                 backend=self.backend,
+                min_transmittance=self.min_transmittance,
             )
             rgb, depth = unpremultiply(out.rgb, out.depth, out.alpha, background=0.0)
             f = out.features if feats is not None else rgb.new_zeros(1, CONDITION_FEATURES, *rgb.shape[-2:])
@@ -344,17 +366,23 @@ def gaussian_render_fn(
     backend: str = "auto",
     device=None,
     mode: str = "normalised",
+    min_transmittance: float = OBSERVATION_MIN_TRANSMITTANCE,
 ) -> RenderFn:
     """The render function of a Gaussian scene: :class:`PixelFlowRenderFn` when ``renderer`` is
     pixel-flow weights (a path or a ``PixelFlowRenderer``), else :class:`GaussianRenderFn` (splat
     only, with ``renderer`` applied after splatting when it is another callable). ``gaussians``: a
     scene's ``Gaussians`` or a tensor dict; ``device``: cpu (default) or cuda; ``mode``: the splat-only
-    image (:class:`GaussianRenderFn`)."""
+    image (:class:`GaussianRenderFn`); ``min_transmittance``: ``splat``'s early finish (1e-4 for
+    exact images, as ``sim render`` uses)."""
     tensors = gaussians if isinstance(gaussians, dict) else gaussian_tensors(gaussians)
     model = load_pixel_flow(renderer)
     if model is not None:
-        return PixelFlowRenderFn(tensors, model, steps=steps, seed=seed, backend=backend, device=device)
-    return GaussianRenderFn(tensors, renderer, backend, device=device, mode=mode)
+        return PixelFlowRenderFn(
+            tensors, model, steps, seed, backend, device=device, min_transmittance=min_transmittance
+        )
+    return GaussianRenderFn(
+        tensors, renderer, backend, device=device, mode=mode, min_transmittance=min_transmittance
+    )
 
 
 class NeuralSimulator:

@@ -244,8 +244,12 @@ def render_command(
             # Splat -> condition C_p -> pixel flow with per-pose noise (the simulator's render path).
             from image2sim.simulator.renderer.model import load_renderer
             from image2sim.simulator.sim import gaussian_render_fn
+            from image2sim.simulator.splatting.project import T_MIN
 
-            fn = gaussian_render_fn(sc.gaussians, load_renderer(renderer), steps=steps, backend=backend)
+            # Exact condition (as eval render's), not the simulator's early-finished observation splat.
+            fn = gaussian_render_fn(
+                sc.gaussians, load_renderer(renderer), steps=steps, backend=backend, min_transmittance=T_MIN
+            )
             flow = fn(camera, np.asarray(c2w, dtype=np.float64))
     except (SceneError, ValueError, FileNotFoundError) as exc:
         typer.echo(f"error: {exc}", err=True)

@@ -14,7 +14,11 @@ Semantics (shared exactly by every backend; the dense reference in
   camera-space range (pinhole: z), ties by input index; alpha_i = min(0.99, o_i exp(-q/2)) with
   q = d^T Sigma_2D^-1 d; a Gaussian contributes only where q <= 3.5^2 (footprint cut at 3.5 sigma)
   and alpha_i >= 1/255; w_i = alpha_i T_i, T_i = prod_{j<i} (1 - alpha_j); after compositing a
-  Gaussian the pixel is finished once T < 1e-4 (that Gaussian still counts).
+  Gaussian the pixel is finished once T < ``min_transmittance`` (default 1e-4, as 3DGS and gsplat;
+  that Gaussian still counts). A larger value is an inference option: what a finished pixel leaves
+  out weighs at most T, so every output moves by at most ``min_transmittance`` times the spread of
+  the values (colour, depth, features) behind the surface, and nearly opaque scenes render faster
+  (``reports/splatting.md``). The ``renderer``-kind backends (gsplat) always composite to 1e-4.
 * Outputs: rgb = sum w_i c_i + (1 - alpha) background, depth = sum w_i rho_i (range for panoramas,
   z for pinhole; *not* normalised, see :meth:`SplatOutput.normalized_depth`), alpha = sum w_i,
   features = sum w_i f_i.
@@ -44,7 +48,7 @@ from image2sim.simulator.splatting.dispatch import (
 )
 from image2sim.simulator.splatting.dispatch import get_backend as _get_backend
 from image2sim.simulator.splatting.dispatch import resolve_backend as _resolve
-from image2sim.simulator.splatting.project import project_gaussians
+from image2sim.simulator.splatting.project import T_MIN, project_gaussians
 
 __all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend"]
 
@@ -216,6 +220,7 @@ def splat(
     background: torch.Tensor | float | None = None,
     backend: str = "auto",
     nonfinite: str = "raise",
+    min_transmittance: float = T_MIN,
 ) -> SplatOutput:
     """Render N feature Gaussians into B views of ``camera``; see the module docstring for semantics.
 
@@ -253,6 +258,8 @@ def splat(
         raise ValueError(f"splat: need 0 <= near < far, got near={near}, far={far}")
     if nonfinite not in ("raise", "cull"):
         raise ValueError(f"splat: nonfinite must be 'raise' or 'cull', got {nonfinite!r}")
+    if not 0.0 < min_transmittance < 1.0:
+        raise ValueError(f"splat: min_transmittance must lie in (0, 1), got {min_transmittance}")
 
     bad: torch.Tensor | None = None  # rows with a non-finite value (None: every row is finite)
     for name, t in (
@@ -311,7 +318,14 @@ def splat(
 
             gaussians = (means, scales, quats, opacities, colors, features)
             image, alpha = render(
-                *gaussians, camera, pose, bg_all, near=near, far=far, finite_mask=finite_mask
+                *gaussians,
+                camera,
+                pose,
+                bg_all,
+                near=near,
+                far=far,
+                finite_mask=finite_mask,
+                t_min=min_transmittance,
             )
             images.append(image)
             alphas.append(alpha)
@@ -345,6 +359,7 @@ def splat(
             camera.height,
             camera.width,
             proj.wrap_width,
+            t_min=min_transmittance,
             **kwargs,
         )
         if idx.numel() == 0:  # keep the output in the autograd graph even when nothing is visible

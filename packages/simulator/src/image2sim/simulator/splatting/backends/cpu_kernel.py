@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 from image2sim.simulator.splatting.backends.torch_tiles import TILE_SIZE
+from image2sim.simulator.splatting.project import T_MIN
 
 __all__ = ["available", "load_error", "load", "rasterize", "bin_gaussians", "sort_valid", "project", "render"]
 
@@ -144,12 +145,25 @@ def sort_valid(depths: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, values, background, radii, offsets, ids, height, width, wrap, tile
+        ctx,
+        means2d,
+        conics,
+        opacities,
+        values,
+        background,
+        radii,
+        offsets,
+        ids,
+        height,
+        width,
+        wrap,
+        tile,
+        t_min,
     ):
         ext = load()
         args = [t.detach().contiguous() for t in (means2d, radii, conics, opacities, values, background)]
         image, alpha, t_final, n_contrib = ext.rasterize_forward(
-            *args, offsets, ids, height, width, wrap, tile
+            *args, offsets, ids, height, width, wrap, tile, t_min
         )
         ctx.save_for_backward(*args, offsets, ids, alpha, t_final, n_contrib)
         ctx.grid = (height, width, wrap, tile)
@@ -183,7 +197,7 @@ class _Rasterize(torch.autograd.Function):
             g_image.to(dtype).contiguous(),
             g_alpha.to(dtype).contiguous(),
         )
-        return d_mean, d_conic, d_opac, d_vals, d_bg, None, None, None, None, None, None, None
+        return d_mean, d_conic, d_opac, d_vals, d_bg, None, None, None, None, None, None, None, None
 
 
 def rasterize(
@@ -197,6 +211,7 @@ def rasterize(
     wrap_width: float,
     radii: torch.Tensor | None = None,
     tile: int = TILE_SIZE,
+    t_min: float = T_MIN,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Compiled tile-parallel compositing; same contract and result as the dense reference."""
     if means2d.device.type != "cpu":
@@ -222,6 +237,7 @@ def rasterize(
         int(width),
         float(wrap_width),
         int(tile),
+        float(t_min),
     )
 
 
@@ -288,6 +304,7 @@ def render(
     near: float = 0.05,
     far=None,
     finite_mask=None,
+    t_min: float = T_MIN,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Inference-only fused render of one camera (no autograd): ``(image (4 + C, H, W), alpha)``.
 
@@ -298,5 +315,6 @@ def render(
         *_dense(means, scales, quats, opacities, colors, features),
         *_camera_tail(camera, cam_to_world, near, far, finite_mask),
         background.detach().contiguous(),
+        float(t_min),
     )
     return image, alpha

@@ -13,14 +13,19 @@ __all__ = ["rasterize", "composite"]
 
 
 def composite(
-    dx: torch.Tensor, dy: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    t_min: float = T_MIN,
 ) -> torch.Tensor:
     """Blending weights w (..., P, K) of K depth-sorted Gaussians at P pixels.
 
     ``dx``/``dy`` (..., P, K) are pixel-minus-mean offsets (already wrapped); ``conics`` (..., 1, K, 3)
     or broadcastable, ``opacities`` (..., 1, K). Implements the splatting semantics exactly:
     footprint cut at 3.5 sigma, alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255,
-    w_i = alpha_i T_i, and a pixel stops after the Gaussian that brings T below 1e-4.
+    w_i = alpha_i T_i, and a pixel stops after the Gaussian that brings T below ``t_min``
+    (default 1e-4).
     """
     a, b, c = conics.unbind(-1)
     q = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
@@ -32,7 +37,7 @@ def composite(
     trans = torch.cumprod(
         torch.cat((torch.ones_like(one_minus[..., :1]), one_minus[..., :-1]), dim=-1), dim=-1
     )
-    counted = trans.detach() >= T_MIN
+    counted = trans.detach() >= t_min
     return torch.where(counted, alpha * trans, torch.zeros_like(alpha))
 
 
@@ -45,6 +50,7 @@ def rasterize(
     height: int,
     width: int,
     wrap_width: float,
+    t_min: float = T_MIN,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Dense front-to-back compositing of M sorted Gaussians carrying D values each.
 
@@ -64,7 +70,7 @@ def rasterize(
     py = vv.reshape(-1, 1)
     dx = wrap_offset(px - means2d[:, 0], wrap_width)
     dy = py - means2d[:, 1]
-    w = composite(dx, dy, conics, opacities)  # (P, M)
+    w = composite(dx, dy, conics, opacities, t_min)  # (P, M)
     alpha = w.sum(dim=-1)
     image = w @ values + (1.0 - alpha).unsqueeze(-1) * background
     return image.transpose(0, 1).reshape(d, height, width), alpha.reshape(1, height, width)

@@ -12,7 +12,7 @@ import math
 
 import torch
 from image2sim.simulator.splatting.backends.reference import composite
-from image2sim.simulator.splatting.project import wrap_offset
+from image2sim.simulator.splatting.project import T_MIN, wrap_offset
 
 __all__ = ["TILE_SIZE", "tile_ranges", "bin_gaussians", "rasterize"]
 
@@ -98,6 +98,7 @@ def rasterize(
     wrap_width: float,
     radii: torch.Tensor | None = None,
     tile: int = TILE_SIZE,
+    t_min: float = T_MIN,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Tile-binned compositing; same contract and result as the dense reference."""
     from image2sim.simulator.splatting.project import CUTOFF_SIGMA
@@ -155,7 +156,7 @@ def rasterize(
             dx = wrap_offset(px.unsqueeze(-1) - mu[:, None, :, 0], wrap_width)  # (Tc, P, K)
             dy = py.unsqueeze(-1) - mu[:, None, :, 1]
             op = torch.where(valid_slot, opacities[g], torch.zeros_like(opacities[g]))
-            w = composite(dx, dy, conics[g].unsqueeze(1), op.unsqueeze(1))
+            w = composite(dx, dy, conics[g].unsqueeze(1), op.unsqueeze(1), t_min)
             out_parts.append(torch.einsum("tpk,tkd->tpd", w, values[g]))
             alpha_parts.append(w.sum(-1))
             tiles_done.append(t)

@@ -2,7 +2,8 @@
 //
 // Contract identical to backends/reference.py: per pixel, front to back over the tile's list,
 // q = d^T conic d, skip q > 3.5^2, alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255,
-// w = alpha T, stop after the Gaussian that drops T below 1e-4. Outputs
+// w = alpha T, stop after the Gaussian that drops T below t_min (1e-4 unless the caller allows a
+// larger truncation: the inference option `min_transmittance`). Outputs
 // image[k] = sum w v_k + (1 - sum w) bg_k and alpha = sum w.
 //
 // Layout and loops (see docs/renderer.md, "CPU kernel"):
@@ -11,7 +12,7 @@
 // * Inside a tile the loop is Gaussian-outer, row-middle, 16-lane pixel-inner: for one Gaussian and
 //   one pixel row, `row_alpha` evaluates all 16 pixels at once (branch-free, `omp simd`), then the
 //   transmittance update and every channel accumulation are 16-lane vector loops over a
-//   channel-major tile buffer acc[c][pixel]. Pixels that are finished (T < 1e-4) or outside the
+//   channel-major tile buffer acc[c][pixel]. Pixels that are finished (T < t_min) or outside the
 //   image carry T = 0 and therefore add exactly nothing; a tile stops once all its pixels are done.
 // * Compute type: float for float32 inputs (a Cephes-style vectorisable exp, ~1 ulp), double for
 //   float64 inputs (std::exp, so float64 gradients are exactly smooth for gradcheck).
@@ -41,7 +42,6 @@ namespace {
 constexpr double kCutoff2 = 3.5 * 3.5;
 constexpr double kAlphaMax = 0.99;
 constexpr double kAlphaMin = 1.0 / 255.0;
-constexpr double kTMin = 1e-4;
 constexpr int kTile = 16;          // tile edge of the vectorised kernel
 constexpr int kP = kTile * kTile;  // pixels per tile (row stride kTile)
 
@@ -242,13 +242,13 @@ void parallel_range(int64_t n, int64_t grain, const F& fn) {  // fn(begin, end)
 
 template <typename scalar_t>
 void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int64_t D, const int64_t* offs,
-                  const int64_t* ids, const Grid& g, scalar_t* out, scalar_t* alpha_out, double* t_final,
-                  int64_t* n_contrib) {
+                  const int64_t* ids, const Grid& g, double t_min, scalar_t* out, scalar_t* alpha_out,
+                  double* t_final, int64_t* n_contrib) {
   using real = compute_t<scalar_t>;
   const int64_t n_tiles = g.ntx * g.nty;
   const int64_t HW = g.H * g.W;
   const real wrap = static_cast<real>(g.wrap);
-  const real tmin = static_cast<real>(kTMin);
+  const real tmin = static_cast<real>(t_min);
   std::atomic<int64_t> next_tile{0};  // dynamic schedule: workers take the next tile
   run_workers(num_workers(n_tiles), [&](int) {
     using V = typename Lanes<real>::V;
@@ -683,7 +683,8 @@ std::vector<torch::Tensor> bin_gaussians(torch::Tensor means2d, torch::Tensor ra
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor radii, torch::Tensor conics,
                                              torch::Tensor opac, torch::Tensor vals, torch::Tensor bg,
                                              torch::Tensor offsets, torch::Tensor ids, int64_t H, int64_t W,
-                                             double wrap, int64_t tile) {
+                                             double wrap, int64_t tile, double t_min) {
+  TORCH_CHECK(t_min > 0 && t_min < 1, "splat_cpu: t_min must lie in (0, 1), got ", t_min);
   TORCH_CHECK(tile == kTile, "splat_cpu: the kernel's tile edge is ", kTile, ", got ", tile);
   const Grid g = make_grid(H, W, tile, wrap);
   const int64_t D = vals.size(1);
@@ -697,7 +698,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
                                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
                                              means2d.size(0));
     forward_impl<scalar_t>(recs.data(), vals.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), D,
-                           offsets.data_ptr<int64_t>(), ids.data_ptr<int64_t>(), g, out.data_ptr<scalar_t>(),
+                           offsets.data_ptr<int64_t>(), ids.data_ptr<int64_t>(), g, t_min, out.data_ptr<scalar_t>(),
                            alpha.data_ptr<scalar_t>(), t_final.data_ptr<double>(), n_contrib.data_ptr<int64_t>());
   });
   return {out, alpha, t_final, n_contrib};
@@ -771,7 +772,8 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor sca
                                           torch::Tensor opac, torch::Tensor colors, torch::Tensor feats,
                                           torch::Tensor finite_mask, torch::Tensor c2w, bool equirect, double fx,
                                           double fy, double cx, double cy, int64_t H, int64_t W, double near,
-                                          double far, torch::Tensor bg) {
+                                          double far, torch::Tensor bg, double t_min) {
+  TORCH_CHECK(t_min > 0 && t_min < 1, "splat_cpu: t_min must lie in (0, 1), got ", t_min);
   auto proj = project_forward(means, scales, quats, opac, finite_mask, c2w, equirect, fx, fy, cx, cy, H, W,
                               near, far);
   const auto& uv = proj[0];
@@ -824,7 +826,7 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor sca
              },
              off, ids);
     forward_impl<scalar_t>(recs.data(), vals.data(), bgc.data_ptr<scalar_t>(), D, off.data(), ids.data(), g,
-                           out.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), nullptr, nullptr);
+                           t_min, out.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), nullptr, nullptr);
   });
   return {out, alpha};
 }
