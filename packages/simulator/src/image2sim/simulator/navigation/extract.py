@@ -14,11 +14,11 @@ Pipeline (seed paper, appendix "Navigable Area Extraction and Denoising"):
    2D floor mask fills occlusion holes, the filled cells are re-projected onto the storey plane;
 6. radius outlier removal of obstacle voxels; per floor-height band, the clearance is the distance
    to the obstacle columns (obstacles between the step height and the body height above that floor)
-   and to unsupported columns (:func:`_floor_clearance`); cells with clearance >= the safety buffer
-   (default: the agent radius) are navigable. ``NavMapConfig.unknown_clearance`` (default None: the
-   buffer) sets how near a storey's floor may come to unseen columns (0: the paper's rule, where only
-   obstacles project the buffer); drops and floor off a storey's plane (treads) keep the buffer to
-   every unsupported column.
+   and to unsupported columns (:func:`.clearance.floor_clearance`); cells with clearance >= the
+   safety buffer (default: the agent radius) are navigable. ``NavMapConfig.unknown_clearance``
+   (default 0: the paper's rule, where only obstacles project the buffer; None: the buffer) sets how
+   near a storey's floor may come to unseen columns; drops and floor off a storey's plane (treads)
+   keep the buffer to every unsupported column.
 
 Everything is expressed in the *map frame*: the gravity-aligned world (identical to the world frame
 when ``rotation`` is the identity, i.e. for Z-up captures). :attr:`NavMap.points` is returned in world
@@ -31,6 +31,7 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
+from image2sim.simulator.navigation.clearance import disk, floor_clearance
 from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap, NavMapError
 from scipy import ndimage
@@ -188,12 +189,6 @@ def _voxel_reduce(
         / wsum[:, None]
     )
     return _unpack_keys(uniq), means, wsum
-
-
-def _disk(radius: int) -> np.ndarray:
-    r = int(radius)
-    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
-    return (xx * xx + yy * yy) <= r * r + 1e-9
 
 
 def _band_columns(
@@ -541,77 +536,11 @@ def _build_navmap(
         notes=notes,
     )
     # 7. Clearance; cells with clearance >= the safety buffer are navigable.
-    navmap.clearance = _floor_clearance(navmap)
+    navmap.clearance = floor_clearance(navmap)
     navmap.navigable = navmap.clearance >= navmap.safety_buffer - 1e-9
     if not navmap.navigable.any():
         notes.append("no floor cell has the required clearance: the map has no navigable cell")
     return navmap
-
-
-def _floor_clearance(navmap: NavMap) -> np.ndarray:
-    """Clearance (metres) of every floor cell, per floor-height bin: the exact horizontal distance to
-    the obstacle points in the body band, and the EDT distance to unsupported columns minus half a
-    cell (the floor reaches the edge of its last cell). Unsupported columns holding floor at another
-    height are drops and count as they are; for floor on a storey's plane, other columns with no
-    floor (unseen) count as standing ``safety_buffer - unknown_clearance`` farther out."""
-    vox, emb, cfg = navmap.voxel_size, navmap.embodiment, navmap.config
-    floor_ij, floor_z, support_ij = navmap.floor_ij, navmap.floor_z, navmap.support_ij
-    level_heights, obstacle_ij, obstacle_xyz = navmap.level_heights, navmap.obstacle_ij, navmap.obstacle_xyz
-    heights, cell_bin = navmap.height_bins()
-    clearance = np.zeros(len(floor_z))
-    unknown_slack = navmap.safety_buffer - navmap.unknown_clearance
-    if unknown_slack > 0:  # only then do drops and unseen columns differ
-        floor_anywhere = np.zeros(navmap.shape2d, dtype=bool)
-        floor_anywhere[floor_ij[:, 0], floor_ij[:, 1]] = True
-        floor_anywhere[support_ij[:, 0], support_ij[:, 1]] = True
-        near_drop = _disk(int(math.ceil(navmap.safety_buffer / vox - 1e-9)))
-        on_level = (
-            np.abs(floor_z - level_heights[navmap.floor_level]) <= cfg.level_tolerance
-            if len(level_heights)
-            else np.zeros(len(floor_z), dtype=bool)
-        )
-    cell_xy = navmap.cell_xy(floor_ij)
-    bound = 5.0 * emb.radius + 2.0 * vox
-    for b, h in enumerate(heights):
-        sel = np.flatnonzero(cell_bin == b)
-        void = navmap.unsupported_mask(float(h))
-        if unknown_slack > 0:
-            # Unseen columns within a buffer of a drop (between stair treads seen at grazing angles,
-            # at a landing's edge) may hide the same height change: they count as the drop does.
-            drop = void & floor_anywhere
-            if drop.any():
-                drop |= void & ndimage.binary_dilation(drop, structure=near_drop)
-            # Only floor on a storey's plane gets the slack: treads and ramps keep the buffer.
-            slack = np.where(on_level[sel], unknown_slack, 0.0)
-            c = np.minimum(
-                _edge_distance(drop, floor_ij[sel], vox),
-                _edge_distance(void & ~drop, floor_ij[sel], vox) + slack,
-            )
-        else:
-            c = _edge_distance(void, floor_ij[sel], vox)
-        band = navmap.band_obstacles(float(h))
-        if band.any():
-            # Exact distance to the obstacle points near the cell; beyond ``bound`` (no effect on
-            # navigability or costs) the column EDT is precise enough.
-            d_obs, _ = cKDTree(obstacle_xyz[band, :2]).query(cell_xy[sel], distance_upper_bound=bound)
-            far = ~np.isfinite(d_obs)
-            if far.any():
-                cols = np.zeros(navmap.shape2d, dtype=bool)
-                cols[obstacle_ij[band, 0], obstacle_ij[band, 1]] = True
-                edt = ndimage.distance_transform_edt(~cols) * vox - 0.5 * vox
-                d_obs[far] = np.maximum(edt[floor_ij[sel[far], 0], floor_ij[sel[far], 1]], bound)
-            c = np.minimum(c, d_obs)
-        clearance[sel] = c
-    return clearance
-
-
-def _edge_distance(blocked: np.ndarray, ij: np.ndarray, vox: float) -> np.ndarray:
-    """Distance (metres) from the cells ``ij`` to the nearest ``blocked`` column's edge (its centre
-    minus half a cell, at least 0); infinite when nothing is blocked."""
-    if not blocked.any():
-        return np.full(len(ij), np.inf)
-    d = ndimage.distance_transform_edt(~blocked)[ij[:, 0], ij[:, 1]] * vox - 0.5 * vox
-    return np.maximum(d, 0.0)
 
 
 def _covered_from_above(f_ijk: np.ndarray, o_ijk: np.ndarray, n_above: int) -> np.ndarray:
@@ -799,7 +728,7 @@ def _fill_holes(
     if r <= 0 or len(level_heights) == 0:
         return empty
     out_ij, out_z, out_l = [], [], []
-    struct = _disk(r)
+    struct = disk(r)
     for li, h in enumerate(level_heights):
         a, b, c, d = level_planes[li]
         member = (c_level == li) & (np.abs(c_z - h) <= cfg.level_tolerance)
