@@ -107,7 +107,7 @@ OBSERVATION_MIN_TRANSMITTANCE = 2e-3
 """``splat``'s ``min_transmittance`` for simulator observations (images for an agent, stored as 8-bit
 frames): a pixel is finished once its transmittance is below this. What it leaves out moves a colour
 by at most 0.002, half an 8-bit level, and nearly opaque scenes splat faster than at 3DGS's 1e-4
-(``benchmarks/splatting.py``'s "min_transmittance" rows). Metrics (``eval render``) splat at 1e-4."""
+(``benchmarks/splat_early_finish.py``). Metrics (``eval render``) splat at 1e-4."""
 
 
 class GaussianRenderFn:
@@ -378,7 +378,13 @@ def gaussian_render_fn(
     model = load_pixel_flow(renderer)
     if model is not None:
         return PixelFlowRenderFn(
-            tensors, model, steps, seed, backend, device=device, min_transmittance=min_transmittance
+            tensors,
+            model,
+            steps=steps,
+            seed=seed,
+            backend=backend,
+            device=device,
+            min_transmittance=min_transmittance,
         )
     return GaussianRenderFn(
         tensors, renderer, backend, device=device, mode=mode, min_transmittance=min_transmittance

@@ -68,7 +68,7 @@ class OracleFollower:
         )
         self.goal: np.ndarray | None = None
         self.path: np.ndarray = np.zeros((0, 3))
-        self._arc: np.ndarray | None = None  # of ``path``; reset whenever the path changes
+        self._arc: np.ndarray = np.zeros(0)  # cumulative length of ``path`` (set with it: _follow)
         self.result: PathResult | None = None
         self._progress = 0
 
@@ -80,15 +80,16 @@ class OracleFollower:
     def _plan(self, start: np.ndarray) -> PathResult:
         assert self.goal is not None
         self.result = self.planner.shortest_path(start, self.goal)
-        self.path = (
-            smooth_path(self.result.waypoints, self.config.smoothing_window)
-            if self.result.reachable
-            else np.zeros((0, 3))
-        )
-        self._arc = None
+        self._follow(self.result.waypoints if self.result.reachable else np.zeros((0, 3)))
+        return self.result
+
+    def _follow(self, waypoints: np.ndarray) -> None:
+        """Start following ``waypoints`` (smoothed) from their beginning."""
+        self.path = smooth_path(waypoints, self.config.smoothing_window) if len(waypoints) else waypoints
+        seg = np.linalg.norm(np.diff(self.path, axis=0), axis=1)
+        self._arc = np.concatenate(([0.0], np.cumsum(seg)))
         self._progress = 0
         self._blocked_at, self._cycling = [], False
-        return self.result
 
     def act(self, state: AgentState, collided: bool = False) -> int:
         """Next action for the agent in ``state``; STOP within ``stop_radius`` or when no path exists."""
@@ -157,19 +158,12 @@ class OracleFollower:
         after = np.linalg.norm(target[:2] - new.position[:2])
         return not after < before - 0.25 * self.embodiment.micro_step
 
-    def _arc_length(self) -> np.ndarray:
-        """Cumulative length (metres) of the smoothed path at each of its points."""
-        if self._arc is None:
-            seg = np.linalg.norm(np.diff(self.path, axis=0), axis=1)
-            self._arc = np.concatenate(([0.0], np.cumsum(seg)))
-        return self._arc
-
     def _nearest_ahead(self, dist: np.ndarray) -> int:
         """Nearest path point at or after the progress made so far, searched only over the next
         ``lookahead + replan_distance`` metres *of path*. Progress is monotone, so loops back to passed
         points cannot trap the agent; the window keeps a path that turns back on itself (a detour
         out to a point and back) from being skipped where its two legs run side by side."""
-        arc = self._arc_length()
+        arc = self._arc
         window = self.config.lookahead + self.config.replan_distance
         end = int(np.searchsorted(arc, arc[self._progress] + window, side="right"))
         return self._progress + int(np.argmin(dist[self._progress : max(end, self._progress + 1)]))
@@ -183,7 +177,7 @@ class OracleFollower:
         along the path, not from the agent, keeps the target from jumping to a later part of the
         path that happens to lie near (the way back of a detour).
         """
-        arc = self._arc_length()
+        arc = self._arc
         beyond = np.flatnonzero(arc[nearest:] - arc[nearest] >= self.config.lookahead)
         last = nearest + int(beyond[0]) if len(beyond) else len(self.path) - 1
         for j in range(last, nearest, -1):
@@ -265,9 +259,8 @@ class ReferencePathFollower(OracleFollower):
             return False
         if len(self.path) == 0:
             return True
-        arc = self._arc_length()
         dist = np.linalg.norm(self.path[:, :2] - pos[:2], axis=1)
-        remaining = arc[-1] - arc[self._nearest_ahead(dist)]
+        remaining = self._arc[-1] - self._arc[self._nearest_ahead(dist)]
         return bool(remaining <= self.config.lookahead + self.config.stop_radius)
 
     def _plan(self, start: np.ndarray) -> PathResult:
@@ -281,8 +274,5 @@ class ReferencePathFollower(OracleFollower):
             np.linalg.norm(np.diff(pts[len(head.waypoints) - 1 :], axis=0), axis=1).sum()
         )
         self.result = PathResult(pts, head.nodes, length, head.cost, "")
-        self.path = smooth_path(pts, self.config.smoothing_window)
-        self._arc = None
-        self._progress = 0
-        self._blocked_at, self._cycling = [], False
+        self._follow(pts)
         return self.result

@@ -18,7 +18,7 @@ Semantics (shared exactly by every backend; the dense reference in
   that Gaussian still counts). A larger value is an inference option: what a finished pixel leaves
   out weighs at most T, so every output moves by at most ``min_transmittance`` times the spread of
   the values (colour, depth, features) behind the surface, and nearly opaque scenes render faster
-  (``reports/splatting.md``). The ``renderer``-kind backends (gsplat) always composite to 1e-4.
+  (``reports/splat_early_finish.md``). The ``renderer``-kind backends (gsplat) always composite to 1e-4.
 * Outputs: rgb = sum w_i c_i + (1 - alpha) background, depth = sum w_i rho_i (range for panoramas,
   z for pinhole; *not* normalised, see :meth:`SplatOutput.normalized_depth`), alpha = sum w_i,
   features = sum w_i f_i.
