@@ -687,6 +687,29 @@ def test_compiled_binning_matches_torch_binning(wrap):
         assert len({t % n_tx for t in tiles_of_0}) == n_tx  # every column of tiles, no duplicates
 
 
+@pytest.mark.parametrize("backend", ["reference", *BACKENDS])
+@pytest.mark.parametrize("grad", [False, True], ids=["inference", "training"])
+def test_gaussian_beside_a_pinhole_camera_does_not_fog_the_view(backend, grad):
+    """A Gaussian 2 m to the side, 6 cm in front of the camera's plane: none of its mass is in the
+    90-degree frustum, so the view stays empty. The unclamped EWA Jacobian (x/z = 33) gave it a
+    footprint of ~5 000 px that covered the whole image with alpha up to 0.3 (HM3D views were fog)."""
+    cam = PinholeCamera.from_fov(90.0, 90.0, 64, 64)
+    means = torch.tensor([[2.0, 0.0, 0.06], [-1.5, 0.8, 0.08], [0.0, 0.0, 2.0]], dtype=torch.float64)
+    scales = torch.full((3, 3), 0.05, dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 3, dtype=torch.float64)
+    opac = torch.ones(3, dtype=torch.float64)
+    colors = torch.eye(3, dtype=torch.float64)
+    if grad:
+        means.requires_grad_()
+    out = splat(means[:2], scales[:2], quats[:2], opac[:2], colors[:2], None, cam, EYE, backend=backend)
+    assert float(out.alpha.max()) == 0.0
+    # The one in view renders as before, beside the other two.
+    alone = splat(means[2:], scales[2:], quats[2:], opac[2:], colors[2:], None, cam, EYE, backend=backend)
+    both = splat(means, scales, quats, opac, colors, None, cam, EYE, backend=backend)
+    assert float(alone.alpha.max()) > 0.5
+    torch.testing.assert_close(both.rgb, alone.rgb, atol=1e-12, rtol=0)
+
+
 @pytest.mark.parametrize(
     "camera",
     [EquirectCamera(64, 128), PinholeCamera(50.0, 50.0, 32.0, 32.0, 64, 64)],
@@ -716,6 +739,11 @@ def test_fused_inference_projection_matches_torch_projection(camera, dtype):
     quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
     opac = torch.rand(n, generator=g, dtype=torch.float64)
     opac[10:50] = 0.5
+    # In front of the camera (most inside a pinhole's frustum) and beside it, just past its plane,
+    # where the pinhole Jacobian is evaluated at the widened frustum's edge (frustum_clamped).
+    ahead = torch.rand(150, 3, generator=g, dtype=torch.float64) * 2 - 1
+    means[50:200] = ahead * torch.tensor([1.5, 1.5, 1.0], dtype=torch.float64) + torch.tensor([0.1, 0.2, 2.2])
+    means[200:260, 2] = -0.3 + 0.05 + torch.rand(60, generator=g, dtype=torch.float64) * 0.3
     args = [t.to(dtype) for t in (means, scales, quats, opac)]
     pose = EYE.clone()
     pose[:3, 3] = torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64)

@@ -8,7 +8,12 @@ stay finite and positive definite.
 Screen covariance (EWA): ``Sigma_2D = J W Sigma W^T J^T + 0.3 I`` with ``W`` the world-to-camera
 rotation and ``J`` the 2x3 pixel Jacobian of the camera at the camera-frame mean.
 
-* Pinhole: ``J`` is :meth:`PinholeCamera.pixel_jacobian` (perspective Jacobian).
+* Pinhole: ``J`` is :meth:`PinholeCamera.pixel_jacobian` (perspective Jacobian), evaluated at the
+  mean with x/z and y/z clamped to the image's tangent range widened by :data:`FRUSTUM_MARGIN`
+  (as 3DGS and gsplat do; :func:`frustum_clamped`). The linearisation is only valid near the mean's
+  line of sight: a Gaussian beside the camera, a few centimetres in front of its plane (a wall
+  passed at 0.3 m), has x/z of 10-100 and an unclamped footprint of thousands of pixels that
+  fogged whole views although none of its mass is in the frustum.
 * Equirect: ``J`` is the analytic Jacobian of (longitude, latitude) scaled to pixels; it equals
   :meth:`EquirectCamera.pixel_jacobian` away from the poles but is written in the (lon, lat)
   tangent basis so it stays defined *at* the poles (within cos(lat) <= 1e-9 the longitude is set
@@ -42,6 +47,7 @@ __all__ = [
     "covariance_3d",
     "world_to_camera",
     "equirect_jacobian",
+    "frustum_clamped",
     "project_gaussians",
     "wrap_offset",
 ]
@@ -56,6 +62,11 @@ ALPHA_MAX = 0.99
 """Per-Gaussian alpha is clamped to at most this value."""
 T_MIN = 1e-4
 """A pixel is finished once its transmittance drops below this (the last Gaussian still counts)."""
+
+FRUSTUM_MARGIN = 0.3
+"""A pinhole Jacobian is evaluated with x/z clamped to [-cx/fx - m t, (W - cx)/fx + m t] (t = the
+half-width's tangent W / (2 fx), m this margin; y alike): the mean's projection is unchanged, only
+its footprint's linearisation point moves to the frustum's widened edge (3DGS's 1.3 tan(fov/2))."""
 
 POLE_BLEND_COS = 0.1
 """Within this cos(latitude) of a pole (about 5.7 degrees) an equirect screen covariance is blended
@@ -164,6 +175,23 @@ def equirect_jacobian(points: torch.Tensor, camera: EquirectCamera) -> tuple[tor
     return torch.stack((u, v), dim=-1), torch.stack((ju, jv), dim=-2)
 
 
+def frustum_clamped(points: torch.Tensor, camera: PinholeCamera) -> torch.Tensor:
+    """Camera-frame points (N, 3) with z > 0, moved along x and y to the frustum widened by
+    :data:`FRUSTUM_MARGIN` (z unchanged): where a pinhole Jacobian is evaluated. Points inside the
+    widened frustum are returned as they are; outside it the clamp passes no gradient to x or y."""
+    x, y, z = points.unbind(-1)
+    tx, ty = 0.5 * camera.width / camera.fx, 0.5 * camera.height / camera.fy
+    lo_x, hi_x = (
+        -camera.cx / camera.fx - FRUSTUM_MARGIN * tx,
+        (camera.width - camera.cx) / camera.fx + FRUSTUM_MARGIN * tx,
+    )
+    lo_y, hi_y = (
+        -camera.cy / camera.fy - FRUSTUM_MARGIN * ty,
+        (camera.height - camera.cy) / camera.fy + FRUSTUM_MARGIN * ty,
+    )
+    return torch.stack(((x / z).clamp(lo_x, hi_x) * z, (y / z).clamp(lo_y, hi_y) * z, z), dim=-1)
+
+
 def _pole_blend(
     points: torch.Tensor,
     rot_wc: torch.Tensor,
@@ -255,7 +283,7 @@ def project_gaussians(
         uv, jac = equirect_jacobian(p_s, camera)
     else:
         uv, _, _ = camera.project(p_s)
-        jac = camera.pixel_jacobian(p_s)
+        jac = camera.pixel_jacobian(frustum_clamped(p_s, camera))
     k = (jac.reshape(-1, 3) @ rot_wc.transpose(0, 1)).reshape(n, 2, 3)  # J R_cw
     el = (k.unsqueeze(-1) * rs.unsqueeze(1)).sum(2)  # (N, 2, 3) = J R_cw R S
     el = torch.where(valid[:, None, None], el, torch.zeros_like(el))

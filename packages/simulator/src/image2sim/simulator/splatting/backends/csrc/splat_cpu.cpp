@@ -548,6 +548,7 @@ std::vector<int64_t> sort_valid_by_depth(const scalar_t* depth, const bool* vali
 // Gaussian per iteration, OpenMP over Gaussians. Used when no input needs a gradient; project.py
 // stays the differentiable ground truth and the tests compare the two.
 constexpr double kPoleBlendCos = 0.1;  // project.py's POLE_BLEND_COS
+constexpr double kFrustumMargin = 0.3;  // project.py's FRUSTUM_MARGIN
 
 struct CamParams {
   bool equirect;
@@ -591,8 +592,14 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
           u = uu - cam.W * std::floor(uu / cam.W);
           v = (0.5 * kPi - lat) * (cam.H / kPi);
         } else {
-          J[0][0] = cam.fx / z; J[0][1] = 0.0; J[0][2] = -cam.fx * x / (z * z);
-          J[1][0] = 0.0; J[1][1] = cam.fy / z; J[1][2] = -cam.fy * y / (z * z);
+          // project.py's frustum_clamped: the Jacobian at x/z, y/z clamped to the widened frustum.
+          const double tx = 0.5 * cam.W / cam.fx, ty = 0.5 * cam.H / cam.fy;
+          const double xz = std::clamp(x / z, -cam.cx / cam.fx - kFrustumMargin * tx,
+                                       (cam.W - cam.cx) / cam.fx + kFrustumMargin * tx);
+          const double yz = std::clamp(y / z, -cam.cy / cam.fy - kFrustumMargin * ty,
+                                       (cam.H - cam.cy) / cam.fy + kFrustumMargin * ty);
+          J[0][0] = cam.fx / z; J[0][1] = 0.0; J[0][2] = -cam.fx * (xz * z) / (z * z);
+          J[1][0] = 0.0; J[1][1] = cam.fy / z; J[1][2] = -cam.fy * (yz * z) / (z * z);
           u = cam.fx * x / z + cam.cx;
           v = cam.fy * y / z + cam.cy;
         }
