@@ -322,6 +322,22 @@ def test_rendering_a_scene_over_two_workers_gives_the_same_shard(tmp_path):
     assert (shard_one / "trajectories.jsonl").read_text() == (shard_two / "trajectories.jsonl").read_text()
 
 
+def test_a_failing_background_gaussian_build_stops_the_scene_with_its_error(tmp_path):
+    """With two workers the Gaussians build in a process of their own while the map and rollouts
+    are made; an error there (here a bad Gaussian config) reaches the caller by name, and the scene
+    writes no shard."""
+    from image2sim.dataengine.pipeline import process_scene
+    from image2sim.dataengine.procedural import preset, synthesize
+
+    cap = synthesize(preset("tiny"), tmp_path / "caps", scenes=1, seed=0, progress=False)[0]
+    bad = {"fusion": {"footprint_factor": -1.0}}
+    cfg = EngineConfig(per_scene=2, obs_height=24, seed=3, render="gaussians", sampling=SHORT, gaussians=bad)
+    with pytest.raises(RuntimeError, match="building the scene's Gaussians failed: .*footprint_factor"):
+        process_scene(cap, tmp_path / "out", cfg, render_workers=2)
+    assert not (tmp_path / "out" / "scenes" / cap.name / "shard").exists()
+    assert not (tmp_path / "out" / "scenes" / cap.name / "gaussians").exists()
+
+
 def test_a_second_run_copies_scene_assets_from_the_content_keyed_cache(tmp_path, monkeypatch):
     """`--cache`: the first run builds the map, graph and Gaussians and stores them by the capture's
     content; a run into another folder copies them (nothing rebuilt) and writes the same episodes;

@@ -226,6 +226,21 @@ def test_batched_fusion_matches_incremental(procedural_capture):
         build_scene(procedural_capture, cfg, fuse_every=0)
 
 
+def test_building_frames_on_threads_gives_the_same_scene(procedural_capture):
+    """``workers`` > 1 reads, encodes and best-view-selects frames on threads, a few ahead of fusion;
+    fusion keeps frame order, so every tensor and the manifest are those of one worker."""
+    cfg = tiny()
+    cfg = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, height=64, width=128))
+    one = build_scene(procedural_capture, cfg)
+    three = build_scene(procedural_capture, cfg, workers=3)
+    assert len(one) > 0
+    for name in ("means", "scales", "quats", "opacities", "colors", "weights"):
+        assert torch.equal(getattr(one.gaussians, name), getattr(three.gaussians, name)), name
+    assert one.info == three.info
+    with pytest.raises(ValueError, match="workers"):
+        build_scene(procedural_capture, cfg, workers=0)
+
+
 def test_scene_condition_for_the_renderer():
     from image2sim.simulator.gaussians.condition import scene_condition
     from image2sim.simulator.renderer.condition import ALPHA, DEPTH, FEATURES, RGB

@@ -36,6 +36,7 @@ from image2sim.dataengine.scene_assets import (
     DETECTORS,
     SceneInputs,
     resolve_scene,
+    scene_gaussians,
     scene_navigation,
     scene_objects,
     scene_render_fn,
@@ -313,17 +314,29 @@ def process_scene(
     ``render_workers`` > 1 renders the episodes' observations in that many spawned processes (the
     local executor passes its ``--workers`` when it runs one scene at a time); the shard is the same
     as with one. ``asset_cache``: a folder of scene assets shared across runs, keyed by the capture's
-    content (:mod:`.asset_cache`)."""
-    from image2sim.dataengine.annotate import AnnotationRequest, build_annotator, route_style
-    from image2sim.simulator.navigation.follower import OracleFollower
-    from image2sim.simulator.sim import NeuralSimulator
-
+    content (:mod:`.asset_cache`). With ``render_workers`` > 1 the scene's Gaussians build in a
+    process of their own while this one makes the navigation map and the rollouts."""
     cfg = config if isinstance(config, EngineConfig) else EngineConfig.from_dict(config)
     t0 = time.perf_counter()
     inputs = resolve_scene(scene_dir)
     out = Path(out_dir) / "scenes" / inputs.name
     out.mkdir(parents=True, exist_ok=True)
     sweep_stale_temps(out / "shard")  # left by a killed earlier attempt of this scene
+    prebuild = _GaussianPrebuild.start(inputs, out, cfg, asset_cache, render_workers)
+    try:
+        return _run_scene(inputs, out, cfg, render_workers, asset_cache, prebuild, t0)
+    finally:
+        if prebuild is not None:
+            prebuild.cancel()
+
+
+def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_cache, prebuild, t0: float):
+    """:func:`process_scene`'s work once the output folder exists (``prebuild``: the Gaussians being
+    built meanwhile, or None)."""
+    from image2sim.dataengine.annotate import AnnotationRequest, build_annotator, route_style
+    from image2sim.simulator.navigation.follower import OracleFollower
+    from image2sim.simulator.sim import NeuralSimulator
+
     navmap, graph = scene_navigation(inputs, out, asset_cache)
     objects = scene_objects(inputs, out, cfg)
     scfg = config_from_dict(SamplingConfig, cfg.sampling, "sampling")
@@ -366,6 +379,8 @@ def process_scene(
         )
     # Annotation requests.
     vlm = cfg.annotator != "template"
+    if prebuild is not None:
+        prebuild.wait()
     render_fn, render_mode = (
         (None, "none")
         if cfg.render == "none"
@@ -538,6 +553,69 @@ def process_scene(
     write_bytes_atomic(out / EPISODES_FILE, json.dumps(doc).encode())
     write_bytes_atomic(out / DONE_FILE, json.dumps(summary, indent=1).encode())
     return summary
+
+
+class _GaussianPrebuild:
+    """The scene's Gaussians built in a spawned process while this one extracts the navigation map
+    and rolls the episodes out (on a real capture the two take about as long)."""
+
+    def __init__(self, process, conn) -> None:
+        self.process, self.conn = process, conn
+
+    @classmethod
+    def start(cls, inputs: SceneInputs, out: Path, cfg: EngineConfig, asset_cache, workers: int):
+        """A running build, or None when nothing needs building or no second core is given
+        (``workers`` <= 1)."""
+        gaussian_render = cfg.render in ("auto", "gaussians") or cfg.renderer is not None
+        if workers <= 1 or not gaussian_render or inputs.gaussian_dir is not None:
+            return None
+        if (out / "gaussians").exists():
+            return None
+        import multiprocessing as mp
+        import os
+
+        ctx = mp.get_context("spawn")
+        receiver, sender = ctx.Pipe(duplex=False)
+        cache = str(asset_cache) if asset_cache else None
+        args = (os.getpid(), sender, inputs, out, cache, cfg.gaussians, workers)
+        process = ctx.Process(target=_prebuild_main, args=args, daemon=True)
+        process.start()
+        sender.close()
+        return cls(process, receiver)
+
+    def wait(self) -> None:
+        """Block until the Gaussians are stored; their build's error is raised here."""
+        try:
+            error = self.conn.recv()
+        except EOFError:
+            error = f"the process building them ended with exit code {self.process.exitcode}"
+        self.process.join()
+        if error:
+            raise RuntimeError(f"building the scene's Gaussians failed: {error}")
+
+    def cancel(self) -> None:
+        """Stop the build if it still runs (an error elsewhere in the scene)."""
+        if self.process.is_alive():
+            self.process.terminate()
+        self.process.join()
+        self.conn.close()
+
+
+def _prebuild_main(
+    parent_pid: int, conn, inputs: SceneInputs, out: Path, asset_cache, gaussians, workers: int
+) -> None:
+    from image2sim.simulator.lifetime import worker_init
+
+    worker_init(parent_pid)
+    try:
+        # Frames on `workers` threads: once this process's parent has its map and rollouts, it
+        # waits here, and the cores are this build's.
+        scene_gaussians(inputs, out, asset_cache, gaussians, workers)
+        conn.send("")
+    except BaseException as err:  # reported to the parent, which raises it
+        conn.send(f"{type(err).__name__}: {err}")
+    finally:
+        conn.close()
 
 
 def _world_heading(navmap, heading: float) -> float:

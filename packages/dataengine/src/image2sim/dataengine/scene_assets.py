@@ -146,6 +146,40 @@ def scene_objects(inputs: SceneInputs, cache: Path, cfg: EngineConfig):
     return objs
 
 
+def scene_gaussians(
+    inputs: SceneInputs,
+    cache: Path,
+    asset_cache: str | None = None,
+    gaussians: dict | None = None,
+    workers: int = 1,
+) -> Path:
+    """The folder of the scene's Gaussians: a built scene's own, else this run's (``cache``), else
+    copied from the content-keyed ``asset_cache``, else built from the capture with the identity
+    encoder and ``gaussians`` (plain data over a preset; None or empty: ``tiny``; ``workers``
+    frames at a time) and stored."""
+    if inputs.gaussian_dir is not None:
+        return inputs.gaussian_dir
+    from image2sim.dataengine.asset_cache import cached, content_key
+    from image2sim.simulator.gaussians import build_scene
+    from image2sim.simulator.gaussians.config import config_to_dict, gaussian_config_from_dict
+
+    folder = cache / "gaussians"
+    # The key names the whole Gaussian config, so a cache built under other fusion settings
+    # (e.g. before best-view selection) is never reused.
+    gcfg = gaussian_config_from_dict(gaussians or {})
+    config = json.dumps(config_to_dict(gcfg), sort_keys=True)
+    cached(
+        asset_cache,
+        lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}"),
+        ["gaussians"],
+        cache,
+        lambda: build_scene(inputs.capture_dir, gcfg, encoder="identity", workers=workers).save(
+            folder, overwrite=True
+        ),
+    )
+    return folder
+
+
 def scene_render_fn(
     inputs: SceneInputs,
     cache: Path,
@@ -170,28 +204,10 @@ def scene_render_fn(
         from image2sim.dataengine.procedural.exact import exact_render_fn
 
         return exact_render_fn(inputs.capture_dir, instances=True), mode
-    from image2sim.simulator.gaussians import GaussianScene, build_scene
-    from image2sim.simulator.gaussians.config import gaussian_config_from_dict
+    from image2sim.simulator.gaussians import GaussianScene
     from image2sim.simulator.sim import gaussian_render_fn
 
-    folder = inputs.gaussian_dir
-    if folder is None:
-        from image2sim.dataengine.asset_cache import cached, content_key
-        from image2sim.simulator.gaussians.config import config_to_dict
-
-        folder = cache / "gaussians"
-        # The key names the whole Gaussian config, so a cache built under other fusion settings
-        # (e.g. before best-view selection) is never reused.
-        gcfg = gaussian_config_from_dict(gaussians or {})
-        config = json.dumps(config_to_dict(gcfg), sort_keys=True)
-        cached(
-            asset_cache,
-            lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}"),
-            ["gaussians"],
-            cache,
-            lambda: build_scene(inputs.capture_dir, gcfg, encoder="identity").save(folder, overwrite=True),
-        )
-    g = GaussianScene.load(folder).gaussians
+    g = GaussianScene.load(scene_gaussians(inputs, cache, asset_cache, gaussians)).gaussians
     # Panoramic with a renderer: the simulator cuts the pinhole / ultra-wide views out of the panorama.
     fn = gaussian_render_fn(g, renderer, device=device)
     return fn, ("gaussians+pixel-flow" if renderer is not None else mode)

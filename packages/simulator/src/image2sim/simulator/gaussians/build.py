@@ -7,8 +7,11 @@ Learned encoders are stored as ``<name>.safetensors`` (weights) next to ``<name>
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
+from collections import deque
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +100,18 @@ def encode_frames(frames, cfg: GaussianConfig, encoder: GaussianEncoder | None):
         return encoder(frames)
 
 
+def _in_order(pool: ThreadPoolExecutor, fn, items, window: int):
+    """``map(fn, items)`` over ``pool`` with at most ``window`` results computed ahead of the consumer
+    (``Executor.map`` submits everything at once and would hold every frame's Gaussians)."""
+    items = iter(items)
+    ahead: deque = deque(pool.submit(fn, x) for x in itertools.islice(items, window))
+    while ahead:
+        result = ahead.popleft().result()
+        for x in itertools.islice(items, 1):
+            ahead.append(pool.submit(fn, x))
+        yield result
+
+
 def build_scene(
     capture_path: str | Path,
     cfg: GaussianConfig,
@@ -104,11 +119,15 @@ def build_scene(
     frames: Sequence[int] | None = None,
     progress: bool = False,
     fuse_every: int = 8,
+    workers: int = 1,
 ) -> GaussianScene:
     """Open a capture (any format ``open_capture`` reads), encode the chosen frames and fuse them.
 
     ``fuse_every`` frames are fused into memory in one pass (1: frame by frame, the incremental
     MemoryState; larger: fewer passes over the growing scene, much faster for long captures).
+    ``workers`` > 1 reads, encodes and best-view-selects that many frames at once on threads (torch
+    releases the GIL in its ops; each frame is independent given every frame's view map); fusion
+    stays in frame order, so the scene is the same as with one.
 
     Frames are area-resized to ``encoder.height x encoder.width`` of the config (a learned encoder:
     of its checkpoint's config). ``info`` (the manifest) records that resolution and where it came
@@ -151,31 +170,48 @@ def build_scene(
 
         it = track(indices, description=f"encoding {len(indices)} frames at {w}x{h}")
     views = None
-    if cfg.fusion.views == "best" and len(indices) > 1:
-        # First pass: every frame's depth and sampling intervals, so that each frame's Gaussians
-        # can be tested against all the others before anything is fused.
-        views = [
-            view_map(prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance), cfg.fusion) for i in indices
-        ]
-    pending = []
-    for k, i in enumerate(it):
-        frame = capture[i]
-        source_camera = source_camera or frame.camera
-        inputs = prepare_frame(frame, h, w, cfg.fusion.edge_tolerance)
-        if net is not None and isinstance(inputs.camera, EquirectCamera) != net.panoramic:
-            raise SceneError(
-                f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})"
-            )
-        camera = camera or inputs.camera
-        g = encode_frames([inputs], cfg, net)[0]
-        if views is not None:
-            g = keep_best(g, k, views, cfg.fusion)
-        pending.append(g)
-        scene.record_frame(inputs.frame_id, i, inputs.cam_to_world)
-        if len(pending) >= fuse_every:
-            scene.integrate_many(pending)
-            pending = []
-    scene.integrate_many(pending)
+    if workers < 1:
+        raise ValueError(f"build_scene: workers must be >= 1, got {workers}")
+    pool = ThreadPoolExecutor(workers) if workers > 1 else None
+
+    def run(fn, items):
+        return map(fn, items) if pool is None else _in_order(pool, fn, items, 2 * workers)
+
+    try:
+        if cfg.fusion.views == "best" and len(indices) > 1:
+            # First pass: every frame's depth and sampling intervals, so that each frame's Gaussians
+            # can be tested against all the others before anything is fused.
+            def view_of(i):
+                return view_map(prepare_frame(capture[i], h, w, cfg.fusion.edge_tolerance), cfg.fusion)
+
+            views = list(run(view_of, indices))
+
+        def encoded(k_i):
+            k, i = k_i
+            frame = capture[i]
+            inputs = prepare_frame(frame, h, w, cfg.fusion.edge_tolerance)
+            if net is not None and isinstance(inputs.camera, EquirectCamera) != net.panoramic:
+                raise SceneError(
+                    f"{capture_path}: frame {i} camera does not match the encoder (panoramic={net.panoramic})"
+                )
+            g = encode_frames([inputs], cfg, net)[0]
+            if views is not None:
+                g = keep_best(g, k, views, cfg.fusion)
+            return frame.camera, inputs, g
+
+        pending = []
+        for i, (frame_camera, inputs, g) in zip(it, run(encoded, enumerate(indices)), strict=True):
+            source_camera = source_camera or frame_camera
+            camera = camera or inputs.camera
+            pending.append(g)
+            scene.record_frame(inputs.frame_id, i, inputs.cam_to_world)
+            if len(pending) >= fuse_every:
+                scene.integrate_many(pending)
+                pending = []
+        scene.integrate_many(pending)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     scene.info = {
         "source": {
             "capture": str(Path(capture_path).resolve()),

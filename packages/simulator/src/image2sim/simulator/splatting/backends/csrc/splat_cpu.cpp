@@ -9,16 +9,19 @@
 // Layout and loops (see docs/renderer.md, "CPU kernel"):
 // * Tiles are 16 x 16 pixels; worker threads (std::thread, joined per call: no spinning OpenMP
 //   team) take whole tiles (dynamic schedule through an atomic counter).
-// * Inside a tile the loop is Gaussian-outer, row-middle, 16-lane pixel-inner: for one Gaussian and
-//   one pixel row, `row_alpha` evaluates all 16 pixels at once (branch-free, `omp simd`), then the
-//   transmittance update and every channel accumulation are 16-lane vector loops over a
-//   channel-major tile buffer acc[c][pixel]. Pixels that are finished (T < t_min) or outside the
-//   image carry T = 0 and therefore add exactly nothing; a tile stops once all its pixels are done.
+// * Inside a tile the loop is Gaussian-outer, row-middle, chunk-inner: for one Gaussian and one
+//   pixel row, `row_alpha` evaluates one chunk of pixels at once (branch-free), N pixels wide, N the
+//   lanes of the target's native vector register (8 floats on AVX2, 16 on AVX-512), then the
+//   transmittance update and every channel accumulation are N-lane vector ops over a channel-major
+//   tile buffer acc[c][pixel]. A chunk is skipped when the Gaussian's footprint box misses it or
+//   all its pixels are finished. Pixels that are finished (T < t_min) or outside the image carry
+//   T = 0 and therefore add exactly nothing; a tile stops once all its pixels are done.
 // * Compute type: float for float32 inputs (a Cephes-style vectorisable exp, ~1 ulp), double for
 //   float64 inputs (std::exp, so float64 gradients are exactly smooth for gradcheck).
 // * `row_alpha` is one out-of-line function shared by forward and backward so both make the same
 //   contribute / skip decisions bit for bit.
-// * The fused inference path (`render_forward`) projects, sorts by depth (LSD radix sort on the
+// * The fused inference path (`render_forward`) projects (pinhole: culling Gaussians whose footprint
+//   bound misses the image before their covariance is computed), sorts by depth (LSD radix sort on the
 //   float bits, stable, so ties keep input order), bins into tiles (counting sort, keeps depth
 //   order), packs per-Gaussian records and values contiguously in depth order, and rasterises in
 //   one call: no per-frame Python or small torch ops.
@@ -33,7 +36,7 @@
 #include <thread>
 #include <type_traits>
 #include <vector>
-#if defined(__AVX512F__)
+#if defined(__AVX__)
 #include <immintrin.h>
 #endif
 
@@ -87,28 +90,40 @@ inline Rec make_rec(double mu, double mv, double ru, double rv, double A, double
   return Rec{mu, mv, A, B, C, o, static_cast<float>(ru), static_cast<float>(rv), static_cast<float>(q_limit(o))};
 }
 
-// 16-lane vector types (GCC/Clang vector extensions: AVX-512, 2 x AVX2 or 4 x SSE, whatever the
-// target has) for the compute type, and the matching lane-mask / integer type.
+// Lane vectors of the target's native register width (64 bytes with AVX-512, 32 with AVX, 16
+// otherwise): 16 / 8 / 4 floats. A tile row of 16 pixels is kTile / N such chunks. Wider-than-native
+// GCC vectors are not an option: GCC 12 lowers their comparisons and selects lane by lane to scalar
+// code (on AVX2 a 16-float row took ~500 cycles instead of ~50).
+#if defined(__AVX512F__)
+constexpr int kVecBytes = 64;
+#elif defined(__AVX__)
+constexpr int kVecBytes = 32;
+#else
+constexpr int kVecBytes = 16;
+#endif
 template <typename real>
 struct Lanes;
 template <>
 struct Lanes<float> {
-  typedef float V __attribute__((vector_size(kTile * sizeof(float))));
-  typedef int32_t I __attribute__((vector_size(kTile * sizeof(int32_t))));
+  static constexpr int N = kVecBytes / sizeof(float);
+  typedef float V __attribute__((vector_size(kVecBytes)));
+  typedef int32_t I __attribute__((vector_size(kVecBytes)));
   typedef int32_t lane_int;
 };
 template <>
 struct Lanes<double> {
-  typedef double V __attribute__((vector_size(kTile * sizeof(double))));
-  typedef int64_t I __attribute__((vector_size(kTile * sizeof(int64_t))));
+  static constexpr int N = kVecBytes / sizeof(double);
+  typedef double V __attribute__((vector_size(kVecBytes)));
+  typedef int64_t I __attribute__((vector_size(kVecBytes)));
   typedef int64_t lane_int;
 };
+static_assert(kTile % Lanes<float>::N == 0 && kTile % Lanes<double>::N == 0, "a tile row is whole chunks");
 
 // Number of set lanes of a lane mask (lanes are 0 or -1).
 template <typename I>
 inline int count_lanes(const I& m) {
   int n = 0;
-  for (int i = 0; i < kTile; ++i) n += m[i] != 0;
+  for (int i = 0; i < int(sizeof(I) / sizeof(m[0])); ++i) n += m[i] != 0;
   return n;
 }
 #if defined(__AVX512F__)
@@ -117,6 +132,19 @@ inline int count_lanes<Lanes<float>::I>(const Lanes<float>::I& m) {
   __m512i v;
   std::memcpy(&v, &m, sizeof(v));
   return __builtin_popcount(static_cast<unsigned>(_mm512_test_epi32_mask(v, v)));
+}
+#elif defined(__AVX__)
+template <>
+inline int count_lanes<Lanes<float>::I>(const Lanes<float>::I& m) {
+  __m256 v;
+  std::memcpy(&v, &m, sizeof(v));
+  return __builtin_popcount(static_cast<unsigned>(_mm256_movemask_ps(v)));
+}
+template <>
+inline int count_lanes<Lanes<double>::I>(const Lanes<double>::I& m) {
+  __m256d v;
+  std::memcpy(&v, &m, sizeof(v));
+  return __builtin_popcount(static_cast<unsigned>(_mm256_movemask_pd(v)));
 }
 #endif
 
@@ -131,7 +159,7 @@ inline void vstore(T* p, const V& v) {
   std::memcpy(p, &v, sizeof(V));
 }
 
-// exp(-q/2) for q >= 0 on 16 lanes. float: Cephes expf (range reduction by ln 2, degree-6
+// exp(-q/2) for q >= 0 on one lane vector. float: Cephes expf (range reduction by ln 2, degree-6
 // polynomial, about 1 ulp) in vector arithmetic; arguments below -30 (q > 60, far outside every
 // footprint, where q <= 12.25) are clamped so no lane makes a denormal (and NaN maps to -30).
 // double: std::exp per lane, exact, so float64 gradients are smooth for gradcheck.
@@ -159,22 +187,23 @@ inline Lanes<float>::V exp_neg_half(Lanes<float>::V q) {
 }
 inline Lanes<double>::V exp_neg_half(Lanes<double>::V q) {
   Lanes<double>::V out;
-  for (int i = 0; i < kTile; ++i) out[i] = std::exp(-0.5 * q[i]);
+  for (int i = 0; i < Lanes<double>::N; ++i) out[i] = std::exp(-0.5 * q[i]);
   return out;
 }
 
-// Alpha of one Gaussian at the 16 pixels of one tile row: a[i] = min(0.99, o g) where the
+// Alpha of one Gaussian at the N pixels of one chunk of a tile row: a[i] = min(0.99, o g) where the
 // Gaussian contributes (q <= qlim and alpha >= 1/255), else exactly 0; g[i] = exp(-q/2).
-// dx0 = wrapped offset (pixel centre - mean) of lane 0; lane i is dx0 + i, re-wrapped once for
-// panoramas (dx0 is in [-W/2, W/2) and i < 16, real lanes < W). Out of line on purpose: forward
-// and backward call the same machine code, so their decisions agree bit for bit.
+// dx0 = wrapped offset (pixel centre - mean) of the row's lane 0, ch the chunk's first lane; lane
+// i is dx0 + ch + i, re-wrapped once for panoramas (dx0 is in [-W/2, W/2) and ch + i < 16, real
+// lanes < W). Out of line on purpose: forward and backward call the same machine code, so their
+// decisions agree bit for bit.
 template <typename real>
 __attribute__((noinline)) void row_alpha(real A, real B, real C, real o, real qlim, real dx0, real dy,
-                                         real wrap, typename Lanes<real>::V* a_out,
+                                         real wrap, int ch, typename Lanes<real>::V* a_out,
                                          typename Lanes<real>::V* g_out) {
   using V = typename Lanes<real>::V;
   V lane;
-  for (int i = 0; i < kTile; ++i) lane[i] = real(i);
+  for (int i = 0; i < Lanes<real>::N; ++i) lane[i] = real(ch + i);
   const V zero = V{};
   V dx = dx0 + lane;
   if (wrap > 0) dx = dx >= real(0.5) * wrap ? dx - wrap : dx;
@@ -203,6 +232,16 @@ inline RowRange row_range(const Grid& g, const TileView& tv, const Rec& r) {
   rr.j1 = static_cast<int64_t>(std::clamp(std::floor(r.rv - rr.dy0) + 1.0, 0.0, h));
   rr.dx0 = wrap_dx(tv.x0 + 0.5 - r.mu, g.wrap);
   return rr;
+}
+
+// True when no lane of the chunk [ch, ch + n) of a tile row can lie inside the Gaussian's footprint
+// box (|dx| <= ru, with a pixel of slack for ru's float rounding): then every lane's q exceeds the
+// 3.5-sigma cutoff and alpha is exactly 0, so skipping the chunk changes nothing. Panoramas: only
+// decided while no lane of the chunk is re-wrapped (dx < W/2).
+inline bool chunk_outside(double dx0, int ch, int n, float ru, double wrap) {
+  const double lo = dx0 + ch, hi = lo + (n - 1);
+  if (wrap > 0 && hi >= 0.5 * wrap) return false;
+  return lo > ru + 1.0 || hi < -(ru + 1.0);
 }
 
 template <typename real>
@@ -254,6 +293,7 @@ void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int
     using V = typename Lanes<real>::V;
     using I = typename Lanes<real>::I;
     using lane_int = typename Lanes<real>::lane_int;
+    constexpr int N = Lanes<real>::N;
     alignas(64) real T[kP], asum[kP];
     alignas(64) lane_int last[kP];
     std::vector<real> acc_buf(std::max<int64_t>(D, 1) * kP);
@@ -281,24 +321,30 @@ void forward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, int
         const lane_int rank1 = static_cast<lane_int>(k - begin + 1);
         const scalar_t* v = vals + gi * D;
         for (int64_t j = rr.j0; j < rr.j1; ++j) {
-          V a, gs;
-          row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, rr.dy0 + j, wrap, &a, &gs);
-          real* Tr = T + j * kTile;
-          const V t0 = vload<V>(Tr);
-          const V ai = t0 >= tmin ? a : zero;
-          const I hit = ai > zero;
-          if (count_lanes(hit) == 0) continue;
-          const V wi = ai * t0;
-          const V t1 = t0 * (real(1) - ai);
-          const I fin = (t0 >= tmin) & (t1 < tmin);
-          vstore(Tr, t1);
-          vstore(asum + j * kTile, vload<V>(asum + j * kTile) + wi);
-          lane_int* lr = last + j * kTile;
-          vstore(lr, hit ? (I{} + rank1) : vload<I>(lr));
-          n_active -= count_lanes(fin);
-          for (int64_t c = 0; c < D; ++c) {
-            real* ac = acc + c * kP + j * kTile;
-            vstore(ac, vload<V>(ac) + wi * static_cast<real>(v[c]));
+          for (int ch = 0; ch < tv.w; ch += N) {
+            if (chunk_outside(rr.dx0, ch, N, r.ru, g.wrap)) continue;
+            const int64_t p0 = j * kTile + ch;
+            real* Tr = T + p0;
+            const V t0 = vload<V>(Tr);
+            const I live = t0 >= tmin;
+            if (count_lanes(live) == 0) continue;  // every pixel of the chunk is finished
+            V a, gs;
+            row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, rr.dy0 + j, wrap, ch, &a, &gs);
+            const V ai = live ? a : zero;
+            const I hit = ai > zero;
+            if (count_lanes(hit) == 0) continue;
+            const V wi = ai * t0;
+            const V t1 = t0 * (real(1) - ai);
+            const I fin = live & (t1 < tmin);
+            vstore(Tr, t1);
+            vstore(asum + p0, vload<V>(asum + p0) + wi);
+            lane_int* lr = last + p0;
+            vstore(lr, hit ? (I{} + rank1) : vload<I>(lr));
+            n_active -= count_lanes(fin);
+            for (int64_t c = 0; c < D; ++c) {
+              real* ac = acc + c * kP + p0;
+              vstore(ac, vload<V>(ac) + wi * static_cast<real>(v[c]));
+            }
           }
         }
       }
@@ -333,6 +379,7 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
   const real wrap = static_cast<real>(g.wrap);
   std::atomic<int64_t> next_tile{0};
   run_workers(num_workers(n_tiles), [&](int worker) {
+    constexpr int N = Lanes<real>::N;
     typename Lanes<real>::V a, gs;
     std::vector<double> T(kP), Sa(kP), Ga(kP);
     std::vector<real> dv(D);
@@ -383,16 +430,19 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
         const RowRange rr = row_range(g, tv, r);
         for (int64_t j = rr.j0; j < rr.j1; ++j) {
           const double dy = rr.dy0 + j;
-          row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, dy, wrap, &a, &gs);
-          for (int64_t i = 0; i < tv.w; ++i) {
-            if (!(a[i] > 0)) continue;
+          for (int ch = 0; ch < tv.w; ch += N) {
+          if (chunk_outside(rr.dx0, ch, N, r.ru, g.wrap)) continue;
+          row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, dy, wrap, ch, &a, &gs);
+          for (int64_t l = 0; l < N && ch + l < tv.w; ++l) {
+            if (!(a[l] > 0)) continue;
+            const int64_t i = ch + l;
             const int64_t p = j * kTile + i;
             if (rank >= last[p]) continue;
             double dx = rr.dx0 + i;
             if (g.wrap > 0 && dx >= 0.5 * g.wrap) dx -= g.wrap;
-            const double gauss = static_cast<double>(gs[i]);
-            const double al = static_cast<double>(a[i]);
-            const bool clamped = !(static_cast<real>(r.o) * gs[i] < static_cast<real>(kAlphaMax));
+            const double gauss = static_cast<double>(gs[l]);
+            const double al = static_cast<double>(a[l]);
+            const bool clamped = !(static_cast<real>(r.o) * gs[l] < static_cast<real>(kAlphaMax));
             touched = true;
             const double one_m = 1.0 - al;
             T[p] /= one_m;  // transmittance in front of this Gaussian
@@ -423,6 +473,7 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
             const double dqdx = 2.0 * (r.A * dx + r.B * dy), dqdy = 2.0 * (r.B * dx + r.C * dy);
             dmu -= dq * dqdx;
             dmv -= dq * dqdy;
+          }
           }
         }
         if (!touched) continue;
@@ -463,6 +514,15 @@ std::vector<Rec> make_records(const scalar_t* mean, const scalar_t* radii, const
   return recs;
 }
 
+// Tile column tx folded into [0, ntx), without an integer division in the usual cases (a
+// panorama's box spills over the seam by less than a turn).
+inline int64_t wrap_tile(int64_t tx, int64_t ntx) {
+  if (tx >= 0 && tx < ntx) return tx;
+  if (tx < 0 && tx >= -ntx) return tx + ntx;
+  if (tx >= ntx && tx < 2 * ntx) return tx - ntx;
+  return ((tx % ntx) + ntx) % ntx;
+}
+
 // Per-tile lists of Gaussian indices 0..M-1 (input order kept inside every tile: counting sort).
 // u, v, ru, rv are read through get(i, &u, &v, &ru, &rv).
 template <typename Get>
@@ -489,20 +549,14 @@ void bin_impl(int64_t M, const Grid& g, Get get, std::vector<int64_t>& off, std:
     tx0[i] = (int32_t)a;
     tx1[i] = (int32_t)b;
     for (int64_t ty = ty0[i]; ty <= ty1[i]; ++ty)
-      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) {
-        const int64_t txw = ((tx % g.ntx) + g.ntx) % g.ntx;
-        ++off[ty * g.ntx + txw + 1];
-      }
+      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) ++off[ty * g.ntx + wrap_tile(tx, g.ntx) + 1];
   }
   for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
   ids.resize(off[n_tiles]);
   std::vector<int64_t> fill(off.begin(), off.end() - 1);
   for (int64_t i = 0; i < M; ++i)
     for (int64_t ty = ty0[i]; ty <= ty1[i]; ++ty)
-      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) {
-        const int64_t txw = ((tx % g.ntx) + g.ntx) % g.ntx;
-        ids[fill[ty * g.ntx + txw]++] = i;
-      }
+      for (int64_t tx = tx0[i]; tx <= tx1[i]; ++tx) ids[fill[ty * g.ntx + wrap_tile(tx, g.ntx)]++] = i;
 }
 
 // Indices of the valid entries sorted by depth, stable (ties keep input order): LSD radix sort on
@@ -560,7 +614,8 @@ struct CamParams {
 template <typename scalar_t>
 void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t* quats, const scalar_t* opac,
                   const bool* finite_mask, const double* c2w, const CamParams cam, int64_t N, scalar_t* out_uv,
-                  scalar_t* out_conic, scalar_t* out_cov, scalar_t* out_depth, scalar_t* out_radii, bool* out_valid) {
+                  scalar_t* out_conic, scalar_t* out_cov, scalar_t* out_depth, scalar_t* out_radii, bool* out_valid,
+                  bool cull_early = false) {
   const double kPi = 3.14159265358979323846;
   const double R[3][3] = {{c2w[0], c2w[1], c2w[2]}, {c2w[4], c2w[5], c2w[6]}, {c2w[8], c2w[9], c2w[10]}};
   const double t[3] = {c2w[3], c2w[7], c2w[11]};
@@ -573,6 +628,24 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
       bool valid = std::isfinite(depth) && depth > 0 && depth >= cam.near && (cam.far < 0 || depth <= cam.far) &&
                    (finite_mask == nullptr || finite_mask[i]) && (double)opac[i] >= kAlphaMin;
       double u = 0, v = 0, a = 1, b = 0, c = 1;
+      if (valid && cull_early && !cam.equirect) {
+        // A bound on the footprint before the covariance (most of a pinhole's Gaussians are out of
+        // view): the 2D covariance's largest eigenvalue is at most its trace, <= |J|_F^2 s_max^2
+        // + 0.6, so a box of that radius that misses the image means the exact one misses it too
+        // (same `valid`; only the skipped entries' conic / radii outputs stay at their defaults).
+        const double z = p[2];
+        const double tx = 0.5 * cam.W / cam.fx, ty = 0.5 * cam.H / cam.fy;
+        const double xz = std::clamp(p[0] / z, -cam.cx / cam.fx - kFrustumMargin * tx,
+                                     (cam.W - cam.cx) / cam.fx + kFrustumMargin * tx);
+        const double yz = std::clamp(p[1] / z, -cam.cy / cam.fy - kFrustumMargin * ty,
+                                     (cam.H - cam.cy) / cam.fy + kFrustumMargin * ty);
+        const double smax = std::max({std::abs((double)scales[3 * i]), std::abs((double)scales[3 * i + 1]),
+                                      std::abs((double)scales[3 * i + 2])});
+        const double jf2 = (cam.fx * cam.fx * (1 + xz * xz) + cam.fy * cam.fy * (1 + yz * yz)) / (z * z);
+        const double rb = 3.5 * std::sqrt(jf2 * smax * smax + 0.6) + 1.0;
+        const double uu = cam.fx * p[0] / z + cam.cx, vv = cam.fy * p[1] / z + cam.cy;
+        if (uu + rb <= 0 || uu - rb >= cam.W || vv + rb <= 0 || vv - rb >= cam.H) valid = false;
+      }
       if (valid) {
         double J[2][3];
         const double x = p[0], y = p[1], z = p[2];
@@ -751,10 +824,10 @@ torch::Tensor sort_valid(torch::Tensor depth, torch::Tensor valid) {
   });
   return res;
 }
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
-                                           torch::Tensor opac, torch::Tensor finite_mask, torch::Tensor c2w,
-                                           bool equirect, double fx, double fy, double cx, double cy, int64_t H,
-                                           int64_t W, double near, double far) {
+std::vector<torch::Tensor> project_forward_impl(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                                torch::Tensor opac, torch::Tensor finite_mask, torch::Tensor c2w,
+                                                bool equirect, double fx, double fy, double cx, double cy, int64_t H,
+                                                int64_t W, double near, double far, bool cull_early) {
   const int64_t N = means.size(0);
   auto opts = means.options();
   auto uv = torch::empty({N, 2}, opts), conic = torch::empty({N, 3}, opts), cov = torch::empty({N, 3}, opts);
@@ -767,11 +840,21 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor sc
     project_impl<scalar_t>(means.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                            opac.data_ptr<scalar_t>(), mask, pose.data_ptr<double>(), cam, N,
                            uv.data_ptr<scalar_t>(), conic.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
-                           depth.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), valid.data_ptr<bool>());
+                           depth.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), valid.data_ptr<bool>(),
+                           cull_early);
   });
   return {uv, conic, cov, depth, radii, valid};
 }
 
+
+// Every Gaussian's projection (the Python-facing entry; the fused render culls early instead).
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                           torch::Tensor opac, torch::Tensor finite_mask, torch::Tensor c2w,
+                                           bool equirect, double fx, double fy, double cx, double cy, int64_t H,
+                                           int64_t W, double near, double far) {
+  return project_forward_impl(means, scales, quats, opac, finite_mask, c2w, equirect, fx, fy, cx, cy, H, W, near,
+                              far, false);
+}
 
 // Fused inference path for one camera: project, cull, depth-sort, bin, pack, rasterise.
 // values per Gaussian = (colour (3), depth (1), features (C)); bg has 4 + C entries.
@@ -781,8 +864,8 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor sca
                                           double fy, double cx, double cy, int64_t H, int64_t W, double near,
                                           double far, torch::Tensor bg, double t_min) {
   TORCH_CHECK(t_min > 0 && t_min < 1, "splat_cpu: t_min must lie in (0, 1), got ", t_min);
-  auto proj = project_forward(means, scales, quats, opac, finite_mask, c2w, equirect, fx, fy, cx, cy, H, W,
-                              near, far);
+  auto proj = project_forward_impl(means, scales, quats, opac, finite_mask, c2w, equirect, fx, fy, cx, cy, H,
+                                   W, near, far, /*cull_early=*/true);
   const auto& uv = proj[0];
   const auto& conic = proj[1];
   const auto& depth = proj[3];
