@@ -566,10 +566,10 @@ class _GaussianPrebuild:
     def start(cls, inputs: SceneInputs, out: Path, cfg: EngineConfig, asset_cache, workers: int):
         """A running build, or None when nothing needs building or no second core is given
         (``workers`` <= 1)."""
-        gaussian_render = cfg.render in ("auto", "gaussians") or cfg.renderer is not None
-        if workers <= 1 or not gaussian_render or inputs.gaussian_dir is not None:
-            return None
-        if (out / "gaussians").exists():
+        # render auto and gaussians splat Gaussians (a renderer needs one of them: EngineConfig).
+        gaussian_render = cfg.render in ("auto", "gaussians")
+        built = inputs.gaussian_dir is not None or (out / "gaussians").exists()
+        if workers <= 1 or not gaussian_render or built:
             return None
         import multiprocessing as mp
         import os

@@ -6,7 +6,7 @@
 // larger truncation: the inference option `min_transmittance`). Outputs
 // image[k] = sum w v_k + (1 - sum w) bg_k and alpha = sum w.
 //
-// Layout and loops (see docs/renderer.md, "CPU kernel"):
+// Layout and loops (see docs/splatting.md, "The compiled CPU kernel"):
 // * Tiles are 16 x 16 pixels; worker threads (std::thread, joined per call: no spinning OpenMP
 //   team) take whole tiles (dynamic schedule through an atomic counter).
 // * Inside a tile the loop is Gaussian-outer, row-middle, chunk-inner: for one Gaussian and one
@@ -431,49 +431,49 @@ void backward_impl(const Rec* recs, const scalar_t* vals, const scalar_t* bg, in
         for (int64_t j = rr.j0; j < rr.j1; ++j) {
           const double dy = rr.dy0 + j;
           for (int ch = 0; ch < tv.w; ch += N) {
-          if (chunk_outside(rr.dx0, ch, N, r.ru, g.wrap)) continue;
-          row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, dy, wrap, ch, &a, &gs);
-          for (int64_t l = 0; l < N && ch + l < tv.w; ++l) {
-            if (!(a[l] > 0)) continue;
-            const int64_t i = ch + l;
-            const int64_t p = j * kTile + i;
-            if (rank >= last[p]) continue;
-            double dx = rr.dx0 + i;
-            if (g.wrap > 0 && dx >= 0.5 * g.wrap) dx -= g.wrap;
-            const double gauss = static_cast<double>(gs[l]);
-            const double al = static_cast<double>(a[l]);
-            const bool clamped = !(static_cast<real>(r.o) * gs[l] < static_cast<real>(kAlphaMax));
-            touched = true;
-            const double one_m = 1.0 - al;
-            T[p] /= one_m;  // transmittance in front of this Gaussian
-            const double w = al * T[p];
-            const scalar_t* gp = G.data() + p * D;
-            scalar_t* sp = S.data() + p * D;
-            double da = Ga[p] * (T[p] - Sa[p] / one_m);
-            // Channel loop in the compute type (float for float32 inputs) so it vectorises.
-            const real tp = static_cast<real>(T[p]), inv = static_cast<real>(1.0 / one_m);
-            const real ws = static_cast<real>(w);
-            real dsum = 0;
-            real* dvp = dv.data();
+            if (chunk_outside(rr.dx0, ch, N, r.ru, g.wrap)) continue;
+            row_alpha<real>(r.A, r.B, r.C, r.o, r.qlim, rr.dx0, dy, wrap, ch, &a, &gs);
+            for (int64_t l = 0; l < N && ch + l < tv.w; ++l) {
+              if (!(a[l] > 0)) continue;
+              const int64_t i = ch + l;
+              const int64_t p = j * kTile + i;
+              if (rank >= last[p]) continue;
+              double dx = rr.dx0 + i;
+              if (g.wrap > 0 && dx >= 0.5 * g.wrap) dx -= g.wrap;
+              const double gauss = static_cast<double>(gs[l]);
+              const double al = static_cast<double>(a[l]);
+              const bool clamped = !(static_cast<real>(r.o) * gs[l] < static_cast<real>(kAlphaMax));
+              touched = true;
+              const double one_m = 1.0 - al;
+              T[p] /= one_m;  // transmittance in front of this Gaussian
+              const double w = al * T[p];
+              const scalar_t* gp = G.data() + p * D;
+              scalar_t* sp = S.data() + p * D;
+              double da = Ga[p] * (T[p] - Sa[p] / one_m);
+              // Channel loop in the compute type (float for float32 inputs) so it vectorises.
+              const real tp = static_cast<real>(T[p]), inv = static_cast<real>(1.0 / one_m);
+              const real ws = static_cast<real>(w);
+              real dsum = 0;
+              real* dvp = dv.data();
 #pragma omp simd reduction(+ : dsum)
-            for (int64_t c = 0; c < D; ++c) {
-              const real gc = static_cast<real>(gp[c]), vc = static_cast<real>(v[c]);
-              dvp[c] += ws * gc;
-              dsum += gc * (tp * vc - static_cast<real>(sp[c]) * inv);
-              sp[c] = static_cast<scalar_t>(static_cast<real>(sp[c]) + ws * vc);
+              for (int64_t c = 0; c < D; ++c) {
+                const real gc = static_cast<real>(gp[c]), vc = static_cast<real>(v[c]);
+                dvp[c] += ws * gc;
+                dsum += gc * (tp * vc - static_cast<real>(sp[c]) * inv);
+                sp[c] = static_cast<scalar_t>(static_cast<real>(sp[c]) + ws * vc);
+              }
+              da += static_cast<double>(dsum);
+              Sa[p] += w;
+              if (clamped) continue;  // clamped alpha: no gradient to opacity or shape
+              dop += da * gauss;
+              const double dq = -0.5 * al * da;
+              dA += dq * dx * dx;
+              dB += dq * 2.0 * dx * dy;
+              dC += dq * dy * dy;
+              const double dqdx = 2.0 * (r.A * dx + r.B * dy), dqdy = 2.0 * (r.B * dx + r.C * dy);
+              dmu -= dq * dqdx;
+              dmv -= dq * dqdy;
             }
-            da += static_cast<double>(dsum);
-            Sa[p] += w;
-            if (clamped) continue;  // clamped alpha: no gradient to opacity or shape
-            dop += da * gauss;
-            const double dq = -0.5 * al * da;
-            dA += dq * dx * dx;
-            dB += dq * 2.0 * dx * dy;
-            dC += dq * dy * dy;
-            const double dqdx = 2.0 * (r.A * dx + r.B * dy), dqdy = 2.0 * (r.B * dx + r.C * dy);
-            dmu -= dq * dqdx;
-            dmv -= dq * dqdy;
-          }
           }
         }
         if (!touched) continue;
@@ -611,6 +611,14 @@ struct CamParams {
   double near, far;  // far < 0: no far plane
 };
 
+// project.py's frustum_clamped: a pinhole camera-frame point's x/z and y/z clamped to the frustum
+// widened by kFrustumMargin of its tangent on each side.
+inline void frustum_clamped(const CamParams& cam, double x, double y, double z, double& xz, double& yz) {
+  const double tx = 0.5 * cam.W / cam.fx, ty = 0.5 * cam.H / cam.fy;
+  xz = std::clamp(x / z, -cam.cx / cam.fx - kFrustumMargin * tx, (cam.W - cam.cx) / cam.fx + kFrustumMargin * tx);
+  yz = std::clamp(y / z, -cam.cy / cam.fy - kFrustumMargin * ty, (cam.H - cam.cy) / cam.fy + kFrustumMargin * ty);
+}
+
 template <typename scalar_t>
 void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t* quats, const scalar_t* opac,
                   const bool* finite_mask, const double* c2w, const CamParams cam, int64_t N, scalar_t* out_uv,
@@ -634,11 +642,8 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
         // + 0.6, so a box of that radius that misses the image means the exact one misses it too
         // (same `valid`; only the skipped entries' conic / radii outputs stay at their defaults).
         const double z = p[2];
-        const double tx = 0.5 * cam.W / cam.fx, ty = 0.5 * cam.H / cam.fy;
-        const double xz = std::clamp(p[0] / z, -cam.cx / cam.fx - kFrustumMargin * tx,
-                                     (cam.W - cam.cx) / cam.fx + kFrustumMargin * tx);
-        const double yz = std::clamp(p[1] / z, -cam.cy / cam.fy - kFrustumMargin * ty,
-                                     (cam.H - cam.cy) / cam.fy + kFrustumMargin * ty);
+        double xz, yz;
+        frustum_clamped(cam, p[0], p[1], z, xz, yz);
         const double smax = std::max({std::abs((double)scales[3 * i]), std::abs((double)scales[3 * i + 1]),
                                       std::abs((double)scales[3 * i + 2])});
         const double jf2 = (cam.fx * cam.fx * (1 + xz * xz) + cam.fy * cam.fy * (1 + yz * yz)) / (z * z);
@@ -665,12 +670,9 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
           u = uu - cam.W * std::floor(uu / cam.W);
           v = (0.5 * kPi - lat) * (cam.H / kPi);
         } else {
-          // project.py's frustum_clamped: the Jacobian at x/z, y/z clamped to the widened frustum.
-          const double tx = 0.5 * cam.W / cam.fx, ty = 0.5 * cam.H / cam.fy;
-          const double xz = std::clamp(x / z, -cam.cx / cam.fx - kFrustumMargin * tx,
-                                       (cam.W - cam.cx) / cam.fx + kFrustumMargin * tx);
-          const double yz = std::clamp(y / z, -cam.cy / cam.fy - kFrustumMargin * ty,
-                                       (cam.H - cam.cy) / cam.fy + kFrustumMargin * ty);
+          // The Jacobian at x/z, y/z clamped to the widened frustum.
+          double xz, yz;
+          frustum_clamped(cam, x, y, z, xz, yz);
           J[0][0] = cam.fx / z; J[0][1] = 0.0; J[0][2] = -cam.fx * (xz * z) / (z * z);
           J[1][0] = 0.0; J[1][1] = cam.fy / z; J[1][2] = -cam.fy * (yz * z) / (z * z);
           u = cam.fx * x / z + cam.cx;
