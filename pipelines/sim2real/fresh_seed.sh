@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 19's second check: the neural row's exported policy and the baselines on procedural houses of
 # a seed the pipeline never used, with the data engine's default episode task and the exact renderer.
-# Writes outputs/sim2real/fresh/{neural,baselines}.json (+ .protocol.json), which the report stage adds
+# Writes outputs/sim2real/fresh/{neural,baselines}.json (+ .protocol.json, + the agents' per-episode
+# logs in fresh/<agent>/), which the report stage adds
 # as checks.fresh_seed; then `dvc repro pipelines/sim2real/dvc.yaml:report` (or `make sim2real`).
 #
 #   bash pipelines/sim2real/fresh_seed.sh            # SEED=5000 HOUSES=3 WORKERS=2 POLICY=<export>
@@ -31,5 +32,12 @@ for name in neural baselines; do
   if [ -f "$W/$name/nav.protocol.json" ]; then
     cp "$W/$name/nav.protocol.json" "$O/fresh/$name.protocol.json"
   fi
+done
+# The per-episode logs, beside the metrics files, for the report's paired comparison
+# (<folder of the metrics file>/<agent>/*.jsonl).
+for agent_dir in "$W"/neural/image2nav "$W"/baselines/random "$W"/baselines/forward; do
+  agent=$(basename "$agent_dir")
+  rm -rf "$O/fresh/$agent.tmp" && cp -r "$agent_dir" "$O/fresh/$agent.tmp"
+  rm -rf "$O/fresh/$agent" && mv "$O/fresh/$agent.tmp" "$O/fresh/$agent"
 done
 echo "wrote $O/fresh/neural.json and $O/fresh/baselines.json (seed $SEED, $HOUSES houses)"

@@ -343,14 +343,20 @@ def _split_spec(spec: str, option: str) -> tuple[str, str]:
 
 
 def _nav_source(value: str, option: str) -> dict:
-    """``AGENT@FILE`` -> {"doc", "agent", "where"}."""
-    from image2sim.eval.sim2real import load_json
+    """``AGENT@FILE`` -> {"doc", "agent", "where", "successes"} (per-episode successes from the run's
+    logs beside FILE, None where there are none)."""
+    from image2sim.eval.sim2real import episode_successes, load_json
 
     agent, sep, path = value.partition("@")
     if not sep:
         raise typer.BadParameter(f"expected AGENT@nav.json, got {value!r}", param_hint=option)
     try:
-        return {"doc": load_json(path), "agent": agent, "where": path}
+        return {
+            "doc": load_json(path),
+            "agent": agent,
+            "where": path,
+            "successes": episode_successes(path, agent),
+        }
     except (FileNotFoundError, ValueError) as exc:
         raise typer.BadParameter(str(exc), param_hint=option) from exc
 

@@ -22,7 +22,9 @@ __all__ = [
     "bootstrap_ci",
     "episode_outcomes",
     "nav_markdown",
+    "mcnemar_exact_p",
     "nav_summary",
+    "paired_success_comparison",
     "update_nav_metrics",
     "wilson_interval",
 ]
@@ -59,6 +61,66 @@ def bootstrap_ci(
     means = x[idx].mean(axis=1)
     a = (1.0 - level) / 2.0
     return (float(np.quantile(means, a)), float(np.quantile(means, 1.0 - a)))
+
+
+def mcnemar_exact_p(policy_only: int, baseline_only: int) -> float:
+    """Two-sided exact McNemar test: the probability, if the two agents were equally good, of discordant
+    episodes at least this lopsided (a binomial(n, 1/2) tail on the n discordant pairs; 1 when n = 0)."""
+    b, c = int(policy_only), int(baseline_only)
+    if b < 0 or c < 0:
+        raise ValueError(f"mcnemar_exact_p: counts must be >= 0, got {b}, {c}")
+    n = b + c
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, k) for k in range(min(b, c) + 1))
+    return min(1.0, 2.0 * tail / 2.0**n)
+
+
+def paired_success_comparison(
+    policy: Mapping[str, bool], baseline: Mapping[str, bool], z: float = 1.959963984540054
+) -> dict[str, Any]:
+    """Two agents' success on the *same* episodes (episode id -> success), compared pair by pair.
+
+    Two marginal 95 % intervals that touch can still hide a clear difference: most of each agent's
+    variance is which episodes are easy, which a paired comparison cancels. Returns the 2x2 counts,
+    the SR difference (policy - baseline, fractions), its 95 % interval by Newcombe's hybrid score
+    method for paired proportions (Stat. Med. 1998, method 10: the two Wilson intervals joined
+    through the phi correlation of the pairs) and the exact McNemar p-value.
+    """
+    if set(policy) != set(baseline):
+        only_p = sorted(set(policy) - set(baseline))[:3]
+        only_b = sorted(set(baseline) - set(policy))[:3]
+        raise ValueError(
+            f"paired comparison needs the same episodes: {len(set(policy) ^ set(baseline))} differ "
+            f"(only the policy's e.g. {only_p}, only the baseline's e.g. {only_b})"
+        )
+    n = len(policy)
+    if n == 0:
+        raise ValueError("paired comparison: no episodes")
+    both = sum(1 for e, s in policy.items() if s and baseline[e])
+    p_only = sum(1 for e, s in policy.items() if s and not baseline[e])
+    b_only = sum(1 for e, s in policy.items() if not s and baseline[e])
+    neither = n - both - p_only - b_only
+    p1, p2 = (both + p_only) / n, (both + b_only) / n
+    l1, u1 = wilson_interval(both + p_only, n, z)
+    l2, u2 = wilson_interval(both + b_only, n, z)
+    denom = (both + p_only) * (neither + b_only) * (both + b_only) * (neither + p_only)
+    phi = (both * neither - p_only * b_only) / math.sqrt(denom) if denom > 0 else 0.0
+    delta = p1 - p2
+    # max(0, .): the radicand is a sum of squares minus a correlation term, >= 0 up to rounding
+    lower = math.sqrt(max(0.0, (p1 - l1) ** 2 - 2 * phi * (p1 - l1) * (u2 - p2) + (u2 - p2) ** 2))
+    upper = math.sqrt(max(0.0, (u1 - p1) ** 2 - 2 * phi * (u1 - p1) * (p2 - l2) + (p2 - l2) ** 2))
+    return {
+        "episodes": n,
+        "both": both,
+        "policy_only": p_only,
+        "baseline_only": b_only,
+        "neither": neither,
+        "sr_difference": delta,
+        "difference_ci": [max(-1.0, delta - lower), min(1.0, delta + upper)],
+        "mcnemar_p": mcnemar_exact_p(p_only, b_only),
+        "method": "Newcombe hybrid score interval for paired proportions (95%); exact McNemar test",
+    }
 
 
 OUTCOMES = ("success", "passed_goal", "stopped_short", "out_of_steps")

@@ -15,6 +15,11 @@ baselines. Each evaluation writes the usual ``nav.json`` document; this module g
      "policies": {"neural": "<path relative to the repo root>", ...},
      "budget": {...}, "checks": {...}}
 
+A check compares the policy with each baseline twice: by the issue's bar on the marginal 95 %
+intervals, and pair by pair on the same episodes (``checks.*.paired``: the SR difference with
+Newcombe's paired interval and the exact McNemar p-value) where both evaluations' per-episode logs
+are at hand (:func:`episode_successes`).
+
 :func:`gather` is pure (documents in, document out); :func:`write_outputs` writes the JSON, the
 Markdown report and the scaling plot atomically.
 """
@@ -28,6 +33,7 @@ from typing import Any
 
 __all__ = [
     "ROWS",
+    "episode_successes",
     "gather",
     "instruction_check",
     "row_from_nav",
@@ -108,6 +114,7 @@ def gather(
     """
     protocol = None
     out_rows = {}
+    successes = {name: spec["successes"] for name, spec in rows.items() if spec.get("successes") is not None}
     for name, spec in rows.items():
         out_rows[name] = row_from_nav(spec["doc"], spec["agent"], spec.get("where", name))
         p = spec["doc"].get("protocol")
@@ -137,13 +144,31 @@ def gather(
     doc["scaling_trend"] = scaling_trend(doc["scaling"])
     doc["policies"] = dict(policies or {})
     doc["budget"] = dict(budget or {})
-    doc["checks"] = {"heldout": target_check(out_rows)}
+    doc["checks"] = {"heldout": target_check(out_rows, successes=successes)}
     if INSTRUCTION_PAIR[0] in out_rows and INSTRUCTION_PAIR[1] in out_rows:
-        doc["checks"]["instruction"] = instruction_check(out_rows)
+        doc["checks"]["instruction"] = instruction_check(out_rows, successes=successes)
     for name, spec in (extra_checks or {}).items():
         extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
-        doc["checks"][name] = {**target_check(extra), "rows": extra}
+        hits = {k: v["successes"] for k, v in spec["rows"].items() if v.get("successes") is not None}
+        doc["checks"][name] = {**target_check(extra, successes=hits), "rows": extra}
     return doc
+
+
+def _paired(successes: Mapping[str, Mapping[str, bool]], policy: str, other: str) -> dict | None:
+    """The paired comparison of two rows in percent, None when either lacks per-episode results."""
+    from image2sim.eval.nav_summary import paired_success_comparison
+
+    if policy not in successes or other not in successes:
+        return None
+    try:
+        c = paired_success_comparison(successes[policy], successes[other])
+    except ValueError as exc:
+        raise ValueError(f"rows {policy!r} and {other!r}: {exc}") from exc
+    return {
+        **c,
+        "sr_difference": _pct(c["sr_difference"]),
+        "difference_ci": [_pct(x) for x in c["difference_ci"]],
+    }
 
 
 def _sr_ratio(row: Mapping[str, Any], reference: Mapping[str, Any]) -> float | None:
@@ -153,9 +178,15 @@ def _sr_ratio(row: Mapping[str, Any], reference: Mapping[str, Any]) -> float | N
     return math.inf if row["sr"] > 0 else None
 
 
-def target_check(rows: Mapping[str, Mapping[str, Any]], policy: str = "neural") -> dict:
+def target_check(
+    rows: Mapping[str, Mapping[str, Any]],
+    policy: str = "neural",
+    successes: Mapping[str, Mapping[str, bool]] | None = None,
+) -> dict:
     """Issue 19's bar: the policy's SR >= 2x the best baseline's and its lower 95 % bound above the
-    best baseline's upper bound."""
+    best baseline's upper bound. With per-episode ``successes`` (row -> episode id -> success) it adds
+    ``paired``: baseline -> the policy against it on the same episodes (informative; the bar stays the
+    marginal one)."""
     base = [b for b in BASELINES if b in rows]
     if policy not in rows or not base:
         return {"met": None, "reason": "missing rows"}
@@ -164,13 +195,17 @@ def target_check(rows: Mapping[str, Mapping[str, Any]], policy: str = "neural") 
     ratio = _sr_ratio(p, b)
     twice = p["sr"] >= 2 * b["sr"]
     separated = p["sr_ci"][0] > b["sr_ci"][1]
-    return {
+    out = {
         "best_baseline": best,
         "sr_ratio": ratio,
         "twice_best_baseline": bool(twice),
         "intervals_separated": bool(separated),
         "met": bool(twice and separated),
     }
+    paired = {b: c for b in base if (c := _paired(successes or {}, policy, b)) is not None}
+    if paired:
+        out["paired"] = paired
+    return out
 
 
 INSTRUCTION_PAIR = ("neural_bc", "blind")
@@ -182,18 +217,34 @@ def instruction_check(
     rows: Mapping[str, Mapping[str, Any]],
     policy: str = INSTRUCTION_PAIR[0],
     control: str = INSTRUCTION_PAIR[1],
+    successes: Mapping[str, Mapping[str, bool]] | None = None,
 ) -> dict:
     """Does the policy gain from reading its instruction? Its SR against the instruction-blind
     control trained the same way: the difference, the ratio, and whether the 95 % intervals are
     disjoint (the only case that shows reading)."""
     p, c = rows[policy], rows[control]
-    return {
+    out = {
         "policy": policy,
         "control": control,
         "sr_difference": p["sr"] - c["sr"],
         "sr_ratio": _sr_ratio(p, c),
         "intervals_separated": bool(p["sr_ci"][0] > c["sr_ci"][1]),
     }
+    paired = _paired(successes or {}, policy, control)
+    if paired is not None:
+        out["paired"] = paired
+    return out
+
+
+def _paired_text(c: Mapping[str, Any], policy: str, other: str) -> str:
+    """One sentence of a paired comparison (percent)."""
+    d = c["sr_difference"]
+    lo, hi = c["difference_ci"]
+    return (
+        f"on the same {c['episodes']} episodes `{policy}` - `{other}` SR = {'+' if d >= 0 else ''}{d:.1f} "
+        f"points [95% CI {lo:+.1f}, {hi:+.1f}]; only `{policy}` succeeded in {c['policy_only']}, only "
+        f"`{other}` in {c['baseline_only']}, both in {c['both']}; exact McNemar p = {c['mcnemar_p']:.2g}"
+    )
 
 
 def _fmt(v: Any, nd: int = 1) -> str:
@@ -244,6 +295,11 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
                 f"Check `instruction`: `{chk['policy']}` SR - `{chk['control']}` SR (the same BC with "
                 f"shuffled instructions) = {'+' if diff >= 0 else ''}{_fmt(diff)} points; "
                 f"intervals {verdict}."
+                + (
+                    f" Paired: {_paired_text(chk['paired'], chk['policy'], chk['control'])}."
+                    if chk.get("paired")
+                    else ""
+                )
             )
             continue
         if chk.get("met") is None:
@@ -255,6 +311,8 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
             f"upper bound: {'yes' if chk['intervals_separated'] else 'no'} -> target "
             f"{'met' if chk['met'] else 'not met'}."
         )
+        for base, c in (chk.get("paired") or {}).items():
+            out.append(f"- paired (`{name}`): {_paired_text(c, 'neural', base)}.")
     out.append("")
     if doc.get("scaling"):
         out += ["## Data scaling (neural simulator data, behaviour cloning only)", ""]
@@ -398,6 +456,30 @@ def policy_parameters(folder: str | Path) -> int | None:
             for k in fh.keys():
                 n += int(math.prod(fh.get_slice(k).get_shape()))
     return n
+
+
+def episode_successes(nav_path: str | Path, agent: str) -> dict[str, bool] | None:
+    """Episode id -> success of ``agent`` from the per-episode logs of the ``eval nav`` run whose
+    metrics file is ``nav_path`` (``<its folder>/<agent>/*.jsonl``, where ``eval nav --out X --metrics
+    X/nav.json`` writes them); None when there are none. An episode logged twice (a resumed run) or
+    without a success value is an error naming the log."""
+    from image2sim.eval.results import read_episode_log
+
+    logs = sorted(
+        p for p in (Path(nav_path).parent / agent).glob("*.jsonl") if not p.name.endswith(".traj.jsonl")
+    )
+    if not logs:
+        return None
+    out: dict[str, bool] = {}
+    for log in logs:
+        for r in read_episode_log(log)[1]:
+            s = r.metrics.get("success")
+            if s is None:
+                raise ValueError(f"{log}: episode {r.episode_id!r} has no success value")
+            if r.episode_id in out:
+                raise ValueError(f"{log}: episode {r.episode_id!r} is logged twice")
+            out[r.episode_id] = bool(s >= 0.5)
+    return out
 
 
 def load_json(path: str | Path) -> dict:
