@@ -385,32 +385,49 @@ def budget_markdown(budget: Mapping[str, Any]) -> list[str]:
 
 
 def plot_scaling(doc: Mapping[str, Any], path: str | Path) -> Path:
-    """SR with 95 % intervals against training episodes (log x), baselines as bands."""
+    """SR with 95 % intervals against training episodes (log x, ticked at the points), the baselines'
+    intervals as bands and the trained rows as lines."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from image2sim.eval.plots import save_figure_atomic
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator
 
     pts = doc["scaling"]
-    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
     x = [p["episodes"] for p in pts]
     y = [p["sr"] for p in pts]
     err = [[p["sr"] - p["sr_ci"][0] for p in pts], [p["sr_ci"][1] - p["sr"] for p in pts]]
-    ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label="neural-sim data, BC")
+    ax.errorbar(x, y, yerr=err, marker="o", capsize=3, color="tab:blue", label="neural-sim data, BC only")
     for p in pts:
-        ax.annotate(f"{p['houses']} h", (p["episodes"], p["sr"]), textcoords="offset points", xytext=(4, 4))
+        ax.annotate(
+            f"{p['houses']} house{'s' if p['houses'] != 1 else ''}",
+            (p["episodes"], p["sr"]),
+            textcoords="offset points",
+            xytext=(5, -12),
+            fontsize=7,
+        )
+    labels = {"neural": "neural, BC + DAgger", "exact": "exact, BC + DAgger"}
     colours = {"random": "tab:gray", "forward": "tab:orange", "neural": "tab:green", "exact": "tab:purple"}
     for name in ("random", "forward", "neural", "exact"):
         r = doc["rows"].get(name)
         if r is None:
             continue
-        ax.axhspan(r["sr_ci"][0], r["sr_ci"][1], color=colours[name], alpha=0.15)
-        ax.axhline(r["sr"], color=colours[name], lw=1, ls="--", label=f"{name} ({r['sr']:.1f})")
+        if name in BASELINES:  # the bands say what chance-level policies reach
+            ax.axhspan(r["sr_ci"][0], r["sr_ci"][1], color=colours[name], alpha=0.12)
+        ax.axhline(
+            r["sr"], color=colours[name], lw=1, ls="--", label=f"{labels.get(name, name)} ({r['sr']:.1f})"
+        )
     ax.set_xscale("log")
+    ax.xaxis.set_major_locator(FixedLocator(sorted(set(x))))
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xticklabels([str(v) for v in sorted(set(x))])
+    ax.set_xlim(min(x) / 1.4, max(x) * 1.4)
     ax.set_xlabel("training episodes (neural simulator)")
     ax.set_ylabel("SR on held-out houses (%)")
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     out = save_figure_atomic(fig, path)
