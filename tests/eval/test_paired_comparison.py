@@ -159,3 +159,25 @@ def test_episode_logs_with_a_repeated_episode_are_refused(tmp_path):
     )
     with pytest.raises(ValueError, match="logged twice"):
         episode_successes(tmp_path / "run" / "nav.json", "image2nav")
+
+
+def test_another_evaluations_check_says_what_its_rows_scored_and_stands_as_its_own_paragraph(tmp_path):
+    from image2sim.eval.sim2real import gather, sim2real_markdown
+
+    from tests.navpolicy.test_sim2real_loop import _nav_doc
+
+    policy, base = _pairs(5, 21, 15, 145)
+    heldout = {
+        "neural": {"doc": _nav_doc({"image2nav": (48, 259)}), "agent": "image2nav"},
+        "forward": {"doc": _nav_doc({"forward": (26, 259)}), "agent": "forward"},
+    }
+    fresh = {
+        "rows": {
+            "neural": {"doc": _nav_doc({"image2nav": (26, 186)}), "agent": "image2nav", "successes": policy},
+            "random": {"doc": _nav_doc({"random": (20, 186)}), "agent": "random", "successes": base},
+        }
+    }
+    text = sim2real_markdown(gather(heldout, extra_checks={"fresh_seed": fresh}))
+    assert "Check `fresh_seed` (neural 14.0 [9.7, 19.7], random 10.8 [7.1, 16.0]; 186 episodes)" in text
+    assert "exact McNemar p = 0.41." in text
+    assert "target not met.\n\nCheck `fresh_seed`" in text  # each check is its own paragraph

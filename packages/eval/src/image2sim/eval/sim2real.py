@@ -301,11 +301,20 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
                     else ""
                 )
             )
+            out.append("")
             continue
         if chk.get("met") is None:
             continue
+        rows = chk.get("rows")  # another evaluation's rows (e.g. fresh seeds): say what they scored
+        scored = (
+            " ("
+            + ", ".join(f"{k} {_fmt(r['sr'])} {_ci(r['sr_ci'])}" for k, r in rows.items())
+            + f"; {next(iter(rows.values()))['episodes']} episodes)"
+            if rows
+            else ""
+        )
         out.append(
-            f"Check `{name}`: neural SR / best baseline ({chk['best_baseline']}) = "
+            f"Check `{name}`{scored}: neural SR / best baseline ({chk['best_baseline']}) = "
             f"{_fmt(chk['sr_ratio'], 2)}x; "
             f">= 2x: {'yes' if chk['twice_best_baseline'] else 'no'}; lower bound above the baseline's "
             f"upper bound: {'yes' if chk['intervals_separated'] else 'no'} -> target "
@@ -313,7 +322,7 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         )
         for base, c in (chk.get("paired") or {}).items():
             out.append(f"- paired (`{name}`): {_paired_text(c, 'neural', base)}.")
-    out.append("")
+        out.append("")
     if doc.get("scaling"):
         out += ["## Data scaling (neural simulator data, behaviour cloning only)", ""]
         out += [
