@@ -80,6 +80,7 @@ image2sim eval sim2real \
   --row oracle=oracle@"$O"/eval/baselines/nav.json \
   --row neural_bc=image2nav@"$O"/scaling/hall/nav.json \
   --row blind=image2nav@"$O"/eval/blind/nav.json \
+  --episode-logs neural_bc="$O"/scaling/hall/eval/image2nav \
   --policy neural="$O"/policies/neural/dagger/export \
   --policy splat_only="$O"/policies/splat_only/dagger/export \
   --policy exact="$O"/policies/exact/dagger/export \

@@ -181,3 +181,48 @@ def test_another_evaluations_check_says_what_its_rows_scored_and_stands_as_its_o
     assert "Check `fresh_seed` (neural 14.0 [9.7, 19.7], random 10.8 [7.1, 16.0]; 186 episodes)" in text
     assert "exact McNemar p = 0.41." in text
     assert "target not met.\n\nCheck `fresh_seed`" in text  # each check is its own paragraph
+
+
+def test_cli_reads_logs_beside_the_metrics_or_where_episode_logs_points(tmp_path):
+    """`eval sim2real` on the pipeline's layouts: eval@* runs keep their logs beside nav.json, the
+    scaling stage's run keeps them under eval/ (report.sh passes --episode-logs for it)."""
+    from image2sim.eval.cli import app
+    from image2sim.eval.metrics.nav import EpisodeResult
+    from image2sim.eval.nav_summary import nav_summary
+    from image2sim.eval.protocols import get_protocol
+    from image2sim.eval.results import write_metrics_file
+    from typer.testing import CliRunner
+
+    protocol = get_protocol("image2sim")
+
+    def run(folder, agent, results, logs=None):
+        _log(logs or folder, agent, results, protocol.to_dict())
+        rs = [EpisodeResult(e, {"success": float(s)}, protocol) for e, s in results.items()]
+        doc = {"protocol": protocol.to_dict(), "agents": {agent: nav_summary(rs)}}
+        write_metrics_file(folder / "nav.json", doc)
+        return folder / "nav.json"
+
+    bc, blind = _pairs(10, 30, 12, 148)
+    nbc = run(tmp_path / "hall", "image2nav", bc, logs=tmp_path / "hall" / "eval")
+    nbl = run(tmp_path / "blind", "image2nav", blind)
+    args = ["sim2real", "--row", f"neural_bc=image2nav@{nbc}", "--row", f"blind=image2nav@{nbl}"]
+    args += ["--out", str(tmp_path / "m.json"), "--report", str(tmp_path / "r.md")]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "Paired" not in (tmp_path / "r.md").read_text()  # neural_bc's logs are not beside it
+    res = CliRunner().invoke(
+        app, [*args, "--episode-logs", f"neural_bc={tmp_path / 'hall' / 'eval' / 'image2nav'}"]
+    )
+    assert res.exit_code == 0, res.output
+    assert (
+        "Paired: on the same 200 episodes `neural_bc` - `blind` SR = +9.0 points"
+        in (tmp_path / "r.md").read_text()
+    )
+
+    def flat(text: str) -> str:  # the error box wraps long lines
+        return " ".join(text.replace("│", " ").split())
+
+    res = CliRunner().invoke(app, [*args, "--episode-logs", f"nope={tmp_path}"])
+    assert res.exit_code != 0 and "no row 'nope'" in flat(res.output)
+    res = CliRunner().invoke(app, [*args, "--episode-logs", f"neural_bc={tmp_path / 'empty'}"])
+    assert res.exit_code != 0 and "no per-episode logs" in flat(res.output)

@@ -384,6 +384,13 @@ def sim2real_cmd(
     policy: Annotated[
         list[str], typer.Option(help="NAME=FOLDER: the exported policy of a row (path relative to the repo).")
     ] = [],  # noqa: B006
+    episode_logs: Annotated[
+        list[str],
+        typer.Option(
+            help="NAME=FOLDER: a row's per-episode logs when they are not in <metrics folder>/<agent>/ "
+            "(for the paired comparisons)."
+        ),
+    ] = [],  # noqa: B006
     budget: Annotated[
         list[str],
         typer.Option(help="NAME=FILE: a timing record of scripts/timed.py (wall_s, cpu_s) to report."),
@@ -394,12 +401,20 @@ def sim2real_cmd(
     plot: Annotated[Path, typer.Option(help="Scaling plot (PNG).")] = Path("plots/sim2real_scaling.png"),
 ) -> None:
     """Gather the sim-to-real experiment's evaluations into metrics/sim2real.json, a report and a plot."""
-    from image2sim.eval.sim2real import gather, load_json, policy_parameters, write_outputs
+    from image2sim.eval.sim2real import episode_successes, gather, load_json, policy_parameters, write_outputs
 
     rows = {}
     for spec in row:
         name, value = _split_spec(spec, "--row")
         rows[name] = _nav_source(value, "--row")
+    for spec in episode_logs:
+        name, folder = _split_spec(spec, "--episode-logs")
+        if name not in rows:
+            raise typer.BadParameter(f"no row {name!r} (rows: {sorted(rows)})", param_hint="--episode-logs")
+        try:
+            rows[name]["successes"] = episode_successes(rows[name]["where"], rows[name]["agent"], folder)
+        except (FileNotFoundError, ValueError) as exc:
+            raise typer.BadParameter(str(exc), param_hint="--episode-logs") from exc
     points = []
     for spec in scaling:
         key, value = _split_spec(spec, "--scaling")

@@ -62,7 +62,7 @@ def row_from_nav(doc: Mapping[str, Any], agent: str, where: str = "nav.json") ->
         "sr": _pct(a["sr"]),
         "sr_ci": [_pct(x) for x in a["sr_ci"]],
         "spl": _pct(a["spl"]),
-        "spl_ci": [_pct(x) for x in a.get("spl_ci", [None, None])],
+        "spl_ci": [_pct(x) for x in a.get("spl_ci") or [None, None]],  # None: no SPL (no path lengths)
         "ndtw": _pct(a.get("ndtw")),
         "ne": a.get("ne"),
         "steps": a.get("steps"),
@@ -484,17 +484,21 @@ def policy_parameters(folder: str | Path) -> int | None:
     return n
 
 
-def episode_successes(nav_path: str | Path, agent: str) -> dict[str, bool] | None:
+def episode_successes(
+    nav_path: str | Path, agent: str, logs_dir: str | Path | None = None
+) -> dict[str, bool] | None:
     """Episode id -> success of ``agent`` from the per-episode logs of the ``eval nav`` run whose
-    metrics file is ``nav_path`` (``<its folder>/<agent>/*.jsonl``, where ``eval nav --out X --metrics
-    X/nav.json`` writes them); None when there are none. An episode logged twice (a resumed run) or
-    without a success value is an error naming the log."""
+    metrics file is ``nav_path``: ``<its folder>/<agent>/*.jsonl`` (where ``eval nav --out X --metrics
+    X/nav.json`` writes them), or ``logs_dir`` when the run's ``--out`` was elsewhere. None when there
+    are none beside the metrics file; a ``logs_dir`` without logs, an episode logged twice (a resumed
+    run) or one without a success value is an error naming the folder or log."""
     from image2sim.eval.results import read_episode_log
 
-    logs = sorted(
-        p for p in (Path(nav_path).parent / agent).glob("*.jsonl") if not p.name.endswith(".traj.jsonl")
-    )
+    folder = Path(logs_dir) if logs_dir is not None else Path(nav_path).parent / agent
+    logs = sorted(p for p in folder.glob("*.jsonl") if not p.name.endswith(".traj.jsonl"))
     if not logs:
+        if logs_dir is not None:
+            raise ValueError(f"{folder}: no per-episode logs (*.jsonl) of an eval nav run")
         return None
     out: dict[str, bool] = {}
     for log in logs:
