@@ -342,9 +342,10 @@ def _split_spec(spec: str, option: str) -> tuple[str, str]:
     return name, rest
 
 
-def _nav_source(value: str, option: str) -> dict:
-    """``AGENT@FILE`` -> {"doc", "agent", "where", "successes"} (per-episode successes from the run's
-    logs beside FILE, None where there are none)."""
+def _nav_source(value: str, option: str, successes: bool = True) -> dict:
+    """``AGENT@FILE`` -> {"doc", "agent", "where", "successes"}: per-episode successes from the run's
+    logs beside FILE (None where there are none, or not asked for: the scaling points are never
+    paired)."""
     from image2sim.eval.sim2real import episode_successes, load_json
 
     agent, sep, path = value.partition("@")
@@ -355,7 +356,7 @@ def _nav_source(value: str, option: str) -> dict:
             "doc": load_json(path),
             "agent": agent,
             "where": path,
-            "successes": episode_successes(path, agent),
+            "successes": episode_successes(path, agent) if successes else None,
         }
     except (FileNotFoundError, ValueError) as exc:
         raise typer.BadParameter(str(exc), param_hint=option) from exc
@@ -421,7 +422,13 @@ def sim2real_cmd(
         houses, sep, episodes = key.partition(":")
         if not sep or not houses.isdigit() or not episodes.isdigit():
             raise typer.BadParameter(f"expected HOUSES:EPISODES=..., got {spec!r}", param_hint="--scaling")
-        points.append({"houses": int(houses), "episodes": int(episodes), **_nav_source(value, "--scaling")})
+        points.append(
+            {
+                "houses": int(houses),
+                "episodes": int(episodes),
+                **_nav_source(value, "--scaling", successes=False),
+            }
+        )
     checks: dict = {}
     for spec in check:
         key, value = _split_spec(spec, "--check")

@@ -297,6 +297,12 @@ def _parse_header(path: Path, line: str) -> Protocol:
         raise ResultFileError(str(exc)) from exc
 
 
+def episode_logs(folder: str | Path) -> list[Path]:
+    """The per-episode logs in an agent's run folder (``<scene>.jsonl``; their ``.traj.jsonl``
+    trajectory companions excluded), sorted."""
+    return sorted(p for p in Path(folder).glob("*.jsonl") if not p.name.endswith(".traj.jsonl"))
+
+
 def read_episode_log_protocol(path: str | Path) -> Protocol:
     """The protocol in the header line of an episode log."""
     path = Path(path)

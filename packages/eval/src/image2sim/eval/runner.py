@@ -71,7 +71,13 @@ from image2sim.eval.nav_summary import (
     wilson_interval,
 )
 from image2sim.eval.protocols import Protocol
-from image2sim.eval.results import EpisodeLog, read_episode_log, read_result_file, write_result_file
+from image2sim.eval.results import (
+    EpisodeLog,
+    episode_logs,
+    read_episode_log,
+    read_result_file,
+    write_result_file,
+)
 from image2sim.simulator.config import ConfigError, config_from_dict
 from image2sim.simulator.conventions import Action
 
@@ -335,8 +341,7 @@ def _refuse_resume_with_other_settings(out: Path, config: RunConfig) -> None:
     """Raise when ``out`` already logs episodes of a run with other result-changing settings: resuming
     would silently keep the old episodes and mix them with new ones."""
     previous_file = out / "run.json"
-    logged = [p for p in out.glob("*.jsonl") if not p.name.endswith(".traj.jsonl")]
-    if not previous_file.is_file() or not logged:
+    if not previous_file.is_file() or not episode_logs(out):
         return
     _, manifest = read_result_file(previous_file)
     before = manifest.get("config", {})

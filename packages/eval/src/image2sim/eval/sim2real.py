@@ -114,7 +114,7 @@ def gather(
     """
     protocol = None
     out_rows = {}
-    successes = {name: spec["successes"] for name, spec in rows.items() if spec.get("successes") is not None}
+    successes = _successes_of(rows)
     for name, spec in rows.items():
         out_rows[name] = row_from_nav(spec["doc"], spec["agent"], spec.get("where", name))
         p = spec["doc"].get("protocol")
@@ -149,9 +149,13 @@ def gather(
         doc["checks"]["instruction"] = instruction_check(out_rows, successes=successes)
     for name, spec in (extra_checks or {}).items():
         extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
-        hits = {k: v["successes"] for k, v in spec["rows"].items() if v.get("successes") is not None}
-        doc["checks"][name] = {**target_check(extra, successes=hits), "rows": extra}
+        doc["checks"][name] = {**target_check(extra, successes=_successes_of(spec["rows"])), "rows": extra}
     return doc
+
+
+def _successes_of(specs: Mapping[str, Mapping[str, Any]]) -> dict[str, Mapping[str, bool]]:
+    """Row -> its per-episode successes, for the rows that have them."""
+    return {name: spec["successes"] for name, spec in specs.items() if spec.get("successes") is not None}
 
 
 def _paired(successes: Mapping[str, Mapping[str, bool]], policy: str, other: str) -> dict | None:
@@ -492,10 +496,10 @@ def episode_successes(
     X/nav.json`` writes them), or ``logs_dir`` when the run's ``--out`` was elsewhere. None when there
     are none beside the metrics file; a ``logs_dir`` without logs, an episode logged twice (a resumed
     run) or one without a success value is an error naming the folder or log."""
-    from image2sim.eval.results import read_episode_log
+    from image2sim.eval.results import episode_logs, read_episode_log
 
     folder = Path(logs_dir) if logs_dir is not None else Path(nav_path).parent / agent
-    logs = sorted(p for p in folder.glob("*.jsonl") if not p.name.endswith(".traj.jsonl"))
+    logs = episode_logs(folder)
     if not logs:
         if logs_dir is not None:
             raise ValueError(f"{folder}: no per-episode logs (*.jsonl) of an eval nav run")
