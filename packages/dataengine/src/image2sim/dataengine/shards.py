@@ -9,7 +9,6 @@ half-written shard.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import shutil
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.io.atomic import sweep_stale_temps, temp_sibling, write_bytes_atomic
+from image2sim.simulator.io.npz import FRAMES_LEVEL, npz_bytes
 
 __all__ = ["SHARD_FORMAT", "SHARD_VERSION", "SceneShardWriter"]
 
@@ -59,9 +59,7 @@ class SceneShardWriter:
                 f"shard {self.root}: episode {episode_id}: actions must end with STOP and cover the frames"
             )
         rel = f"frames/{len(self.lines):06d}.npz"
-        buf = io.BytesIO()
-        np.savez_compressed(buf, rgb=np.ascontiguousarray(f))
-        write_bytes_atomic(self.tmp / rel, buf.getvalue())
+        write_bytes_atomic(self.tmp / rel, npz_bytes({"rgb": np.ascontiguousarray(f)}, FRAMES_LEVEL))
         self.lines.append(
             json.dumps(
                 {

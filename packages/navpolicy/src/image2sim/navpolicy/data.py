@@ -304,11 +304,10 @@ class ShardWriter:
         k = len(self._lines)
         traj.validate(f"{self.root} trajectory {k} ({traj.episode_id})")
         rel = f"frames/{k:06d}.npz"
-        import io
+        from image2sim.simulator.io.npz import FRAMES_LEVEL, npz_bytes
 
-        buf = io.BytesIO()
-        (np.savez_compressed if self.compress else np.savez)(buf, rgb=np.ascontiguousarray(traj.frames))
-        write_bytes_atomic(self.root / rel, buf.getvalue())
+        level = FRAMES_LEVEL if self.compress else None
+        write_bytes_atomic(self.root / rel, npz_bytes({"rgb": np.ascontiguousarray(traj.frames)}, level))
         rec = {
             "episode_id": traj.episode_id,
             "scene_id": traj.scene_id,

@@ -10,15 +10,14 @@ the agent radius (+ half a cell, for the rasterisation) from every non-free cell
 
 from __future__ import annotations
 
-import io
 import json
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from image2sim.dataengine.procedural.layout import Layout
+from image2sim.simulator.io.npz import npz_bytes
 from scipy import ndimage
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -143,14 +142,7 @@ def label_components(navigable: np.ndarray) -> tuple[np.ndarray, int]:
 
 def save_npz_deterministic(path: Path, **arrays: np.ndarray) -> None:
     """Like ``np.savez_compressed`` but byte-identical across runs (fixed zip timestamps and order)."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name in sorted(arrays):
-            buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.asanyarray(arrays[name]), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, buf.getvalue())
+    Path(path).write_bytes(npz_bytes(arrays))
 
 
 def mesh_arrays(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
