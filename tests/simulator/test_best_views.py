@@ -293,6 +293,33 @@ def test_a_splat_reaching_across_a_silhouette_is_carved_by_its_extent():
     assert best_view_mask(*args, carve_views=0, extent=extent_points(g, 3.0)).tolist() == [True]
 
 
+def test_centres_and_extents_of_many_gaussians_are_carved_together():
+    """The probes of several Gaussians go through one look-up per view: each Gaussian is dropped
+    when its centre *or* any extent point was seen through, and only then (same scene as above)."""
+    c = cfg(carve_views=1)
+    scene = plane_frame(0.0, 3.0)
+    scene.depth[..., : W // 2] = 2.0
+    views = [view_map(scene, c.fusion), view_map(plane_frame(-1.0, 3.0), c.fusion)]
+    one = [[0.01, 0.1, 0.1]]
+    g = _gaussians(
+        # a floater before the wall (centre seen through), the plate's rim (reach seen through),
+        # the plate's inside (kept), a point behind the wall (occluded for frame 0: kept)
+        [[2.5, -0.6, 0.0], [2.0, 0.15, 0.0], [2.0, 0.6, 0.0], [3.5, -0.6, 0.0]],
+        one * 4,
+        [[1.0, 0.0, 0.0, 0.0]] * 4,
+    )
+    iv = torch.full((4,), 0.01, dtype=torch.float64)
+    normals = torch.tensor([[-1.0, 0.0, 0.0]] * 4, dtype=torch.float64)
+    args = (g.means, iv, normals, 1, views, c.fusion.same_surface_tolerance, 1.0)
+    assert best_view_mask(*args, carve_views=1, extent=extent_points(g, 3.0)).tolist() == [
+        False,
+        False,
+        True,
+        True,
+    ]
+    assert best_view_mask(*args, carve_views=1).tolist() == [False, True, True, True]
+
+
 def test_a_grazing_view_does_not_replace_a_frontal_one_it_samples_more_finely():
     """owner_cos: a near view seeing the wall at a grazing angle (cos ~0.2) has a finer interval
     than a far frontal one only by the clamp; with owner_cos 0.5 it may not replace the frontal one."""

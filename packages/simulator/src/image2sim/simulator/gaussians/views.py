@@ -208,14 +208,13 @@ def best_view_mask(
         towards = views[own].centre.to(pts.device) - pts[unknown]
         facing[unknown] = towards / torch.linalg.vector_norm(towards, dim=1, keepdim=True).clamp_min(1e-12)
     carvers = _nearest_views(views, own, carve_views)
+    # (N, 1 + P, 3): each Gaussian's centre and its extent points, carved in one look-up per view.
+    probes = pts[:, None] if extent is None else torch.cat((pts[:, None], extent.double()), dim=1)
     for i, view in enumerate(views):
         if i == own:
             continue
         if i in carvers:
-            _carve(pts, keep, view, tolerance)
-            if extent is not None:
-                for p in range(extent.shape[1]):
-                    _carve(extent[:, p].double(), keep, view, tolerance)
+            _carve(probes, keep, view, tolerance)
         centre = view.centre.to(pts.device)
         offset = centre - pts
         # A view can only be better where distance x its finest pixel angle beats the interval,
@@ -261,16 +260,17 @@ def _nearest_views(views: Sequence[ViewMap], own: int, k: int) -> set[int]:
     return {int(i) for i in torch.argsort(d, stable=True)[: min(k, len(views) - 1)]}
 
 
-def _carve(pts: torch.Tensor, keep: torch.Tensor, view: ViewMap, tolerance: float) -> None:
-    """Clear ``keep`` where ``view`` saw empty space through the point (see :func:`best_view_mask`)."""
+def _carve(probes: torch.Tensor, keep: torch.Tensor, view: ViewMap, tolerance: float) -> None:
+    """Clear ``keep`` where ``view`` saw empty space through any of a Gaussian's probe points
+    (``probes`` (N, P, 3): its centre, and its extent points; see :func:`best_view_mask`)."""
     idx = torch.nonzero(keep).squeeze(1)
     if idx.numel() == 0:
         return
-    row, col, rng, hit = view.look_up(pts[idx])
-    free = view.free.to(pts.device)[row, col].double()
-    iv = view.interval.to(pts.device)[row, col].double()
+    row, col, rng, hit = view.look_up(probes[idx].reshape(-1, 3))
+    free = view.free.to(probes.device)[row, col].double()
+    iv = view.interval.to(probes.device)[row, col].double()
     seen_through = hit & (free > 0) & (rng < free - (tolerance * free + 2.0 * iv))
-    keep[idx[seen_through]] = False
+    keep[idx[seen_through.reshape(idx.numel(), -1).any(dim=1)]] = False
 
 
 def extent_points(gaussians: GaussianSet, k: float) -> torch.Tensor:
