@@ -33,7 +33,6 @@ __all__ = [
     "rasterise_box",
     "navigable_from_free",
     "label_components",
-    "save_npz_deterministic",
     "write_gt",
     "mesh_arrays",
     "write_ply",
@@ -140,11 +139,6 @@ def label_components(navigable: np.ndarray) -> tuple[np.ndarray, int]:
 # --- files ------------------------------------------------------------------------------------------
 
 
-def save_npz_deterministic(path: Path, **arrays: np.ndarray) -> None:
-    """Like ``np.savez_compressed`` but byte-identical across runs (fixed zip timestamps and order)."""
-    Path(path).write_bytes(npz_bytes(arrays))
-
-
 def mesh_arrays(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (8N, 3) and outward-facing triangles (12N, 3) of N axis-aligned boxes.
 
@@ -217,15 +211,15 @@ def write_gt(scene: ProceduralScene, gt_dir: Path, extra: dict | None = None) ->
 
     gt_dir.mkdir(parents=True, exist_ok=True)
     grid = scene.grid
-    save_npz_deterministic(
-        gt_dir / "navigable.npz",
-        grid=grid.navigable.astype(np.uint8),
-        occupancy=grid.occupancy,
-        components=grid.components,
-        origin=grid.origin,
-        resolution=np.float64(grid.resolution),
-        agent_radius=np.float64(grid.agent_radius),
-    )
+    navigable = {
+        "grid": grid.navigable.astype(np.uint8),
+        "occupancy": grid.occupancy,
+        "components": grid.components,
+        "origin": grid.origin,
+        "resolution": np.float64(grid.resolution),
+        "agent_radius": np.float64(grid.agent_radius),
+    }
+    (gt_dir / "navigable.npz").write_bytes(npz_bytes(navigable))  # byte-identical across runs
     layout = scene.layout
     room_types = [r.room_type for r in layout.rooms]
     _json(gt_dir / "objects.json", {"objects": [o.to_json(room_types) for o in scene.objects]})

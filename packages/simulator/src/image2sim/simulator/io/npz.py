@@ -30,7 +30,7 @@ def npz_bytes(arrays: Mapping[str, np.ndarray], level: int | None = 6) -> bytes:
         raise ValueError(f"npz_bytes: level must be 0-9 or None, got {level!r}")
     method = zipfile.ZIP_STORED if level is None else zipfile.ZIP_DEFLATED
     out = io.BytesIO()
-    with zipfile.ZipFile(out, "w", compression=method, compresslevel=level) as zf:
+    with zipfile.ZipFile(out, "w") as zf:  # each member sets its own method and level
         for name in sorted(arrays):
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = method
