@@ -57,6 +57,34 @@ def test_panoconv_is_equivariant_to_rotation_about_the_vertical(k, stride, shift
     assert torch.allclose(torch.roll(y, shifts=shift // stride, dims=-1), y_rolled, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "k,stride,dilation,groups",
+    [(3, 1, 1, 1), (7, 1, 1, 2), (2, 2, 1, 1), (3, 2, 1, 2), (3, 1, 2, 1), (1, 1, 1, 1)],
+)
+def test_panoconv_matches_explicitly_padded_reference_in_value_and_jvp(k, stride, dilation, groups):
+    """The zero padding is the convolution's own (no padded copy): the same values, and the same
+    forward-mode derivative, as padding explicitly (circular along W, zeros along H) and convolving
+    unpadded; pinhole maps are zero-padded on all sides."""
+    torch.manual_seed(0)
+    x = torch.randn(2, 4, 9, 14, dtype=torch.float64)
+    tangent = torch.randn_like(x)
+    p = dilation * (k - 1) // 2
+    for panoramic in (True, False):
+        conv = PanoConv2d(4, 6, k, stride=stride, dilation=dilation, groups=groups, panoramic=panoramic)
+        conv = conv.double()
+
+        def reference(v, conv=conv, panoramic=panoramic):
+            v = F.pad(v, (p, p, 0, 0), mode="circular") if panoramic else F.pad(v, (p, p, 0, 0))
+            v = F.pad(v, (0, 0, p, p))
+            return F.conv2d(v, conv.weight, conv.bias, stride=stride, dilation=dilation, groups=groups)
+
+        y, dy = torch.func.jvp(conv, (x,), (tangent,))
+        y_ref, dy_ref = torch.func.jvp(reference, (x,), (tangent,))
+        assert y.shape == y_ref.shape
+        assert torch.allclose(y, y_ref, atol=1e-12)
+        assert torch.allclose(dy, dy_ref, atol=1e-12)
+
+
 def test_panoconv_height_is_zero_padded_and_pinhole_matches_conv2d():
     torch.manual_seed(0)
     conv = PanoConv2d(2, 3, 3).double()
