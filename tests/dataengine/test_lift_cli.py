@@ -232,6 +232,7 @@ def test_bad_options_are_one_line_errors(tmp_path, run_main):
             "not both --camera-height and --object-size",
         ),
         (["--camera-model", "FISHEYE"], "--camera-model must be one of SIMPLE_PINHOLE, PINHOLE"),
+        (["--mapper", "hierarchical"], "--mapper must be one of incremental, global"),
         ([], "no images (.png, .jpg, .jpeg) in this folder"),
     ]
     for extra, message in cases:

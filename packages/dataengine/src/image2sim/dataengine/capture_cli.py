@@ -349,6 +349,14 @@ def lift(
             "fisheye SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE.",
         ),
     ] = "SIMPLE_PINHOLE",
+    mapper: Annotated[
+        str,
+        typer.Option(
+            "--mapper",
+            help="COLMAP reconstruction: incremental (one image at a time) or global (GLOMAP: rotation "
+            "averaging and global positioning over all verified pairs at once).",
+        ),
+    ] = "incremental",
     fps: Annotated[float, typer.Option("--fps", min=0.01, help="Video: frames sampled per second.")] = 2.0,
     max_frames: Annotated[
         int | None, typer.Option("--max-frames", min=1, help="Keep at most N frames (spread evenly).")
@@ -384,7 +392,7 @@ def lift(
     try:
         sizes = tuple(parse_object_size(text) for text in object_size or ())
         given = scale_sources(camera_height, baseline, sizes, str(src))
-        sfm_options = SfmOptions(camera_model=camera_model)
+        sfm_options = SfmOptions(camera_model=camera_model, mapper=mapper)
     except ValueError as exc:
         _fail(str(exc))
     if baseline is not None and baseline_frames is None:

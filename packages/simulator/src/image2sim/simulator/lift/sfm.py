@@ -59,6 +59,8 @@ ROTATION_SPREAD_SURE = 0.02
 ROTATION_SPREAD_MAX, ROTATION_PAIR_SHARE = 0.1, 0.95
 """Below this spread, a pinhole capture whose verified pairs are at least this share rotation-like
 only rotates too (a free lens model can fake a small baseline)."""
+MAPPERS = ("incremental", "global")
+"""COLMAP reconstruction pipelines :class:`SfmOptions` can use."""
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", *LENS_MODELS)
 """COLMAP camera models the lift accepts for pinhole frames."""
 
@@ -80,6 +82,10 @@ class SfmOptions:
     """Most alike frames each frame is matched with by the retrieval matcher."""
     vocabulary: int = 512
     """Visual words of the retrieval matcher's vocabulary (k-means over the capture's descriptors)."""
+    mapper: str = "incremental"
+    """"incremental" (COLMAP's incremental mapper: registers one image at a time from a seed pair) or
+    "global" (COLMAP's global mapper, GLOMAP: rotation averaging and global positioning over every
+    verified pair at once, then bundle adjustment)."""
     camera_model: str = "SIMPLE_PINHOLE"
     """COLMAP camera model of pinhole frames: distortion-free SIMPLE_PINHOLE (f, cx, cy) or PINHOLE
     (fx, fy, cx, cy); or with lens distortion: radial SIMPLE_RADIAL (f, cx, cy, k) or RADIAL (f, cx,
@@ -109,6 +115,8 @@ class SfmOptions:
             raise SfmError(
                 f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {self.camera_model!r}"
             )
+        if self.mapper not in MAPPERS:
+            raise SfmError(f"--mapper must be one of {', '.join(MAPPERS)}, got {self.mapper!r}")
         if self.retrieval_neighbours < 1 or self.vocabulary < 2:
             raise SfmError(
                 f"SfmOptions: retrieval_neighbours must be >= 1 and vocabulary >= 2, got "
@@ -351,17 +359,9 @@ def run_sfm(
         report("matching", 1.0)
 
         t2 = time.perf_counter()
-        mapping = pycolmap.IncrementalPipelineOptions()
-        mapping.num_threads = opts.num_threads
-        mapping.random_seed = opts.seed
-        mapping.multiple_models = True
-        if frames.panorama:
-            mapping.ba_refine_sensor_from_rig = False
-            mapping.ba_refine_focal_length = False
-            mapping.ba_refine_principal_point = False
-            mapping.ba_refine_extra_params = False
         (tmp / "sparse").mkdir()
-        recs = pycolmap.incremental_mapping(db_path, image_dir, tmp / "sparse", mapping)
+        recs = _map(db_path, image_dir, tmp / "sparse", opts, frames.panorama)
+        stats["mapper"] = opts.mapper
         stats["map_s"] = time.perf_counter() - t2
         report("mapping", 1.0)
         rec = _pick_largest(recs)
@@ -406,6 +406,44 @@ def run_sfm(
     for fid, reason in result.dropped:
         log.warning("%s: frame %s dropped: %s", frames.source, fid, reason)
     return result
+
+
+def _map(db_path: Path, image_dir: Path, out: Path, opts: SfmOptions, panorama: bool) -> dict:
+    """Reconstructions (id -> ``pycolmap.Reconstruction``) of the matched database by
+    ``opts.mapper``. A panorama's cube faces are a rig whose face rotations and intrinsics are
+    known: neither mapper refines them."""
+    import pycolmap
+
+    if opts.mapper == "global":
+        mapping = pycolmap.GlobalPipelineOptions()
+        mapping.num_threads = opts.num_threads
+        mapping.random_seed = opts.seed
+        mapping.multiple_models = True
+        mapper = mapping.mapper
+        mapper.num_threads = opts.num_threads
+        mapper.random_seed = opts.seed
+        mapper.global_positioning.use_gpu = False
+        mapper.bundle_adjustment.ceres.use_gpu = False
+        if panorama:
+            mapper.refine_sensor_from_rig = False
+            mapper.rotation_averaging.refine_sensor_from_rig = False
+            mapper.global_positioning.refine_sensor_from_rig = False
+            ba = mapper.bundle_adjustment
+            ba.refine_sensor_from_rig = False
+            ba.refine_focal_length = False
+            ba.refine_principal_point = False
+            ba.refine_extra_params = False
+        return pycolmap.global_mapping(db_path, image_dir, out, mapping)
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = opts.num_threads
+    mapping.random_seed = opts.seed
+    mapping.multiple_models = True
+    if panorama:
+        mapping.ba_refine_sensor_from_rig = False
+        mapping.ba_refine_focal_length = False
+        mapping.ba_refine_principal_point = False
+        mapping.ba_refine_extra_params = False
+    return pycolmap.incremental_mapping(db_path, image_dir, out, mapping)
 
 
 def _match_retrieval(db_path: Path, pairs_file: Path, matching, opts: SfmOptions) -> int:
