@@ -206,17 +206,19 @@ def test_frames_without_valid_depth_are_dropped_and_named(tmp_path, run_main, mo
     assert not (tmp_path / "none").exists()
 
 
-def test_lift_panorama_house_writes_an_equirect_capture(tmp_path, run_main, monkeypatch):
+@pytest.mark.parametrize("mapper", ["incremental", pytest.param("global", marks=pytest.mark.slow)])
+def test_lift_panorama_house_writes_an_equirect_capture(tmp_path, run_main, monkeypatch, mapper):
     scene = synth_house(
         tmp_path / "pano", camera="equirect", views=8, height=256, width=512, config=PANO_WALK
     )
     monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: truth_depth_fn(scene))
     out = tmp_path / "lifted"
     args = ["data", "lift", str(rgb_folder(scene, tmp_path / "panos")), "--out", str(out)]
-    code, text = run_main([*args, "--camera-height", f"{eye_height(scene)}"])
+    code, text = run_main([*args, "--camera-height", f"{eye_height(scene)}", "--mapper", mapper])
     assert code == 0, text
     cap = _check_lifted(out, scene, max_scale_error=0.03, max_abs_rel=0.05)
     assert cap.camera.model == "equirect" and (cap.camera.height, cap.camera.width) == (256, 512)
+    assert json.loads((out / "manifest.json").read_text())["metadata"]["lift"]["sfm"]["mapper"] == mapper
 
 
 def test_bad_options_are_one_line_errors(tmp_path, run_main):
