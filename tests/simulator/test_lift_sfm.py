@@ -77,7 +77,7 @@ def test_an_unordered_folder_beyond_the_exhaustive_cap_is_paired_by_retrieval(pi
     assert err < 0.02 and rot < 0.6
 
 
-@pytest.mark.parametrize("mapper", ["incremental", "global"])
+@pytest.mark.parametrize("mapper", ["incremental", pytest.param("global", marks=pytest.mark.slow)])
 def test_panorama_house_is_reconstructed_as_a_rig_of_cube_faces(tmp_path, mapper):
     scene = synth_house(
         tmp_path / "pano", camera="equirect", views=10, height=256, width=512, config=PANO_WALK
