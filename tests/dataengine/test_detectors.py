@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import json
 import math
@@ -25,7 +26,11 @@ def house(tmp_path_factory) -> Path:
     from image2sim.dataengine.procedural import preset, synthesize
 
     root = tmp_path_factory.mktemp("synth")
-    return synthesize(preset("default"), root, scenes=1, seed=4, progress=False)[0]
+    # The default house at a quarter of the capture's resolution: the same layout and objects, and
+    # the map these tests need, in a quarter of the time.
+    cfg = preset("default")
+    cfg = dataclasses.replace(cfg, capture=dataclasses.replace(cfg.capture, height=128, width=256))
+    return synthesize(cfg, root, scenes=1, seed=4, progress=False)[0]
 
 
 def _episodes(out: Path) -> list[dict]:
@@ -260,6 +265,7 @@ def test_raw_captures_are_scenes_and_other_folders_get_a_message(tmp_path):
         find_scenes(tmp_path / "empty")
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_the_hm3d_sample_yields_50_path_episodes(hm3d_scene_dir, tmp_path):
     summary = run_engine(
@@ -302,6 +308,7 @@ def test_asking_for_more_plans_keeps_the_first_ones(house):
         assert np.array_equal(a.start, b.start) and a.goal_object == b.goal_object
 
 
+@pytest.mark.slow
 def test_rendering_a_scene_over_two_workers_gives_the_same_shard(tmp_path):
     """One scene on a 2-worker run renders its episodes in 2 processes (parallel inside the scene);
     the shard is byte-for-byte the one a single process writes."""

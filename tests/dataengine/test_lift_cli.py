@@ -72,6 +72,7 @@ def _check_lifted(out, scene, *, max_scale_error, max_abs_rel):
     return cap
 
 
+@pytest.mark.slow
 def test_lift_pinhole_house_writes_a_metric_capture(tmp_path, run_main, monkeypatch):
     scene = synth_house(tmp_path / "pin", camera="pinhole", views=20, height=240, width=320, config=WALK)
     monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: truth_depth_fn(scene))
@@ -111,6 +112,7 @@ def _true_length(scene, frame_id: str, a, b) -> float:
     return float(np.linalg.norm(ends[1] - ends[0]))
 
 
+@pytest.mark.slow
 def test_a_known_object_size_sets_the_scale(tmp_path, run_main, monkeypatch):
     """Two lengths measured between pixels of two photos (here from the house's exact depth, as a
     user would from a tape measure) scale the capture to metres, recorded with their uncertainty."""
@@ -144,6 +146,7 @@ def test_a_known_object_size_sets_the_scale(tmp_path, run_main, monkeypatch):
         assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_frames_without_valid_depth_are_dropped_and_named(tmp_path, run_main, monkeypatch):
     """A view the depth source leaves empty (a plain wall: MVS has no confident pixel) is not written:
     the strict reader refuses an all-invalid depth image, so the capture would not open."""

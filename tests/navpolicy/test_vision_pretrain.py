@@ -207,6 +207,7 @@ def _half_views(root: Path, houses: int = 3, per_house: int = 48) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_grounding_pretraining_learns_from_the_view_and_exports_a_policy(tiny_cfg, tmp_path):
     from image2sim.navpolicy.model import build_policy
     from image2sim.navpolicy.vision_pretrain import GroundingConfig, pretrain_grounding

@@ -224,6 +224,7 @@ def test_cli_train_geometry_without_data_names_the_missing_argument(tmp_path):
     assert not (tmp_path / "run").exists()  # nothing written
 
 
+@pytest.mark.slow
 def test_train_geometry_with_ddp_on_two_cpu_processes(procedural, tmp_path):
     """`sim train-geometry --devices 2 --strategy ddp` (gloo on CPU): the code path of GPU scale-out.
     Both ranks train, rank 0 writes the checkpoint and the encoder once."""

@@ -53,6 +53,7 @@ def test_pinhole_house_poses_and_intrinsics_match_the_truth(pinhole_house, tmp_p
     assert np.median(np.linalg.norm(uv - sparse.uv, axis=1)) < 1.0
 
 
+@pytest.mark.slow
 def test_an_unordered_folder_beyond_the_exhaustive_cap_is_paired_by_retrieval(pinhole_house, tmp_path):
     """Frames renamed into a shuffled order, more than ``exhaustive_max``: auto picks retrieval (not
     the sequential matcher, which needs file order), matches far fewer pairs than exhaustive and
@@ -125,6 +126,7 @@ def test_too_few_frames_and_unrelated_images_are_clear_errors(pinhole_house, tmp
         run_sfm(load_frames(noise))
 
 
+@pytest.mark.slow
 def test_a_camera_that_only_rotates_is_refused(tmp_path):
     still = {
         "surface_detail": 0.3,

@@ -274,6 +274,7 @@ def test_capture_targets_from_the_real_hm3d_sample(hm3d_scene_dir):
     assert cond.shape == (24, 32, 64) and torch.isfinite(cond).all()
 
 
+@pytest.mark.slow
 def test_ddp_on_two_cpu_processes_trains_through_the_stage3_freeze(tmp_path):
     """`sim train --devices 2 --strategy ddp` (gloo on CPU) runs the curriculum across the stage-3
     freeze, whose parameters then get no gradients: the run must neither hang nor fail, and the

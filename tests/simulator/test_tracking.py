@@ -131,6 +131,7 @@ def test_nav_train_wandb_option_sets_the_config(tmp_path):
     assert _tracking_overrides("offline", "") == {"wandb": True, "wandb_mode": "offline"}
 
 
+@pytest.mark.slow
 def test_tracking_does_not_import_wandb():
     import subprocess
     import sys
