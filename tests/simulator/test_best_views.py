@@ -184,9 +184,98 @@ def test_vectorised_rule_matches_the_reference(step, owner_cos):
         gs = identity_gaussians(f, c)
         iv, nrm = own_geometry(gs.means, views[own])
         tol = c.fusion.same_surface_tolerance
-        fast = best_view_mask(gs.means, iv, nrm, own, views, tol, step, owner_cos=owner_cos)
         slow = reference_mask(gs.means, iv, nrm, own, views, tol, step, owner_cos)
-        assert torch.equal(fast, slow)
+        for backend in backends():
+            fast = best_view_mask(
+                gs.means, iv, nrm, own, views, tol, step, owner_cos=owner_cos, backend=backend
+            )
+            assert torch.equal(fast, slow), backend
+
+
+def backends() -> list[str]:
+    """The torch loop, and the compiled kernel where it builds (CI builds it)."""
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    return ["torch", "cpu"] if cpu_kernel.available() else ["torch"]
+
+
+def room_frame(centre, camera, seed: int) -> FrameInputs:
+    """A frame inside the box room [-3, 3] x [-2, 2] x [-1.4, 1.4] (bumpy walls, a pillar at the
+    origin that occludes), with a few invalid pixels: range or z, as the camera stores depth."""
+    from image2sim.simulator.geometry.cameras import PinholeCamera as Pin
+
+    g = torch.Generator().manual_seed(seed)
+    rays = camera.ray_map(torch.float64)  # (3, H, W), camera frame = world axes here
+    c = torch.tensor(centre, dtype=torch.float64)[:, None, None]
+    half = torch.tensor([3.0, 2.0, 1.4], dtype=torch.float64)[:, None, None]
+    with torch.no_grad():
+        t_wall = torch.where(rays != 0, (torch.sign(rays) * half - c) / rays, torch.full_like(rays, math.inf))
+        t = t_wall.min(dim=0).values
+        # The pillar: a vertical cylinder of radius 0.4 about the z axis.
+        a = rays[0] ** 2 + rays[1] ** 2
+        b = 2 * (c[0, 0, 0] * rays[0] + c[1, 0, 0] * rays[1])
+        cc = c[0, 0, 0] ** 2 + c[1, 0, 0] ** 2 - 0.16
+        disc = b * b - 4 * a * cc
+        t_pil = (-b - torch.sqrt(disc.clamp_min(0))) / (2 * a.clamp_min(1e-12))
+        t = torch.where((disc > 0) & (t_pil > 0), torch.minimum(t, t_pil), t)
+        t = t * (1 + 0.01 * torch.rand(t.shape, generator=g, dtype=torch.float64))
+        depth = t * rays[2] if isinstance(camera, Pin) else t
+    depth = depth.float()[None, None]
+    depth[..., 3, 5] = 0.0
+    depth[..., 7, 2] = float("nan")
+    p = torch.eye(4, dtype=torch.float64)
+    p[:3, 3] = torch.tensor(centre, dtype=torch.float64)
+    rgb = torch.rand((1, 3, camera.height, camera.width), generator=g)
+    return FrameInputs(rgb, depth, camera, p, f"room{seed}")
+
+
+def test_kernel_matches_the_torch_loop_on_panoramas_and_pinholes_with_carving():
+    """The compiled kernel against the torch loop on a room seen by panoramas and pinhole views at
+    once: carving with extent points, quantised intervals, the owner test, invalid depth, points
+    on the seam, at a camera centre, behind the pinhole cameras and non-finite ones."""
+    if backends() == ["torch"]:
+        pytest.skip("the compiled CPU kernel does not build here")
+    pano, pin = EquirectCamera(24, 48), PinholeCamera.from_fov(80.0, 70.0, 20, 24)
+    frames = [
+        room_frame((-1.8, 0.5, 0.1), pano, 0),
+        room_frame((1.5, -0.9, 0.0), pano, 1),
+        room_frame((0.2, 1.3, 0.3), pin, 2),
+        room_frame((2.2, 1.0, -0.2), pin, 3),
+        room_frame((-0.9, -1.2, 0.0), pano, 4),
+    ]
+    c = cfg(carve_views=2, interval_step=1.5, owner_cos=0.3)
+    views = [view_map(f, c.fusion) for f in frames]
+    for own, f in enumerate(frames):
+        gs = identity_gaussians(f, c)
+        means = torch.cat(
+            (
+                gs.means.double(),
+                torch.tensor(
+                    [
+                        [-1.8, 0.5, 0.1],
+                        [1.5 - 1e-9, -0.9, 0.0],
+                        [float("nan"), 0, 0],
+                        [0.2, -3.0, 0.3],
+                        [9, 9, 9],
+                    ],
+                    dtype=torch.float64,
+                ),
+            )
+        )
+        iv, nrm = own_geometry(means, views[own])
+        extent = torch.cat((extent_points(gs, 3.0), means[-5:, None].expand(-1, 4, -1)))
+        args = (means, iv, nrm, own, views, c.fusion.same_surface_tolerance, 1.5, 2, 0.3, extent)
+        torch_mask = best_view_mask(*args, backend="torch")
+        assert torch.equal(best_view_mask(*args, backend="cpu"), torch_mask), own
+        assert 0 < int(torch_mask.sum()) < len(torch_mask)  # the case drops some and keeps some
+
+
+def test_an_unknown_backend_is_refused():
+    f = plane_frame(0.0, 2.0)
+    v = view_map(f, cfg().fusion)
+    pts = torch.zeros(1, 3)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        best_view_mask(pts, torch.ones(1), pts, 0, [v, v], 0.02, backend="gpu")
 
 
 def test_keep_best_edge_cases():

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.frames import pixel_footprint
 from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
-from image2sim.simulator.geometry.cameras import Camera, EquirectCamera
+from image2sim.simulator.geometry.cameras import Camera, EquirectCamera, PinholeCamera
 from image2sim.simulator.geometry.normals import pad_image, point_normals
 
 __all__ = [
@@ -41,6 +41,7 @@ __all__ = [
     "view_map",
     "sampling_interval",
     "best_view_mask",
+    "BEST_VIEW_BACKENDS",
     "keep_best",
     "select_best_views",
     "own_geometry",
@@ -175,6 +176,7 @@ def best_view_mask(
     carve_views: int = 0,
     owner_cos: float = 0.0,
     extent: torch.Tensor | None = None,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """Which of frame ``own``'s Gaussians no other view models better or sees through, (N,) bool.
 
@@ -195,7 +197,15 @@ def best_view_mask(
     otherwise see in front of the surface. ``extent`` ((N, P, 3) world points per Gaussian, e.g.
     :func:`extent_points`): carving also drops a Gaussian when a carving view saw empty space through
     any of its points, i.e. when its splat reaches across that view's silhouette onto what lies behind.
+
+    ``backend``: ``torch`` (this function's view-by-view loop), ``cpu`` (the compiled kernel of
+    :mod:`~image2sim.simulator.splatting.backends.cpu_kernel`: Gaussian by Gaussian, the same rule in
+    the same double arithmetic, ~10x faster) or ``auto`` (``cpu`` for CPU tensors when the kernel
+    builds). The two agree except where rounding puts a point exactly on a pixel or interval boundary
+    (tested).
     """
+    if backend not in BEST_VIEW_BACKENDS:
+        raise ValueError(f"best_view_mask: backend must be one of {BEST_VIEW_BACKENDS}, got {backend!r}")
     n = means.shape[0]
     keep = torch.ones(n, dtype=torch.bool, device=means.device)
     if n == 0:
@@ -210,6 +220,13 @@ def best_view_mask(
     carvers = _nearest_views(views, own, carve_views)
     # (N, 1 + P, 3): each Gaussian's centre and its extent points, carved in one look-up per view.
     probes = pts[:, None] if extent is None else torch.cat((pts[:, None], extent.double()), dim=1)
+    if _use_kernel(backend, means, views):
+        from image2sim.simulator.splatting.backends import cpu_kernel
+
+        kept = cpu_kernel.best_view_mask(
+            probes, own_iv, facing, own, views, carvers, tolerance, step, owner_cos
+        )
+        return kept.to(means.device)
     for i, view in enumerate(views):
         if i == own:
             continue
@@ -243,6 +260,29 @@ def best_view_mask(
         better = (iv < theirs) | ((iv == theirs) & (i < own))
         keep[idx[same & better]] = False
     return keep
+
+
+BEST_VIEW_BACKENDS = ("auto", "torch", "cpu")
+
+
+def _use_kernel(backend: str, means: torch.Tensor, views: Sequence[ViewMap]) -> bool:
+    if backend == "torch":
+        return False
+    supported = means.device.type == "cpu" and all(
+        isinstance(v.camera, (EquirectCamera, PinholeCamera)) for v in views
+    )
+    if backend == "cpu":
+        from image2sim.simulator.splatting.backends import cpu_kernel
+
+        if not supported:
+            raise ValueError("best_view_mask: backend 'cpu' needs CPU tensors and equirect or pinhole views")
+        cpu_kernel.load()  # raises with the build error
+        return True
+    if not supported:
+        return False
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    return cpu_kernel.available()
 
 
 def _dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,8 @@
 """Compiled CPU rasteriser: C++ (``csrc/splat_cpu.cpp``) JIT-built with torch's cpp_extension.
 
+The same extension holds the best-view selection of Gaussian fusion (``csrc/views_cpu.cpp``,
+:func:`best_view_mask`; ``gaussians/views.py`` keeps the torch version it is tested against).
+
 Multi-threaded over tiles with OpenMP (thread count = ``torch.get_num_threads()``), 16-lane
 vectorised pixel rows, hand-written backward for means2d, conics, opacities, values and
 background, exposed as a ``torch.autograd.Function``; :func:`render` is the fused inference path
@@ -27,9 +30,20 @@ import torch
 from image2sim.simulator.splatting.backends.torch_tiles import TILE_SIZE
 from image2sim.simulator.splatting.project import T_MIN
 
-__all__ = ["available", "load_error", "load", "rasterize", "bin_gaussians", "sort_valid", "project", "render"]
+__all__ = [
+    "available",
+    "load_error",
+    "load",
+    "rasterize",
+    "bin_gaussians",
+    "sort_valid",
+    "project",
+    "render",
+    "best_view_mask",
+]
 
 _SOURCE = Path(__file__).with_name("csrc") / "splat_cpu.cpp"
+_SOURCES = (_SOURCE, _SOURCE.with_name("views_cpu.cpp"))
 _lock = threading.Lock()
 _module = None
 _error: str | None = None
@@ -55,7 +69,7 @@ def _build_dir() -> Path:
     # The source's path is part of the key: torch's ninja file names it, so two checkouts sharing one
     # folder would rebuild the library in place under each other's running processes.
     key = (
-        _SOURCE.read_bytes()
+        b"".join(src.read_bytes() for src in _SOURCES)
         + str(_SOURCE.resolve()).encode()
         + torch.__version__.encode()
         + " ".join(_CFLAGS).encode()
@@ -102,7 +116,7 @@ def load():
             with build_guard(build):
                 _module = _load(
                     name=f"image2sim_splat_cpu_{build.name.rsplit('_', 1)[-1]}",
-                    sources=[str(_SOURCE)],
+                    sources=[str(src) for src in _SOURCES],
                     extra_cflags=_CFLAGS,
                     extra_ldflags=["-fopenmp"],
                     build_directory=str(build),
@@ -318,3 +332,41 @@ def render(
         float(t_min),
     )
     return image, alpha
+
+
+def best_view_mask(
+    probes, own_iv, facing, own: int, views, carvers, tolerance, step, owner_cos
+) -> torch.Tensor:
+    """The compiled :func:`image2sim.simulator.gaussians.views.best_view_mask` (same arguments, as
+    that function prepares them: ``probes`` (N, P, 3) float64 with the means first, ``facing`` with
+    unknown normals already replaced, ``carvers`` the set of carving view indices)."""
+    cams, w2c, centres, angles = [], [], [], []
+    for v in views:
+        cam = v.camera
+        if getattr(cam, "model", None) == "equirect":
+            cams.append((1.0, 0.0, 0.0, 0.0, 0.0))
+        else:
+            cams.append((0.0, float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)))
+        w2c.append(v.world_to_cam.cpu())
+        centres.append(v.centre.cpu())
+        angles.append(v.min_pixel_angle)
+    carve = torch.tensor([i in carvers for i in range(len(views))], dtype=torch.bool)
+    return load().best_view_mask(
+        probes.detach().cpu().double().contiguous(),
+        own_iv.detach().cpu().double().contiguous(),
+        facing.detach().cpu().double().contiguous(),
+        int(own),
+        w2c,
+        torch.tensor(cams, dtype=torch.float64),
+        [v.depth.cpu() for v in views],
+        [v.interval.cpu() for v in views],
+        [v.normals.cpu() for v in views],
+        [v.free.cpu() for v in views],
+        torch.stack(centres).double(),
+        torch.tensor(angles, dtype=torch.float64),
+        carve,
+        float(tolerance),
+        float(step),
+        float(owner_cos),
+        int(torch.get_num_threads()),
+    )

@@ -923,6 +923,14 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor sca
   return {out, alpha};
 }
 
+// views_cpu.cpp (the same extension): best-view selection of gaussians/views.py.
+torch::Tensor best_view_mask_cpu(torch::Tensor probes, torch::Tensor own_iv, torch::Tensor facing, int64_t own,
+                                 std::vector<torch::Tensor> w2c, torch::Tensor cameras,
+                                 std::vector<torch::Tensor> depth, std::vector<torch::Tensor> interval,
+                                 std::vector<torch::Tensor> normals, std::vector<torch::Tensor> free,
+                                 torch::Tensor centres, torch::Tensor min_angle, torch::Tensor carve, double tol,
+                                 double step, double owner_cos, int64_t threads);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward, "fused inference-only projection");
   m.def("render_forward", &render_forward, "fused inference-only projection + sort + bin + rasterise");
@@ -930,4 +938,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_gaussians", &bin_gaussians, "per-tile depth-ordered Gaussian lists");
   m.def("rasterize_forward", &rasterize_forward, "tile-parallel forward rasterisation");
   m.def("rasterize_backward", &rasterize_backward, "tile-parallel backward rasterisation");
+  // Releases the GIL: build_scene selects several frames' Gaussians at once on Python threads.
+  m.def("best_view_mask", &best_view_mask_cpu, "best-view selection of one frame's Gaussians",
+        py::call_guard<py::gil_scoped_release>());
 }
