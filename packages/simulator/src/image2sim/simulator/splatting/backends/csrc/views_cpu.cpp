@@ -6,10 +6,10 @@
 // empty space through one of its probe points) or models its surface better, and no decision
 // depends on another Gaussian. So here each Gaussian walks the views and stops at the first that
 // drops it; the views are read-only maps. Same arithmetic in double as the torch function (camera
-// projection of cameras.py, nearest pixel of views.py `_pixel_index`), so the masks agree up to
-// rounding at exact pixel or interval boundaries (the parity tests bound how many may differ).
+// projection of cameras.py, nearest pixel of views.py `_pixel_index`): the masks are equal in the
+// parity tests and on the HM3D sample (2.8 M Gaussians); only a point rounding differently onto an
+// exact pixel or interval boundary (libm against torch's vectorised atan2 / log) could differ.
 #include <torch/extension.h>
-#include <ATen/Parallel.h>
 
 #include <algorithm>
 #include <cmath>
