@@ -5,7 +5,9 @@ Data: the HM3D sample (``../shared/data``, read in place) when present, else a p
 Frames are fused in order of distance to a held-out target frame; after 1, 2, 4, 8, 16 frames the
 scene is splatted at the held-out pose(s) and compared with the real panorama there.
 Timings: median of several runs after a warm-up; the fusion ratio compares the vectorised
-:func:`fuse` with a plain-Python dictionary reference run in the same process.
+:func:`fuse` with a plain-Python dictionary reference run in the same process, and the best-view
+selection's compiled kernel is timed against its torch loop in the same process (the masks must be
+equal).
 Writes ``reports/scene_build.json`` and ``reports/scene_build.md``.
 Run: ``.venv/bin/python benchmarks/scene_build.py [--frames 16] [--repeats 3]``.
 """
@@ -27,6 +29,7 @@ from image2sim.simulator.gaussians import GaussianEncoder, GaussianScene, tiny
 from image2sim.simulator.gaussians.encoder import identity_gaussians
 from image2sim.simulator.gaussians.frames import prepare_frame
 from image2sim.simulator.gaussians.fusion import cell_sizes, fuse
+from image2sim.simulator.gaussians.views import best_view_mask, extent_points, own_geometry, view_map
 from image2sim.simulator.io.registry import open_capture
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,6 +70,55 @@ def capture_path(tmp: Path) -> tuple[Path, str]:
     return out, "procedural tiny scene (20 panoramas, 256x128)"
 
 
+def best_view_timing(cap, cfg, repeats: int, n_frames: int) -> dict | None:
+    """The default selection (``keep_best``'s arguments) of the first ``n_frames`` frames against every
+    frame of the capture: median seconds of the torch loop and of the compiled kernel, and whether
+    their masks are equal. None when the kernel does not build here."""
+    from image2sim.simulator.splatting.backends import cpu_kernel
+
+    if not cpu_kernel.available():
+        return None
+    h, w, fusion = cfg.encoder.height, cfg.encoder.width, cfg.fusion
+    prepared = [prepare_frame(cap[i], h, w, fusion.edge_tolerance) for i in range(len(cap))]
+    views = [view_map(f, fusion) for f in prepared]
+    calls = []
+    for own in range(min(n_frames, len(prepared))):
+        g = identity_gaussians(prepared[own], cfg)
+        iv, normals = own_geometry(g.means, views[own])
+        extent = extent_points(g, fusion.carve_extent) if fusion.carve_extent > 0 else None
+        args = (g.means, iv, normals, own, views, fusion.same_surface_tolerance, fusion.interval_step)
+        kw = dict(carve_views=fusion.carve_views, owner_cos=fusion.owner_cos, extent=extent)
+        calls.append((args, kw))
+
+    def run(backend: str) -> list[torch.Tensor]:
+        return [best_view_mask(*a, **kw, backend=backend) for a, kw in calls]
+
+    equal = all(torch.equal(a, b) for a, b in zip(run("torch"), run("cpu"), strict=True))
+    t_torch = time_it(lambda: run("torch"), warmup=1, repeats=repeats)
+    t_cpu = time_it(lambda: run("cpu"), warmup=1, repeats=repeats)
+    return {
+        "frames": len(calls),
+        "views": len(views),
+        "gaussians": sum(len(a[0]) for a, _ in calls),
+        "carve_views": fusion.carve_views,
+        "torch_s": t_torch.wall,
+        "kernel_s": t_cpu.wall,
+        "speedup": t_torch.wall / t_cpu.wall,
+        "masks_equal": equal,
+    }
+
+
+def best_view_lines(b: dict | None) -> list[str]:
+    if b is None:
+        return ["The compiled CPU kernel does not build on this machine: not measured."]
+    return [
+        "| frames x views | Gaussians | `carve_views` | torch loop s | kernel s | speed-up | masks equal |",
+        "|---|---|---|---|---|---|---|",
+        f"| {b['frames']} x {b['views']} | {b['gaussians']} | {b['carve_views']} | {b['torch_s']:.3f} | "
+        f"{b['kernel_s']:.3f} | {b['speedup']:.1f}x | {b['masks_equal']} |",
+    ]
+
+
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(-10 * torch.log10(((a - b) ** 2).mean().clamp_min(1e-12)))
 
@@ -77,6 +129,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--targets", type=int, nargs="*", default=[0, 40])
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--best-view-frames", type=int, default=4, help="frames whose best-view selection is timed"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cfg = tiny()
@@ -120,6 +175,9 @@ def main() -> None:
         "python_reference_s": t_ref,
         "speedup": t_ref / t_fast,
     }
+
+    # --- best-view selection: compiled kernel vs the torch loop ----------------------------------------
+    best_view_speed = best_view_timing(cap, cfg, args.repeats, args.best_view_frames)
 
     # --- Gaussians vs frames, held-out PSNR, per policy ---------------------------------------------
     policies = {
@@ -171,6 +229,7 @@ def main() -> None:
         "repeats": args.repeats,
         "encoding": encoding,
         "fusion_speed": fusion_speed,
+        "best_view_speed": best_view_speed,
         "footprint_levels_m": cell_sizes(cfg.fusion),
         "rows": rows,
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
@@ -198,6 +257,10 @@ def main() -> None:
         "| points | `fuse` (fixed 5 cm) s | plain-Python reference s | speed-up |",
         "|---|---|---|---|",
         f"| {fusion_speed['points']} | {t_fast:.4f} | {t_ref:.3f} | {fusion_speed['speedup']:.1f}x |",
+        "",
+        "## Best-view selection speed (compiled kernel vs the torch loop, same process)",
+        "",
+        *best_view_lines(best_view_speed),
         "",
         "## Gaussians vs frames and held-out identity PSNR",
         "",

@@ -72,3 +72,27 @@ def run_main(capsys):
         return code, captured.out + captured.err
 
     return run
+
+
+# torch.distributed's rendezvous variables. An in-process Lightning or DeepSpeed run of an earlier
+# test leaves them in os.environ, and its store may still listen on MASTER_PORT: a DDP subprocess
+# that inherited them failed with EADDRINUSE. Without them, Lightning picks a free port itself.
+DIST_VARS = (
+    "MASTER_ADDR",
+    "MASTER_PORT",
+    "WORLD_SIZE",
+    "RANK",
+    "LOCAL_RANK",
+    "NODE_RANK",
+    "GROUP_RANK",
+    "LOCAL_WORLD_SIZE",
+)
+
+
+@pytest.fixture
+def ddp_subprocess_env() -> dict[str, str]:
+    """The environment of a multi-process (DDP) subprocess: this one's, without the rendezvous
+    variables of earlier in-process runs, one OpenMP thread per rank."""
+    env = {k: v for k, v in os.environ.items() if k not in DIST_VARS}
+    env["OMP_NUM_THREADS"] = "1"
+    return env

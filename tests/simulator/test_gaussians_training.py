@@ -225,10 +225,9 @@ def test_cli_train_geometry_without_data_names_the_missing_argument(tmp_path):
 
 
 @pytest.mark.slow
-def test_train_geometry_with_ddp_on_two_cpu_processes(procedural, tmp_path):
+def test_train_geometry_with_ddp_on_two_cpu_processes(procedural, tmp_path, ddp_subprocess_env):
     """`sim train-geometry --devices 2 --strategy ddp` (gloo on CPU): the code path of GPU scale-out.
     Both ranks train, rank 0 writes the checkpoint and the encoder once."""
-    import os
     import subprocess
     import sys
     from pathlib import Path
@@ -242,7 +241,7 @@ def test_train_geometry_with_ddp_on_two_cpu_processes(procedural, tmp_path):
     cli = Path(sys.executable).with_name("image2sim")
     args = [sys.executable, str(cli), "sim", "train-geometry", str(capture), "--out", str(out)]
     args += ["--config", str(cfg_file), "--accelerator", "cpu", "--devices", "2", "--strategy", "ddp"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env = ddp_subprocess_env
     res = subprocess.run(args, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     assert "GLOBAL_RANK: 1" in res.stderr + res.stdout  # two processes really ran

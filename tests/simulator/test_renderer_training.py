@@ -275,12 +275,11 @@ def test_capture_targets_from_the_real_hm3d_sample(hm3d_scene_dir):
 
 
 @pytest.mark.slow
-def test_ddp_on_two_cpu_processes_trains_through_the_stage3_freeze(tmp_path):
+def test_ddp_on_two_cpu_processes_trains_through_the_stage3_freeze(tmp_path, ddp_subprocess_env):
     """`sim train --devices 2 --strategy ddp` (gloo on CPU) runs the curriculum across the stage-3
     freeze, whose parameters then get no gradients: the run must neither hang nor fail, and the
     checkpoint must hold the final step. It is the code path of the `paper` preset (8 GPUs) at toy
     size; how the ranks split the data is tested with the sampler."""
-    import os
     import subprocess
     import sys
     from pathlib import Path
@@ -296,7 +295,7 @@ def test_ddp_on_two_cpu_processes_trains_through_the_stage3_freeze(tmp_path):
     args = [sys.executable, str(cli), "sim", "train", "--config", str(cfg_file), "--out", str(out)]
     args += ["--accelerator", "cpu", "--devices", "2", "--strategy", "ddp", "--condition-source", "degraded"]
     args += ["--checkpoint-every", "5", "--grid-every", "0"]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    env = {**ddp_subprocess_env, "PYTHONUNBUFFERED": "1"}
     res = subprocess.run(args, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
