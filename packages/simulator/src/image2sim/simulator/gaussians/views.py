@@ -266,23 +266,21 @@ BEST_VIEW_BACKENDS = ("auto", "torch", "cpu")
 
 
 def _use_kernel(backend: str, means: torch.Tensor, views: Sequence[ViewMap]) -> bool:
+    """Whether ``best_view_mask`` runs the compiled kernel (``cpu`` forces it: an unsupported input
+    or a failed build is an error; ``auto`` falls back to the torch loop)."""
     if backend == "torch":
-        return False
-    supported = means.device.type == "cpu" and all(
-        isinstance(v.camera, (EquirectCamera, PinholeCamera)) for v in views
-    )
-    if backend == "cpu":
-        from image2sim.simulator.splatting.backends import cpu_kernel
-
-        if not supported:
-            raise ValueError("best_view_mask: backend 'cpu' needs CPU tensors and equirect or pinhole views")
-        cpu_kernel.load()  # raises with the build error
-        return True
-    if not supported:
         return False
     from image2sim.simulator.splatting.backends import cpu_kernel
 
-    return cpu_kernel.available()
+    supported = means.device.type == "cpu" and all(
+        isinstance(v.camera, (EquirectCamera, PinholeCamera)) for v in views
+    )
+    if backend == "auto":
+        return supported and cpu_kernel.available()
+    if not supported:
+        raise ValueError("best_view_mask: backend 'cpu' needs CPU tensors and equirect or pinhole views")
+    cpu_kernel.load()  # raises with the build error
+    return True
 
 
 def _dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
