@@ -345,6 +345,31 @@ def test_a_failing_background_gaussian_build_stops_the_scene_with_its_error(tmp_
     assert not (tmp_path / "out" / "scenes" / cap.name / "gaussians").exists()
 
 
+@pytest.mark.parametrize("render_workers, inside", [(1, None), (2, 1)])
+def test_with_render_workers_the_scene_runs_its_own_torch_ops_on_one_thread(
+    tmp_path, monkeypatch, render_workers, inside
+):
+    """The render workers and the Gaussians' build hold the cores, so the scene's own process keeps
+    to one torch thread while they run (two oversubscribed a 2-core machine: the HM3D command took
+    159 s instead of 149); one worker leaves the count alone, and it is restored after."""
+    import types
+
+    import torch
+    from image2sim.dataengine import pipeline
+
+    seen = []
+    monkeypatch.setattr(pipeline, "resolve_scene", lambda d: types.SimpleNamespace(name="s"))
+    monkeypatch.setattr(pipeline._GaussianPrebuild, "start", classmethod(lambda cls, *a: None))
+    monkeypatch.setattr(pipeline, "_run_scene", lambda *a: seen.append(torch.get_num_threads()) or {})
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        pipeline.process_scene(tmp_path, tmp_path / "out", EngineConfig(), render_workers=render_workers)
+        assert seen == [inside or 2] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_a_second_run_copies_scene_assets_from_the_content_keyed_cache(tmp_path, monkeypatch):
     """`--cache`: the first run builds the map, graph and Gaussians and stores them by the capture's
     content; a run into another folder copies them (nothing rebuilt) and writes the same episodes;

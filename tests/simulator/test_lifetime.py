@@ -1,4 +1,5 @@
-"""Pool workers end with their parent: a SIGKILLed driver leaves no worker computing for nobody."""
+"""Pool workers end with their parent: a SIGKILLed driver leaves no worker computing for nobody; a
+process sharing its cores runs its own torch ops on the threads it is given."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import time
 
 import pytest
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux")
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux")
 
 _DRIVER = textwrap.dedent(
     """
@@ -54,10 +55,12 @@ def _orphaned_worker(tmp_path, mode: str, wait: float) -> int:
     return worker
 
 
+@linux_only
 def test_an_armed_worker_dies_with_its_killed_parent(tmp_path):
     assert not _alive(_orphaned_worker(tmp_path, "armed", wait=10.0))
 
 
+@linux_only
 def test_an_unarmed_worker_outlives_it(tmp_path):
     """The default this guards against (and proof the test can fail)."""
     worker = _orphaned_worker(tmp_path, "plain", wait=2.0)
@@ -65,3 +68,21 @@ def test_an_unarmed_worker_outlives_it(tmp_path):
         assert _alive(worker)
     finally:
         os.kill(worker, signal.SIGKILL)
+
+
+def test_torch_threads_sets_the_count_inside_and_restores_it_after_an_error():
+    import torch
+    from image2sim.simulator.lifetime import torch_threads
+
+    before = torch.get_num_threads()
+    other = 3 if before != 3 else 2
+    try:
+        with pytest.raises(RuntimeError, match="inside"):
+            with torch_threads(other):
+                assert torch.get_num_threads() == other
+                raise RuntimeError("inside")
+        assert torch.get_num_threads() == before
+        with torch_threads(0):  # 0 leaves the count alone
+            assert torch.get_num_threads() == before
+    finally:
+        torch.set_num_threads(before)

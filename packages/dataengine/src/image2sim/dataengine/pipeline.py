@@ -54,6 +54,7 @@ from image2sim.dataengine.trajectories import (
 )
 from image2sim.simulator.config import config_from_dict, require_render_device
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
+from image2sim.simulator.lifetime import torch_threads
 
 __all__ = [
     "EngineConfig",
@@ -323,8 +324,12 @@ def process_scene(
     out.mkdir(parents=True, exist_ok=True)
     sweep_stale_temps(out / "shard")  # left by a killed earlier attempt of this scene
     prebuild = _GaussianPrebuild.start(inputs, out, cfg, asset_cache, render_workers)
+    # With render workers the cores belong to them and to the Gaussians' build beside this process,
+    # so its own torch ops run on one thread: on two threads they oversubscribed the cores (the
+    # HM3D sample's command took 159 s instead of 141, byte-identical output).
     try:
-        return _run_scene(inputs, out, cfg, render_workers, asset_cache, prebuild, t0)
+        with torch_threads(1 if render_workers > 1 else 0):
+            return _run_scene(inputs, out, cfg, render_workers, asset_cache, prebuild, t0)
     finally:
         if prebuild is not None:
             prebuild.cancel()

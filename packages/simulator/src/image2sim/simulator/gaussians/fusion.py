@@ -13,12 +13,11 @@ saturates as frames repeat views. Policy ``fixed``: level 0 with edge ``voxel_si
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-
 import torch
 from image2sim.simulator.gaussians.config import FusionConfig
 from image2sim.simulator.gaussians.primitives import GaussianSet
 from image2sim.simulator.geometry.voxel import voxel_keys
+from image2sim.simulator.lifetime import torch_threads
 
 __all__ = ["cell_sizes", "assign_levels", "fuse", "prune"]
 
@@ -102,19 +101,6 @@ def _settle_levels(means: torch.Tensor, levels: torch.Tensor, sizes: list[float]
                 moved = True
         if not moved:
             return levels
-
-
-@contextmanager
-def torch_threads(n: int):
-    """Temporarily run torch ops on ``n`` threads (0: unchanged)."""
-    before = torch.get_num_threads()
-    if n > 0 and n != before:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != before:
-            torch.set_num_threads(before)
 
 
 def fuse(gaussians: GaussianSet, cfg: FusionConfig) -> GaussianSet:

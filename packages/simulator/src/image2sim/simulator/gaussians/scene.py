@@ -88,7 +88,8 @@ class GaussianScene:
     def integrate_many(self, sets: list[GaussianSet]) -> int:
         """Fuse several frames' Gaussians in one pass (one fusion over memory + all of them, so the
         cost per frame drops by the batch size); frames are recorded with :meth:`record_frame`."""
-        from image2sim.simulator.gaussians.fusion import assign_levels, torch_threads
+        from image2sim.simulator.gaussians.fusion import assign_levels
+        from image2sim.simulator.lifetime import torch_threads
 
         if not sets:
             return len(self)
