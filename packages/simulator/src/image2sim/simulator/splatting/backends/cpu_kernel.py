@@ -44,6 +44,7 @@ __all__ = [
 
 _SOURCE = Path(__file__).with_name("csrc") / "splat_cpu.cpp"
 _SOURCES = (_SOURCE, _SOURCE.with_name("views_cpu.cpp"))
+_HEADERS = (_SOURCE.with_name("workers.h"),)  # included by the sources: part of the build key
 _lock = threading.Lock()
 _module = None
 _error: str | None = None
@@ -69,7 +70,7 @@ def _build_dir() -> Path:
     # The source's path is part of the key: torch's ninja file names it, so two checkouts sharing one
     # folder would rebuild the library in place under each other's running processes.
     key = (
-        b"".join(src.read_bytes() for src in _SOURCES)
+        b"".join(src.read_bytes() for src in (*_SOURCES, *_HEADERS))
         + str(_SOURCE.resolve()).encode()
         + torch.__version__.encode()
         + " ".join(_CFLAGS).encode()

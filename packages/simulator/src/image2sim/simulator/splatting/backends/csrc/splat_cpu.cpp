@@ -33,9 +33,10 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <thread>
 #include <type_traits>
 #include <vector>
+
+#include "workers.h"
 #if defined(__AVX__)
 #include <immintrin.h>
 #endif
@@ -247,36 +248,16 @@ inline bool chunk_outside(double dx0, int ch, int n, float ru, double wrap) {
 template <typename real>
 using compute_t = std::conditional_t<std::is_same_v<real, double>, double, float>;
 
-// Threads: plain std::thread workers joined per call (no OpenMP). An OpenMP team spins at its
-// barriers and between regions; on a shared, oversubscribed machine that spinning doubled the CPU
-// time per frame. Blocking joins cost ~50 us per call and never spin. Thread count =
-// torch.get_num_threads().
+// Threads: workers.h's blocking std::thread workers, as many as torch.get_num_threads().
 inline int num_workers(int64_t work_items) {
   return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), work_items)));
 }
 
-template <typename F>
-void run_workers(int n, const F& body) {  // body(worker index)
-  if (n <= 1) {
-    body(0);
-    return;
-  }
-  std::vector<std::thread> pool;
-  pool.reserve(n - 1);
-  for (int w = 1; w < n; ++w) pool.emplace_back([&body, w] { body(w); });
-  body(0);
-  for (auto& th : pool) th.join();
-}
+using image2sim_workers::run_workers;
 
-// Static split of [0, n) into contiguous chunks of at least `grain`, one per worker.
 template <typename F>
 void parallel_range(int64_t n, int64_t grain, const F& fn) {  // fn(begin, end)
-  const int workers = num_workers((n + grain - 1) / std::max<int64_t>(grain, 1));
-  const int64_t chunk = (n + workers - 1) / std::max(workers, 1);
-  run_workers(workers, [&](int w) {
-    const int64_t b = w * chunk, e = std::min<int64_t>(n, b + chunk);
-    if (b < e) fn(b, e);
-  });
+  image2sim_workers::parallel_range(n, grain, at::get_num_threads(), fn);
 }
 
 template <typename scalar_t>

@@ -14,8 +14,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <thread>
 #include <vector>
+
+#include "workers.h"
 
 namespace {
 
@@ -91,9 +92,8 @@ inline double quantise(double interval, double log_step) { return std::floor(std
 // the cheap better-view test runs over all views first, and only its survivors pay for the carving
 // look-ups (one per probe point and carving view).
 bool keeps(const double* probes, int64_t n_probes, double own_iv, const double* facing, int64_t own,
-           const std::vector<ViewData>& views, double tol, double step, double owner_cos) {
+           const std::vector<ViewData>& views, double tol, double step, double log_step, double owner_cos) {
   const double* mean = probes;  // probe 0 is the centre
-  const double log_step = std::log(step);
   const int64_t n_views = static_cast<int64_t>(views.size());
   for (int64_t i = 0; i < n_views; ++i) {
     if (i == own) continue;
@@ -196,21 +196,11 @@ torch::Tensor best_view_mask_cpu(torch::Tensor probes, torch::Tensor own_iv, tor
   const double* pp = P.data_ptr<double>();
   const double* ivp = IV.data_ptr<double>();
   const double* fp = FA.data_ptr<double>();
+  const double log_step = std::log(step);  // once, not per Gaussian
   auto body = [&](int64_t b, int64_t e) {
     for (int64_t g = b; g < e; ++g)
-      out[g] = keeps(pp + 3 * n_probes * g, n_probes, ivp[g], fp + 3 * g, own, views, tol, step, owner_cos);
+      out[g] = keeps(pp + 3 * n_probes * g, n_probes, ivp[g], fp + 3 * g, own, views, tol, step, log_step, owner_cos);
   };
-  // Blocking std::thread workers over contiguous Gaussian ranges (no spinning OpenMP team).
-  const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(threads, n / 4096 + 1));
-  if (workers == 1) {
-    body(0, n);
-  } else {
-    const int64_t chunk = (n + workers - 1) / workers;
-    std::vector<std::thread> pool;
-    for (int64_t w = 1; w < workers; ++w)
-      pool.emplace_back([&, w] { body(w * chunk, std::min(n, (w + 1) * chunk)); });
-    body(0, std::min(n, chunk));
-    for (auto& t : pool) t.join();
-  }
+  image2sim_workers::parallel_range(n, 4096, threads, body);
   return keep;
 }
