@@ -88,7 +88,7 @@ def main() -> None:
 
     torch.set_num_threads(1)
     from image2sim.dataengine.distributed import WORKER_ENV, run_engine
-    from image2sim.dataengine.pipeline import EngineConfig
+    from image2sim.dataengine.engine_config import EngineConfig
     from image2sim.dataengine.procedural import preset, synthesize
 
     load_start = load_average()

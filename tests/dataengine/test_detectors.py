@@ -14,9 +14,9 @@ from image2sim.dataengine.annotate.prompts import STRUCTURES, TONES, AnnotationR
 from image2sim.dataengine.annotate.template import compose, compose_path
 from image2sim.dataengine.chunking import MacroStep, path_features
 from image2sim.dataengine.distributed import RunError, find_scenes, run_engine
+from image2sim.dataengine.engine_config import EngineConfig
 from image2sim.dataengine.episodes import read_extras
 from image2sim.dataengine.objects_file import ObjectsFileError, load_objects_file
-from image2sim.dataengine.pipeline import EngineConfig
 
 SHORT = {"min_path_length": 1.0}
 
@@ -359,7 +359,7 @@ def test_with_render_workers_the_scene_runs_its_own_torch_ops_on_one_thread(
 
     seen = []
     monkeypatch.setattr(pipeline, "resolve_scene", lambda d: types.SimpleNamespace(name="s"))
-    monkeypatch.setattr(pipeline._GaussianPrebuild, "start", classmethod(lambda cls, *a: None))
+    monkeypatch.setattr(pipeline.GaussianPrebuild, "start", classmethod(lambda cls, *a: None))
     monkeypatch.setattr(pipeline, "_run_scene", lambda *a: seen.append(torch.get_num_threads()) or {})
     before = torch.get_num_threads()
     try:

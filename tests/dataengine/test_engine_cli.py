@@ -157,7 +157,8 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def test_scene_task_with_openai_annotator_applies_the_gate(scenes_root, tmp_path):
-    from image2sim.dataengine.pipeline import EngineConfig, process_scene
+    from image2sim.dataengine.engine_config import EngineConfig
+    from image2sim.dataengine.pipeline import process_scene
 
     _Handler.seen = []
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
@@ -221,7 +222,8 @@ def test_an_unreachable_annotator_fails_the_scene_instead_of_finishing_it_empty(
     import socket
 
     from image2sim.dataengine.annotate.openai_vlm import TransportError
-    from image2sim.dataengine.pipeline import EngineConfig, process_scene
+    from image2sim.dataengine.engine_config import EngineConfig
+    from image2sim.dataengine.pipeline import process_scene
 
     with socket.socket() as s:  # a port nobody listens on
         s.bind(("127.0.0.1", 0))

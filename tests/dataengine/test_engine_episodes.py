@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from image2sim.dataengine.distributed import merge_outputs, run_engine
+from image2sim.dataengine.engine_config import EngineConfig
 from image2sim.dataengine.episodes import EpisodeSchemaError, validate_episode_doc
-from image2sim.dataengine.pipeline import EngineConfig
 from image2sim.simulator.conventions import Action
 
 # Tiny houses (~3 m^2) hold no 3 m path: these tests of the mechanics allow shorter episodes.

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from image2sim.dataengine.pipeline import EngineConfig
+from image2sim.dataengine.engine_config import EngineConfig
 
 
 def test_renderer_needs_gaussian_rendering():
@@ -55,7 +55,7 @@ def test_panoramic_renderers_render_at_the_stored_views_angular_resolution(view,
     a panoramic renderer for a 128x256 panorama (the tiny renderer's training size), not the
     simulator's default 256x512, and DAgger's observations (navpolicy) ask for the same one."""
     import numpy as np
-    from image2sim.dataengine.pipeline import _observation_spec
+    from image2sim.dataengine.frames import observation_spec
     from image2sim.simulator.geometry.cameras import EquirectCamera
     from image2sim.simulator.navigation import synthetic as syn
     from image2sim.simulator.navigation.extract import extract_navmap_from_points
@@ -65,7 +65,7 @@ def test_panoramic_renderers_render_at_the_stored_views_angular_resolution(view,
     navmap = extract_navmap_from_points(w.points, w.normals, camera_positions=w.camera_positions)
     cfg = EngineConfig(view=view, obs_height=obs_height)
     engine = _PanoramicRecorder()
-    sim = NeuralSimulator(navmap, render_fn=engine, observations=_observation_spec(cfg))
+    sim = NeuralSimulator(navmap, render_fn=engine, observations=observation_spec(cfg))
     obs, _ = sim.reset(np.array([[3.0, 2.0, 0.0]]), np.array([0.0]))
     (camera,) = engine.cameras
     assert isinstance(camera, EquirectCamera)

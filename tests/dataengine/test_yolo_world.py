@@ -233,7 +233,7 @@ def test_engine_mines_with_yolo_world_over_the_scene_vocabulary(
 ):
     """The engine's yolo-world path: prompts are the scene's object categories (no structure), and
     the object database it writes says which detector made it."""
-    from image2sim.dataengine.pipeline import EngineConfig
+    from image2sim.dataengine.engine_config import EngineConfig
     from image2sim.dataengine.scene_assets import resolve_scene, scene_objects
     from image2sim.simulator.io.registry import open_capture
 

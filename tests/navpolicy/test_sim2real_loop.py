@@ -18,7 +18,7 @@ from image2sim.simulator.conventions import Action
 def engine_run(tmp_path_factory):
     """One tiny procedural capture and the data engine's default episode task on it (no frames)."""
     from image2sim.dataengine.distributed import run_engine
-    from image2sim.dataengine.pipeline import EngineConfig
+    from image2sim.dataengine.engine_config import EngineConfig
     from image2sim.dataengine.procedural import preset, synthesize
 
     root = tmp_path_factory.mktemp("s2r")

@@ -33,14 +33,9 @@ from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
+from image2sim.dataengine.engine_config import EngineConfig
 from image2sim.dataengine.episodes import check_episode_layout, write_episode_files
-from image2sim.dataengine.pipeline import (
-    APPROACH_SHARD,
-    DONE_FILE,
-    EPISODES_FILE,
-    EngineConfig,
-    process_scene,
-)
+from image2sim.dataengine.pipeline import APPROACH_SHARD, DONE_FILE, EPISODES_FILE, process_scene
 from image2sim.simulator.io.atomic import write_bytes_atomic
 from image2sim.simulator.io.paths import relative_to_file, resolve_from_file
 from image2sim.simulator.lifetime import WORKER_ENV, spawn_pool

@@ -177,7 +177,7 @@ def episodes_command(
 ) -> None:
     """Sample, roll out, render and annotate episodes for every scene (resumable; one Ray task per scene)."""
     from image2sim.dataengine.distributed import RunError, run_engine
-    from image2sim.dataengine.pipeline import EngineConfig
+    from image2sim.dataengine.engine_config import EngineConfig
 
     try:
         n = None if per_scene == "auto" else int(per_scene)

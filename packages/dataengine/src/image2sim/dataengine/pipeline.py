@@ -9,9 +9,11 @@
      :class:`NeuralSimulator` (:mod:`.rollout`), replay every accepted rollout and assert it reaches the
      same final position without collision;
   3. macro-steps, style routing, annotation (template / VLM) with the quality gate;
-  4. observations along each kept rollout (render function: the exact procedural renderer, the
-     Gaussian scene via ``splat``, or none), a shard, and ``{out}/scenes/{name}/episodes.json``
-     written atomically; ``done.json`` last.
+  4. observations along each kept rollout (:mod:`.frames`; render function: the exact procedural
+     renderer, the Gaussian scene via ``splat``, or none), a shard, and
+     ``{out}/scenes/{name}/episodes.json`` written atomically; ``done.json`` last.
+
+The config is :class:`~image2sim.dataengine.engine_config.EngineConfig` (re-exported here).
 """
 
 from __future__ import annotations
@@ -19,12 +21,20 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from image2sim.dataengine.chunking import ChunkConfig, macro_steps, path_features
+from image2sim.dataengine.engine_config import EngineConfig
 from image2sim.dataengine.episodes import episode_record, gt_record
+from image2sim.dataengine.frames import (
+    GaussianPrebuild,
+    annotation_view,
+    field_of_view,
+    observation_spec,
+    rendered_frames,
+)
 from image2sim.dataengine.rollout import (
     RolloutConfig,
     closest_approach_cut,
@@ -33,10 +43,7 @@ from image2sim.dataengine.rollout import (
     truncate_rollout,
 )
 from image2sim.dataengine.scene_assets import (
-    DETECTORS,
-    SceneInputs,
     resolve_scene,
-    scene_gaussians,
     scene_navigation,
     scene_objects,
     scene_render_fn,
@@ -52,7 +59,7 @@ from image2sim.dataengine.trajectories import (
     sample_plans,
     switch_plans,
 )
-from image2sim.simulator.config import config_from_dict, require_render_device
+from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.atomic import sweep_stale_temps, write_bytes_atomic
 from image2sim.simulator.lifetime import torch_threads
 
@@ -65,117 +72,6 @@ __all__ = [
 
 DONE_FILE = "done.json"
 EPISODES_FILE = "episodes.json"
-RENDER_MODES = ("auto", "procedural", "gaussians", "none")
-
-
-@dataclass
-class EngineConfig:
-    """Everything a scene task needs (plain data, so it travels to Ray workers)."""
-
-    per_scene: int | None = None
-    """Episodes planned per scene; None = area-based capacity (paper: clamped to [50, 1000])."""
-    annotator: str = "template"
-    """template, transformers or openai."""
-    annotator_options: dict = field(default_factory=dict)
-    """Backend options (openai: base_url, model, timeout, ...; transformers: path)."""
-    render: str = "auto"
-    """Observation renderer: auto (= gaussians: the neural simulator over Gaussians built from the
-    capture, through ``renderer`` when given), procedural (the exact renderer of a procedural capture:
-    an upper bound, chosen explicitly), gaussians or none (no frames, no shard)."""
-    view: str = "pinhole"
-    """Observation stored in the shard: pinhole (90 degrees, square) or ultrawide (180 x 118 degrees)."""
-    obs_height: int = 336
-    """Pinhole size / ultra-wide height in pixels (ultra-wide width = height x 512 / 336)."""
-    frame_stride: int = 2
-    """Store the observation of every n-th step only (1 = every step). Image2Nav predicts two actions
-    per observation (the paper: 32 observations paired with 64 action labels; the streaming agent
-    observes every other step), so 2 stores every view a policy is trained on or shown, at half the
-    rendering cost of 1."""
-    annotation_view_height: int = 168
-    """Height of the 180 degree views given to VLM annotators (width = 2 x height x 180 / 118)."""
-    renderer: str | None = None
-    """Local pixel-flow renderer weights (an ``export-renderer`` folder, ``save_renderer`` safetensors
-    or a Lightning checkpoint) applied after splatting (the simulator's ``PixelFlowRenderFn``); needs
-    render=gaussians (or auto)."""
-    gaussians: dict = field(default_factory=dict)
-    """Gaussian config of the identity scenes built from captures for ``render=gaussians``, as plain
-    data over a preset (``gaussian_config_from_dict``; ``data episodes --gaussian-config`` reads a
-    preset name or YAML into it). Empty: the ``tiny`` preset. A coarser fusion
-    (``fusion.footprint_factor``) makes fewer Gaussians and cheaper frames
-    (``reports/scene_density.md``)."""
-    device: str = "cpu"
-    """Torch device the Gaussian observations render on: cpu, or cuda / cuda:N on a GPU machine (the
-    splat and the pixel-flow renderer; the exact procedural renderer, the navigation and the files stay
-    on the CPU). The frames match the CPU's up to float rounding."""
-    detector: str = "gt"
-    """Where goal objects come from: gt (a procedural capture's ground truth), yolo-world (mined with
-    local weights), annotations (a person's objects file, :mod:`.objects_file`) or none (no objects:
-    landmark-free path episodes between navigable points, so any capture yields episodes)."""
-    detector_weights: str | None = None
-    """Local YOLO-World weights (yolo-world only)."""
-    objects: str | None = None
-    """annotations: the objects file (one scene) or a folder of ``<scene name>.json``; default
-    ``<capture>/objects_annotations.json``."""
-    seed: int = 0
-    """Base seed; each scene uses a stream derived from (seed, scene name)."""
-    split: str = "train"
-    """Split name of the written episode files."""
-    sampling: dict = field(default_factory=dict)
-    """Overrides of :class:`SamplingConfig` fields."""
-    rollout: dict = field(default_factory=dict)
-    """Overrides of :class:`RolloutConfig` fields."""
-    mining: dict = field(default_factory=dict)
-    """Overrides of :class:`MiningConfig` fields."""
-    approach: dict = field(default_factory=dict)
-    """Overrides of :class:`~image2sim.dataengine.trajectories.ApproachConfig` fields: short training
-    episodes that start with their goal in view, written to ``scenes/<name>/approach`` (a second shard,
-    never the episode file). ``{"views": 0}`` (the default): none."""
-    visible_distance: float = 3.5
-    """Objects within this distance and inside the 180 x 118 degree view count as visible at a macro-step
-    (and may be named by the annotator) when nothing occludes them (see :mod:`.visibility`)."""
-    occlusion: bool = True
-    """Occlusion test of the visibility: a ray march through the navigation map's obstacle voxels."""
-    occlusion_tolerance: float = 0.3
-    """Obstacle voxels within this distance (metres) of an object do not occlude it (its own surface)."""
-    goal_view_distance: float = 5.0
-    """Each stored frame of an object-goal episode is labelled ``goal_in_view`` (shard record
-    ``extra``): 1 when the goal object lies within this distance, inside the stored view's field of
-    view and unoccluded. Image2Nav's ``train.goal_aux_weight`` learns from it."""
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.goal_view_distance) and self.goal_view_distance > 0):
-            raise ValueError(f"EngineConfig.goal_view_distance must be > 0, got {self.goal_view_distance!r}")
-        if self.render not in RENDER_MODES:
-            raise ValueError(f"EngineConfig.render must be one of {RENDER_MODES}, got {self.render!r}")
-        if self.view not in ("pinhole", "ultrawide"):
-            raise ValueError(f"EngineConfig.view must be pinhole or ultrawide, got {self.view!r}")
-        if self.per_scene is not None and self.per_scene < 1:
-            raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
-        if self.frame_stride < 1:
-            raise ValueError(f"EngineConfig.frame_stride must be >= 1, got {self.frame_stride}")
-        if self.obs_height < 8:
-            raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
-        if self.detector not in DETECTORS:
-            raise ValueError(f"EngineConfig.detector must be one of {DETECTORS}, got {self.detector!r}")
-        if self.detector == "none" and self.annotator != "template":
-            raise ValueError(
-                "detector none makes landmark-free path episodes, which only the template annotator "
-                "describes (VLM prompts ask about a goal object): use --annotator template"
-            )
-        require_render_device(self, "device", where="EngineConfig.")
-        if self.renderer is not None and self.render not in ("auto", "gaussians"):
-            raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
-
-    @classmethod
-    def from_dict(cls, data: dict) -> EngineConfig:
-        """Build from a mapping with the shared config mechanism: unknown keys and wrong types raise
-        :class:`~image2sim.simulator.config.ConfigError` (a ``ValueError``) naming the field."""
-        return config_from_dict(cls, data)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
 # ---------------------------------------------------------------------------------------- helpers
 
 
@@ -271,35 +167,6 @@ def _room_at(objects, pos_world: np.ndarray) -> str | None:
     return room
 
 
-def _to_uint8(rgb: np.ndarray) -> np.ndarray:
-    return np.clip(np.asarray(rgb, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-
-
-def _observation_spec(cfg: EngineConfig):
-    """The stored view's spec. Its panorama height is the view's angular resolution
-    (:func:`~image2sim.simulator.sim.panorama_height_for`), which panoramic render functions (the
-    pixel-flow renderer) render at before cutting the view: without it they rendered at the spec's
-    default 256x512, 4x the pixels of a 64 px view and a scale the tiny renderer never trained on."""
-    from image2sim.simulator.sim import ObservationSpec, panorama_height_for
-
-    h = int(cfg.obs_height)
-    if cfg.view == "pinhole":
-        pano_height = panorama_height_for(h, ObservationSpec.pinhole_hfov_deg)  # the spec's default fov
-        return ObservationSpec(panorama=False, pinhole=True, pinhole_size=h, pano_height=pano_height)
-    width = int(round(h * 512 / 336))
-    pano_height = panorama_height_for(width, 180.0)  # the ultra-wide view spans 180 degrees
-    return ObservationSpec(
-        panorama=False, ultrawide=True, pano_height=pano_height, ultrawide_height=h, ultrawide_width=width
-    )
-
-
-def _field_of_view(spec) -> tuple[float, float]:
-    """(horizontal, vertical) degrees of the view an ObservationSpec stores (pinhole views are square)."""
-    if spec.pinhole:
-        return float(spec.pinhole_hfov_deg), float(spec.pinhole_hfov_deg)
-    return float(spec.ultrawide_hfov_deg), float(spec.ultrawide_vfov_deg)
-
-
 # ---------------------------------------------------------------------------------------- the task
 
 
@@ -323,7 +190,7 @@ def process_scene(
     out = Path(out_dir) / "scenes" / inputs.name
     out.mkdir(parents=True, exist_ok=True)
     sweep_stale_temps(out / "shard")  # left by a killed earlier attempt of this scene
-    prebuild = _GaussianPrebuild.start(inputs, out, cfg, asset_cache, render_workers)
+    prebuild = GaussianPrebuild.start(inputs, out, cfg, asset_cache, render_workers)
     # With render workers the cores belong to them and to the Gaussians' build beside this process,
     # so its own torch ops run on one thread: on two threads they oversubscribed the cores (the
     # HM3D sample's command took 159 s instead of 141, byte-identical output).
@@ -396,7 +263,7 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    fov = _field_of_view(_observation_spec(cfg))  # the stored observation's
+    fov = field_of_view(observation_spec(cfg))  # the stored observation's
     goal_view = VisibilityConfig(
         max_distance=cfg.goal_view_distance,
         hfov_deg=fov[0],
@@ -436,7 +303,7 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
         clearance = np.where(node >= 0, graph.clearance[np.maximum(node, 0)], 0.0)
         images = []
         if vlm:
-            images = [_annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
+            images = [annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
         requests.append(
             AnnotationRequest(
                 eid,
@@ -472,7 +339,7 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
             approach_writer = SceneShardWriter(out / APPROACH_SHARD, spec)
     accepted = [(plan, r) for (plan, r), ann in zip(kept, annotations, strict=True) if ann.accepted]
     # A generator: nothing renders (and no pool starts) until the first frame is asked for.
-    rendered = _rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
+    rendered = rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
     try:
         for k, ((plan, r), steps, req, ann) in enumerate(
             zip(kept, chunks, requests, annotations, strict=True)
@@ -560,155 +427,6 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
     return summary
 
 
-class _GaussianPrebuild:
-    """The scene's Gaussians built in a spawned process while this one extracts the navigation map
-    and rolls the episodes out (on a real capture the two take about as long)."""
-
-    def __init__(self, process, conn) -> None:
-        self.process, self.conn = process, conn
-
-    @classmethod
-    def start(cls, inputs: SceneInputs, out: Path, cfg: EngineConfig, asset_cache, workers: int):
-        """A running build, or None when nothing needs building or no second core is given
-        (``workers`` <= 1)."""
-        # render auto and gaussians splat Gaussians (a renderer needs one of them: EngineConfig).
-        gaussian_render = cfg.render in ("auto", "gaussians")
-        built = inputs.gaussian_dir is not None or (out / "gaussians").exists()
-        if workers <= 1 or not gaussian_render or built:
-            return None
-        import multiprocessing as mp
-        import os
-
-        ctx = mp.get_context("spawn")
-        receiver, sender = ctx.Pipe(duplex=False)
-        cache = str(asset_cache) if asset_cache else None
-        args = (os.getpid(), sender, inputs, out, cache, cfg.gaussians, workers)
-        process = ctx.Process(target=_prebuild_main, args=args, daemon=True)
-        process.start()
-        sender.close()
-        return cls(process, receiver)
-
-    def wait(self) -> None:
-        """Block until the Gaussians are stored; their build's error is raised here."""
-        try:
-            error = self.conn.recv()
-        except EOFError:
-            error = f"the process building them ended with exit code {self.process.exitcode}"
-        self.process.join()
-        if error:
-            raise RuntimeError(f"building the scene's Gaussians failed: {error}")
-
-    def cancel(self) -> None:
-        """Stop the build if it still runs (an error elsewhere in the scene)."""
-        if self.process.is_alive():
-            self.process.terminate()
-        self.process.join()
-        self.conn.close()
-
-
-def _prebuild_main(
-    parent_pid: int, conn, inputs: SceneInputs, out: Path, asset_cache, gaussians, workers: int
-) -> None:
-    from image2sim.simulator.lifetime import worker_init
-
-    worker_init(parent_pid)
-    try:
-        # Frames on `workers` threads: once this process's parent has its map and rollouts, it
-        # waits here, and the cores are this build's.
-        scene_gaussians(inputs, out, asset_cache, gaussians, workers)
-        conn.send("")
-    except BaseException as err:  # reported to the parent, which raises it
-        conn.send(f"{type(err).__name__}: {err}")
-    finally:
-        conn.close()
-
-
 def _world_heading(navmap, heading: float) -> float:
     d = navmap.to_world(np.array([math.cos(heading), math.sin(heading), 0.0]))
     return math.atan2(d[1], d[0])
-
-
-def observation_steps(n_actions: int, stride: int) -> list[int]:
-    """Steps whose observation a shard stores: every ``stride``-th step from 0 (the policy's streaming
-    agent observes every other step, so stride 2 stores what it sees), always including step 0."""
-    return list(range(0, max(int(n_actions), 1), max(int(stride), 1)))
-
-
-def _render_rollout(sim, render_fn, plan, r, cfg: EngineConfig) -> tuple[np.ndarray, list[int]]:
-    """Observations of the rollout at :func:`observation_steps` (frames, their steps), by re-executing
-    it with rendering on where a frame is stored."""
-    sim.render_fn = render_fn
-    sim.spec = _observation_spec(cfg)
-    key = "pinhole" if cfg.view == "pinhole" else "ultrawide"
-    steps = observation_steps(len(r.actions), cfg.frame_stride)
-    wanted = set(steps)
-    try:
-        obs, _ = sim.reset(np.asarray(plan.start, float)[None], np.array([plan.heading]))
-        frames = [_to_uint8(obs[0][key]["rgb"])]
-        for t, a in enumerate(r.actions[:-1], start=1):
-            obs, _ = sim.step([a], observe=t in wanted)
-            if t in wanted:
-                frames.append(_to_uint8(obs[0][key]["rgb"]))
-    finally:
-        sim.render_fn = None
-    return np.stack(frames), steps
-
-
-_RENDER_STATE: dict = {}
-"""A render worker's simulator and render function (built once per process by :func:`_render_setup`)."""
-
-
-def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
-    from image2sim.simulator.sim import NeuralSimulator
-
-    config = EngineConfig.from_dict(cfg)
-    inputs = resolve_scene(scene_dir)
-    navmap, graph = scene_navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
-    render_fn, _ = scene_render_fn(
-        inputs, Path(out), config.render, config.renderer, device=config.device, gaussians=config.gaussians
-    )
-    _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
-
-
-def _render_task(job) -> tuple[np.ndarray, list[int]]:
-    plan, r = job
-    st = _RENDER_STATE
-    return _render_rollout(st["sim"], st["render_fn"], plan, r, st["cfg"])
-
-
-def _rendered_frames(jobs, sim, render_fn, inputs: SceneInputs, out: Path, cfg: EngineConfig, workers: int):
-    """(frames, frame steps) of each (plan, rollout) in order: here, or over ``workers`` spawned
-    processes (each loads the scene's cached navigation and Gaussians once). Rendering is deterministic
-    per rollout, so the frames do not depend on where they were made."""
-    if workers <= 1 or len(jobs) < 2:
-        for plan, r in jobs:
-            yield _render_rollout(sim, render_fn, plan, r, cfg)
-        return
-    from image2sim.simulator.lifetime import spawn_pool
-
-    args = (str(inputs.scene_dir), str(out), cfg.to_dict())
-    pool = spawn_pool(min(workers, len(jobs)), _render_setup, *args)
-    try:
-        yield from pool.map(_render_task, jobs, chunksize=1)
-    finally:  # on an error here, pending renders are cancelled rather than awaited
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _annotation_view(sim, render_fn, plan, r, state: int, cfg: EngineConfig) -> np.ndarray:
-    """180 degree view (equirect crop of the panorama) at rollout state ``state``."""
-    from image2sim.simulator.sim import ObservationSpec
-
-    h = int(cfg.annotation_view_height)
-    sim.render_fn = render_fn
-    sim.spec = ObservationSpec(
-        panorama=False,
-        ultrawide=True,
-        pano_height=max(64, h),
-        ultrawide_height=h,
-        ultrawide_width=int(round(h * 2 * 180 / 118)),
-    )
-    try:
-        sim.reset(np.asarray(r.positions[state], float)[None], np.array([r.headings[state]]), observe=False)
-        return _to_uint8(sim.observe(0)["ultrawide"]["rgb"])
-    finally:
-        sim.render_fn = None

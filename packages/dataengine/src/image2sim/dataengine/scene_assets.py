@@ -18,7 +18,7 @@ from image2sim.simulator.config import config_from_dict
 from image2sim.simulator.io.paths import resolve_from_file
 
 if TYPE_CHECKING:
-    from image2sim.dataengine.pipeline import EngineConfig
+    from image2sim.dataengine.engine_config import EngineConfig
 
 DETECTORS = ("gt", "yolo-world", "annotations", "none")
 

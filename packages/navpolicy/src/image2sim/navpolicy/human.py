@@ -14,7 +14,7 @@ human episodes come as VLN-CE files (:mod:`image2sim.eval.datasets` reads them i
    (``start_not_navigable``, ``unreachable``, ``stopped_away``, ``stuck``, ``max_steps``,
    ``replay_mismatch``, ``missing_scene``); none is dropped silently;
 4. the kept actions are replayed with rendering on at every ``frame_stride``-th step (the data
-   engine's :func:`~image2sim.dataengine.pipeline.observation_steps`) and written, with the human
+   engine's :func:`~image2sim.dataengine.frames.observation_steps`) and written, with the human
    instruction, as one shard (format ``image2sim-navshard`` v1), atomically: into a temp folder beside
    the target that is renamed into place at the end.
 
@@ -184,7 +184,7 @@ class _Options:
 
 def _convert(sim, ep, task, o: _Options) -> Trajectory | tuple[str, str]:
     """One episode as a trajectory, or ``(skip reason, detail)``."""
-    from image2sim.dataengine.pipeline import observation_steps
+    from image2sim.dataengine.frames import observation_steps
 
     r = follow_reference(sim, task, o.max_steps, o.follower_config)
     reason = _skip_reason(r, o.end_tolerance)
