@@ -16,10 +16,21 @@ def test_renderer_needs_gaussian_rendering():
 
 
 @pytest.mark.parametrize(
-    "field, value", [("render", "magic"), ("view", "fisheye"), ("per_scene", 0), ("obs_height", 4)]
+    "field, value",
+    [
+        ("render", "magic"),
+        ("view", "fisheye"),
+        ("detector", "sonar"),
+        ("per_scene", 0),
+        ("obs_height", 4),
+        ("frame_stride", 0),
+        ("goal_view_distance", 0.0),
+        ("goal_view_distance", float("nan")),
+        ("device", "tpu"),
+    ],
 )
 def test_invalid_options_are_rejected(field, value):
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=f"EngineConfig.{field} must"):
         EngineConfig(**{field: value})
 
 

@@ -7,7 +7,14 @@ import math
 from dataclasses import asdict, dataclass, field
 
 from image2sim.dataengine.scene_assets import DETECTORS
-from image2sim.simulator.config import config_from_dict, require_render_device
+from image2sim.simulator.config import (
+    ConfigError,
+    config_from_dict,
+    require_at_least,
+    require_in_range,
+    require_one_of,
+    require_render_device,
+)
 
 __all__ = ["EngineConfig", "RENDER_MODES"]
 
@@ -89,28 +96,24 @@ class EngineConfig:
     view and unoccluded. Image2Nav's ``train.goal_aux_weight`` learns from it."""
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.goal_view_distance) and self.goal_view_distance > 0):
-            raise ValueError(f"EngineConfig.goal_view_distance must be > 0, got {self.goal_view_distance!r}")
-        if self.render not in RENDER_MODES:
-            raise ValueError(f"EngineConfig.render must be one of {RENDER_MODES}, got {self.render!r}")
-        if self.view not in ("pinhole", "ultrawide"):
-            raise ValueError(f"EngineConfig.view must be pinhole or ultrawide, got {self.view!r}")
-        if self.per_scene is not None and self.per_scene < 1:
-            raise ValueError(f"EngineConfig.per_scene must be >= 1 or None, got {self.per_scene!r}")
-        if self.frame_stride < 1:
-            raise ValueError(f"EngineConfig.frame_stride must be >= 1, got {self.frame_stride}")
-        if self.obs_height < 8:
-            raise ValueError(f"EngineConfig.obs_height must be >= 8, got {self.obs_height}")
-        if self.detector not in DETECTORS:
-            raise ValueError(f"EngineConfig.detector must be one of {DETECTORS}, got {self.detector!r}")
+        where = "EngineConfig."
+        inf = math.inf  # a finite distance above 0
+        require_in_range(self, "goal_view_distance", 0.0, inf, low_open=True, high_open=True, where=where)
+        require_one_of(self, "render", RENDER_MODES, where)
+        require_one_of(self, "view", ("pinhole", "ultrawide"), where)
+        require_one_of(self, "detector", DETECTORS, where)
+        if self.per_scene is not None:
+            require_at_least(self, "per_scene", 1, where)
+        require_at_least(self, "frame_stride", 1, where)
+        require_at_least(self, "obs_height", 8, where)
         if self.detector == "none" and self.annotator != "template":
-            raise ValueError(
+            raise ConfigError(
                 "detector none makes landmark-free path episodes, which only the template annotator "
                 "describes (VLM prompts ask about a goal object): use --annotator template"
             )
-        require_render_device(self, "device", where="EngineConfig.")
+        require_render_device(self, "device", where)
         if self.renderer is not None and self.render not in ("auto", "gaussians"):
-            raise ValueError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
+            raise ConfigError("EngineConfig.renderer needs render=gaussians (it renders splatted Gaussians)")
 
     @classmethod
     def from_dict(cls, data: dict) -> EngineConfig:
