@@ -423,6 +423,7 @@ def test_interrupted_run_resumes_without_loss_or_duplicates(scenes_root, full_ru
     assert calls == [] and (out / "train" / "train.json.gz").read_bytes() == before
 
 
+@pytest.mark.slow  # test_detectors keeps a fast check of the content-keyed cache
 def test_restart_from_cached_scene_assets_reproduces_the_uninterrupted_run(scenes_root, full_run, tmp_path):
     """A job killed after a scene's navigation map, graph and objects were cached, but before its
     episodes, restarts from those files; its episodes must equal the uninterrupted run's (the

@@ -95,6 +95,7 @@ def test_panorama_house_is_reconstructed_as_a_rig_of_cube_faces(tmp_path, mapper
     assert result.stats["rig_rotation_residual_deg_max"] < 1e-3
 
 
+@pytest.mark.slow  # the pinhole house test above keeps the fast SfM check
 def test_unregistrable_frame_is_dropped_and_named(pinhole_house, tmp_path):
     """A noise image among the frames is dropped and named; the real frames stay one reconstruction.
     The noise is an extra frame: replacing a frame of the walk instead cut the sequence in two

@@ -195,6 +195,7 @@ def _record_losses(out_dir, cfg, ds, max_steps, resume=None):
     return losses, module
 
 
+@pytest.mark.slow  # the CSV-log resume test below keeps a fast check of resuming
 def test_resume_from_every_step_reproduces_the_uninterrupted_run(tmp_path):
     """A checkpoint after every step (stage 1, the stage-2 start that introduces the teacher, the
     stage-3 freeze): resuming from each gives the uninterrupted losses and final weights exactly.
