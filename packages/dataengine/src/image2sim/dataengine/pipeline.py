@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +43,7 @@ from image2sim.dataengine.rollout import (
     truncate_rollout,
 )
 from image2sim.dataengine.scene_assets import (
+    SceneInputs,
     resolve_scene,
     scene_navigation,
     scene_objects,
@@ -202,27 +203,113 @@ def process_scene(
             prebuild.cancel()
 
 
+@dataclass
+class _Scene:
+    """What the stages of one scene share: its inputs and config, navigation, objects and simulator."""
+
+    inputs: SceneInputs
+    out: Path
+    cfg: EngineConfig
+    navmap: object
+    graph: object
+    objects: list
+    sim: object
+    rng: np.random.Generator
+    occupancy: object = None  # obstacle voxels for visibility (None: no occlusion test or no objects)
+
+    def eyes(self, r) -> np.ndarray:
+        """The agent's eye positions along rollout ``r`` (map frame)."""
+        up = np.array([0.0, 0.0, float(self.navmap.embodiment.eye_height)])
+        return np.asarray(r.positions, dtype=np.float64) + up
+
+
+@dataclass
+class _Rollouts:
+    """The scene's verified rollouts: the episodes' first (``n_regular``), then approach episodes."""
+
+    capacity: int
+    plans: list
+    plan_stats: dict
+    kept: list  # (plan, rollout)
+    n_regular: int
+    drops: dict
+
+
 def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_cache, prebuild, t0: float):
     """:func:`process_scene`'s work once the output folder exists (``prebuild``: the Gaussians being
-    built meanwhile, or None)."""
-    from image2sim.dataengine.annotate import AnnotationRequest, build_annotator, route_style
-    from image2sim.simulator.navigation.follower import OracleFollower
+    built meanwhile, or None): rollouts, annotation, then the episodes and shards."""
     from image2sim.simulator.sim import NeuralSimulator
 
     navmap, graph = scene_navigation(inputs, out, asset_cache)
-    objects = scene_objects(inputs, out, cfg)
+    scene = _Scene(
+        inputs,
+        out,
+        cfg,
+        navmap,
+        graph,
+        scene_objects(inputs, out, cfg),
+        NeuralSimulator(navmap, graph),
+        named_rng(cfg.seed, inputs.name),
+    )
+    ro = _roll_out(scene)
+    if prebuild is not None:
+        prebuild.wait()
+    render_fn, render_mode = (
+        (None, "none")
+        if cfg.render == "none"
+        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device, cfg.gaussians)
+    )
+    if cfg.annotator != "template" and render_fn is None:
+        raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
+    requests, chunks = _annotation_requests(scene, ro, render_fn)
+    from image2sim.dataengine.annotate import build_annotator
+
+    vocab = sorted({o.category for o in scene.objects})
+    annotator = build_annotator(cfg.annotator, vocabulary=vocab, **cfg.annotator_options)
+    annotations = annotator.annotate(requests) if requests else []
+    episodes, gt, extras, n_approach = _write_episodes_and_shards(
+        scene, ro, chunks, requests, annotations, render_fn, render_mode, render_workers
+    )
+    summary = {
+        "scene": inputs.name,
+        "scene_id": inputs.scene_id,
+        "navigable_area": navmap.navigable_area(),
+        "capacity": ro.capacity,
+        "planned": len(ro.plans),
+        "rolled_out_ok": len(ro.kept),
+        "stopped_at_goal": sum("cut_past_goal_m" in r.extra for _, r in ro.kept),
+        "episodes": len(episodes),
+        "approach_episodes": n_approach,
+        "drops": ro.drops,
+        "plan_stats": ro.plan_stats,
+        "objects": len(scene.objects),
+        "render": render_mode,
+        "seconds": time.perf_counter() - t0,
+    }
+    doc = {"episodes": episodes, "gt": gt, "extras": extras}
+    write_bytes_atomic(out / EPISODES_FILE, json.dumps(doc).encode())
+    write_bytes_atomic(out / DONE_FILE, json.dumps(summary, indent=1).encode())
+    return summary
+
+
+def _roll_out(scene: _Scene) -> _Rollouts:
+    """Plans (object goals, or paths for ``detector none``) rolled out by the oracle and replayed,
+    up to the scene's capacity, then the approach episodes (training frames only)."""
+    from image2sim.dataengine.visibility import Occupancy
+    from image2sim.simulator.navigation.follower import OracleFollower
+
+    cfg, sim, navmap, graph = scene.cfg, scene.sim, scene.navmap, scene.graph
     scfg = config_from_dict(SamplingConfig, cfg.sampling, "sampling")
     rcfg = config_from_dict(RolloutConfig, cfg.rollout, "rollout")
-    area = navmap.navigable_area()
-    n = cfg.per_scene if cfg.per_scene is not None else episode_capacity(area, scfg)
-    rng = named_rng(cfg.seed, inputs.name)
-    sim = NeuralSimulator(navmap, graph)
+    n = cfg.per_scene if cfg.per_scene is not None else episode_capacity(navmap.navigable_area(), scfg)
     follower = OracleFollower(sim.planner)
     n_plans = int(math.ceil(n * scfg.plan_oversample))
     if cfg.detector == "none":
-        plans, plan_stats = sample_path_plans(graph, n_plans, scfg, rng)
+        plans, plan_stats = sample_path_plans(graph, n_plans, scfg, scene.rng)
     else:
-        plans, plan_stats = sample_plans(graph, sim.planner, objects, n_plans, scfg, rng, navmap.to_map)
+        plans, plan_stats = sample_plans(
+            graph, sim.planner, scene.objects, n_plans, scfg, scene.rng, navmap.to_map
+        )
     drops: dict[str, int] = {}
     kept = []
     for plan in plans:
@@ -236,57 +323,48 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
             continue
         kept.append((plan, r))
     n_regular = len(kept)
-    from image2sim.dataengine.visibility import (
-        Occupancy,
-        VisibilityConfig,
-        goal_in_view,
-        near_categories,
-        visible_categories,
-    )
-
-    occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and objects else None
-    if objects and cfg.render != "none":  # approach episodes are training frames only
+    scene.occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and scene.objects else None
+    if scene.objects and cfg.render != "none":  # approach episodes are training frames only
         kept += _approach_rollouts(
-            sim, follower, graph, objects, navmap, occupancy, cfg, scfg, rcfg, inputs.name, drops
+            sim,
+            follower,
+            graph,
+            scene.objects,
+            navmap,
+            scene.occupancy,
+            cfg,
+            scfg,
+            rcfg,
+            scene.inputs.name,
+            drops,
         )
-    # Annotation requests.
+    return _Rollouts(n, plans, plan_stats, kept, n_regular, drops)
+
+
+def _annotation_requests(scene: _Scene, ro: _Rollouts, render_fn) -> tuple[list, list]:
+    """One annotation request per kept rollout (its macro-steps, the objects visible at each, rooms,
+    route style, "near" landmarks, path features; VLM annotators also get 180-degree views), and
+    the macro-steps themselves."""
+    from image2sim.dataengine.annotate import AnnotationRequest, route_style
+    from image2sim.dataengine.visibility import VisibilityConfig, near_categories, visible_categories
+
+    cfg, navmap, objects, rng = scene.cfg, scene.navmap, scene.objects, scene.rng
+    name = scene.inputs.name
     vlm = cfg.annotator != "template"
-    if prebuild is not None:
-        prebuild.wait()
-    render_fn, render_mode = (
-        (None, "none")
-        if cfg.render == "none"
-        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device, cfg.gaussians)
-    )
-    if vlm and render_fn is None:
-        raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")
     vis_cfg = VisibilityConfig(
         max_distance=cfg.visible_distance, tolerance=cfg.occlusion_tolerance, occlusion=cfg.occlusion
     )
-    fov = field_of_view(observation_spec(cfg))  # the stored observation's
-    goal_view = VisibilityConfig(
-        max_distance=cfg.goal_view_distance,
-        hfov_deg=fov[0],
-        vfov_deg=fov[1],
-        tolerance=cfg.occlusion_tolerance,
-        occlusion=cfg.occlusion,
-    )
     obj_map = navmap.to_map(np.array([o.position for o in objects], dtype=np.float64).reshape(-1, 3))
-    eye_up = np.array([0.0, 0.0, float(navmap.embodiment.eye_height)])
-
-    def eyes_of(r):
-        return np.asarray(r.positions, dtype=np.float64) + eye_up
-
     index_of = {int(o.object_id): i for i, o in enumerate(objects)}
     near_of: dict[int, list[str]] = {}  # goal object id -> its "near" landmarks (computed once per goal)
     requests, chunks = [], []
-    for k, (plan, r) in enumerate(kept):
-        eid = f"{inputs.name}-{k:05d}" if k < n_regular else f"{inputs.name}-a{k - n_regular:05d}"
+    for k, (plan, r) in enumerate(ro.kept):
+        eid = f"{name}-{k:05d}" if k < ro.n_regular else f"{name}-a{k - ro.n_regular:05d}"
         steps = macro_steps(r.actions, r.positions, r.headings, ChunkConfig())
         world = navmap.to_world(r.positions)
-        eyes = eyes_of(r)
+        eyes = scene.eyes(r)
         vis = [
-            visible_categories(objects, obj_map, eyes[m.start], r.headings[m.start], occupancy, vis_cfg)
+            visible_categories(objects, obj_map, eyes[m.start], r.headings[m.start], scene.occupancy, vis_cfg)
             for m in steps
         ]
         rooms = [_room_at(objects, world[m.start]) for m in steps]
@@ -295,15 +373,15 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
         if plan.goal_object:
             gid = int(plan.goal_object["object_id"])
             if gid not in near_of:
-                near_of[gid] = near_categories(index_of[gid], objects, obj_map, occupancy)
+                near_of[gid] = near_categories(index_of[gid], objects, obj_map, scene.occupancy)
             near = near_of[gid]
         else:
             style = "r2r"  # a path instruction (no goal object to ask for)
-        node, _ = graph.snap(np.asarray(r.positions, dtype=np.float64))
-        clearance = np.where(node >= 0, graph.clearance[np.maximum(node, 0)], 0.0)
+        node, _ = scene.graph.snap(np.asarray(r.positions, dtype=np.float64))
+        clearance = np.where(node >= 0, scene.graph.clearance[np.maximum(node, 0)], 0.0)
         images = []
         if vlm:
-            images = [annotation_view(sim, render_fn, plan, r, m.start, cfg) for m in steps]
+            images = [annotation_view(scene.sim, render_fn, plan, r, m.start, cfg) for m in steps]
         requests.append(
             AnnotationRequest(
                 eid,
@@ -323,10 +401,26 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
             )
         )
         chunks.append(steps)
-    vocab = sorted({o.category for o in objects})
-    annotator = build_annotator(cfg.annotator, vocabulary=vocab, **cfg.annotator_options)
-    annotations = annotator.annotate(requests) if requests else []
-    # Episodes, gt (Habitat frame, VLN-CE's fields only), their extras and the shard.
+    return requests, chunks
+
+
+def _write_episodes_and_shards(
+    scene: _Scene, ro: _Rollouts, chunks, requests, annotations, render_fn, render_mode, render_workers
+):
+    """Episodes, gt (Habitat frame, VLN-CE's fields only) and their extras of the accepted rollouts,
+    and their frames in the shard (approach episodes: in their own shard only). Returns
+    (episodes, gt, extras, approach episode count); rejected annotations are counted in ``ro.drops``."""
+    from image2sim.dataengine.visibility import VisibilityConfig, goal_in_view
+
+    inputs, out, cfg, navmap, drops = scene.inputs, scene.out, scene.cfg, scene.navmap, ro.drops
+    fov = field_of_view(observation_spec(cfg))  # the stored observation's
+    goal_view = VisibilityConfig(
+        max_distance=cfg.goal_view_distance,
+        hfov_deg=fov[0],
+        vfov_deg=fov[1],
+        tolerance=cfg.occlusion_tolerance,
+        occlusion=cfg.occlusion,
+    )
     episodes, gt, extras = [], {}, {}
     writer = approach_writer = None
     n_approach = 0
@@ -335,21 +429,21 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
 
         spec = {"view": cfg.view, "height": cfg.obs_height, "render": render_mode}
         writer = SceneShardWriter(out / "shard", spec)
-        if len(kept) > n_regular:
+        if len(ro.kept) > ro.n_regular:
             approach_writer = SceneShardWriter(out / APPROACH_SHARD, spec)
-    accepted = [(plan, r) for (plan, r), ann in zip(kept, annotations, strict=True) if ann.accepted]
+    accepted = [(plan, r) for (plan, r), ann in zip(ro.kept, annotations, strict=True) if ann.accepted]
     # A generator: nothing renders (and no pool starts) until the first frame is asked for.
-    rendered = rendered_frames(accepted, sim, render_fn, inputs, out, cfg, render_workers)
+    rendered = rendered_frames(accepted, scene.sim, render_fn, inputs, out, cfg, render_workers)
     try:
         for k, ((plan, r), steps, req, ann) in enumerate(
-            zip(kept, chunks, requests, annotations, strict=True)
+            zip(ro.kept, chunks, requests, annotations, strict=True)
         ):
             if not ann.accepted:
                 drops[f"annotation: {ann.reason}"] = drops.get(f"annotation: {ann.reason}", 0) + 1
                 continue
             world = navmap.to_world(r.positions)
             heading_w = _world_heading(navmap, plan.heading)
-            approach = k >= n_regular  # training frames only, never the episode file
+            approach = k >= ro.n_regular  # training frames only, never the episode file
             if approach:
                 n_approach += 1
             else:
@@ -390,7 +484,7 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
                 if plan.goal_object:  # path episodes (--detector none) have no goal object
                     goal = navmap.to_map(np.asarray(plan.goal_object["position"], dtype=np.float64))
                     seen = goal_in_view(
-                        goal, eyes_of(r)[frame_steps], r.headings[frame_steps], occupancy, goal_view
+                        goal, scene.eyes(r)[frame_steps], r.headings[frame_steps], scene.occupancy, goal_view
                     )
                     extra["goal_in_view"] = [int(v) for v in seen]
                     extra["goal_category"] = str(plan.goal_object.get("category", ""))
@@ -405,26 +499,7 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
         raise
     finally:
         rendered.close()  # ends the render pool, if one started
-    summary = {
-        "scene": inputs.name,
-        "scene_id": inputs.scene_id,
-        "navigable_area": area,
-        "capacity": n,
-        "planned": len(plans),
-        "rolled_out_ok": len(kept),
-        "stopped_at_goal": sum("cut_past_goal_m" in r.extra for _, r in kept),
-        "episodes": len(episodes),
-        "approach_episodes": n_approach,
-        "drops": drops,
-        "plan_stats": plan_stats,
-        "objects": len(objects),
-        "render": render_mode,
-        "seconds": time.perf_counter() - t0,
-    }
-    doc = {"episodes": episodes, "gt": gt, "extras": extras}
-    write_bytes_atomic(out / EPISODES_FILE, json.dumps(doc).encode())
-    write_bytes_atomic(out / DONE_FILE, json.dumps(summary, indent=1).encode())
-    return summary
+    return episodes, gt, extras, n_approach
 
 
 def _world_heading(navmap, heading: float) -> float:
