@@ -215,7 +215,7 @@ class _Scene:
     objects: list
     sim: object
     rng: np.random.Generator
-    occupancy: object = None  # obstacle voxels for visibility (None: no occlusion test or no objects)
+    occupancy: object  # obstacle voxels for visibility (None: no occlusion test or no objects)
 
     def eyes(self, r) -> np.ndarray:
         """The agent's eye positions along rollout ``r`` (map frame)."""
@@ -238,18 +238,21 @@ class _Rollouts:
 def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_cache, prebuild, t0: float):
     """:func:`process_scene`'s work once the output folder exists (``prebuild``: the Gaussians being
     built meanwhile, or None): rollouts, annotation, then the episodes and shards."""
+    from image2sim.dataengine.visibility import Occupancy
     from image2sim.simulator.sim import NeuralSimulator
 
     navmap, graph = scene_navigation(inputs, out, asset_cache)
+    objects = scene_objects(inputs, out, cfg)
     scene = _Scene(
         inputs,
         out,
         cfg,
         navmap,
         graph,
-        scene_objects(inputs, out, cfg),
+        objects,
         NeuralSimulator(navmap, graph),
         named_rng(cfg.seed, inputs.name),
+        Occupancy.from_navmap(navmap) if cfg.occlusion and objects else None,
     )
     ro = _roll_out(scene)
     if prebuild is not None:
@@ -295,7 +298,6 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
 def _roll_out(scene: _Scene) -> _Rollouts:
     """Plans (object goals, or paths for ``detector none``) rolled out by the oracle and replayed,
     up to the scene's capacity, then the approach episodes (training frames only)."""
-    from image2sim.dataengine.visibility import Occupancy
     from image2sim.simulator.navigation.follower import OracleFollower
 
     cfg, sim, navmap, graph = scene.cfg, scene.sim, scene.navmap, scene.graph
@@ -323,7 +325,6 @@ def _roll_out(scene: _Scene) -> _Rollouts:
             continue
         kept.append((plan, r))
     n_regular = len(kept)
-    scene.occupancy = Occupancy.from_navmap(navmap) if cfg.occlusion and scene.objects else None
     if scene.objects and cfg.render != "none":  # approach episodes are training frames only
         kept += _approach_rollouts(
             sim,
