@@ -97,8 +97,9 @@ class EngineConfig:
 
     def __post_init__(self) -> None:
         where = "EngineConfig."
-        inf = math.inf  # a finite distance above 0
-        require_in_range(self, "goal_view_distance", 0.0, inf, low_open=True, high_open=True, where=where)
+        require_in_range(
+            self, "goal_view_distance", 0.0, math.inf, low_open=True, high_open=True, where=where
+        )
         require_one_of(self, "render", RENDER_MODES, where)
         require_one_of(self, "view", ("pinhole", "ultrawide"), where)
         require_one_of(self, "detector", DETECTORS, where)

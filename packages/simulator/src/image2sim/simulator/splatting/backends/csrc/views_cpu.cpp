@@ -92,7 +92,7 @@ inline double quantise(double interval, double log_step) { return std::floor(std
 // the cheap better-view test runs over all views first, and only its survivors pay for the carving
 // look-ups (one per probe point and carving view).
 bool keeps(const double* probes, int64_t n_probes, double own_iv, const double* facing, int64_t own,
-           const std::vector<ViewData>& views, double tol, double step, double log_step, double owner_cos) {
+           const std::vector<ViewData>& views, double tol, double log_step, double owner_cos) {
   const double* mean = probes;  // probe 0 is the centre
   const int64_t n_views = static_cast<int64_t>(views.size());
   for (int64_t i = 0; i < n_views; ++i) {
@@ -114,7 +114,7 @@ bool keeps(const double* probes, int64_t n_probes, double own_iv, const double* 
       if (!(std::abs(c) >= owner_cos)) continue;
     }
     double theirs = own_iv;
-    if (step > 1.0) {
+    if (log_step > 0) {  // step > 1: intervals compared by quantised level
       iv = quantise(iv, log_step);
       theirs = quantise(theirs, log_step);
     }
@@ -199,7 +199,7 @@ torch::Tensor best_view_mask_cpu(torch::Tensor probes, torch::Tensor own_iv, tor
   const double log_step = std::log(step);  // once, not per Gaussian
   auto body = [&](int64_t b, int64_t e) {
     for (int64_t g = b; g < e; ++g)
-      out[g] = keeps(pp + 3 * n_probes * g, n_probes, ivp[g], fp + 3 * g, own, views, tol, step, log_step, owner_cos);
+      out[g] = keeps(pp + 3 * n_probes * g, n_probes, ivp[g], fp + 3 * g, own, views, tol, log_step, owner_cos);
   };
   image2sim_workers::parallel_range(n, 4096, threads, body);
   return keep;
