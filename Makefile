@@ -37,13 +37,13 @@ lock:  ## re-pin requirements.lock from the current .venv (`make setup LOCKED=1`
 	$(PIP) freeze --exclude-editable | grep -v '^-e\|^image2sim' > requirements.lock
 
 test: setup  ## fast test suite (CPU, a few minutes)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" --durations=15
 
 pipeline-ci: setup  ## the whole dvc pipeline end to end on the `ci` profile, with its checks
 	bash scripts/ci_pipeline.sh
 
 test-slow: setup  ## slow tests only
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -m slow --durations=15
 
 demo: setup  ## the main job: `dvc repro` on the active profile (params.yaml), then a summary
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" bash scripts/demo.sh

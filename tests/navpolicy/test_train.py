@@ -124,12 +124,38 @@ def test_resume_continues_with_the_same_step_and_data(tiny_cfg, trajs, tmp_path)
     assert (second.export_dir / "model.safetensors").is_file()
 
 
+def test_deepspeed_starts_past_a_lock_left_by_a_killed_op_build(tmp_path, monkeypatch):
+    """DeepSpeed's CPU backend JIT-builds an op when it starts; a build killed earlier leaves torch's
+    lock file, on which every later start waited forever. The strategy starts through the guard."""
+    pytest.importorskip("deepspeed")
+    from image2sim.navpolicy.train import SHM_COMM_OP, cpu_deepspeed_strategy
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    stale = tmp_path / "ext" / SHM_COMM_OP / "lock"
+    stale.parent.mkdir(parents=True)
+    stale.write_text("")
+    strategy = cpu_deepspeed_strategy({"zero_optimization": {"stage": 2}})
+    seen = []
+    monkeypatch.setattr(type(strategy), "set_world_ranks", lambda self: None)
+    monkeypatch.setattr(
+        type(strategy), "_init_deepspeed_distributed", lambda self: seen.append(stale.exists())
+    )
+    strategy.setup_distributed()
+    assert seen == [False]
+
+
 @pytest.mark.slow
-def test_deepspeed_zero2_on_cpu_matches_plain_adamw(tiny_cfg, trajs, tmp_path):
+def test_deepspeed_zero2_on_cpu_matches_plain_adamw(tiny_cfg, trajs, tmp_path, monkeypatch):
     """One process of DeepSpeed ZeRO-2 (CPU accelerator, gloo) through the Lightning strategy.
 
-    The first run on a machine JIT-builds a DeepSpeed op (minutes); later runs take seconds.
+    DeepSpeed JIT-builds an op when it starts (about a minute): here into a fresh folder holding the
+    lock file of a killed build, which used to stall the run forever.
     """
+    from image2sim.navpolicy.train import SHM_COMM_OP
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    (tmp_path / "ext" / SHM_COMM_OP).mkdir(parents=True)
+    (tmp_path / "ext" / SHM_COMM_OP / "lock").write_text("")
     cfg = _cfg(tiny_cfg, 3)
     plain = train_bc(cfg, tmp_path / "plain", dataset=InMemoryNavDataset(trajs, 4, 8), export=False)
     cfg.train.strategy = "deepspeed_zero2"

@@ -1,4 +1,5 @@
-"""The compiled kernel's build folder: keyed by the source's path, and a killed build's lock cleared."""
+"""The compiled kernel's build folder: keyed by the source's path, and a killed build's lock cleared
+(``extensions.build_guard``, which DeepSpeed's op build goes through too)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("torch")
+from image2sim.simulator.extensions import build_guard  # noqa: E402
 from image2sim.simulator.splatting.backends import cpu_kernel  # noqa: E402
 
 
@@ -29,7 +31,7 @@ def test_build_folder_depends_on_the_source_path(tmp_path, monkeypatch):
 
 def test_the_guard_clears_a_lock_left_by_a_killed_build(tmp_path):
     (tmp_path / "lock").write_text("")  # torch's FileBaton file of a build that was killed
-    with cpu_kernel.build_guard(tmp_path):
+    with build_guard(tmp_path):
         assert not (tmp_path / "lock").exists()
 
 
@@ -42,7 +44,7 @@ def test_the_guard_serialises_builders_and_dies_with_its_holder(tmp_path):
             sys.executable,
             "-c",
             "import sys, time; sys.path.insert(0, sys.argv[1]); from pathlib import Path; "
-            "from image2sim.simulator.splatting.backends.cpu_kernel import build_guard\n"
+            "from image2sim.simulator.extensions import build_guard\n"
             "with build_guard(Path(sys.argv[2])):\n"
             "    Path(sys.argv[2], 'lock').write_text(''); print('held', flush=True); time.sleep(60)",
             src,
@@ -56,7 +58,7 @@ def test_the_guard_serialises_builders_and_dies_with_its_holder(tmp_path):
         entered = threading.Event()
 
         def second_builder():
-            with cpu_kernel.build_guard(tmp_path):
+            with build_guard(tmp_path):
                 entered.set()
 
         t = threading.Thread(target=second_builder, daemon=True)

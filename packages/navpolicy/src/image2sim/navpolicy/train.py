@@ -166,6 +166,9 @@ class PositionDataset(torch.utils.data.Dataset):
 
 # ------------------------------------------------------------------------------------ DeepSpeed on CPU
 
+# The op DeepSpeed's CPU accelerator JIT-builds when it starts (its ShareMemCommBuilder).
+SHM_COMM_OP = "deepspeed_shm_comm"
+
 
 def cpu_deepspeed_strategy(config: dict | str | Path, **kwargs):
     """Lightning's DeepSpeed strategy, minimally patched to accept the CPU accelerator.
@@ -185,11 +188,15 @@ def cpu_deepspeed_strategy(config: dict | str | Path, **kwargs):
             return torch.device("cpu", 0)
 
         def setup_distributed(self) -> None:
+            from image2sim.simulator.extensions import build_guard, torch_extension_dir
             from lightning.fabric.utilities.seed import reset_seed
 
             reset_seed()
             self.set_world_ranks()
-            self._init_deepspeed_distributed()
+            # DeepSpeed's CPU backend JIT-builds its shared-memory op here: a build killed earlier
+            # would leave torch's lock file and stall this one forever.
+            with build_guard(torch_extension_dir(SHM_COMM_OP)):
+                self._init_deepspeed_distributed()
 
     return CPUDeepSpeedStrategy(config=config, process_group_backend="gloo", **kwargs)
 

@@ -10,23 +10,21 @@ background, exposed as a ``torch.autograd.Function``; :func:`render` is the fuse
 cached under ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/image2sim/torch_extensions`` (keyed by a hash
 of the source and its path, the torch version, the compiler flags and this CPU's instruction-set
 flags, since it is built with ``-march=native``; edits rebuild, and two checkouts never rebuild
-over each other's library). Builds of one folder are serialised by an ``flock`` that dies with its
-holder, and a lock file torch left behind by a killed build is cleared under it (torch would wait
-for it forever). If the build fails, :func:`available` is False and ``backend="auto"`` falls back
-to the torch backend with a warning.
+over each other's library). Builds go through :func:`image2sim.simulator.extensions.build_guard`,
+so a lock file torch left behind by a killed build cannot stall the next one. If the build fails,
+:func:`available` is False and ``backend="auto"`` falls back to the torch backend with a warning.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import platform
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import torch
+from image2sim.simulator.extensions import build_guard
 from image2sim.simulator.splatting.backends.torch_tiles import TILE_SIZE
 from image2sim.simulator.splatting.project import T_MIN
 
@@ -80,26 +78,6 @@ def _build_dir() -> Path:
     path = base / f"image2sim_splat_cpu_{digest}"
     path.mkdir(parents=True, exist_ok=True)
     return path
-
-
-@contextlib.contextmanager
-def build_guard(build: Path) -> Iterator[None]:
-    """Hold ``build``'s builder lock (an ``flock``, released by the OS when its holder dies) and clear
-    the ``lock`` file of torch's ``FileBaton`` if one is left: every builder of the folder goes through
-    this guard, so under it such a file can only come from a killed build, and torch would wait for
-    it forever."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX: torch's own baton only
-        yield
-        return
-    with open(build / "builder.flock", "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            (build / "lock").unlink(missing_ok=True)
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def load():
