@@ -27,15 +27,11 @@ Run: ``.venv/bin/python benchmarks/pinhole_views.py [--poses 6] [--repeats 3] [-
 
 from __future__ import annotations
 
-import argparse
 import math
-import tempfile
-from pathlib import Path
 
 import numpy as np
-import torch
 from harness import _table, hardware, load_average, time_it, write_report
-from splat_early_finish import HM3D, _hm3d, _procedural
+from splat_early_finish import HM3D, pinhole_cases, pose_args
 
 NAME = "pinhole_views"
 
@@ -105,23 +101,12 @@ def run_case(name: str, tensors: dict, poses: list[np.ndarray], px: int, repeats
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=6)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="2 poses, 1 repeat, the procedural house only")
-    args = ap.parse_args()
-    poses, repeats = (2, 1) if args.quick else (args.poses, args.repeats)
-    torch.set_num_threads(1)
+    args, poses, repeats = pose_args(__doc__, 6, 3, (2, 1), "2 poses, 1 repeat, the procedural house only")
     load_start, hw = load_average(), hardware()
     rows: list[dict] = []
-    with tempfile.TemporaryDirectory(prefix="bench_pinhole_") as tmp:
-        tensors, cams = _procedural(Path(tmp), poses, args.seed)
-        rows += run_case("procedural (sim2real house)", tensors, cams, 64, repeats)
+    for name, tensors, cams, px in pinhole_cases(poses, args.seed, args.quick):
+        rows += run_case(name, tensors, cams, px, repeats)
     hm3d = HM3D.is_dir() and not args.quick
-    if hm3d:
-        tensors, cams = _hm3d(poses, args.seed)
-        rows += run_case("HM3D sample", tensors, cams, 336, repeats)
     meta = {
         "load_average_start": load_start,
         "load_average_end": load_average(),

@@ -78,6 +78,31 @@ def _hm3d(poses: int, seed: int):
     return gaussian_tensors(g), out
 
 
+def pose_args(doc: str, poses: int, repeats: int, quick: tuple[int, int], quick_help: str):
+    """(args, poses, repeats) of a per-pose splat benchmark's command line (``--poses --repeats --seed
+    --quick``; ``quick``: its poses and repeats). Sets torch to one thread, as the simulator runs."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=poses)
+    ap.add_argument("--repeats", type=int, default=repeats)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help=quick_help)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    return (args, *quick) if args.quick else (args, args.poses, args.repeats)
+
+
+def pinhole_cases(poses: int, seed: int, quick: bool):
+    """(name, tensors, poses, view px) of the pinhole benchmarks' scenes: a sim2real training house
+    (its simulator's 64 px view), then the HM3D sample (the data engine's 336 px view; not when
+    ``quick`` or without ``../shared``)."""
+    with tempfile.TemporaryDirectory(prefix="bench_pinhole_") as tmp:
+        tensors, cams = _procedural(Path(tmp), poses, seed)
+        yield "procedural (sim2real house)", tensors, cams, 64
+    if HM3D.is_dir() and not quick:
+        tensors, cams = _hm3d(poses, seed)
+        yield "HM3D sample", tensors, cams, 336
+
+
 def _errors(outs: list[dict], refs: list[dict]) -> dict:
     """Largest colour change, PSNR of the change, share of changed 8-bit values, largest depth change."""
     d_rgb = np.concatenate([(o["rgb"] - r["rgb"]).ravel() for o, r in zip(outs, refs, strict=True)])
@@ -131,14 +156,7 @@ def run_case(name: str, tensors: dict, cams: list[np.ndarray], camera, view: str
 def main() -> None:
     from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=8)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="3 poses, 2 repeats, procedural only")
-    args = ap.parse_args()
-    poses, repeats = (3, 2) if args.quick else (args.poses, args.repeats)
-    torch.set_num_threads(1)
+    args, poses, repeats = pose_args(__doc__, 8, 5, (3, 2), "3 poses, 2 repeats, procedural only")
     load_start, hw = load_average(), hardware()
     pano = EquirectCamera(128, 256)
 

@@ -121,7 +121,9 @@ class GaussianRenderFn:
     :func:`~image2sim.simulator.renderer.holefill.splat_rgbd`'s ``raw``, ``normalised`` (default:
     the expected colour, as ``eval render``'s ``splat_only``) or ``filled`` (holes completed, as
     its ``splat_fill``). ``min_transmittance``: ``splat``'s early finish
-    (:data:`OBSERVATION_MIN_TRANSMITTANCE`).
+    (:data:`OBSERVATION_MIN_TRANSMITTANCE`). Pinhole views on the CPU skip the spatial blocks of
+    Gaussians that cannot reach the image (:class:`~image2sim.simulator.splatting.culling.FrustumBlocks`,
+    built at the first pinhole view): the same image, bit for bit, without projecting the rest.
     """
 
     def __init__(
@@ -143,6 +145,17 @@ class GaussianRenderFn:
         self.backend = backend
         self.mode = mode
         self.min_transmittance = float(min_transmittance)
+        self._blocks = None  # FrustumBlocks, built at the first pinhole view
+
+    def _cull(self, camera: Camera):
+        """The scene's spatial blocks for a pinhole view on the CPU (None otherwise)."""
+        if not isinstance(camera, PinholeCamera) or self.device.type != "cpu":
+            return None
+        if self._blocks is None:
+            from image2sim.simulator.splatting.culling import FrustumBlocks
+
+            self._blocks = FrustumBlocks(self.gaussians["means"], self.gaussians["scales"])
+        return self._blocks
 
     def __call__(self, camera: Camera, cam_to_world: np.ndarray) -> dict:
         import torch
@@ -163,6 +176,7 @@ class GaussianRenderFn:
                 pose,
                 backend=self.backend,
                 min_transmittance=self.min_transmittance,
+                cull=self._cull(camera),
             )
             if self.renderer is not None:  # the renderer makes the colour; depth as the splat has it
                 rgb, depth = self.renderer(out), out.normalized_depth()

@@ -40,6 +40,7 @@ import torch
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.splatting.backends import reference as _reference
 from image2sim.simulator.splatting.backends import torch_tiles as _torch_tiles
+from image2sim.simulator.splatting.culling import FrustumBlocks
 from image2sim.simulator.splatting.dispatch import (
     Backend,
     device_type,
@@ -48,7 +49,7 @@ from image2sim.simulator.splatting.dispatch import (
 )
 from image2sim.simulator.splatting.dispatch import get_backend as _get_backend
 from image2sim.simulator.splatting.dispatch import resolve_backend as _resolve
-from image2sim.simulator.splatting.project import T_MIN, project_gaussians
+from image2sim.simulator.splatting.project import NEAR, T_MIN, project_gaussians
 
 __all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend"]
 
@@ -215,17 +216,21 @@ def splat(
     camera: EquirectCamera | PinholeCamera,
     cam_to_world: torch.Tensor,
     *,
-    near: float = 0.05,
+    near: float = NEAR,
     far: float | None = None,
     background: torch.Tensor | float | None = None,
     backend: str = "auto",
     nonfinite: str = "raise",
     min_transmittance: float = T_MIN,
+    cull: FrustumBlocks | None = None,
 ) -> SplatOutput:
     """Render N feature Gaussians into B views of ``camera``; see the module docstring for semantics.
 
     Differentiable w.r.t. means, scales, quats, opacities, colors, features (and cam_to_world,
-    background) with every backend.
+    background) with every backend. ``cull``: these Gaussians' spatial blocks
+    (:class:`~image2sim.simulator.splatting.culling.FrustumBlocks`); the fused CPU inference path
+    skips the blocks a pinhole view cannot see before projecting them. The image is the same with
+    or without it; other paths ignore it.
     """
     if not isinstance(camera, (EquirectCamera, PinholeCamera)):
         raise TypeError(f"splat: camera must be EquirectCamera or PinholeCamera, got {type(camera).__name__}")
@@ -260,6 +265,8 @@ def splat(
         raise ValueError(f"splat: nonfinite must be 'raise' or 'cull', got {nonfinite!r}")
     if not 0.0 < min_transmittance < 1.0:
         raise ValueError(f"splat: min_transmittance must lie in (0, 1), got {min_transmittance}")
+    if cull is not None and cull.count != n:
+        raise ValueError(f"splat: cull indexes {cull.count} Gaussians but {n} were given")
 
     bad: torch.Tensor | None = None  # rows with a non-finite value (None: every row is finite)
     for name, t in (
@@ -317,6 +324,9 @@ def splat(
             from image2sim.simulator.splatting.backends.cpu_kernel import render
 
             gaussians = (means, scales, quats, opacities, colors, features)
+            blocks = None
+            if cull is not None and isinstance(camera, PinholeCamera):
+                blocks = cull.keep(camera, pose, near, far)
             image, alpha = render(
                 *gaussians,
                 camera,
@@ -326,6 +336,7 @@ def splat(
                 far=far,
                 finite_mask=finite_mask,
                 t_min=min_transmittance,
+                blocks=blocks,
             )
             images.append(image)
             alphas.append(alpha)

@@ -42,6 +42,8 @@ __all__ = [
     "ALPHA_MIN",
     "ALPHA_MAX",
     "T_MIN",
+    "NEAR",
+    "FRUSTUM_MARGIN",
     "ProjectedGaussians",
     "quat_to_rotmat",
     "covariance_3d",
@@ -62,6 +64,9 @@ ALPHA_MAX = 0.99
 """Per-Gaussian alpha is clamped to at most this value."""
 T_MIN = 1e-4
 """A pixel is finished once its transmittance drops below this (the last Gaussian still counts)."""
+
+NEAR = 0.05
+"""Default near plane (metres): nearer points, and everything behind a pinhole camera, are culled."""
 
 FRUSTUM_MARGIN = 0.3
 """A pinhole Jacobian is evaluated with x/z clamped to [-cx/fx - m t, (W - cx)/fx + m t] (t = the
@@ -244,7 +249,7 @@ def project_gaussians(
     camera: EquirectCamera | PinholeCamera,
     cam_to_world: torch.Tensor,
     *,
-    near: float = 0.05,
+    near: float = NEAR,
     far: float | None = None,
     finite_mask: torch.Tensor | None = None,
 ) -> ProjectedGaussians:

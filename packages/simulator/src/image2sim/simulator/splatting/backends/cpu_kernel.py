@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from image2sim.simulator.extensions import build_guard
 from image2sim.simulator.splatting.backends.torch_tiles import TILE_SIZE
-from image2sim.simulator.splatting.project import T_MIN
+from image2sim.simulator.splatting.project import NEAR, T_MIN
 
 __all__ = [
     "available",
@@ -263,7 +263,7 @@ def _camera_tail(camera, cam_to_world, near, far, finite_mask) -> tuple:
 
 
 def project(
-    means, scales, quats, opacities, camera, cam_to_world, *, near: float = 0.05, far=None, finite_mask=None
+    means, scales, quats, opacities, camera, cam_to_world, *, near: float = NEAR, far=None, finite_mask=None
 ):
     """Inference-only fused projection (no autograd); same result as :func:`project_gaussians`."""
     from image2sim.simulator.geometry.cameras import EquirectCamera
@@ -294,21 +294,28 @@ def render(
     cam_to_world: torch.Tensor,
     background: torch.Tensor,
     *,
-    near: float = 0.05,
+    near: float = NEAR,
     far=None,
     finite_mask=None,
     t_min: float = T_MIN,
+    blocks: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Inference-only fused render of one camera (no autograd): ``(image (4 + C, H, W), alpha)``.
 
     ``background`` has 4 + C entries (rgb, depth, features). Same result as projecting with
-    :func:`project_gaussians`, sorting, and :func:`rasterize`.
+    :func:`project_gaussians`, sorting, and :func:`rasterize`. ``blocks``: ``(block_of (N,) int64,
+    keep (B,) bool)`` from :meth:`~image2sim.simulator.splatting.culling.FrustumBlocks.keep`: the
+    Gaussians of blocks not kept are skipped before projection (a conservative cull: same image).
     """
+    empty = torch.empty(0, dtype=torch.int64)
+    block_of, keep = blocks if blocks is not None else (empty, empty.bool())
     image, alpha = load().render_forward(
         *_dense(means, scales, quats, opacities, colors, features),
         *_camera_tail(camera, cam_to_world, near, far, finite_mask),
         background.detach().contiguous(),
         float(t_min),
+        block_of.contiguous(),
+        keep.contiguous(),
     )
     return image, alpha
 

@@ -24,7 +24,8 @@
 //   bound misses the image before their covariance is computed), sorts by depth (LSD radix sort on the
 //   float bits, stable, so ties keep input order), bins into tiles (counting sort, keeps depth
 //   order), packs per-Gaussian records and values contiguously in depth order, and rasterises in
-//   one call: no per-frame Python or small torch ops.
+//   one call: no per-frame Python or small torch ops. Optionally it first skips the Gaussians of
+//   spatial blocks that a pinhole view cannot see (culling.py's conservative block test).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -604,12 +605,20 @@ template <typename scalar_t>
 void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t* quats, const scalar_t* opac,
                   const bool* finite_mask, const double* c2w, const CamParams cam, int64_t N, scalar_t* out_uv,
                   scalar_t* out_conic, scalar_t* out_cov, scalar_t* out_depth, scalar_t* out_radii, bool* out_valid,
-                  bool cull_early = false) {
+                  bool cull_early = false, const int64_t* block_of = nullptr, const bool* block_keep = nullptr) {
+  // cull_early is the fused render's mode: it reads only the valid entries, so a culled Gaussian gets
+  // out_valid = false and nothing else is written (placeholders are for project_forward's callers).
+  // block_of / block_keep (fused mode only): a Gaussian whose spatial block cannot reach the image
+  // (culling.py's FrustumBlocks) is dropped before its mean is even transformed.
   const double kPi = 3.14159265358979323846;
   const double R[3][3] = {{c2w[0], c2w[1], c2w[2]}, {c2w[4], c2w[5], c2w[6]}, {c2w[8], c2w[9], c2w[10]}};
   const double t[3] = {c2w[3], c2w[7], c2w[11]};
   parallel_range(N, 2048, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) {
+      if (block_keep != nullptr && !block_keep[block_of[i]]) {
+        out_valid[i] = false;
+        continue;
+      }
       const double m[3] = {(double)means[3 * i] - t[0], (double)means[3 * i + 1] - t[1], (double)means[3 * i + 2] - t[2]};
       double p[3];
       for (int k = 0; k < 3; ++k) p[k] = m[0] * R[0][k] + m[1] * R[1][k] + m[2] * R[2][k];
@@ -631,6 +640,10 @@ void project_impl(const scalar_t* means, const scalar_t* scales, const scalar_t*
         const double rb = 3.5 * std::sqrt(jf2 * smax * smax + 0.6) + 1.0;
         const double uu = cam.fx * p[0] / z + cam.cx, vv = cam.fy * p[1] / z + cam.cy;
         if (uu + rb <= 0 || uu - rb >= cam.W || vv + rb <= 0 || vv - rb >= cam.H) valid = false;
+      }
+      if (cull_early && !valid) {
+        out_valid[i] = false;
+        continue;
       }
       if (valid) {
         double J[2][3];
@@ -810,7 +823,8 @@ torch::Tensor sort_valid(torch::Tensor depth, torch::Tensor valid) {
 std::vector<torch::Tensor> project_forward_impl(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
                                                 torch::Tensor opac, torch::Tensor finite_mask, torch::Tensor c2w,
                                                 bool equirect, double fx, double fy, double cx, double cy, int64_t H,
-                                                int64_t W, double near, double far, bool cull_early) {
+                                                int64_t W, double near, double far, bool cull_early,
+                                                torch::Tensor block_of = {}, torch::Tensor block_keep = {}) {
   const int64_t N = means.size(0);
   auto opts = means.options();
   auto uv = torch::empty({N, 2}, opts), conic = torch::empty({N, 3}, opts), cov = torch::empty({N, 3}, opts);
@@ -819,12 +833,27 @@ std::vector<torch::Tensor> project_forward_impl(torch::Tensor means, torch::Tens
   auto pose = c2w.to(torch::kFloat64).contiguous();
   const CamParams cam{equirect, fx, fy, cx, cy, H, W, near, far};
   const bool* mask = finite_mask.numel() ? finite_mask.data_ptr<bool>() : nullptr;
+  const bool blocks = block_keep.defined() && block_keep.numel() > 0;
+  if (blocks) {
+    TORCH_CHECK(cull_early, "splat_cpu: block culling is for the fused render only");
+    TORCH_CHECK(block_of.scalar_type() == torch::kInt64 && block_of.numel() == N && block_of.is_contiguous(),
+                "splat_cpu: block_of must be a contiguous int64 tensor with one entry per Gaussian");
+    TORCH_CHECK(block_keep.scalar_type() == torch::kBool && block_keep.is_contiguous(),
+                "splat_cpu: block_keep must be a contiguous bool tensor");
+    // Every block id must index block_keep: checked here once (one pass), not per Gaussian in the loop.
+    if (N > 0) {
+      const auto [lo, hi] = torch::aminmax(block_of);
+      TORCH_CHECK(lo.item<int64_t>() >= 0 && hi.item<int64_t>() < block_keep.numel(),
+                  "splat_cpu: block_of holds an id outside block_keep");
+    }
+  }
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splat_cpu_project", [&] {
     project_impl<scalar_t>(means.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                            opac.data_ptr<scalar_t>(), mask, pose.data_ptr<double>(), cam, N,
                            uv.data_ptr<scalar_t>(), conic.data_ptr<scalar_t>(), cov.data_ptr<scalar_t>(),
                            depth.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(), valid.data_ptr<bool>(),
-                           cull_early);
+                           cull_early, blocks ? block_of.data_ptr<int64_t>() : nullptr,
+                           blocks ? block_keep.data_ptr<bool>() : nullptr);
   });
   return {uv, conic, cov, depth, radii, valid};
 }
@@ -845,10 +874,11 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor sca
                                           torch::Tensor opac, torch::Tensor colors, torch::Tensor feats,
                                           torch::Tensor finite_mask, torch::Tensor c2w, bool equirect, double fx,
                                           double fy, double cx, double cy, int64_t H, int64_t W, double near,
-                                          double far, torch::Tensor bg, double t_min) {
+                                          double far, torch::Tensor bg, double t_min, torch::Tensor block_of,
+                                          torch::Tensor block_keep) {
   TORCH_CHECK(t_min > 0 && t_min < 1, "splat_cpu: t_min must lie in (0, 1), got ", t_min);
   auto proj = project_forward_impl(means, scales, quats, opac, finite_mask, c2w, equirect, fx, fy, cx, cy, H,
-                                   W, near, far, /*cull_early=*/true);
+                                   W, near, far, /*cull_early=*/true, block_of, block_keep);
   const auto& uv = proj[0];
   const auto& conic = proj[1];
   const auto& depth = proj[3];
