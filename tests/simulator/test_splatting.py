@@ -602,6 +602,28 @@ def test_nonfinite_inputs_raise_or_cull():
         splat(*scene, PH, torch.full((4, 4), float("nan"), dtype=torch.float64))
 
 
+def test_checked_gaussians_render_the_same_and_a_render_function_checks_once():
+    """``nonfinite="checked"`` skips the per-call scan only: the same image on finite input. A render
+    function checks its scene once, when it is made, and names the field."""
+    from image2sim.simulator.sim import GaussianRenderFn
+
+    scene = make_scene(20, 3, PH, 0)
+    for backend in ("reference", *BACKENDS):
+        a = splat(*scene, PH, EYE, backend=backend)
+        b = splat(*scene, PH, EYE, backend=backend, nonfinite="checked")
+        for name, t in planes(a).items():
+            torch.testing.assert_close(planes(b)[name], t, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="nonfinite must be one of"):
+        splat(*scene, PH, EYE, nonfinite="ignore")
+    names = ("means", "scales", "quats", "opacities", "colors")
+    fields = dict(zip(names, scene[:5], strict=True))
+    GaussianRenderFn(fields)  # finite: fine
+    bad = {k: v.clone() for k, v in fields.items()}
+    bad["scales"][7, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"GaussianRenderFn: scales has non-finite .* 1 of 20 .*index 7"):
+        GaussianRenderFn(bad)
+
+
 def test_bad_arguments_are_named():
     scene = make_scene(5, 3, PH, 0)
     with pytest.raises(ValueError, match="scales"):

@@ -24,7 +24,9 @@ Semantics (shared exactly by every backend; the dense reference in
   features = sum w_i f_i.
 * Culling: depth below ``near`` (includes all points behind a pinhole camera), beyond ``far``,
   opacity below 1/255, footprints off the image. Non-finite inputs raise ``ValueError`` (default)
-  or, with ``nonfinite="cull"``, drop the offending Gaussians.
+  or, with ``nonfinite="cull"``, drop the offending Gaussians; ``nonfinite="checked"`` skips the
+  per-call scan for a caller that checked its Gaussians once (:func:`check_finite`), as a render
+  function does for its scene.
 * Equirect: footprints crossing the +-180 degree seam appear on both edges (horizontal offsets are
   wrapped); near the poles the footprint is clamped to at most the full image width.
 """
@@ -51,7 +53,7 @@ from image2sim.simulator.splatting.dispatch import get_backend as _get_backend
 from image2sim.simulator.splatting.dispatch import resolve_backend as _resolve
 from image2sim.simulator.splatting.project import NEAR, T_MIN, project_gaussians
 
-__all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend"]
+__all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend", "check_finite", "NONFINITE_MODES"]
 
 
 @dataclass
@@ -206,6 +208,23 @@ def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor | None:
     return ~torch.isfinite(d).reshape(t.shape[0], -1).all(dim=1)
 
 
+NONFINITE_MODES = ("raise", "cull", "checked")
+
+
+def check_finite(owner: str, tensors: dict[str, torch.Tensor]) -> None:
+    """Raise ``ValueError`` naming ``owner``, the field and the rows when any value of ``tensors``
+    (Gaussian fields, one row per Gaussian) is NaN or inf: the one-off check behind
+    ``splat(..., nonfinite="checked")``."""
+    for name, t in tensors.items():
+        rows = _nonfinite_rows(t) if len(t) else None
+        if rows is not None and rows.any():
+            first = int(torch.nonzero(rows)[0])
+            raise ValueError(
+                f"{owner}: {name} has non-finite values (NaN/inf) in {int(rows.sum())} of {len(t)} "
+                f"Gaussians (first at index {first})"
+            )
+
+
 def splat(
     means: torch.Tensor,
     scales: torch.Tensor,
@@ -261,8 +280,8 @@ def splat(
         raise ValueError("splat: cam_to_world contains NaN or inf")
     if not (near >= 0) or (far is not None and not far > near):
         raise ValueError(f"splat: need 0 <= near < far, got near={near}, far={far}")
-    if nonfinite not in ("raise", "cull"):
-        raise ValueError(f"splat: nonfinite must be 'raise' or 'cull', got {nonfinite!r}")
+    if nonfinite not in NONFINITE_MODES:
+        raise ValueError(f"splat: nonfinite must be one of {NONFINITE_MODES}, got {nonfinite!r}")
     if not 0.0 < min_transmittance < 1.0:
         raise ValueError(f"splat: min_transmittance must lie in (0, 1), got {min_transmittance}")
     if cull is not None and cull.count != n:
@@ -277,7 +296,7 @@ def splat(
         ("colors", colors),
         ("features", features),
     ):
-        rows = _nonfinite_rows(t) if n else None
+        rows = _nonfinite_rows(t) if n and nonfinite != "checked" else None
         if rows is not None and rows.any():
             if nonfinite == "raise":
                 first = int(torch.nonzero(rows)[0])
