@@ -125,6 +125,8 @@ class GaussianRenderFn:
     (:data:`OBSERVATION_MIN_TRANSMITTANCE`). Pinhole views on the CPU skip the spatial blocks of
     Gaussians that cannot reach the image (:class:`~image2sim.simulator.splatting.culling.FrustumBlocks`,
     built at the first pinhole view): the same image, bit for bit, without projecting the rest.
+    The Gaussians are checked for NaN/inf when the function is made and indexed once: make a new
+    render function for changed Gaussians rather than editing its tensors.
     """
 
     def __init__(
