@@ -211,17 +211,17 @@ def _nonfinite_rows(t: torch.Tensor) -> torch.Tensor | None:
 NONFINITE_MODES = ("raise", "cull", "checked")
 
 
-def check_finite(owner: str, tensors: dict[str, torch.Tensor]) -> None:
-    """Raise ``ValueError`` naming ``owner``, the field and the rows when any value of ``tensors``
-    (Gaussian fields, one row per Gaussian) is NaN or inf: the one-off check behind
-    ``splat(..., nonfinite="checked")``."""
+def check_finite(owner: str, tensors: dict[str, torch.Tensor], hint: str = "") -> None:
+    """Raise ``ValueError`` naming ``owner``, the field and the rows (then ``hint``) when any value of
+    ``tensors`` (Gaussian fields, one row per Gaussian) is NaN or inf: ``splat``'s default check,
+    and the one-off check behind ``splat(..., nonfinite="checked")``."""
     for name, t in tensors.items():
         rows = _nonfinite_rows(t) if len(t) else None
         if rows is not None and rows.any():
             first = int(torch.nonzero(rows)[0])
             raise ValueError(
                 f"{owner}: {name} has non-finite values (NaN/inf) in {int(rows.sum())} of {len(t)} "
-                f"Gaussians (first at index {first})"
+                f"Gaussians (first at index {first}){hint}"
             )
 
 
@@ -287,24 +287,22 @@ def splat(
     if cull is not None and cull.count != n:
         raise ValueError(f"splat: cull indexes {cull.count} Gaussians but {n} were given")
 
+    fields = {
+        "means": means,
+        "scales": scales,
+        "quats": quats,
+        "opacities": opacities,
+        "colors": colors,
+        "features": features,
+    }
     bad: torch.Tensor | None = None  # rows with a non-finite value (None: every row is finite)
-    for name, t in (
-        ("means", means),
-        ("scales", scales),
-        ("quats", quats),
-        ("opacities", opacities),
-        ("colors", colors),
-        ("features", features),
-    ):
-        rows = _nonfinite_rows(t) if n and nonfinite != "checked" else None
-        if rows is not None and rows.any():
-            if nonfinite == "raise":
-                first = int(torch.nonzero(rows)[0])
-                raise ValueError(
-                    f"splat: {name} has non-finite values (NaN/inf) in {int(rows.sum())} of {n} Gaussians "
-                    f"(first at index {first}); pass nonfinite='cull' to drop them"
-                )
-            bad = rows if bad is None else bad | rows
+    if nonfinite == "raise":
+        check_finite("splat", fields, hint="; pass nonfinite='cull' to drop them")
+    elif nonfinite == "cull" and n:
+        for t in fields.values():
+            rows = _nonfinite_rows(t)
+            if rows is not None and rows.any():
+                bad = rows if bad is None else bad | rows
     if bad is not None:  # replace culled rows by finite stand-ins so no NaN reaches any gradient
         keep = ~bad
         means = torch.where(keep[:, None], means, torch.zeros_like(means))
