@@ -259,29 +259,20 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
+# The 3DGS PLY's per-Gaussian properties after the position and normal (features follow as feat_i).
+_PLY_GAUSSIAN_FIELDS = (
+    *(f"f_dc_{i}" for i in range(3)),
+    "opacity",
+    *(f"scale_{i}" for i in range(3)),
+    *(f"rot_{i}" for i in range(4)),
+)
+
+
 def write_gaussian_ply(path: str | Path, g: GaussianSet) -> Path:
     """3DGS vertex layout: x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3 feat_0..C-1 (float32)."""
     path = Path(path)
     n, c = len(g), g.feature_dim
-    names = [
-        "x",
-        "y",
-        "z",
-        "nx",
-        "ny",
-        "nz",
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        "opacity",
-        "scale_0",
-        "scale_1",
-        "scale_2",
-        "rot_0",
-        "rot_1",
-        "rot_2",
-        "rot_3",
-    ] + [f"feat_{i}" for i in range(c)]
+    names = ["x", "y", "z", "nx", "ny", "nz", *_PLY_GAUSSIAN_FIELDS] + [f"feat_{i}" for i in range(c)]
     data = np.zeros(n, dtype=np.dtype([(k, "<f4") for k in names]))
     t = {k: v.detach().cpu().double().numpy() for k, v in g.tensors().items()}
     if not np.isfinite(t["means"]).all():
@@ -310,20 +301,7 @@ def read_gaussian_ply(path: str | Path) -> GaussianSet:
         cols = read_ply(path)
     except PlyError as exc:
         raise SceneError(str(exc)) from None
-    need = [
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        "opacity",
-        "scale_0",
-        "scale_1",
-        "scale_2",
-        "rot_0",
-        "rot_1",
-        "rot_2",
-        "rot_3",
-    ]
-    missing = [k for k in need if k not in cols]
+    missing = [k for k in _PLY_GAUSSIAN_FIELDS if k not in cols]
     if missing:
         raise SceneError(f"{path}: not a 3D Gaussian Splatting PLY, missing properties {missing}")
     n = cols["points"].shape[0]
