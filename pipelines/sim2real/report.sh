@@ -85,5 +85,6 @@ image2sim eval sim2real \
   --policy splat_only="$O"/policies/splat_only/dagger/export \
   --policy exact="$O"/policies/exact/dagger/export \
   "${scaling[@]}" "${budget[@]}" ${checks[@]+"${checks[@]}"} \
+  --episodes "$O"/heldout/train/train.json.gz \
   --header pipelines/sim2real/report_header.md \
   --out metrics/sim2real.json --report reports/sim2real.md --plot plots/sim2real_scaling.png

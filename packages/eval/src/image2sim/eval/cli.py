@@ -396,6 +396,13 @@ def sim2real_cmd(
         list[str],
         typer.Option(help="NAME=FILE: a timing record of scripts/timed.py (wall_s, cpu_s) to report."),
     ] = [],  # noqa: B006
+    episodes: Annotated[
+        Path | None,
+        typer.Option(
+            help="The held-out episode file (json.gz) the rows were evaluated on: splits each row's SR "
+            "by the start's geodesic distance to the goal (rows with per-episode logs)."
+        ),
+    ] = None,
     header: Annotated[Path | None, typer.Option(help="Markdown put above the generated tables.")] = None,
     out: Annotated[Path, typer.Option(help="Metrics JSON.")] = Path("metrics/sim2real.json"),
     report: Annotated[Path, typer.Option(help="Markdown report.")] = Path("reports/sim2real.md"),
@@ -446,8 +453,17 @@ def sim2real_cmd(
             raise typer.BadParameter(str(exc), param_hint="--budget") from exc
     for name, folder in policies.items():
         budgets.setdefault(f"policy_{name}", {})["parameters"] = policy_parameters(folder)
+    start_distances = None
+    if episodes is not None:
+        from image2sim.eval.datasets import load_episode_file
+
+        try:
+            eps, _ = load_episode_file(episodes)
+        except (FileNotFoundError, ValueError) as exc:
+            raise typer.BadParameter(str(exc), param_hint="--episodes") from exc
+        start_distances = {e.episode_id: e.geodesic_distance for e in eps if e.geodesic_distance is not None}
     try:
-        doc = gather(rows, points, policies, budgets, checks)
+        doc = gather(rows, points, policies, budgets, checks, start_distances=start_distances)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     if header is not None:

@@ -39,12 +39,16 @@ __all__ = [
     "row_from_nav",
     "scaling_trend",
     "sim2real_markdown",
+    "sr_by_start_distance",
     "write_outputs",
 ]
 
 ROWS = ("neural", "splat_only", "exact", "random", "forward")
 """Rows of the transfer table: the three training sources and the two baselines."""
 TRAINED = ("neural", "splat_only", "exact")
+START_DISTANCE_EDGES = (3.0, 4.0, 6.0, 10.0)
+"""Bins of the start's geodesic distance to the goal (m) for the SR breakdown: the success distance
+is 3 m, so an episode of the first bin starts within 1 m of success; the last bin is open above."""
 BASELINES = ("random", "forward")
 
 
@@ -101,6 +105,7 @@ def gather(
     policies: Mapping[str, str] | None = None,
     budget: Mapping[str, Any] | None = None,
     extra_checks: Mapping[str, Any] | None = None,
+    start_distances: Mapping[str, float] | None = None,
 ) -> dict:
     """The ``metrics/sim2real.json`` document.
 
@@ -111,6 +116,9 @@ def gather(
         policies: row -> exported policy folder (relative to the repo root).
         budget: free-form training budget record (wall / CPU seconds, parameters, frames seen).
         extra_checks: more held-out evaluations, name -> ``{"rows": {...}}`` like ``rows``.
+        start_distances: episode id -> the start's geodesic distance to the goal (m) of the held-out
+            episodes; with it, ``by_start_distance`` splits the SR of every row with per-episode
+            results by :data:`START_DISTANCE_EDGES`.
     """
     protocol = None
     out_rows = {}
@@ -147,6 +155,8 @@ def gather(
     doc["checks"] = {"heldout": target_check(out_rows, successes=successes)}
     if INSTRUCTION_PAIR[0] in out_rows and INSTRUCTION_PAIR[1] in out_rows:
         doc["checks"]["instruction"] = instruction_check(out_rows, successes=successes)
+    if start_distances is not None and successes:
+        doc["by_start_distance"] = sr_by_start_distance(successes, start_distances)
     for name, spec in (extra_checks or {}).items():
         extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
         doc["checks"][name] = {**target_check(extra, successes=_successes_of(spec["rows"])), "rows": extra}
@@ -156,6 +166,56 @@ def gather(
 def _successes_of(specs: Mapping[str, Mapping[str, Any]]) -> dict[str, Mapping[str, bool]]:
     """Row -> its per-episode successes, for the rows that have them."""
     return {name: spec["successes"] for name, spec in specs.items() if spec.get("successes") is not None}
+
+
+def sr_by_start_distance(
+    successes: Mapping[str, Mapping[str, bool]],
+    start_distances: Mapping[str, float],
+    edges: Sequence[float] = START_DISTANCE_EDGES,
+) -> dict:
+    """SR in percent (Wilson 95 % interval) of each row per bin of the start's distance to the goal.
+
+    ``successes``: row -> episode id -> success; ``start_distances``: episode id -> metres. Bin ``i``
+    holds ``edges[i] <= d < edges[i + 1]`` (the last bin is open above); an episode nearer than
+    ``edges[0]`` is an error, as is a row's episode without a distance. Returns ``{"bins": [{"low",
+    "high" (None: open), "episodes"}], "rows": {row: [{"sr", "sr_ci", "episodes"} per bin]}}``;
+    a bin without episodes has ``sr`` None."""
+    from image2sim.eval.nav_summary import wilson_interval
+
+    edges = [float(e) for e in edges]
+    if not edges or any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
+        raise ValueError(f"start-distance edges must be increasing, got {edges}")
+
+    def bin_of(episode: str) -> int:
+        d = start_distances.get(episode)
+        if d is None or not math.isfinite(d):
+            raise ValueError(f"episode {episode!r} has no start distance in the episodes file")
+        if d < edges[0]:
+            raise ValueError(f"episode {episode!r} starts {d:.2f} m from its goal, below {edges[0]} m")
+        return sum(d >= e for e in edges[1:])
+
+    bins = [{"low": lo, "high": hi, "episodes": 0} for lo, hi in zip(edges, [*edges[1:], None], strict=True)]
+    counted: set[str] = set()
+    rows: dict[str, list[dict]] = {}
+    for name, per_episode in successes.items():
+        n = [0] * len(bins)
+        k = [0] * len(bins)
+        for episode, ok in per_episode.items():
+            i = bin_of(episode)
+            n[i] += 1
+            k[i] += bool(ok)
+            if episode not in counted:
+                counted.add(episode)
+                bins[i]["episodes"] += 1
+        rows[name] = [
+            {
+                "sr": 100.0 * k[i] / n[i] if n[i] else None,
+                "sr_ci": [100.0 * x for x in wilson_interval(k[i], n[i])] if n[i] else None,
+                "episodes": n[i],
+            }
+            for i in range(len(bins))
+        ]
+    return {"bins": bins, "rows": rows}
 
 
 def _paired(successes: Mapping[str, Mapping[str, bool]], policy: str, other: str) -> dict | None:
@@ -327,6 +387,7 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         for base, c in (chk.get("paired") or {}).items():
             out.append(f"- paired (`{name}`): {_paired_text(c, 'neural', base)}.")
         out.append("")
+    out += _start_distance_markdown(doc.get("by_start_distance"))
     if doc.get("scaling"):
         out += ["## Data scaling (neural simulator data, behaviour cloning only)", ""]
         out += [
@@ -353,6 +414,34 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         out.append("")
     out += budget_markdown(doc.get("budget") or {})
     return "\n".join(out)
+
+
+def _start_distance_markdown(split: Mapping[str, Any] | None) -> list[str]:
+    """The SR-by-start-distance table of :func:`sr_by_start_distance` (nothing without one)."""
+    if not split or not split.get("rows"):
+        return []
+    bins = split["bins"]
+    names = [r for r in (*ROWS, "oracle") if r in split["rows"]] + [
+        r for r in split["rows"] if r not in ROWS and r != "oracle"
+    ]
+    head = [f"{b['low']:g}-{b['high']:g} m" if b["high"] is not None else f">= {b['low']:g} m" for b in bins]
+    out = [
+        "## SR by the start's distance to the goal (geodesic)",
+        "",
+        "| row | " + " | ".join(head) + " |",
+        "|---|" + "---:|" * len(bins),
+        "| episodes | " + " | ".join(str(b["episodes"]) for b in bins) + " |",
+    ]
+    for name in names:
+        cells = [_fmt(c["sr"]) for c in split["rows"][name]]
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    out += [
+        "",
+        "SR in % per bin (rows with per-episode logs). The nearest bin starts just outside the success "
+        "distance, where a short walk in a plausible direction succeeds; the far bins show navigation.",
+        "",
+    ]
+    return out
 
 
 def budget_markdown(budget: Mapping[str, Any]) -> list[str]:
