@@ -111,8 +111,17 @@ def test_cli_splits_by_the_episode_files_distances(tmp_path):
     with gzip.open(episodes, "wt") as f:
         json.dump({"episodes": [episode(e, d) for e, d in DISTANCES.items()]}, f)
     base = ["sim2real", "--row", f"neural=image2nav@{tmp_path / 'neural' / 'nav.json'}"]
-    base += ["--out", str(tmp_path / "m.json"), "--report", str(tmp_path / "r.md")]
-    res = CliRunner().invoke(app, [*base, "--episodes", str(episodes)])
+    base += [
+        "--out",
+        str(tmp_path / "m.json"),
+        "--report",
+        str(tmp_path / "r.md"),
+        "--plot",
+        str(tmp_path / "p.png"),
+    ]
+    # a scaling point too: its HOUSES:EPISODES spec once overwrote the --episodes file in the command
+    scaling = ["--scaling", f"1:40=image2nav@{tmp_path / 'neural' / 'nav.json'}"]
+    res = CliRunner().invoke(app, [*base, *scaling, "--episodes", str(episodes)])
     assert res.exit_code == 0, res.output
     assert "| neural | 0.0 | 50.0 | 0.0 | 0.0 |" in (tmp_path / "r.md").read_text()
     saved = json.loads((tmp_path / "m.json").read_text())

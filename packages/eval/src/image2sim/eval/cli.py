@@ -396,11 +396,12 @@ def sim2real_cmd(
         list[str],
         typer.Option(help="NAME=FILE: a timing record of scripts/timed.py (wall_s, cpu_s) to report."),
     ] = [],  # noqa: B006
-    episodes: Annotated[
+    heldout_episodes: Annotated[
         Path | None,
         typer.Option(
+            "--episodes",
             help="The held-out episode file (json.gz) the rows were evaluated on: splits each row's SR "
-            "by the start's geodesic distance to the goal (rows with per-episode logs)."
+            "by the start's geodesic distance to the goal (rows with per-episode logs).",
         ),
     ] = None,
     header: Annotated[Path | None, typer.Option(help="Markdown put above the generated tables.")] = None,
@@ -454,11 +455,11 @@ def sim2real_cmd(
     for name, folder in policies.items():
         budgets.setdefault(f"policy_{name}", {})["parameters"] = policy_parameters(folder)
     start_distances = None
-    if episodes is not None:
+    if heldout_episodes is not None:
         from image2sim.eval.datasets import load_episode_file
 
         try:
-            eps, _ = load_episode_file(episodes)
+            eps, _ = load_episode_file(heldout_episodes)
         except (FileNotFoundError, ValueError) as exc:
             raise typer.BadParameter(str(exc), param_hint="--episodes") from exc
         start_distances = {e.episode_id: e.geodesic_distance for e in eps if e.geodesic_distance is not None}
