@@ -13,7 +13,8 @@ baselines. Each evaluation writes the usual ``nav.json`` document; this module g
      "gap": {"sr": exact - neural, ...},
      "scaling": [{"episodes" (training), "houses", "sr", "sr_ci", "spl", "ndtw", "eval_episodes"}, ...],
      "policies": {"neural": "<path relative to the repo root>", ...},
-     "budget": {...}, "checks": {...}}
+     "budget": {...}, "checks": {...},
+     "by_start_distance": {"bins": [...], "rows": {row: [{"sr", "sr_ci", "episodes"}, ...]}}}  # --episodes
 
 A check compares the policy with each baseline twice: by the issue's bar on the marginal 95 %
 intervals, and pair by pair on the same episodes (``checks.*.paired``: the SR difference with
