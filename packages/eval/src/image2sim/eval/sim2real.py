@@ -196,18 +196,16 @@ def sr_by_start_distance(
         return sum(d >= e for e in edges[1:])
 
     bins = [{"low": lo, "high": hi, "episodes": 0} for lo, hi in zip(edges, [*edges[1:], None], strict=True)]
-    counted: set[str] = set()
+    bin_index = {e: bin_of(e) for e in set().union(*successes.values())}  # every row's episodes, once
+    for i in bin_index.values():
+        bins[i]["episodes"] += 1
     rows: dict[str, list[dict]] = {}
     for name, per_episode in successes.items():
         n = [0] * len(bins)
         k = [0] * len(bins)
         for episode, ok in per_episode.items():
-            i = bin_of(episode)
-            n[i] += 1
-            k[i] += bool(ok)
-            if episode not in counted:
-                counted.add(episode)
-                bins[i]["episodes"] += 1
+            n[bin_index[episode]] += 1
+            k[bin_index[episode]] += bool(ok)
         rows[name] = [
             {
                 "sr": 100.0 * k[i] / n[i] if n[i] else None,
@@ -312,6 +310,11 @@ def _paired_text(c: Mapping[str, Any], policy: str, other: str) -> str:
     )
 
 
+def _in_row_order(names: Mapping[str, Any]) -> list[str]:
+    """The transfer table's order: :data:`ROWS` first, then the other rows as given."""
+    return [r for r in ROWS if r in names] + [r for r in names if r not in ROWS]
+
+
 def _fmt(v: Any, nd: int = 1) -> str:
     return "n/a" if v is None else f"{v:.{nd}f}"
 
@@ -327,7 +330,7 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         "| passed the goal % | stopped short % |"
     ]
     lines.append("|---|---|---|---:|---:|---:|---:|---:|---:|")
-    for name in [r for r in ROWS if r in doc["rows"]] + [r for r in doc["rows"] if r not in ROWS]:
+    for name in _in_row_order(doc["rows"]):
         r = doc["rows"][name]
         o = r.get("outcomes") or {}
         lines.append(
@@ -422,9 +425,6 @@ def _start_distance_markdown(split: Mapping[str, Any] | None) -> list[str]:
     if not split or not split.get("rows"):
         return []
     bins = split["bins"]
-    names = [r for r in (*ROWS, "oracle") if r in split["rows"]] + [
-        r for r in split["rows"] if r not in ROWS and r != "oracle"
-    ]
     head = [f"{b['low']:g}-{b['high']:g} m" if b["high"] is not None else f">= {b['low']:g} m" for b in bins]
     out = [
         "## SR by the start's distance to the goal (geodesic)",
@@ -433,7 +433,7 @@ def _start_distance_markdown(split: Mapping[str, Any] | None) -> list[str]:
         "|---|" + "---:|" * len(bins),
         "| episodes | " + " | ".join(str(b["episodes"]) for b in bins) + " |",
     ]
-    for name in names:
+    for name in _in_row_order(split["rows"]):
         cells = [_fmt(c["sr"]) for c in split["rows"][name]]
         out.append(f"| {name} | " + " | ".join(cells) + " |")
     out += [
