@@ -122,3 +122,57 @@ def test_build_scene_refine_steps_records_the_refinement(tmp_path):
     info = manifest["refine"]
     assert info["steps"] == 3 and info["frames"] == 3 and info["gaussians_after"] <= info["gaussians_before"]
     assert "refined 3 steps" in res.output
+    res = CliRunner().invoke(
+        sim_app,
+        ["build-scene", str(cap), "--out", str(out), "--no-navigation", "--no-ply", "--refine-steps", "0"]
+        + ["--overwrite"],
+    )
+    assert res.exit_code == 0, res.output
+    assert "refine" not in json.loads((out / "manifest.json").read_text()) and "refined" not in res.output
+
+
+def test_checkpoints_read_one_run_without_changing_it():
+    """``on_checkpoint`` sees the set at each requested count, in order, with growing seconds, and the
+    run it reads is the same run as without the callback (same final Gaussians)."""
+    truth = gaussians([[0.0, 0.0, 0.0], [0.6, 0.2, 0.3]], [[0.9, 0.2, 0.1], [0.1, 0.3, 0.9]])
+    start = gaussians([[0.12, -0.08, 0.0], [0.6, 0.2, 0.3]], [[0.6, 0.4, 0.3], [0.1, 0.3, 0.9]])
+    views = [view_of(truth, p) for p in poses()]
+    cfg = RefineConfig(steps=12, lr_means=5e-3, prune_every=5)
+    seen = []
+    checked, _ = refine_gaussians(
+        start, views, cfg, checkpoints=[4, 12, 99, 0], on_checkpoint=lambda k, g, s: seen.append((k, g, s))
+    )
+    plain, _ = refine_gaussians(start, views, cfg)
+    assert [k for k, _, _ in seen] == [4, 12]  # counts outside 1..steps are ignored
+    assert seen[0][2] <= seen[1][2]
+    assert torch.equal(seen[1][1].means, checked.means)
+    assert torch.equal(checked.means, plain.means) and torch.equal(checked.colors, plain.colors)
+    assert not torch.equal(seen[0][1].means, checked.means)  # the 4-step set is not the final one
+
+
+def test_compile_projection_is_chosen_by_work_and_validated(monkeypatch):
+    import image2sim.simulator.gaussians.refine as refine_mod
+
+    calls = []
+    real = refine_mod.frame_loss
+    monkeypatch.setattr(refine_mod, "frame_loss", lambda *a: calls.append(a[4]) or real(*a[:4]))
+    start = gaussians([[0.0, 0.0, 0.0]], [[0.5, 0.5, 0.5]])
+    views = [view_of(start, poses()[1])]
+    refine_gaussians(start, views, RefineConfig(steps=2))
+    monkeypatch.setattr(refine_mod, "COMPILE_WORK", 2)
+    refine_gaussians(start, views, RefineConfig(steps=2))
+    refine_gaussians(start, views, RefineConfig(steps=2, compile_projection="never"))
+    assert calls == [False, False, True, True, False, False]
+    with pytest.raises(ValueError, match="compile_projection must be auto, always or never"):
+        RefineConfig(compile_projection="yes").validate()
+
+
+def test_build_scene_refines_two_steps_per_frame_up_to_fifty_by_default():
+    from image2sim.simulator.gaussians.cli import (
+        BUILD_SCENE_REFINE_PASSES,
+        BUILD_SCENE_REFINE_STEPS,
+        default_refine_steps,
+    )
+
+    assert (BUILD_SCENE_REFINE_PASSES, BUILD_SCENE_REFINE_STEPS) == (2, 50)
+    assert [default_refine_steps(n) for n in (0, 1, 10, 25, 26, 86)] == [0, 2, 20, 50, 50, 50]

@@ -51,7 +51,7 @@ from image2sim.simulator.splatting.dispatch import (
 )
 from image2sim.simulator.splatting.dispatch import get_backend as _get_backend
 from image2sim.simulator.splatting.dispatch import resolve_backend as _resolve
-from image2sim.simulator.splatting.project import NEAR, T_MIN, project_gaussians
+from image2sim.simulator.splatting.project import NEAR, T_MIN, projector
 
 __all__ = ["SplatOutput", "splat", "available_backends", "resolve_backend", "check_finite", "NONFINITE_MODES"]
 
@@ -242,6 +242,7 @@ def splat(
     nonfinite: str = "raise",
     min_transmittance: float = T_MIN,
     cull: FrustumBlocks | None = None,
+    compile_projection: bool = False,
 ) -> SplatOutput:
     """Render N feature Gaussians into B views of ``camera``; see the module docstring for semantics.
 
@@ -249,7 +250,9 @@ def splat(
     background) with every backend. ``cull``: these Gaussians' spatial blocks
     (:class:`~image2sim.simulator.splatting.culling.FrustumBlocks`); the fused CPU inference path
     skips the blocks a pinhole view cannot see before projecting them. The image is the same with
-    or without it; other paths ignore it.
+    or without it; other paths ignore it. ``compile_projection``: project through
+    ``torch.compile`` where gradients are needed (:func:`~.project.projector`: the same result,
+    ~3.5x faster forward + backward after a one-off compile; for optimisation loops).
     """
     if not isinstance(camera, (EquirectCamera, PinholeCamera)):
         raise TypeError(f"splat: camera must be EquirectCamera or PinholeCamera, got {type(camera).__name__}")
@@ -358,7 +361,7 @@ def splat(
             images.append(image)
             alphas.append(alpha)
             continue
-        proj = project_gaussians(
+        proj = projector(compile_projection and needs_grad)(
             means,
             scales,
             quats,
