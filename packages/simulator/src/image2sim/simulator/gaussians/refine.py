@@ -68,9 +68,9 @@ class RefineConfig:
     compile_projection: str = "auto"
     """Project through ``torch.compile`` (``splat(..., compile_projection=True)``): ``always``,
     ``never`` or ``auto`` (when Gaussians x steps reach :data:`COMPILE_WORK`). Compiled steps are
-    ~2x faster (630 k Gaussians: 0.85 s against 1.77 s on one thread) after a one-off compile of
-    ~25-35 s (cached on disk by inductor), so only long refinements of large scenes gain; eager if
-    compiling fails."""
+    ~2x faster (630 k Gaussians: 0.76 s against 1.65 s on one thread, ``benchmarks/refine_step.py``)
+    after a one-off compile of ~30 s (cached on disk by inductor), so only long refinements of large
+    scenes gain; eager if compiling fails."""
 
     def validate(self) -> RefineConfig:
         problems = []

@@ -369,10 +369,11 @@ def projector(compiled: bool) -> Callable[..., ProjectedGaussians]:
     function through ``torch.compile`` with dynamic shapes.
 
     The compiled one fuses the float64 element-wise chain and its backward into generated C++ loops:
-    on a 2-core CPU, forward + backward of 630 k Gaussians into a 256x128 panorama take 0.31 s
-    against 1.07 s eagerly (same values; gradients within 1e-10 relative), after a one-off compile of
-    ~35 s per camera model (cached on disk by inductor). That pays for long optimisations such as
-    per-scene refinement, not for single renders. If compiling fails, it warns once and projects
+    on a 2-core CPU, forward + backward of 630 k Gaussians into a 256x128 panorama take 0.35 s
+    against 1.16 s eagerly (same values; gradients within 1e-10 relative;
+    ``benchmarks/refine_step.py``), after a one-off compile of ~30 s (cached on disk by inductor).
+    That pays for long optimisations such as per-scene refinement, not for single renders. If
+    compiling fails, it warns once and projects
     eagerly.
     """
     return _compiled_projection if compiled else project_gaussians
