@@ -72,7 +72,7 @@ def measure(name: str, scene, capture, repeats: int) -> list[dict]:
     import torch.nn.functional as F
     from harness import time_it
     from image2sim.simulator.gaussians.frames import prepare_frame
-    from image2sim.simulator.gaussians.refine import RefineConfig, _logit, frame_loss
+    from image2sim.simulator.gaussians.refine import RefineConfig, frame_loss, initial_parameters
     from image2sim.simulator.splatting import project as project_mod
     from image2sim.simulator.splatting.project import projector
 
@@ -80,14 +80,7 @@ def measure(name: str, scene, capture, repeats: int) -> list[dict]:
     view = prepare_frame(capture[3], enc["height"], enc["width"], scene.fusion.edge_tolerance)
     g = scene.gaussians
     depth_weight = RefineConfig().depth_weight
-    params = {
-        "means": g.means.clone(),
-        "log_scales": g.scales.clamp_min(1e-8).log(),
-        "quats": F.normalize(g.quats, dim=-1).clone(),
-        "opacity_logits": _logit(g.opacities),
-        "color_logits": _logit(g.colors),
-    }
-    params = {k: torch.nn.Parameter(v) for k, v in params.items()}
+    params = initial_parameters(g)
     opt = torch.optim.Adam(list(params.values()), lr=1e-6, eps=1e-15)  # tiny: the scene barely moves
 
     def step(compiled: bool) -> None:
@@ -151,8 +144,7 @@ def run(args) -> None:
     lines = [
         "# One refinement step: eager against compiled projection (`benchmarks/refine_step.py`)",
         "",
-        f"- Hardware: {hardware()}; load average {load:.1f} at start; "
-        f"{utc_now()}",
+        f"- Hardware: {hardware()}; load average {load:.1f} at start; {utc_now()}",
         f"- Median of {args.repeats} calls after one warm-up, wall seconds (CPU seconds in the JSON). "
         "`step`: splat one source frame (256x128 panorama, tiny config) through the differentiable "
         "path, RGB L1 + 0.5 x relative depth error, backward, Adam. `projection`: forward + backward "

@@ -27,7 +27,15 @@ import torch.nn.functional as F
 from image2sim.simulator.gaussians.frames import prepare_frame
 from image2sim.simulator.gaussians.primitives import FrameInputs, GaussianSet
 
-__all__ = ["COMPILE_WORK", "RefineConfig", "RefineLog", "refine_gaussians", "refine_scene"]
+__all__ = [
+    "COMPILE_WORK",
+    "RefineConfig",
+    "RefineLog",
+    "frame_loss",
+    "initial_parameters",
+    "refine_gaussians",
+    "refine_scene",
+]
 
 _EPS = 1e-4  # opacities and colours are kept in (eps, 1 - eps) so their logits stay finite
 
@@ -126,6 +134,20 @@ def _logit(p: torch.Tensor) -> torch.Tensor:
     return torch.log(p) - torch.log1p(-p)
 
 
+def initial_parameters(gaussians: GaussianSet) -> dict[str, torch.nn.Parameter]:
+    """The optimised parameters of a set, raw (means, log-scales, unit quaternions, opacity and colour
+    logits), as fresh leaves: what :func:`frame_loss` reads."""
+    g = gaussians.detach()
+    raw = {
+        "means": g.means.clone(),
+        "log_scales": g.scales.clamp_min(1e-8).log(),
+        "quats": F.normalize(g.quats, dim=-1).clone(),
+        "opacity_logits": _logit(g.opacities),
+        "color_logits": _logit(g.colors),
+    }
+    return {k: torch.nn.Parameter(v) for k, v in raw.items()}
+
+
 def frame_loss(
     g: dict[str, torch.Tensor],
     features: torch.Tensor,
@@ -183,13 +205,7 @@ def refine_gaussians(
         raise ValueError("refine_gaussians: no frames to refine against")
     t0 = time.perf_counter()
     g0 = gaussians.detach()
-    params = {
-        "means": g0.means.clone(),
-        "log_scales": g0.scales.clamp_min(1e-8).log(),
-        "quats": F.normalize(g0.quats, dim=-1).clone(),
-        "opacity_logits": _logit(g0.opacities),
-        "color_logits": _logit(g0.colors),
-    }
+    params = initial_parameters(g0)
     lrs = {
         "means": cfg.lr_means,
         "log_scales": cfg.lr_scales,
@@ -197,7 +213,6 @@ def refine_gaussians(
         "opacity_logits": cfg.lr_opacities,
         "color_logits": cfg.lr_colors,
     }
-    params = {k: torch.nn.Parameter(v) for k, v in params.items()}
     opt = torch.optim.Adam([{"params": [p], "lr": lrs[k], "name": k} for k, p in params.items()], eps=1e-15)
     carried = {k: getattr(g0, k) for k in ("features", "footprints", "weights", "levels")}
     compiled = cfg.compile_projection == "always" or (
