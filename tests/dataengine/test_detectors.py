@@ -395,3 +395,26 @@ def test_a_second_run_copies_scene_assets_from_the_content_keyed_cache(tmp_path,
     key = content_key(cap, "navigation", "procedural=True")
     (cap / "frames" / "00000_pose.json").write_text((cap / "frames" / "00000_pose.json").read_text() + " ")
     assert content_key(cap, "navigation", "procedural=True") != key
+
+
+def test_refined_scene_gaussians_are_recorded_and_keyed_apart(tmp_path):
+    """``refine_steps``: the Gaussians the engine builds are refined (recorded in their manifest; -1
+    resolves to two steps per frame), and the content-keyed cache keeps them apart from the
+    feed-forward build of the same capture."""
+    import json
+
+    from image2sim.dataengine.procedural import preset, synthesize
+    from image2sim.dataengine.scene_assets import resolve_scene, scene_gaussians
+
+    cap = synthesize(preset("tiny"), tmp_path / "caps", scenes=1, seed=0, progress=False)[0]
+    inputs = resolve_scene(cap)
+    cache = tmp_path / "assets"
+    manifests = {}
+    for steps in (0, 2, -1):
+        folder = scene_gaussians(inputs, tmp_path / f"run{steps}", str(cache), refine_steps=steps)
+        manifests[steps] = json.loads((folder / "manifest.json").read_text())
+    frames = len(manifests[0]["frames"])
+    assert "refine" not in manifests[0]
+    assert manifests[2]["refine"]["steps"] == 2
+    assert manifests[-1]["refine"]["steps"] == min(50, 2 * frames)
+    assert len(list(cache.iterdir())) == 3  # three keys: nothing reused across refinement settings

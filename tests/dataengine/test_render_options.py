@@ -27,6 +27,7 @@ def test_renderer_needs_gaussian_rendering():
         ("goal_view_distance", 0.0),
         ("goal_view_distance", float("nan")),
         ("device", "tpu"),
+        ("refine_steps", -2),
     ],
 )
 def test_invalid_options_are_rejected(field, value):

@@ -168,11 +168,11 @@ def test_compile_projection_is_chosen_by_work_and_validated(monkeypatch):
 
 
 def test_build_scene_refines_two_steps_per_frame_up_to_fifty_by_default():
-    from image2sim.simulator.gaussians.cli import (
-        BUILD_SCENE_REFINE_PASSES,
-        BUILD_SCENE_REFINE_STEPS,
+    from image2sim.simulator.gaussians.refine import (
+        DEFAULT_MAX_STEPS,
+        DEFAULT_STEPS_PER_FRAME,
         default_refine_steps,
     )
 
-    assert (BUILD_SCENE_REFINE_PASSES, BUILD_SCENE_REFINE_STEPS) == (2, 50)
+    assert (DEFAULT_STEPS_PER_FRAME, DEFAULT_MAX_STEPS) == (2, 50)
     assert [default_refine_steps(n) for n in (0, 1, 10, 25, 26, 86)] == [0, 2, 20, 50, 50, 50]

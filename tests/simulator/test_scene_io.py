@@ -154,7 +154,7 @@ def test_cli_build_scene_and_render(procedural_capture, tmp_path):
     manifest = json.loads((scene_dir / "manifest.json").read_text())
     assert [f["index"] for f in manifest["frames"]] == [0, 1, 2]
     assert manifest["encoder"]["kind"] == "identity" and (scene_dir / "gaussians.ply").is_file()
-    from image2sim.simulator.gaussians.cli import default_refine_steps
+    from image2sim.simulator.gaussians.refine import default_refine_steps
 
     assert manifest["refine"]["steps"] == default_refine_steps(3) == 6  # the default path refines
     assert manifest["refine"]["loss_last"] < manifest["refine"]["loss_first"]

@@ -127,6 +127,13 @@ def episodes_command(
         help="gaussians: preset name or YAML of the identity Gaussian scenes built from the captures "
         "(e.g. a coarser fusion.footprint_factor for cheaper frames).",
     ),
+    refine_steps: int = typer.Option(
+        0,
+        "--refine-steps",
+        help="gaussians: refine each scene built from a capture this many steps against its frames "
+        "(0: feed-forward, the default; -1: as sim build-scene does, two steps per frame, at most 50).",
+        min=-1,
+    ),
     executor: str = typer.Option(
         "local",
         "--executor",
@@ -203,6 +210,7 @@ def episodes_command(
             renderer=None if renderer is None else str(renderer),
             device=device,
             gaussians=gaussians,
+            refine_steps=refine_steps,
             rollout={} if min_steps is None else {"min_steps": min_steps},
             sampling=_parse_options(sampling),
             approach={"views": approach_views} if approach_views else {},

@@ -56,6 +56,11 @@ class EngineConfig:
     preset name or YAML into it). Empty: the ``tiny`` preset. A coarser fusion
     (``fusion.footprint_factor``) makes fewer Gaussians and cheaper frames
     (``reports/scene_density.md``)."""
+    refine_steps: int = 0
+    """Per-scene refinement of the Gaussian scenes built from captures (``gaussians.refine``): 0 keeps
+    them feed-forward (the default: the engine builds many scenes, and refining the HM3D sample takes
+    ~45 s more); N refines N steps; -1 as ``sim build-scene`` does (two steps per frame, at most 50),
+    which brings a scene within ~0.5 dB of each source frame (docs/scenes.md)."""
     device: str = "cpu"
     """Torch device the Gaussian observations render on: cpu, or cuda / cuda:N on a GPU machine (the
     splat and the pixel-flow renderer; the exact procedural renderer, the navigation and the files stay
@@ -106,6 +111,7 @@ class EngineConfig:
         if self.per_scene is not None:
             require_at_least(self, "per_scene", 1, where)
         require_at_least(self, "frame_stride", 1, where)
+        require_at_least(self, "refine_steps", -1, where)
         require_at_least(self, "obs_height", 8, where)
         if self.detector == "none" and self.annotator != "template":
             raise ConfigError(

@@ -77,7 +77,7 @@ class GaussianPrebuild:
         ctx = mp.get_context("spawn")
         receiver, sender = ctx.Pipe(duplex=False)
         cache = str(asset_cache) if asset_cache else None
-        args = (os.getpid(), sender, inputs, out, cache, cfg.gaussians, workers)
+        args = (os.getpid(), sender, inputs, out, cache, cfg.gaussians, workers, cfg.refine_steps)
         process = ctx.Process(target=_prebuild_main, args=args, daemon=True)
         process.start()
         sender.close()
@@ -102,7 +102,14 @@ class GaussianPrebuild:
 
 
 def _prebuild_main(
-    parent_pid: int, conn, inputs: SceneInputs, out: Path, asset_cache, gaussians, workers: int
+    parent_pid: int,
+    conn,
+    inputs: SceneInputs,
+    out: Path,
+    asset_cache,
+    gaussians,
+    workers: int,
+    refine_steps: int,
 ) -> None:
     from image2sim.simulator.lifetime import worker_init
 
@@ -110,7 +117,7 @@ def _prebuild_main(
     try:
         # Frames on `workers` threads: once this process's parent has its map and rollouts, it
         # waits here, and the cores are this build's.
-        scene_gaussians(inputs, out, asset_cache, gaussians, workers)
+        scene_gaussians(inputs, out, asset_cache, gaussians, workers, refine_steps)
         conn.send("")
     except BaseException as err:  # reported to the parent, which raises it
         conn.send(f"{type(err).__name__}: {err}")
@@ -155,7 +162,13 @@ def _render_setup(scene_dir: str, out: str, cfg: dict) -> None:
     inputs = resolve_scene(scene_dir)
     navmap, graph = scene_navigation(inputs, Path(out))  # cached by the parent: loaded, not rebuilt
     render_fn, _ = scene_render_fn(
-        inputs, Path(out), config.render, config.renderer, device=config.device, gaussians=config.gaussians
+        inputs,
+        Path(out),
+        config.render,
+        config.renderer,
+        device=config.device,
+        gaussians=config.gaussians,
+        refine_steps=config.refine_steps,
     )
     _RENDER_STATE.update(sim=NeuralSimulator(navmap, graph), render_fn=render_fn, cfg=config)
 

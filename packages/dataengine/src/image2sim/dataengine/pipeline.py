@@ -260,7 +260,9 @@ def _run_scene(inputs, out: Path, cfg: EngineConfig, render_workers: int, asset_
     render_fn, render_mode = (
         (None, "none")
         if cfg.render == "none"
-        else scene_render_fn(inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device, cfg.gaussians)
+        else scene_render_fn(
+            inputs, out, cfg.render, cfg.renderer, asset_cache, cfg.device, cfg.gaussians, cfg.refine_steps
+        )
     )
     if cfg.annotator != "template" and render_fn is None:
         raise ValueError(f"{inputs.name}: VLM annotators need rendered views (render={cfg.render!r})")

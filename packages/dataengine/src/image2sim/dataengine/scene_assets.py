@@ -152,11 +152,13 @@ def scene_gaussians(
     asset_cache: str | None = None,
     gaussians: dict | None = None,
     workers: int = 1,
+    refine_steps: int = 0,
 ) -> Path:
     """The folder of the scene's Gaussians: a built scene's own, else this run's (``cache``), else
     copied from the content-keyed ``asset_cache``, else built from the capture with the identity
     encoder and ``gaussians`` (plain data over a preset; None or empty: ``tiny``; ``workers``
-    frames at a time) and stored."""
+    frames at a time), refined ``refine_steps`` steps against the capture (0: feed-forward; -1:
+    :func:`~image2sim.simulator.gaussians.refine.default_refine_steps`), and stored."""
     if inputs.gaussian_dir is not None:
         return inputs.gaussian_dir
     from image2sim.dataengine.asset_cache import cached, content_key
@@ -168,14 +170,24 @@ def scene_gaussians(
     # (e.g. before best-view selection) is never reused.
     gcfg = gaussian_config_from_dict(gaussians or {})
     config = json.dumps(config_to_dict(gcfg), sort_keys=True)
+    refined = f" refine {refine_steps}" if refine_steps else ""  # feed-forward keys stay as they were
+
+    def build() -> None:
+        scene = build_scene(inputs.capture_dir, gcfg, encoder="identity", workers=workers)
+        if refine_steps:
+            from image2sim.simulator.gaussians.refine import RefineConfig, default_refine_steps, refine_scene
+            from image2sim.simulator.io.registry import open_capture
+
+            steps = default_refine_steps(len(scene.frames)) if refine_steps < 0 else refine_steps
+            refine_scene(scene, open_capture(inputs.capture_dir), None, RefineConfig(steps=steps))
+        scene.save(folder, overwrite=True)
+
     cached(
         asset_cache,
-        lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}"),
+        lambda: content_key(inputs.capture_dir, "gaussians", f"identity {config}{refined}"),
         ["gaussians"],
         cache,
-        lambda: build_scene(inputs.capture_dir, gcfg, encoder="identity", workers=workers).save(
-            folder, overwrite=True
-        ),
+        build,
     )
     return folder
 
@@ -188,10 +200,12 @@ def scene_render_fn(
     asset_cache: str | None = None,
     device: str = "cpu",
     gaussians: dict | None = None,
+    refine_steps: int = 0,
 ):
     """(render function or None, mode actually used). ``device``: where Gaussian scenes render (cpu or
-    cuda); the exact procedural renderer always runs on the CPU. ``gaussians``: the Gaussian config of
-    scenes built from a capture (plain data over a preset; None or empty: ``tiny``)."""
+    cuda); the exact procedural renderer always runs on the CPU. ``gaussians``, ``refine_steps``: the
+    Gaussian config of scenes built from a capture (plain data over a preset; None or empty: ``tiny``)
+    and their refinement (:func:`scene_gaussians`)."""
     if renderer is not None and mode == "auto":
         mode = "gaussians"
     if mode == "auto":
@@ -207,7 +221,9 @@ def scene_render_fn(
     from image2sim.simulator.gaussians import GaussianScene
     from image2sim.simulator.sim import gaussian_render_fn
 
-    g = GaussianScene.load(scene_gaussians(inputs, cache, asset_cache, gaussians)).gaussians
+    g = GaussianScene.load(
+        scene_gaussians(inputs, cache, asset_cache, gaussians, refine_steps=refine_steps)
+    ).gaussians
     # Panoramic with a renderer: the simulator cuts the pinhole / ultra-wide views out of the panorama.
     fn = gaussian_render_fn(g, renderer, device=device)
     return fn, ("gaussians+pixel-flow" if renderer is not None else mode)

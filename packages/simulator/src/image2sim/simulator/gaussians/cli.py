@@ -7,32 +7,7 @@ from pathlib import Path
 
 import typer
 
-__all__ = [
-    "BUILD_SCENE_REFINE_PASSES",
-    "BUILD_SCENE_REFINE_STEPS",
-    "build_scene_command",
-    "default_refine_steps",
-    "render_command",
-    "train_geometry_command",
-]
-
-BUILD_SCENE_REFINE_STEPS = 50
-"""``sim build-scene``'s most refinement steps by default: on the fidelity benchmark's captures (HM3D
-sample, three procedural houses) 50 steps close the own-pose gap to the single-frame scene to
-<= 0.5 dB (from 2.2-3.4 dB) and gain 0.3-1.6 dB on held-out panoramas, in ~45 s for the HM3D
-sample's 612 k Gaussians and ~19 s for a 184 k procedural house (one thread, 2-core CPU)."""
-
-BUILD_SCENE_REFINE_PASSES = 2
-"""... and at most this many steps per source frame (each step fits one frame), so that a scene of
-few frames is not fitted to them far beyond what a large capture gets. On the HM3D sample a
-single-frame scene refined 50 steps scores 32.9 dB at its own pose (26.3-28.3 unrefined) but loses
-0.1-0.7 dB at its neighbours' poses in 4 of 6 views; 2 steps change those views by < 0.1 dB."""
-
-
-def default_refine_steps(frames: int) -> int:
-    """``sim build-scene``'s refinement steps for a scene of ``frames`` source frames (``--refine-steps
-    -1``): two steps per frame, at most 50."""
-    return min(BUILD_SCENE_REFINE_STEPS, BUILD_SCENE_REFINE_PASSES * max(frames, 0))
+__all__ = ["build_scene_command", "render_command", "train_geometry_command"]
 
 
 def _parse_frames(text: str | None) -> list[int] | None:
@@ -123,6 +98,8 @@ def build_scene_command(
             )
         refined = None
         if refine_steps < 0:
+            from image2sim.simulator.gaussians.refine import default_refine_steps
+
             refine_steps = default_refine_steps(len(scene.frames))
         if refine_steps:
             from image2sim.simulator.gaussians.refine import RefineConfig, refine_scene
