@@ -176,3 +176,27 @@ def test_build_scene_refines_two_steps_per_frame_up_to_fifty_by_default():
 
     assert (DEFAULT_STEPS_PER_FRAME, DEFAULT_MAX_STEPS) == (2, 50)
     assert [default_refine_steps(n) for n in (0, 1, 10, 25, 26, 86)] == [0, 2, 20, 50, 50, 50]
+
+
+def test_refine_scene_prepares_only_the_frames_it_reads(tmp_path, monkeypatch):
+    """A refinement of N steps decodes at most N of the capture's frames (each once), not all."""
+    import dataclasses
+
+    import image2sim.simulator.gaussians.refine as refine_mod
+    from image2sim.dataengine.procedural import generate_scene, preset, write_scene
+    from image2sim.simulator.gaussians import build_scene, tiny
+    from image2sim.simulator.io.registry import open_capture
+
+    sc = preset("tiny")
+    sc = dataclasses.replace(sc, capture=dataclasses.replace(sc.capture, views=6))
+    cap = tmp_path / "scene_000"
+    write_scene(generate_scene(sc, seed=1), cap)
+    scene = build_scene(cap, tiny())
+    prepared = []
+    real = refine_mod.prepare_frame
+    monkeypatch.setattr(refine_mod, "prepare_frame", lambda f, *a: prepared.append(f.frame_id) or real(f, *a))
+    log = refine_mod.refine_scene(
+        scene, open_capture(cap), None, RefineConfig(steps=2, compile_projection="never")
+    )
+    assert log.steps == 2 and len(prepared) == 2 and len(set(prepared)) == 2
+    assert scene.info["refine"]["frames"] == 6

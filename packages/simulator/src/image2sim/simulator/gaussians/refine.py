@@ -283,6 +283,25 @@ def refine_gaussians(
     return refined, log
 
 
+class _PreparedFrames(Sequence):
+    """Frames prepared on first use, then kept: a refinement of N steps reads at most N of them, so a
+    large capture does not decode every frame up front."""
+
+    def __init__(self, prepare: Callable[[int], FrameInputs], indices: list[int]) -> None:
+        self._prepare, self._indices, self._done = prepare, indices, {}
+
+    def __len__(self) -> int:
+        return len(self._indices)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        k = range(len(self._indices))[k]  # negative indices and bounds as a list's
+        if k not in self._done:
+            self._done[k] = self._prepare(self._indices[k])
+        return self._done[k]
+
+
 def _current_set(params: dict[str, torch.Tensor], carried: dict[str, torch.Tensor]) -> GaussianSet:
     """The optimised parameters as a detached :class:`GaussianSet` (activations applied)."""
     with torch.no_grad():
@@ -339,7 +358,7 @@ def refine_scene(
     if frames is None:
         frames = [f["index"] for f in scene.frames if f.get("index") is not None]
     edge = scene.fusion.edge_tolerance
-    views = [prepare_frame(capture[i], h, w, edge) for i in frames]
+    views = _PreparedFrames(lambda i: prepare_frame(capture[i], h, w, edge), list(frames))
     refined, log = refine_gaussians(
         scene.gaussians, views, cfg, progress=progress, checkpoints=checkpoints, on_checkpoint=on_checkpoint
     )
