@@ -109,7 +109,8 @@ def test_report_writes_the_figure_atomically_from_pipeline_outputs(outputs, repo
 
 def test_figure_shows_the_view_and_scores_of_eval_render(outputs, report_run):
     """The figure's held-out view, splat prior and rendering are those ``eval render`` scores."""
-    from image2sim.eval.render_bench import RenderBenchConfig, _methods, benchmark_methods, splat_samples
+    from image2sim.eval.render_bench import RenderBenchConfig, _methods, benchmark_methods
+    from image2sim.eval.render_samples import splat_samples
     from image2sim.simulator.renderer.config import load_renderer_config
 
     _, shown = report_run

@@ -12,15 +12,13 @@ import torch
 from image2sim.eval.plots import plot_speed_vs_error, speed_points
 from image2sim.eval.render_bench import (
     HEADLINE_METHODS,
-    NOISE_TIERS,
     RenderBenchConfig,
-    RenderBenchError,
-    _tier_samples,
     benchmark_methods,
     load_renderer,
     method_record,
     run_render_bench,
 )
+from image2sim.eval.render_samples import NOISE_TIERS, RenderBenchError, tier_samples
 from image2sim.eval.results import read_metrics_file
 
 from .test_metrics_files import assert_metrics_only
@@ -59,7 +57,7 @@ def _reference_psnr_absrel(pred_rgb, pred_depth, rgb, depth):
 
 
 def test_scores_match_a_slow_reference_and_tiers_order_the_error(held):
-    samples = {t: _tier_samples(held, t, seed=3, max_views=None) for t in ("none", "high")}
+    samples = {t: tier_samples(held, t, seed=3, max_views=None) for t in ("none", "high")}
     fn = _splat_only()
     cells = benchmark_methods({"splat_only": fn}, samples, warmup=0, runs=1)
     for tier, ss in samples.items():
@@ -81,7 +79,7 @@ def test_scores_match_a_slow_reference_and_tiers_order_the_error(held):
 
 
 def test_a_perfect_method_scores_infinite_psnr_and_zero_depth_error(held):
-    samples = {"none": _tier_samples(held, "none", seed=0, max_views=2)}
+    samples = {"none": tier_samples(held, "none", seed=0, max_views=2)}
 
     def oracle(cond, poses):
         # Finds the sample by condition identity (the benchmark passes views unchanged).
@@ -97,7 +95,7 @@ def test_a_perfect_method_scores_infinite_psnr_and_zero_depth_error(held):
 
 
 def test_fps_excludes_warm_up_calls(held):
-    samples = {"none": _tier_samples(held, "none", seed=0, max_views=1)}
+    samples = {"none": tier_samples(held, "none", seed=0, max_views=1)}
     calls = {"n": 0}
 
     def slow_start(cond, poses):
@@ -114,26 +112,26 @@ def test_fps_excludes_warm_up_calls(held):
 
 
 def test_fps_includes_the_condition_splatting_time_when_known(held):
-    samples = [dict(s, condition_seconds=0.5) for s in _tier_samples(held, "none", seed=0, max_views=1)]
+    samples = [dict(s, condition_seconds=0.5) for s in tier_samples(held, "none", seed=0, max_views=1)]
 
     def instant(cond, poses):
         return cond[:, 16:19], cond[:, 19:20]
 
     cell = benchmark_methods({"m": instant}, {"none": samples}, warmup=1, runs=3)["m"]["none"]
     assert 1.0 < cell.fps <= 2.0  # end to end: at most 1 / 0.5 s of splatting per frame
-    plain = benchmark_methods({"m": instant}, {"none": _tier_samples(held, "none", seed=0, max_views=1)})
+    plain = benchmark_methods({"m": instant}, {"none": tier_samples(held, "none", seed=0, max_views=1)})
     assert plain["m"]["none"].fps > 10 * cell.fps
     # Views of two captures with different splatting times: the view-weighted mean counts, not the
     # first capture's (2 views at 0.1 s, 1 at 0.7 s -> 0.3 s per frame).
-    views = _tier_samples(held, "none", seed=0, max_views=3)
+    views = tier_samples(held, "none", seed=0, max_views=3)
     mixed = [dict(s, condition_seconds=0.1 if k < 2 else 0.7) for k, s in enumerate(views)]
     both = benchmark_methods({"m": instant}, {"none": mixed}, warmup=1, runs=3)["m"]["none"]
     assert 1 / 0.3 * 0.8 < both.fps <= 1 / 0.3
 
 
 def test_method_record_weights_tiers_by_views(held):
-    s_none = _tier_samples(held, "none", seed=0, max_views=3)
-    s_high = _tier_samples(held, "high", seed=0, max_views=1)
+    s_none = tier_samples(held, "none", seed=0, max_views=3)
+    s_high = tier_samples(held, "high", seed=0, max_views=1)
     cells = benchmark_methods(
         {"splat_only": _splat_only()}, {"none": s_none, "high": s_high}, warmup=0, runs=1
     )
@@ -246,7 +244,7 @@ def tiny_capture(tmp_path_factory):
 
 
 def test_splat_samples_hold_out_the_renderer_split_and_splat_the_other_frames(tiny_capture):
-    from image2sim.eval.render_bench import splat_samples
+    from image2sim.eval.render_samples import splat_samples
     from image2sim.simulator.renderer.config import CONDITION_FEATURES
 
     samples = splat_samples([tiny_capture], 32, 64, holdout_every=4)
@@ -271,7 +269,7 @@ def test_splat_samples_hold_out_the_renderer_split_and_splat_the_other_frames(ti
 
 
 def test_splat_samples_with_sparse_sources_splat_only_every_nth_training_frame(tiny_capture):
-    from image2sim.eval.render_bench import splat_condition, splat_samples
+    from image2sim.eval.render_samples import splat_condition, splat_samples
     from image2sim.simulator.gaussians import build_scene
     from image2sim.simulator.gaussians.config import load_gaussian_config
     from image2sim.simulator.geometry.cameras import EquirectCamera
@@ -319,7 +317,7 @@ def middle_capture(tmp_path_factory):
 
 
 def test_exact_targets_reproduce_a_noise_free_capture(tiny_capture, tmp_path):
-    from image2sim.eval.render_bench import exact_targets
+    from image2sim.eval.render_samples import exact_targets
     from image2sim.simulator.io.registry import open_capture
     from image2sim.simulator.renderer.data import load_capture_targets
 
@@ -334,7 +332,7 @@ def test_exact_targets_reproduce_a_noise_free_capture(tiny_capture, tmp_path):
 
 
 def test_middle_tier_views_are_scored_against_exact_ground_truth_not_the_noisy_capture(middle_capture):
-    from image2sim.eval.render_bench import exact_targets, splat_samples
+    from image2sim.eval.render_samples import exact_targets, splat_samples
     from image2sim.simulator.io.registry import open_capture
     from image2sim.simulator.renderer.data import load_capture_targets
 

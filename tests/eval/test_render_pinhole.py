@@ -5,14 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from image2sim.eval.render_bench import (
-    RenderBenchConfig,
-    RenderBenchError,
-    pinhole_faces,
-    render_markdown,
-    run_render_bench,
-    splat_samples,
-)
+from image2sim.eval.render_bench import RenderBenchConfig, render_markdown, run_render_bench
+from image2sim.eval.render_samples import RenderBenchError, pinhole_faces, splat_samples
 from image2sim.eval.results import read_metrics_file
 
 

@@ -9,7 +9,7 @@
 * a **top-down map** of the scene's navigation map (navigable cells, obstacles) with one episode's
   reference path, start and goal.
 
-The view and its condition come from :func:`~image2sim.eval.render_bench.splat_samples` and the
+The view and its condition come from :func:`~image2sim.eval.render_samples.splat_samples` and the
 methods from the benchmark's own method table, so the picture shows exactly what ``eval render``
 scores. :func:`demo_figure_from_outputs` finds the inputs in the pipeline's output folders.
 """
@@ -90,7 +90,8 @@ def demo_figure(
     import matplotlib.pyplot as plt
     from image2sim.eval.metrics.render import psnr
     from image2sim.eval.plots import save_figure_atomic
-    from image2sim.eval.render_bench import RenderBenchConfig, _methods, splat_samples
+    from image2sim.eval.render_bench import RenderBenchConfig, _methods
+    from image2sim.eval.render_samples import splat_samples
     from image2sim.simulator.renderer.config import load_renderer_config
 
     cfg = load_renderer_config(renderer_config)
