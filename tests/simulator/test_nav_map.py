@@ -10,12 +10,9 @@ import numpy as np
 import pytest
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.embodiment import ConfigError, Embodiment, NavMapConfig
-from image2sim.simulator.navigation.extract import (
-    extract_navmap_from_points,
-    fit_plane_ransac,
-    rotation_aligning,
-)
+from image2sim.simulator.navigation.extract import extract_navmap_from_points
 from image2sim.simulator.navigation.navmap import NavMap, NavMapError
+from image2sim.simulator.navigation.pointcloud import fit_plane_ransac, rotation_aligning
 from image2sim.simulator.navigation.topdown import render_topdown
 
 RADIUS = Embodiment().radius

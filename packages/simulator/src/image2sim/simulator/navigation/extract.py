@@ -31,174 +31,31 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
-from image2sim.simulator.navigation.clearance import disk, floor_clearance
+from image2sim.simulator.navigation.clearance import floor_clearance
 from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
-from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap, NavMapError
-from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from image2sim.simulator.navigation.floors import (
+    cluster_levels,
+    covered_from_above,
+    fill_holes,
+    floor_components,
+    merge_floor_columns,
+    select_components,
+)
+from image2sim.simulator.navigation.navmap import NavMap, NavMapError
+from image2sim.simulator.navigation.pointcloud import (
+    estimate_normals_pca,
+    fit_plane_ransac,
+    radius_outlier_mask,
+    rotation_aligning,
+    voxel_reduce,
+)
 from scipy.spatial import cKDTree
 
 __all__ = [
     "extract_navmap",
     "extract_navmap_from_points",
     "extract_navmap_from_gaussians",
-    "fit_plane_ransac",
-    "rotation_aligning",
-    "estimate_normals_pca",
-    "radius_outlier_mask",
 ]
-
-
-# ----------------------------------------------------------------------------------------------
-# Small pure helpers
-# ----------------------------------------------------------------------------------------------
-
-
-def fit_plane_ransac(
-    points: np.ndarray, threshold: float, iterations: int, rng: np.random.Generator
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """RANSAC plane ``n . p + d = 0`` through (N, 3) points, refined by least squares on the inliers.
-
-    Returns ``(n, d, inliers)`` with ``n`` a unit normal oriented towards +Z (n_z >= 0).
-    Raises :class:`NavMapError` for fewer than 3 points or fully degenerate input.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
-        raise NavMapError(f"plane fit needs at least 3 points of shape (N, 3), got {pts.shape}")
-    n_pts = len(pts)
-    triples = rng.integers(0, n_pts, size=(iterations, 3))
-    a, b, c = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
-    normals = np.cross(b - a, c - a)
-    norms = np.linalg.norm(normals, axis=1)
-    ok = norms > 1e-12
-    if not ok.any():
-        raise NavMapError("plane fit: all sampled point triples are collinear")
-    normals = normals[ok] / norms[ok, None]
-    ds = -np.einsum("ij,ij->i", normals, a[ok])
-    # Score all hypotheses on a subsample so the cost stays bounded on big clouds.
-    sample = pts if n_pts <= 20000 else pts[rng.choice(n_pts, 20000, replace=False)]
-    scores = (np.abs(sample @ normals.T + ds) < threshold).sum(axis=0)
-    best = int(np.argmax(scores))
-    inliers = np.abs(pts @ normals[best] + ds[best]) < threshold
-    if inliers.sum() >= 3:
-        centre = pts[inliers].mean(axis=0)
-        _, _, vt = np.linalg.svd(pts[inliers] - centre, full_matrices=False)
-        n = vt[-1]
-        d = -float(n @ centre)
-    else:
-        n, d = normals[best], float(ds[best])
-    if n[2] < 0:
-        n, d = -n, -d
-    inliers = np.abs(pts @ n + d) < threshold
-    return n, d, inliers
-
-
-def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation (3x3) taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
-    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
-    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
-    v = np.cross(a, b)
-    c = float(a @ b)
-    s = float(np.linalg.norm(v))
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        # Opposite vectors: rotate by pi about any axis perpendicular to a.
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
-
-
-def estimate_normals_pca(points: np.ndarray, k: int = 12, viewpoints: np.ndarray | None = None) -> np.ndarray:
-    """Unit normals of an (N, 3) cloud from the smallest PCA axis of each point's k nearest neighbours.
-
-    Orientation: towards the nearest of ``viewpoints`` (M, 3) when given, otherwise upwards
-    (n_z >= 0) -- without viewpoints a ceiling cannot be told from a floor.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) == 0:
-        return np.zeros((0, 3))
-    k = int(min(k, len(pts)))
-    tree = cKDTree(pts)
-    _, idx = tree.query(pts, k=k)
-    idx = idx.reshape(len(pts), k)
-    out = np.empty_like(pts)
-    for start in range(0, len(pts), 100_000):  # bounded memory: (chunk, k, 3) at a time
-        nb = pts[idx[start : start + 100_000]]
-        centred = nb - nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", centred, centred)
-        _, vecs = np.linalg.eigh(cov)
-        out[start : start + 100_000] = vecs[:, :, 0]
-    if viewpoints is not None and len(viewpoints):
-        vp = np.asarray(viewpoints, dtype=np.float64).reshape(-1, 3)
-        _, nearest = cKDTree(vp).query(pts)
-        flip = np.einsum("ij,ij->i", out, vp[nearest] - pts) < 0
-    else:
-        flip = out[:, 2] < 0
-    out[flip] *= -1.0
-    return out
-
-
-def radius_outlier_mask(points: np.ndarray, radius: float, min_neighbors: int) -> np.ndarray:
-    """True for points with at least ``min_neighbors`` *other* points within ``radius``."""
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) == 0 or min_neighbors <= 0:
-        return np.ones(len(pts), dtype=bool)
-    counts = cKDTree(pts).query_ball_point(pts, r=radius, return_length=True)
-    return (np.asarray(counts) - 1) >= min_neighbors
-
-
-_KEY_BITS = 20
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
-
-
-def _pack_keys(ijk: np.ndarray) -> np.ndarray:
-    """Integer voxel indices (N, 3) in [-2^19, 2^19) -> one int64 key each (fast 1D ``np.unique``)."""
-    m = np.int64(1 << _KEY_BITS)
-    q = ijk.astype(np.int64) + _KEY_OFFSET
-    if len(q) and (q.min() < 0 or q.max() >= m):
-        raise NavMapError(f"voxel indices exceed +-{_KEY_OFFSET} cells: the scene is implausibly large")
-    return (q[:, 0] * m + q[:, 1]) * m + q[:, 2]
-
-
-def _unpack_keys(keys: np.ndarray) -> np.ndarray:
-    m = np.int64(1 << _KEY_BITS)
-    return np.column_stack((keys // (m * m), (keys // m) % m, keys % m)) - _KEY_OFFSET
-
-
-def _voxel_reduce(
-    ijk: np.ndarray, values: np.ndarray, weights: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Group rows by integer voxel ``ijk`` (N, 3): unique voxels, weighted mean values, summed weights."""
-    if len(ijk) == 0:
-        return ijk.reshape(0, 3).astype(np.int64), values.reshape(0, values.shape[1]), weights.reshape(0)
-    uniq, inverse = np.unique(_pack_keys(ijk), return_inverse=True)
-    inverse = inverse.reshape(-1)
-    wsum = np.bincount(inverse, weights=weights, minlength=len(uniq))
-    means = (
-        np.stack(
-            [
-                np.bincount(inverse, weights=values[:, c] * weights, minlength=len(uniq))
-                for c in range(values.shape[1])
-            ],
-            axis=1,
-        )
-        / wsum[:, None]
-    )
-    return _unpack_keys(uniq), means, wsum
-
-
-def _band_columns(
-    obstacle_ij: np.ndarray, obstacle_z: np.ndarray, lo: float, hi: float, shape2d: tuple[int, int]
-) -> np.ndarray:
-    """2D mask of columns holding an obstacle voxel whose height lies in (lo, hi]."""
-    mask = np.zeros(shape2d, dtype=bool)
-    sel = (obstacle_z > lo) & (obstacle_z <= hi)
-    mask[obstacle_ij[sel, 0], obstacle_ij[sel, 1]] = True
-    return mask
 
 
 # ----------------------------------------------------------------------------------------------
@@ -353,7 +210,7 @@ def extract_navmap(
             # Pre-merge per frame: key = (voxel ijk, floor flag) in a fixed world lattice.
             ijk = np.floor(p_w / vox).astype(np.int64)
             key = np.column_stack((ijk[:, 0], ijk[:, 1], ijk[:, 2] * 2 + is_floor))
-            uk, mean, wsum = _voxel_reduce(key, p_w, np.ones(len(p_w)))
+            uk, mean, wsum = voxel_reduce(key, p_w, np.ones(len(p_w)))
             acc_keys.append((uk[:, 2] % 2).astype(bool))
             acc_vals.append(mean)
             acc_w.append(wsum)
@@ -449,8 +306,8 @@ def _build_navmap(
     shape = tuple(int(v) for v in np.floor((hi - lo) / vox).astype(np.int64) + 2)
     ijk = np.floor((pts - lo) / vox).astype(np.int64)
     ijk = np.minimum(ijk, np.array(shape) - 1)
-    f_ijk, f_mean, f_w = _voxel_reduce(ijk[floor], pts[floor], weights[floor])
-    o_ijk, o_mean, o_w = _voxel_reduce(ijk[~floor], pts[~floor], weights[~floor])
+    f_ijk, f_mean, f_w = voxel_reduce(ijk[floor], pts[floor], weights[floor])
+    o_ijk, o_mean, o_w = voxel_reduce(ijk[~floor], pts[~floor], weights[~floor])
 
     # Obstacle denoising: radius outlier removal on voxel centres (before obstacles judge floors).
     if len(o_ijk):
@@ -463,7 +320,7 @@ def _build_navmap(
     # Floor candidates with an obstacle voxel right above them (within 2 voxels) belong to a vertical
     # surface whose normals the Sobel window blended with a floor's (sides of beds, risers): they
     # would otherwise form ramps joining the floor to furniture tops.
-    covered = _covered_from_above(f_ijk, o_ijk, 2)
+    covered = covered_from_above(f_ijk, o_ijk, 2)
     support_ij, support_z = f_ijk[covered, :2], f_mean[covered, 2]
     if covered.any():
         o_ijk = np.concatenate((o_ijk, f_ijk[covered]))
@@ -474,11 +331,11 @@ def _build_navmap(
         raise NavMapError("every floor candidate lies directly under an obstacle: no floor to navigate")
 
     # 3. Floor cells: floor voxels stacked within one voxel in a column merge.
-    cell_of_voxel, c_ij, c_z = _merge_floor_columns(f_ijk, f_mean[:, 2], f_w, shape)
+    cell_of_voxel, c_ij, c_z = merge_floor_columns(f_ijk, f_mean[:, 2], f_w, shape)
 
     # 4. Components connected within the step height; keep those under cameras (or large ones).
-    comp = _floor_components(c_ij, c_z, emb.max_step_height)
-    keep_comp = _select_components(comp, c_ij, c_z, cams, lo, vox, cfg, notes)
+    comp = floor_components(c_ij, c_z, emb.max_step_height)
+    keep_comp = select_components(comp, c_ij, c_z, cams, lo, vox, cfg, notes)
     keep_cell = np.isin(comp, keep_comp)
     if not keep_cell.any():
         raise NavMapError("no floor component survived (no camera above a floor and none large enough)")
@@ -493,7 +350,7 @@ def _build_navmap(
     obstacle_xyz = o_mean
 
     # 6. Storeys, planes, hole filling.
-    level_heights = _cluster_levels(c_z, vox, cfg.min_level_area, 2.0 * cfg.level_tolerance + vox)
+    level_heights = cluster_levels(c_z, vox, cfg.min_level_area, 2.0 * cfg.level_tolerance + vox)
     level_planes = np.zeros((len(level_heights), 4))
     for li, h in enumerate(level_heights):
         member = np.abs(c_z - h) <= cfg.level_tolerance
@@ -506,7 +363,7 @@ def _build_navmap(
             n, d = np.array([0.0, 0.0, 1.0]), -h
         level_planes[li] = (*n, d)
     c_level = np.argmin(np.abs(c_z[:, None] - level_heights[None, :]), axis=1)
-    filled_ij, filled_z, filled_level = _fill_holes(
+    filled_ij, filled_z, filled_level = fill_holes(
         c_ij, c_z, c_level, level_heights, level_planes, obstacle_ij, obstacle_z, lo, vox, shape, emb, cfg
     )
     floor_ij = np.concatenate((c_ij, filled_ij)).astype(np.int64)
@@ -541,217 +398,3 @@ def _build_navmap(
     if not navmap.navigable.any():
         notes.append("no floor cell has the required clearance: the map has no navigable cell")
     return navmap
-
-
-def _covered_from_above(f_ijk: np.ndarray, o_ijk: np.ndarray, n_above: int) -> np.ndarray:
-    """True for floor voxels that have an obstacle voxel 1..n_above voxels above in their column."""
-    if len(f_ijk) == 0 or len(o_ijk) == 0:
-        return np.zeros(len(f_ijk), dtype=bool)
-    okeys = np.sort(_pack_keys(o_ijk))
-    out = np.zeros(len(f_ijk), dtype=bool)
-    for dk in range(1, n_above + 1):
-        q = _pack_keys(f_ijk + np.array([0, 0, dk]))
-        pos = np.clip(np.searchsorted(okeys, q), 0, len(okeys) - 1)
-        out |= okeys[pos] == q
-    return out
-
-
-def _merge_floor_columns(
-    f_ijk: np.ndarray, f_z: np.ndarray, f_w: np.ndarray, shape: tuple[int, ...]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merge floor voxels of one column whose k differ by <= 1 into cells (weighted mean height).
-
-    Returns (cell index of every voxel, cell columns (C, 2), cell heights (C,)).
-    """
-    if len(f_ijk) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 2), np.int64), np.zeros(0)
-    col = f_ijk[:, 0] * shape[1] + f_ijk[:, 1]
-    order = np.lexsort((f_ijk[:, 2], col))
-    col_s, k_s = col[order], f_ijk[order, 2]
-    new = np.ones(len(order), dtype=bool)
-    new[1:] = (col_s[1:] != col_s[:-1]) | (k_s[1:] - k_s[:-1] > 1)
-    cell_sorted = np.cumsum(new) - 1
-    cell = np.empty(len(order), dtype=np.int64)
-    cell[order] = cell_sorted
-    n_cells = int(cell_sorted[-1]) + 1
-    wsum = np.bincount(cell, weights=f_w, minlength=n_cells)
-    z = np.bincount(cell, weights=f_z * f_w, minlength=n_cells) / wsum
-    ij = np.zeros((n_cells, 2), dtype=np.int64)
-    ij[cell] = f_ijk[:, :2]
-    return cell, ij, z
-
-
-def _floor_components(
-    c_ij: np.ndarray, c_z: np.ndarray, max_step: float, planar_tol: float = 0.03, bridge: int = 3
-) -> np.ndarray:
-    """Connected-component id of every floor cell.
-
-    Cells whose 8-neighbours (within the step height) all lie within ``planar_tol`` in height are
-    *planar*. Planar cells connect when they lie within ``bridge`` cells (Chebyshev) of each other
-    and their heights differ by at most ``max_step``: this crosses the two non-planar cells around a
-    stair riser, but not the steep "ramps" that blended normals leave on the sides of beds and
-    tables (those would chain the floor to furniture tops in steps below ``max_step``). Each
-    non-planar cell then joins the component of its planar neighbour closest in height.
-    """
-    n = len(c_z)
-    if n == 0:
-        return np.zeros(0, np.int64)
-    step = max(max_step + HEIGHT_TOLERANCE, 1e-6)
-    # Chebyshev ball in (i, j, z * bridge / step): |di|, |dj| <= bridge and |dz| <= step.
-    coords = np.column_stack((c_ij.astype(np.float64), c_z * (bridge / step)))
-    pairs = cKDTree(coords).query_pairs(r=bridge + 1e-9, p=np.inf, output_type="ndarray")
-    if len(pairs) == 0:
-        return np.arange(n, dtype=np.int64)
-    a, b = pairs[:, 0], pairs[:, 1]
-    cheb = np.abs(c_ij[a] - c_ij[b]).max(axis=1)
-    dz = np.abs(c_z[a] - c_z[b])
-    adjacent = cheb <= 1
-    spread = np.zeros(n)
-    np.maximum.at(spread, a[adjacent], dz[adjacent])
-    np.maximum.at(spread, b[adjacent], dz[adjacent])
-    planar = spread <= planar_tol
-    both = planar[a] & planar[b]
-    adj = coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n))
-    _, labels = connected_components(adj, directed=False)
-    labels = labels.astype(np.int64)
-    # Non-planar cells take the label of the planar neighbour (<= 2 cells) closest in height.
-    labels[~planar] = n + np.flatnonzero(~planar)  # singletons unless attached below
-    near = (cheb <= 2) & (planar[a] != planar[b])
-    src = np.where(planar[a[near]], a[near], b[near])
-    dst = np.where(planar[a[near]], b[near], a[near])
-    order = np.argsort(-dz[near], kind="stable")  # the smallest |dz| is written last and wins
-    labels[dst[order]] = labels[src[order]]
-    return labels
-
-
-def _select_components(
-    comp: np.ndarray,
-    c_ij: np.ndarray,
-    c_z: np.ndarray,
-    cams: np.ndarray | None,
-    origin: np.ndarray,
-    vox: float,
-    cfg: NavMapConfig,
-    notes: list[str],
-) -> np.ndarray:
-    """Component ids to keep: those supporting a capture camera, else all large enough."""
-    xy = origin[:2] + (c_ij + 0.5) * vox
-    if cams is not None and len(cams):
-        tree = cKDTree(xy)
-        cands = []
-        for cam in cams:
-            cand = np.asarray(tree.query_ball_point(cam[:2], r=cfg.camera_support_radius), dtype=np.int64)
-            cands.append(cand[c_z[cand] <= cam[2] - cfg.min_camera_height])
-        # Pass 1: the nearest floor below each camera gives the typical camera height of the capture.
-        first = [
-            c[np.argmin(np.linalg.norm(xy[c] - cam[:2], axis=1))]
-            for c, cam in zip(cands, cams, strict=True)
-            if len(c)
-        ]
-        heights = [
-            cam[2] - c_z[f]
-            for f, cam in zip(first, [cm for c, cm in zip(cands, cams, strict=True) if len(c)], strict=True)
-        ]
-        typical = float(np.median(heights)) if heights else None
-        # Pass 2: prefer cells at that height below the camera (on stairs the nearest cell may be
-        # another flight); fall back to the nearest cell.
-        seeds = []
-        for cand, cam in zip(cands, cams, strict=True):
-            if not len(cand):
-                continue
-            d = np.linalg.norm(xy[cand] - cam[:2], axis=1)
-            if typical is not None:
-                ok = np.abs(cam[2] - c_z[cand] - typical) <= 0.3
-                if ok.any():
-                    cand, d = cand[ok], d[ok]
-            seeds.append(comp[cand[np.argmin(d)]])
-        missing = len(cams) - len(seeds)
-        if missing:
-            notes.append(
-                f"{missing} of {len(cams)} cameras have no floor below within {cfg.camera_support_radius} m"
-            )
-        if seeds:
-            return np.unique(seeds)
-        notes.append("no camera lies above a floor: kept components by area instead")
-    area = np.bincount(comp) * vox * vox
-    keep = np.flatnonzero(area >= cfg.min_component_area)
-    if len(keep) == 0 and len(area):
-        keep = np.array([int(np.argmax(area))])
-    return keep
-
-
-def _cluster_levels(c_z: np.ndarray, vox: float, min_area: float, min_separation: float) -> np.ndarray:
-    """Storey heights from a height histogram of floor cells (peaks >= min_area, >= min_separation apart)."""
-    lo = float(c_z.min())
-    bins = np.floor((c_z - lo) / vox).astype(np.int64)
-    area = np.bincount(bins).astype(np.float64) * vox * vox
-    # Sum over 3 neighbouring bins so a floor straddling a bin edge counts once, whole.
-    smooth = np.convolve(area, np.ones(3), mode="same")
-    order = np.argsort(-smooth, kind="stable")
-    peaks: list[int] = []
-    for b in order:
-        if smooth[b] < min_area:
-            break
-        if all(abs(int(b) - p) * vox >= min_separation for p in peaks):
-            peaks.append(int(b))
-    if not peaks:  # a small scene: its single most populated height is the storey
-        peaks = [int(order[0])]
-    heights = []
-    for p in sorted(peaks):
-        sel = np.abs(bins - p) <= 1
-        heights.append(float(np.median(c_z[sel])))
-    return np.asarray(heights)
-
-
-def _fill_holes(
-    c_ij: np.ndarray,
-    c_z: np.ndarray,
-    c_level: np.ndarray,
-    level_heights: np.ndarray,
-    level_planes: np.ndarray,
-    obstacle_ij: np.ndarray,
-    obstacle_z: np.ndarray,
-    origin: np.ndarray,
-    vox: float,
-    shape: tuple[int, ...],
-    emb: Embodiment,
-    cfg: NavMapConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Morphological closing of each storey's floor mask; new cells lie on the storey plane.
-
-    Cells are not added in columns that already hold a floor within a body height of the storey
-    (stairs, the storey itself) nor where an obstacle stands in the storey's body band.
-    """
-    r = int(cfg.closing_radius_cells)
-    shape2d = (int(shape[0]), int(shape[1]))
-    empty = (np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0, np.int64))
-    if r <= 0 or len(level_heights) == 0:
-        return empty
-    out_ij, out_z, out_l = [], [], []
-    struct = disk(r)
-    for li, h in enumerate(level_heights):
-        a, b, c, d = level_planes[li]
-        member = (c_level == li) & (np.abs(c_z - h) <= cfg.level_tolerance)
-        if not member.any():
-            continue
-        mask = np.zeros(shape2d, dtype=bool)
-        mask[c_ij[member, 0], c_ij[member, 1]] = True
-        closed = ndimage.binary_closing(np.pad(mask, r), structure=struct)[r:-r, r:-r]
-        near = np.abs(c_z - h) < emb.height
-        occupied = np.zeros(shape2d, dtype=bool)
-        occupied[c_ij[near, 0], c_ij[near, 1]] = True
-        occupied |= _band_columns(
-            obstacle_ij, obstacle_z, h + emb.max_step_height + HEIGHT_TOLERANCE, h + emb.height, shape2d
-        )
-        new = closed & ~mask & ~occupied
-        ij = np.argwhere(new)
-        if len(ij) == 0:
-            continue
-        xy = origin[:2] + (ij + 0.5) * vox
-        z = -(d + a * xy[:, 0] + b * xy[:, 1]) / c
-        out_ij.append(ij)
-        out_z.append(z)
-        out_l.append(np.full(len(ij), li, dtype=np.int64))
-    if not out_ij:
-        return empty
-    return np.concatenate(out_ij), np.concatenate(out_z), np.concatenate(out_l)
