@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 from harness import hardware, load_average, utc_now, write_report
+from image2sim.simulator.config import config_from_dict, parse_overrides
 from image2sim.simulator.gaussians import tiny
 from image2sim.simulator.gaussians.build import build_scene
 from image2sim.simulator.gaussians.frames import prepare_frame
@@ -232,23 +233,11 @@ def refined_rows(scene, capture, sources, scored, cfg, row, refine_steps, refine
 
 
 def _refine_config(overrides: list[str]) -> RefineConfig:
-    """``RefineConfig`` with ``FIELD=VALUE`` overrides (numbers; bools as true/false)."""
-    cfg = RefineConfig()
-    fields = {f.name: f for f in dataclasses.fields(cfg)}
-    for item in overrides:
-        key, sep, value = item.partition("=")
-        if not sep or key not in fields or key == "steps":
-            raise SystemExit(
-                f"--refine-set {item!r}: expected FIELD=VALUE with FIELD one of "
-                f"{sorted(k for k in fields if k != 'steps')}"
-            )
-        current = getattr(cfg, key)
-        if isinstance(current, bool):
-            parsed = value.lower() in ("1", "true", "yes")
-        else:
-            parsed = type(current)(float(value)) if isinstance(current, int) else float(value)
-        cfg = dataclasses.replace(cfg, **{key: parsed})
-    return cfg.validate()
+    """``RefineConfig`` with ``--refine-set FIELD=VALUE`` overrides (``steps`` comes from --refine)."""
+    fields = parse_overrides(overrides, "--refine-set")
+    if "steps" in fields:
+        raise SystemExit("--refine-set steps=...: the step counts come from --refine")
+    return config_from_dict(RefineConfig, fields, "RefineConfig").validate()
 
 
 def main() -> None:

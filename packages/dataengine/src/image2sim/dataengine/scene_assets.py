@@ -175,11 +175,10 @@ def scene_gaussians(
     def build() -> None:
         scene = build_scene(inputs.capture_dir, gcfg, encoder="identity", workers=workers)
         if refine_steps:
-            from image2sim.simulator.gaussians.refine import RefineConfig, default_refine_steps, refine_scene
+            from image2sim.simulator.gaussians.refine import refine_scene_steps
             from image2sim.simulator.io.registry import open_capture
 
-            steps = default_refine_steps(len(scene.frames)) if refine_steps < 0 else refine_steps
-            refine_scene(scene, open_capture(inputs.capture_dir), None, RefineConfig(steps=steps))
+            refine_scene_steps(scene, open_capture(inputs.capture_dir), refine_steps)
         scene.save(folder, overwrite=True)
 
     cached(

@@ -97,17 +97,11 @@ def build_scene_command(
                 f"{cfg.fusion.min_range:g}..{cfg.fusion.max_range:g} m); nothing written"
             )
         refined = None
-        if refine_steps < 0:
-            from image2sim.simulator.gaussians.refine import default_refine_steps
-
-            refine_steps = default_refine_steps(len(scene.frames))
         if refine_steps:
-            from image2sim.simulator.gaussians.refine import RefineConfig, refine_scene
+            from image2sim.simulator.gaussians.refine import refine_scene_steps
             from image2sim.simulator.io.registry import open_capture
 
-            refined = refine_scene(
-                scene, open_capture(capture), None, RefineConfig(steps=refine_steps), progress=True
-            )
+            refined = refine_scene_steps(scene, open_capture(capture), refine_steps, progress=True)
         nav = _navigation(capture) if navigation else None
         scene.save(out, overwrite=overwrite)
         if ply:

@@ -39,6 +39,7 @@ __all__ = [
     "initial_parameters",
     "refine_gaussians",
     "refine_scene",
+    "refine_scene_steps",
 ]
 
 _EPS = 1e-4  # opacities and colours are kept in (eps, 1 - eps) so their logits stay finite
@@ -229,7 +230,7 @@ def refine_gaussians(
         raise ValueError("refine_gaussians: no frames to refine against")
     t0 = time.perf_counter()
     g0 = gaussians.detach()
-    params = initial_parameters(g0)
+    params = initial_parameters(gaussians)
     lrs = {
         "means": cfg.lr_means,
         "log_scales": cfg.lr_scales,
@@ -294,8 +295,6 @@ class _PreparedFrames(Sequence):
         return len(self._indices)
 
     def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self[i] for i in range(*k.indices(len(self)))]
         k = range(len(self._indices))[k]  # negative indices and bounds as a list's
         if k not in self._done:
             self._done[k] = self._prepare(self._indices[k])
@@ -365,3 +364,14 @@ def refine_scene(
     scene.gaussians = refined
     scene.info["refine"] = {**log.to_dict(), "frames": len(views), "resolution": [w, h]}
     return log
+
+
+def refine_scene_steps(scene, capture, steps: int, progress: bool = False) -> RefineLog | None:
+    """Refine ``scene`` against its own frames of ``capture`` for ``steps`` steps as the commands
+    count them (``sim build-scene --refine-steps``, ``data episodes --refine-steps``): -1 is
+    :func:`default_refine_steps` of its frames, 0 leaves it feed-forward (returns None)."""
+    if steps < 0:
+        steps = default_refine_steps(len(scene.frames))
+    if steps == 0:
+        return None
+    return refine_scene(scene, capture, None, RefineConfig(steps=steps), progress=progress)
