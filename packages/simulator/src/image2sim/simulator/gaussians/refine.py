@@ -101,7 +101,7 @@ class RefineConfig:
     compile_projection: str = "auto"
     """Project through ``torch.compile`` (``splat(..., compile_projection=True)``): ``always``,
     ``never`` or ``auto`` (when Gaussians x steps reach :data:`COMPILE_WORK`). Compiled steps are
-    ~2x faster (630 k Gaussians: 0.76 s against 1.65 s on one thread, ``benchmarks/refine_step.py``)
+    ~2x faster (630 k Gaussians: 0.76-0.87 s against 1.62-1.65 s, one thread; ``benchmarks/refine_step.py``)
     after a one-off compile of ~30 s (cached on disk by inductor), so only long refinements of large
     scenes gain; eager if compiling fails."""
 
