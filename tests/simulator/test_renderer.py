@@ -569,8 +569,9 @@ def test_untrained_renderer_with_interpolated_prior_equals_the_hole_filling_base
     alpha = cond[:, 20:21]
     assert torch.allclose(out.rgb, fill_holes(cond[:, 16:19], alpha).clamp(1e-3, 1 - 1e-3), atol=1e-5)
     assert torch.allclose(out.depth, fill_holes(cond[:, 19:20], alpha), atol=1e-4)
-    grey = PixelFlowRenderer(small_cfg()).eval().render(cond, steps=1, noise=torch.randn(2, 4, H, W))
-    assert torch.allclose(grey.rgb[..., 4:9, 10:20], torch.tensor(0.5))  # the default fills with grey
+    grey_cfg = small_cfg(decoder={"prior_fill": "grey"})
+    grey = PixelFlowRenderer(grey_cfg).eval().render(cond, steps=1, noise=torch.randn(2, 4, H, W))
+    assert torch.allclose(grey.rgb[..., 4:9, 10:20], torch.tensor(0.5))  # the grey prior fills with grey
     with pytest.raises(ValueError, match="prior_fill"):
         PixelFlowRenderer(small_cfg(decoder={"prior_fill": "blur"}))
 
@@ -580,7 +581,9 @@ def test_log_depth_head_is_a_bounded_multiplicative_correction_of_the_prior():
     cond, *_ = make_batch(b=1, alpha=1.0)
     cond[:, 20, :, :4] = 0.0  # nothing projected there: the base is depth_bias
     cond[:, 19, :, 4:8] = 0.0  # covered but at range 0: floored, not log(0)
-    model = PixelFlowRenderer(small_cfg(decoder={"depth_head": "log", "depth_gate": False})).eval()
+    model = PixelFlowRenderer(
+        small_cfg(decoder={"depth_head": "log", "depth_gate": False, "prior_fill": "grey"})
+    ).eval()
     head = model.decoder.depth_head
     with torch.no_grad():
         out = model.render(cond, steps=1, noise=torch.zeros(1, 4, H, W))
@@ -599,6 +602,118 @@ def test_log_depth_head_is_a_bounded_multiplicative_correction_of_the_prior():
         PixelFlowRenderer(small_cfg(decoder={"depth_head": "softplus"}))
     with pytest.raises(ValueError, match="depth_bias"):
         PixelFlowRenderer(small_cfg(decoder={"depth_head": "log", "depth_bias": 0.0}))
+
+
+def _blurred_batch(seed=1):
+    """Targets with texture, and conditions that carry them blurred by a 3x3 box (seam-wrapped)."""
+    from image2sim.simulator.geometry.cameras import EquirectCamera
+    from image2sim.simulator.renderer.condition import build_condition
+
+    g = torch.Generator().manual_seed(seed)
+    target = torch.rand(2, 3, H, W, generator=g) * 0.6 + 0.2
+    wrapped = torch.cat((target[..., -1:], target, target[..., :1]), -1)
+    blurred = F.avg_pool2d(F.pad(wrapped, (0, 0, 1, 1), mode="replicate"), 3, stride=1)
+    ones = torch.ones(2, 1, H, W)
+    cond = build_condition(
+        torch.zeros(2, 16, H, W), blurred, ones * 3.0, ones, EquirectCamera(H, W).ray_map()
+    )
+    return cond, target, blurred
+
+
+def test_prior_filter_starts_at_the_prior_and_learns_to_deblur_it():
+    """The linear prior path is zero at start (the renderer still returns the splat) and, trained
+    alone on the one-step pixel term, undoes a blur of the target that the condition carries."""
+    torch.manual_seed(0)
+    cond, target, blurred = _blurred_batch()
+    depth = torch.full((2, 1, H, W), 3.0)
+    model = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 5}))
+    noise = torch.zeros(2, 4, H, W)
+    with torch.no_grad():
+        start = model.render(cond, steps=1, noise=noise).rgb
+    assert torch.allclose(start, blurred, atol=1e-5)
+    assert model.decoder.prior_filter.weight.shape == (3, 4, 5, 5)
+    opt = torch.optim.Adam(model.decoder.prior_filter.parameters(), lr=3e-2)
+    zeros, unit = torch.zeros(2), torch.ones(2)
+    for _ in range(150):
+        loss = model.losses(cond, target, depth, noise, zeros, unit)["pixel"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        out = model.render(cond, steps=1, noise=noise).rgb
+
+    def psnr(x):
+        return float(-10 * torch.log10((x - target).pow(2).mean()))
+
+    assert psnr(out) > psnr(blurred) + 2.0, (psnr(blurred), psnr(out))
+
+
+def test_prior_filter_rows_are_exactly_what_the_decoder_convolution_reads():
+    from image2sim.simulator.renderer.prior_filter import prior_filter_rows
+
+    torch.manual_seed(0)
+    cond, *_ = make_batch(b=2)
+    model = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 5}))
+    conv = model.decoder.prior_filter
+    torch.nn.init.normal_(conv.weight)
+    torch.nn.init.normal_(conv.bias)
+    dec = model.cfg.decoder
+    rows, logits = prior_filter_rows(cond, 5, model.cfg.meanflow.depth_scale, dec.depth_bias)
+    alpha = cond[:, 20:21].clamp(0, 1)
+    with torch.no_grad():
+        direct = conv(torch.cat((logits, alpha), 1))  # (B, 3, H, W), seam and poles included
+        via_rows = rows @ conv.weight.reshape(3, -1).T + conv.bias
+    torch.testing.assert_close(via_rows, direct.permute(0, 2, 3, 1).reshape(-1, 3), atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="odd"):
+        prior_filter_rows(cond, 4, 10.0, 0.3)
+
+
+def test_least_squares_start_deblurs_before_any_gradient_step():
+    from image2sim.simulator.renderer.module import init_prior_filter
+
+    cond, target, blurred = _blurred_batch()
+    model = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 5})).eval()
+    dataset = [{"condition": c, "target_rgb": t} for c, t in zip(cond, target, strict=True)]
+    used = init_prior_filter(model, dataset, seed=0)
+    assert used == 2 * H * W  # fewer pixels than the default sample: all of them
+    with torch.no_grad():
+        out = model.render(cond, steps=1, noise=torch.zeros(2, 4, H, W)).rgb
+
+    def psnr(x):
+        return float(-10 * torch.log10((x - target).pow(2).mean()))
+
+    assert psnr(out) > psnr(blurred) + 2.0, (psnr(blurred), psnr(out))
+    # a zero start leaves the renderer at the splat; no filter: nothing to fit
+    zero = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 5, "prior_filter_init": "zeros"}))
+    assert init_prior_filter(zero, dataset) is None and not zero.decoder.prior_filter.weight.any()
+    assert init_prior_filter(PixelFlowRenderer(small_cfg(decoder={"prior_filter": 0})), dataset) is None
+
+
+def test_least_squares_start_skips_non_finite_pixels_and_rejects_an_empty_set():
+    from image2sim.simulator.renderer.prior_filter import fit_prior_filter
+
+    cond, target, _ = _blurred_batch()
+    bad = target.clone()
+    bad[0, :, 3, 4] = float("nan")
+    w, b, used = fit_prior_filter([(cond, bad)], 3, 10.0, 0.3, pixels_per_image=None)
+    assert used == 2 * H * W - 1 and torch.isfinite(w).all() and torch.isfinite(b).all()
+    with pytest.raises(ValueError, match="no finite"):
+        fit_prior_filter([(cond, torch.full_like(target, float("nan")))], 3, 10.0, 0.3)
+
+
+def test_prior_filter_config_is_checked():
+    with pytest.raises(ValueError, match="prior_filter"):
+        small_cfg(decoder={"prior_filter": 4})
+    # the paper's absolute heads have no prior to filter: no filter is built
+    assert (
+        PixelFlowRenderer(
+            small_cfg(decoder={"prior_filter": 3, "residual_heads": False})
+        ).decoder.prior_filter
+        is None
+    )
+    with pytest.raises(ValueError, match="prior_filter_init"):
+        small_cfg(decoder={"prior_filter": 3, "prior_filter_init": "random"})
+    assert PixelFlowRenderer(small_cfg(decoder={"prior_filter": 0})).decoder.prior_filter is None
 
 
 # --- overfit (slow) -------------------------------------------------------------------------

@@ -128,6 +128,7 @@ def test_stage3_freezes_exactly_encoder_aligner_and_bottleneck():
                 "decoder.out_norm",
                 "decoder.rgb_head",
                 "decoder.depth_head",
+                "decoder.prior_filter",
             )
         )
         for n in trainable

@@ -262,6 +262,15 @@ class RenderingDecoder(nn.Module):
         self.log_depth = cfg.depth_head == "log"
         self.depth_gate = bool(cfg.depth_gate) and self.residual
         self.depth_scale = float(depth_scale)
+        # A linear path from the prior (RGB logits + alpha) to the RGB correction; zero at start.
+        self.prior_filter = (
+            PanoConv2d(4, 3, int(cfg.prior_filter), panoramic=panoramic)
+            if self.residual and cfg.prior_filter
+            else None
+        )
+        if self.prior_filter is not None:
+            nn.init.zeros_(self.prior_filter.weight)
+            nn.init.zeros_(self.prior_filter.bias)
         nn.init.zeros_(self.rgb_head.bias)
         if self.residual:  # corrections start at 0: the untrained network returns the prior
             for head in (self.rgb_head, self.depth_head):
@@ -317,6 +326,9 @@ class RenderingDecoder(nn.Module):
                 condition, self.depth_scale, self.depth_fill, fill=self.prior_fill, panoramic=self.panoramic
             )
             rgb_logits = rgb_logits + base_logits
+            if self.prior_filter is not None:
+                alpha = condition[:, ALPHA].clamp(0.0, 1.0).to(base_logits.dtype)
+                rgb_logits = rgb_logits + self.prior_filter(torch.cat((base_logits, alpha), dim=1))
             if self.log_depth:
                 base_depth = torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
             if self.depth_gate:  # keep the splat's range where it covered the pixel

@@ -22,6 +22,7 @@ import lightning as L
 import torch
 from image2sim.simulator.io.atomic import atomic_path, write_json_atomic
 from image2sim.simulator.renderer import meanflow as mf
+from image2sim.simulator.renderer.augment import augment_panorama_pair, sample_panorama_augmentation
 from image2sim.simulator.renderer.config import RendererConfig
 from image2sim.simulator.renderer.distill import EMATeacher
 from image2sim.simulator.renderer.losses import load_lpips
@@ -153,10 +154,21 @@ class RendererModule(L.LightningModule):
         self._enter_stage(stage)
         cond, rgb, depth = batch["condition"], batch["target_rgb"], batch["target_depth"]
         b = cond.shape[0]
+        gen = self._step_generator(step)
         target_tokens = batch.get("target_tokens")
+        aug = self.cfg.augment
+        if aug.yaw_roll or aug.mirror_probability > 0:
+            if target_tokens is not None:
+                raise ValueError(
+                    "augment.yaw_roll / mirror_probability cannot move precomputed target_tokens: "
+                    "let the semantic backbone compute them, or turn the augmentation off"
+                )
+            shifts, mirror = sample_panorama_augmentation(
+                b, cond.shape[-1], aug.yaw_roll, aug.mirror_probability, gen
+            )
+            cond, (rgb, depth) = augment_panorama_pair(cond, (rgb, depth), shifts, mirror)
         if target_tokens is None and self.semantic_backbone is not None:
             target_tokens = self.semantic_backbone(rgb)
-        gen = self._step_generator(step)
         r, t = mf.sample_time_pairs(b, self.cfg.meanflow.p_r_equals_t, generator=gen)
         noise = torch.randn((b, 4, *cond.shape[-2:]), generator=gen)
         r, t, noise = r.to(cond), t.to(cond), noise.to(cond)
@@ -284,6 +296,39 @@ class RendererDataModule(L.LightningDataModule):
         )
 
 
+def init_prior_filter(renderer: PixelFlowRenderer, dataset, seed: int = 0, batch: int = 4) -> int | None:
+    """Fit the decoder's linear prior filter to ``dataset``'s (condition, target) pairs in closed
+    form (``renderer.prior_filter``); returns the pixels used, or None when the renderer has no
+    filter or its config asks for a zero start."""
+    decoder = renderer.decoder
+    dcfg = renderer.cfg.decoder
+    if decoder is None or decoder.prior_filter is None or dcfg.prior_filter_init != "least_squares":
+        return None
+    from image2sim.simulator.renderer.prior_filter import fit_prior_filter
+
+    def pairs():
+        for start in range(0, len(dataset), batch):
+            items = [dataset[i] for i in range(start, min(start + batch, len(dataset)))]
+            yield (
+                torch.stack([it["condition"] for it in items]),
+                torch.stack([it["target_rgb"] for it in items]),
+            )
+
+    weight, bias, used = fit_prior_filter(
+        pairs(),
+        int(dcfg.prior_filter),
+        renderer.cfg.meanflow.depth_scale,
+        dcfg.depth_bias,
+        fill=dcfg.prior_fill,
+        panoramic=decoder.panoramic,
+        generator=torch.Generator().manual_seed(int(seed)),
+    )
+    with torch.no_grad():
+        decoder.prior_filter.weight.copy_(weight)
+        decoder.prior_filter.bias.copy_(bias)
+    return used
+
+
 def fit(
     cfg: RendererConfig,
     dataset,
@@ -319,6 +364,16 @@ def fit(
     steps = max_steps if max_steps is not None else cfg.curriculum.total_steps
     L.seed_everything(seed, workers=True, verbose=False)
     module = RendererModule(cfg, seed=seed, grid_every=grid_every)
+    if resume is None:  # a resumed run restores the filter from its checkpoint
+        import time
+
+        start = time.perf_counter()
+        used = init_prior_filter(module.renderer, dataset, seed)
+        if used is not None:
+            print(
+                f"prior filter ({cfg.decoder.prior_filter}x{cfg.decoder.prior_filter}): least-squares "
+                f"start from {used} training pixels in {time.perf_counter() - start:.1f} s"
+            )
     data = RendererDataModule(dataset, cfg.curriculum.batch_size, cfg.curriculum.total_steps, seed)
     from image2sim.simulator.tracking import csv_logger, wandb_logger, wandb_mode
 

@@ -1,0 +1,126 @@
+"""How much can a linear filter of the filled splat add on held-out views? (issue 20, docs/renderer.md)
+
+A reference between `splat_fill` and a network: the renderer's own linear path alone
+(`decoder.prior_filter` with `prior_fill: interpolate`, one K x K filter of the hole-filled prior's
+logits and alpha added to the logits), fitted by `renderer.prior_filter`'s least squares on the
+training conditions (leave-target-out splats of the training frames, as `sim train` builds them)
+and applied to the held-out views' conditions (as `eval render --condition-source gaussians`
+builds them). Also the "oracle" filter fitted on each held-out view itself: an upper bound for any
+linear sharpening of that view. Scores are PSNR against the exact noise-free panorama.
+
+    python scripts/renderer_linear_bound.py data/synthetic/scene_* --holdout-every 4 \
+        [--cache outputs/cache/splat_conditions] [--kernel 7] [--out result.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import torch
+
+
+def _tiny_prior() -> tuple[float, float]:
+    """The tiny preset's depth scale and hole depth (what its prior is built with)."""
+    from image2sim.simulator.renderer.config import tiny
+
+    cfg = tiny()
+    return cfg.meanflow.depth_scale, cfg.decoder.depth_bias
+
+
+def _fit(pairs, args) -> tuple[torch.Tensor, torch.Tensor]:
+    from image2sim.simulator.renderer.prior_filter import fit_prior_filter
+
+    weight, bias, _ = fit_prior_filter(
+        pairs, args.kernel, *_tiny_prior(), fill="interpolate", pixels_per_image=None
+    )
+    return weight, bias
+
+
+def _apply(cond: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, kernel: int) -> torch.Tensor:
+    """The renderer's linear path alone: sigmoid(prior logits + filter), as the decoder composes it."""
+    from image2sim.simulator.renderer.prior_filter import prior_filter_rows
+
+    rows, logits = prior_filter_rows(cond, kernel, *_tiny_prior(), fill="interpolate")
+    b, _, h, w = logits.shape
+    delta = (rows @ weight.reshape(3, -1).T + bias).reshape(b, h, w, 3).permute(0, 3, 1, 2)
+    return torch.sigmoid(logits + delta)
+
+
+def _filled(cond: torch.Tensor) -> torch.Tensor:
+    from image2sim.simulator.renderer.condition import ALPHA, RGB
+    from image2sim.simulator.renderer.holefill import fill_holes
+
+    return fill_holes(cond[:, RGB], cond[:, ALPHA])
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return -10.0 * math.log10(float((a - b).pow(2).mean()))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("captures", nargs="+", help="procedural capture folders (exact targets)")
+    p.add_argument("--holdout-every", type=int, default=4)
+    p.add_argument("--height", type=int, default=128)
+    p.add_argument("--width", type=int, default=256)
+    p.add_argument("--gaussian-config", default="tiny")
+    p.add_argument("--kernel", type=int, default=7, help="odd filter size")
+    p.add_argument("--cache", default=None, help="sim train's --splat-cache folder (reused when it matches)")
+    p.add_argument("--max-views", type=int, default=12)
+    p.add_argument("--out", type=Path, default=None, help="write the per-view numbers as JSON")
+    args = p.parse_args()
+    if args.kernel < 1 or args.kernel % 2 == 0:
+        p.error(f"--kernel must be odd and positive, got {args.kernel}")
+    torch.set_num_threads(1)
+    from image2sim.eval.render_samples import splat_samples
+    from image2sim.simulator.renderer.splat_data import SplatConditionDataset, SplatDataConfig
+
+    cfg = SplatDataConfig(
+        gaussian_config=args.gaussian_config, holdout_every=args.holdout_every, cache_dir=args.cache
+    )
+    train = SplatConditionDataset(args.captures, args.height, args.width, cfg)
+    weight, bias = _fit(
+        ((train.conditions[i : i + 1], train.target_rgb[i : i + 1]) for i in range(train.num_splat)),
+        args,
+    )
+    held = splat_samples(
+        args.captures,
+        args.height,
+        args.width,
+        args.holdout_every,
+        gaussian_config=args.gaussian_config,
+        max_views=args.max_views,
+        target="exact",
+    )
+    views = []
+    for s in held:
+        cond = s["condition"].reshape(1, -1, args.height, args.width)
+        target = s["target_rgb"].reshape(1, 3, args.height, args.width)
+        oracle = _apply(cond, *_fit([(cond, target)], args), args.kernel)
+        views.append(
+            {
+                "view": int(s["index"]),
+                "splat_fill": _psnr(_filled(cond), target),
+                "linear_filter": _psnr(_apply(cond, weight, bias, args.kernel), target),
+                "oracle_filter": _psnr(oracle, target),
+            }
+        )
+        print(" ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in views[-1].items()))
+    mean = {
+        k: sum(v[k] for v in views) / len(views) for k in ("splat_fill", "linear_filter", "oracle_filter")
+    }
+    print(
+        f"{len(views)} held-out views, {train.num_splat} training pairs, {args.kernel}x{args.kernel} filter: "
+        + ", ".join(f"{k} {v:.2f} dB" for k, v in mean.items())
+    )
+    if args.out is not None:
+        args.out.write_text(
+            json.dumps({"kernel": args.kernel, "mean": mean, "views": views}, indent=2) + "\n"
+        )
+
+
+if __name__ == "__main__":
+    main()
