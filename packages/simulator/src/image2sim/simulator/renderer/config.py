@@ -125,8 +125,8 @@ class DecoderConfig:
     (``renderer.holefill.fill_holes``, the benchmark's ``splat_fill``), so an untrained renderer
     equals that non-learned baseline and the network learns only what interpolation misses."""
     prior_filter: int = 0
-    """With ``residual_heads`` (ignored without): kernel size of a linear convolution of the prior itself (its RGB
-    logits and alpha) added to the RGB correction, zero-initialised; 0 = none. A direct linear
+    """With ``residual_heads`` (ignored without): kernel size of a linear convolution of the prior
+    itself (its RGB logits and alpha) added to the RGB correction; 0 = none. A direct linear
     path from the blurred splat to the output, so the deconvolution a fixed filter can do is one
     convex step away instead of having to pass the network's bottlenecks (docs/renderer.md,
     "A linear path from the prior")."""
