@@ -17,6 +17,7 @@ from a checkpoint lands in the right stage with the right modules frozen. Per-st
 from __future__ import annotations
 
 import math
+import time
 
 import lightning as L
 import torch
@@ -365,8 +366,6 @@ def fit(
     L.seed_everything(seed, workers=True, verbose=False)
     module = RendererModule(cfg, seed=seed, grid_every=grid_every)
     if resume is None:  # a resumed run restores the filter from its checkpoint
-        import time
-
         start = time.perf_counter()
         used = init_prior_filter(module.renderer, dataset, seed)
         if used is not None:
