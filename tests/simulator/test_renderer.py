@@ -828,3 +828,31 @@ def test_a_renderer_saved_before_the_depth_gate_existed_loads_ungated(tmp_path):
     assert old.cfg.decoder.depth_gate is False
     ungated = dataclasses.replace(model.cfg.decoder, depth_gate=False)
     assert old.cfg == dataclasses.replace(model.cfg, decoder=ungated)
+
+
+def test_a_renderer_saved_before_the_prior_filter_existed_loads_without_it(tmp_path):
+    import json
+
+    from image2sim.simulator.renderer.config import config_to_dict
+    from image2sim.simulator.renderer.model import load_renderer, save_renderer
+    from safetensors.torch import load_file
+
+    torch.manual_seed(0)
+    before = small_cfg(decoder={"prior_filter": 0, "prior_fill": "grey"})
+    model = PixelFlowRenderer(before).eval()
+    save_renderer(model, tmp_path / "new.safetensors")
+    config = config_to_dict(model.cfg)
+    for key in ("prior_filter", "prior_filter_init", "prior_fill"):  # as an older version wrote it
+        config["decoder"].pop(key, None)
+    meta = {"format": "image2sim-renderer-v1", "config": json.dumps(config)}
+    save_file(load_file(tmp_path / "new.safetensors"), str(tmp_path / "old.safetensors"), metadata=meta)
+    # The tiny preset now filters an interpolated prior; an older file keeps what it trained with.
+    assert small_cfg().decoder.prior_filter == 7 and small_cfg().decoder.prior_fill == "interpolate"
+    old = load_renderer(tmp_path / "old.safetensors")
+    assert old.decoder.prior_filter is None and old.cfg.decoder.prior_fill == "grey"
+    cond, *_ = make_batch(b=1)
+    noise = torch.randn(1, 4, H, W)
+    with torch.no_grad():
+        assert torch.equal(
+            old.render(cond, steps=1, noise=noise).rgb, model.render(cond, steps=1, noise=noise).rgb
+        )
