@@ -16,48 +16,32 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import torch
 
 
-def _tiny_prior() -> tuple[float, float]:
-    """The tiny preset's depth scale and hole depth (what its prior is built with)."""
+def _linear_path(pairs, args):
+    """The `tiny` renderer, untrained, with its prior filter fitted by `sim train`'s least-squares
+    start on ``pairs`` (all pixels): its one-step output is the linear path alone (the heads start
+    at zero)."""
+    import dataclasses
+
     from image2sim.simulator.renderer.config import tiny
+    from image2sim.simulator.renderer.model import PixelFlowRenderer
+    from image2sim.simulator.renderer.module import init_prior_filter
 
     cfg = tiny()
-    return cfg.meanflow.depth_scale, cfg.decoder.depth_bias
+    decoder = dataclasses.replace(cfg.decoder, prior_filter=args.kernel, prior_fill="interpolate")
+    cfg = dataclasses.replace(cfg, height=args.height, width=args.width, decoder=decoder)
+    model = PixelFlowRenderer(cfg).eval()
+    init_prior_filter(model, pairs, pixels_per_image=None)
+    return model
 
 
-def _fit(pairs, args) -> tuple[torch.Tensor, torch.Tensor]:
-    from image2sim.simulator.renderer.prior_filter import fit_prior_filter
-
-    weight, bias, _ = fit_prior_filter(
-        pairs, args.kernel, *_tiny_prior(), fill="interpolate", pixels_per_image=None
-    )
-    return weight, bias
-
-
-def _apply(cond: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, kernel: int) -> torch.Tensor:
-    """The renderer's linear path alone: sigmoid(prior logits + filter), as the decoder composes it."""
-    from image2sim.simulator.renderer.prior_filter import prior_filter_rows
-
-    rows, logits = prior_filter_rows(cond, kernel, *_tiny_prior(), fill="interpolate")
-    b, _, h, w = logits.shape
-    delta = (rows @ weight.reshape(3, -1).T + bias).reshape(b, h, w, 3).permute(0, 3, 1, 2)
-    return torch.sigmoid(logits + delta)
-
-
-def _filled(cond: torch.Tensor) -> torch.Tensor:
-    from image2sim.simulator.renderer.condition import ALPHA, RGB
-    from image2sim.simulator.renderer.holefill import fill_holes
-
-    return fill_holes(cond[:, RGB], cond[:, ALPHA])
-
-
-def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    return -10.0 * math.log10(float((a - b).pow(2).mean()))
+def _one_step(model, cond: torch.Tensor) -> torch.Tensor:
+    with torch.no_grad():
+        return model.render(cond, steps=1, noise=torch.zeros(cond.shape[0], 4, *cond.shape[-2:])).rgb
 
 
 def main() -> None:
@@ -76,16 +60,15 @@ def main() -> None:
         p.error(f"--kernel must be odd and positive, got {args.kernel}")
     torch.set_num_threads(1)
     from image2sim.eval.render_samples import splat_samples
+    from image2sim.simulator.metrics.image import psnr
+    from image2sim.simulator.renderer.holefill import fill_condition
     from image2sim.simulator.renderer.splat_data import SplatConditionDataset, SplatDataConfig
 
     cfg = SplatDataConfig(
         gaussian_config=args.gaussian_config, holdout_every=args.holdout_every, cache_dir=args.cache
     )
     train = SplatConditionDataset(args.captures, args.height, args.width, cfg)
-    weight, bias = _fit(
-        ((train.conditions[i : i + 1], train.target_rgb[i : i + 1]) for i in range(train.num_splat)),
-        args,
-    )
+    trained = _linear_path(train, args)
     held = splat_samples(
         args.captures,
         args.height,
@@ -99,13 +82,13 @@ def main() -> None:
     for s in held:
         cond = s["condition"].reshape(1, -1, args.height, args.width)
         target = s["target_rgb"].reshape(1, 3, args.height, args.width)
-        oracle = _apply(cond, *_fit([(cond, target)], args), args.kernel)
+        oracle = _linear_path([{"condition": cond[0], "target_rgb": target[0]}], args)
         views.append(
             {
                 "view": int(s["index"]),
-                "splat_fill": _psnr(_filled(cond), target),
-                "linear_filter": _psnr(_apply(cond, weight, bias, args.kernel), target),
-                "oracle_filter": _psnr(oracle, target),
+                "splat_fill": float(psnr(fill_condition(cond)[0], target)),
+                "linear_filter": float(psnr(_one_step(trained, cond), target)),
+                "oracle_filter": float(psnr(_one_step(oracle, cond), target)),
             }
         )
         print(" ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in views[-1].items()))

@@ -230,7 +230,7 @@ def refine_gaussians(
         raise ValueError("refine_gaussians: no frames to refine against")
     t0 = time.perf_counter()
     g0 = gaussians.detach()
-    params = initial_parameters(gaussians)
+    params = initial_parameters(g0)
     lrs = {
         "means": cfg.lr_means,
         "log_scales": cfg.lr_scales,

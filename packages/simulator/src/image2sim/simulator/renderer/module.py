@@ -297,10 +297,17 @@ class RendererDataModule(L.LightningDataModule):
         )
 
 
-def init_prior_filter(renderer: PixelFlowRenderer, dataset, seed: int = 0, batch: int = 4) -> int | None:
+def init_prior_filter(
+    renderer: PixelFlowRenderer,
+    dataset,
+    seed: int = 0,
+    batch: int = 4,
+    pixels_per_image: int | None = 8192,
+) -> int | None:
     """Fit the decoder's linear prior filter to ``dataset``'s (condition, target) pairs in closed
-    form (``renderer.prior_filter``); returns the pixels used, or None when the renderer has no
-    filter or its config asks for a zero start."""
+    form (``renderer.prior_filter``; ``pixels_per_image`` random pixels of each, None: all);
+    returns the pixels used, or None when the renderer has no filter or its config asks for a zero
+    start."""
     decoder = renderer.decoder
     dcfg = renderer.cfg.decoder
     if decoder is None or decoder.prior_filter is None or dcfg.prior_filter_init != "least_squares":
@@ -322,6 +329,7 @@ def init_prior_filter(renderer: PixelFlowRenderer, dataset, seed: int = 0, batch
         dcfg.depth_bias,
         fill=dcfg.prior_fill,
         panoramic=decoder.panoramic,
+        pixels_per_image=pixels_per_image,
         generator=torch.Generator().manual_seed(int(seed)),
     )
     with torch.no_grad():
