@@ -1,8 +1,9 @@
 """Benchmark the pixel-flow renderer: one-step vs N-step rendering, and one training step.
 
 Cases (``tiny`` config, 128x256, batch 1, untrained weights: speed does not depend on them):
-splat-only (``no_pixel_flow``: no network, the reference floor), 1, 2, 4 and 8 sampler steps,
-and one MeanFlow training step (JVP + one-step path + backward). Ratios are against the 4-step
+splat-only (``no_pixel_flow``: no network, the reference floor), 1, 2, 4 and 8 sampler steps, one
+step of the preset without its linear prior path (``decoder.prior_filter`` 0, grey prior: its
+cost), and one MeanFlow training step (JVP + one-step path + backward). Ratios are against the 4-step
 sampler measured in the same run (the issue asks for one step >= 3x faster than four).
 
 Writes ``reports/bench_renderer.json`` and ``.md`` (median of several runs after a warm-up,
@@ -80,6 +81,21 @@ def main() -> None:
                 "median_cpu_s": c,
             }
         )
+    # The preset before its linear prior path (decoder.prior_filter + the hole-filled prior): what
+    # that path costs per frame, measured beside it.
+    plain = PixelFlowRenderer(
+        renderer_config_from_dict({"decoder": {"prior_filter": 0, "prior_fill": "grey"}}, preset="tiny")
+    ).eval()
+    t, s, c = timeit(lambda: plain.render(cond, steps=1, noise=noise), args.repeats)
+    rows.append(
+        {
+            "case": "pixel flow, 1 step, without the prior filter (grey prior)",
+            "steps": 1,
+            "median_s": t,
+            "samples_s": s,
+            "median_cpu_s": c,
+        }
+    )
     ref = next(r["median_s"] for r in rows if r["steps"] == 4)
     ref_cpu = next(r["median_cpu_s"] for r in rows if r["steps"] == 4)
     for r in rows:
