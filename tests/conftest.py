@@ -27,6 +27,16 @@ settings.load_profile("image2sim")
 torch.set_num_threads(1)
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Every test starts on one intra-op thread, whatever the test before it set, and what it sets
+    itself is undone after it."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def hm3d_scene_dir() -> Path:
     """The real HM3D panoramic sample, read in place; skips the test when it is absent."""

@@ -1,21 +1,9 @@
-"""Fixtures for the navpolicy tests: one tiny policy per session, single-threaded torch.
-
-Tiny models are dominated by per-op overhead; on a shared 2-core machine one thread is ~10x faster
-than two fighting for the cores, so these tests pin torch to one thread and restore it afterwards.
-"""
+"""Fixtures for the navpolicy tests: one tiny policy per session (single-threaded torch: the
+root conftest pins every test to one thread)."""
 
 from __future__ import annotations
 
 import pytest
-import torch
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="session")

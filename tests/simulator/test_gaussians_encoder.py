@@ -20,15 +20,6 @@ from image2sim.simulator.geometry.se3 import quat_to_matrix
 torch.manual_seed(0)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Small convolutions on a shared 2-core machine: thread hand-offs dominate, one thread is faster.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _small(cfg=None, h=32, w=64):
     cfg = cfg or tiny()
     return dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, height=h, width=w))
@@ -302,8 +293,14 @@ def test_disc_gaussians_splat_the_floor_at_a_novel_pose_with_less_depth_bias():
         g = identity_gaussians(source, c)
         keep = g.means[:, 2].abs() < 1e-3  # floor Gaussians only (the 3 m "walls" are not a surface)
         out = splat(
-            g.means[keep], g.scales[keep], g.quats[keep], g.opacities[keep], g.colors[keep], None,
-            cam, target.cam_to_world,
+            g.means[keep],
+            g.scales[keep],
+            g.quats[keep],
+            g.opacities[keep],
+            g.colors[keep],
+            None,
+            cam,
+            target.cam_to_world,
         )
         depth = out.depth[0, 0] / out.alpha[0, 0].clamp_min(1e-6)
         ok = floor & (out.alpha[0, 0] > 0.9)

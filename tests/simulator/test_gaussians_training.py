@@ -15,14 +15,6 @@ from image2sim.simulator.gaussians.train_geometry import GeometryDataset, stage1
 from image2sim.simulator.geometry.cameras import camera_from_dict
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _cfg(**train):
     cfg = tiny()
     return dataclasses.replace(

@@ -21,15 +21,6 @@ from image2sim.simulator.layers import (
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Many small ops: with the 2 cores shared, OpenMP barriers cost more than the work itself."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.mark.parametrize("left,right", [(0, 0), (1, 2), (3, 3), (5, 0), (9, 11)])
 def test_circular_pad_matches_reference(left, right):
     x = torch.randn(2, 3, 4, 5)

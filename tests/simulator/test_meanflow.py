@@ -16,15 +16,6 @@ from image2sim.simulator.renderer.model import PixelFlowRenderer
 H, W = 16, 32  # smallest panorama the H/16 bottleneck allows: keeps the JVP tests fast
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Many small ops: with the 2 cores shared, OpenMP barriers cost more than the work itself."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def small_cfg(**overrides):
     """The tiny preset shrunk further so a JVP + backward takes well under a second."""
     base = {
@@ -38,6 +29,8 @@ def small_cfg(**overrides):
             "heads": 2,
             "time_dim": 16,
             "kernel_size": 3,
+            "prior_hidden": 8,  # the preset's MLP prior path, narrower
+            "prior_fit_steps": 2,
         },
     }
     for key, value in overrides.items():

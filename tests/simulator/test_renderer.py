@@ -39,15 +39,6 @@ from safetensors.torch import save_file
 from .test_meanflow import H, W, make_batch, small_cfg
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Many small ops: with the 2 cores shared, OpenMP barriers cost more than the work itself."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 # --- gates and pyramid -----------------------------------------------------------------------
 def test_alpha_gate_initialises_to_sigmoid_two():
     torch.manual_seed(0)
@@ -686,7 +677,8 @@ def test_least_squares_start_deblurs_before_any_gradient_step():
     # a zero start leaves the renderer at the splat; no filter: nothing to fit
     zero = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 5, "prior_filter_init": "zeros"}))
     assert init_prior_filter(zero, dataset) is None and not zero.decoder.prior_filter.weight.any()
-    assert init_prior_filter(PixelFlowRenderer(small_cfg(decoder={"prior_filter": 0})), dataset) is None
+    unfiltered = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 0, "prior_hidden": 0}))
+    assert init_prior_filter(unfiltered, dataset) is None
 
 
 def test_least_squares_start_skips_non_finite_pixels_and_rejects_an_empty_set():
@@ -713,7 +705,8 @@ def test_prior_filter_config_is_checked():
     )
     with pytest.raises(ValueError, match="prior_filter_init"):
         small_cfg(decoder={"prior_filter": 3, "prior_filter_init": "random"})
-    assert PixelFlowRenderer(small_cfg(decoder={"prior_filter": 0})).decoder.prior_filter is None
+    unfiltered = PixelFlowRenderer(small_cfg(decoder={"prior_filter": 0, "prior_hidden": 0}))
+    assert unfiltered.decoder.prior_filter is None
 
 
 # --- overfit (slow) -------------------------------------------------------------------------
@@ -838,18 +831,19 @@ def test_a_renderer_saved_before_the_prior_filter_existed_loads_without_it(tmp_p
     from safetensors.torch import load_file
 
     torch.manual_seed(0)
-    before = small_cfg(decoder={"prior_filter": 0, "prior_fill": "grey"})
+    before = small_cfg(decoder={"prior_filter": 0, "prior_hidden": 0, "prior_fill": "grey"})
     model = PixelFlowRenderer(before).eval()
     save_renderer(model, tmp_path / "new.safetensors")
     config = config_to_dict(model.cfg)
-    for key in ("prior_filter", "prior_filter_init", "prior_fill"):  # as an older version wrote it
+    for key in ("prior_filter", "prior_filter_init", "prior_fill", "prior_hidden", "prior_fit_steps"):
         config["decoder"].pop(key, None)
     meta = {"format": "image2sim-renderer-v1", "config": json.dumps(config)}
     save_file(load_file(tmp_path / "new.safetensors"), str(tmp_path / "old.safetensors"), metadata=meta)
     # The tiny preset now filters an interpolated prior; an older file keeps what it trained with.
     assert small_cfg().decoder.prior_filter == 7 and small_cfg().decoder.prior_fill == "interpolate"
-    old = load_renderer(tmp_path / "old.safetensors")
+    old = load_renderer(tmp_path / "old.safetensors")  # as an older version wrote it
     assert old.decoder.prior_filter is None and old.cfg.decoder.prior_fill == "grey"
+    assert old.decoder.prior_net is None
     cond, *_ = make_batch(b=1)
     noise = torch.randn(1, 4, H, W)
     with torch.no_grad():

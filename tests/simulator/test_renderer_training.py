@@ -30,15 +30,6 @@ from image2sim.simulator.renderer.module import (  # noqa: E402
 H, W = 16, 32
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Many small ops: with the 2 cores shared, OpenMP barriers cost more than the work itself."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def train_cfg(**curriculum):
     cur = {"stage2_start": 2, "stage3_start": 4, "total_steps": 6, "batch_size": 2, "lr": 1e-3}
     cur.update(curriculum)
@@ -54,6 +45,8 @@ def train_cfg(**curriculum):
                 "heads": 2,
                 "time_dim": 8,
                 "kernel_size": 3,
+                "prior_hidden": 8,  # the preset's MLP prior path, narrower and fitted for 2 steps
+                "prior_fit_steps": 2,
             },
             "curriculum": cur,
         },
@@ -129,6 +122,7 @@ def test_stage3_freezes_exactly_encoder_aligner_and_bottleneck():
                 "decoder.rgb_head",
                 "decoder.depth_head",
                 "decoder.prior_filter",
+                "decoder.prior_net",
             )
         )
         for n in trainable

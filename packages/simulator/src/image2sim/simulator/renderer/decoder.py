@@ -31,6 +31,7 @@ from image2sim.simulator.layers import (
 )
 from image2sim.simulator.renderer.condition import ALPHA, DEPTH, RGB
 from image2sim.simulator.renderer.config import CONDITION_CHANNELS, STATE_CHANNELS, DecoderConfig
+from image2sim.simulator.renderer.prior_path import PriorNet, prior_net_input
 from torch import nn
 
 __all__ = [
@@ -271,6 +272,12 @@ class RenderingDecoder(nn.Module):
         if self.prior_filter is not None:
             nn.init.zeros_(self.prior_filter.weight)
             nn.init.zeros_(self.prior_filter.bias)
+        # ... and a per-pixel MLP beside it (its output layer starts at zero too).
+        self.prior_net = (
+            PriorNet(int(cfg.prior_filter), int(cfg.prior_hidden), panoramic=panoramic)
+            if self.prior_filter is not None and cfg.prior_hidden
+            else None
+        )
         nn.init.zeros_(self.rgb_head.bias)
         if self.residual:  # corrections start at 0: the untrained network returns the prior
             for head in (self.rgb_head, self.depth_head):
@@ -329,6 +336,8 @@ class RenderingDecoder(nn.Module):
             if self.prior_filter is not None:
                 alpha = condition[:, ALPHA].clamp(0.0, 1.0).to(base_logits.dtype)
                 rgb_logits = rgb_logits + self.prior_filter(torch.cat((base_logits, alpha), dim=1))
+                if self.prior_net is not None:
+                    rgb_logits = rgb_logits + self.prior_net(prior_net_input(base_logits, alpha, base_depth))
             if self.log_depth:
                 base_depth = torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
             if self.depth_gate:  # keep the splat's range where it covered the pixel

@@ -310,13 +310,15 @@ def export_renderer(
 def _saved_config(data: dict) -> dict:
     """A saved renderer config as it was trained: files written before ``decoder.residual_heads``
     existed trained the paper's plain heads, files written before ``decoder.depth_gate`` existed
-    trained an ungated depth correction, and files written before ``decoder.prior_filter`` had
-    no filter and the grey prior, so a missing key means that (the presets may say otherwise)."""
+    trained an ungated depth correction, files written before ``decoder.prior_filter`` had no
+    filter and the grey prior, and files written before ``decoder.prior_hidden`` had no MLP path,
+    so a missing key means that (the presets may say otherwise)."""
     data = dict(data)
     decoder = dict(data.get("decoder") or {})
     decoder.setdefault("residual_heads", False)
     decoder.setdefault("depth_gate", False)
     decoder.setdefault("prior_filter", 0)
+    decoder.setdefault("prior_hidden", 0)
     decoder.setdefault("prior_fill", "grey")
     data["decoder"] = decoder
     return data

@@ -297,6 +297,16 @@ class RendererDataModule(L.LightningDataModule):
         )
 
 
+def _training_pairs(dataset, batch: int = 4):
+    """``(condition, target RGB)`` batches of a renderer dataset, in order."""
+    for start in range(0, len(dataset), batch):
+        items = [dataset[i] for i in range(start, min(start + batch, len(dataset)))]
+        yield (
+            torch.stack([it["condition"] for it in items]),
+            torch.stack([it["target_rgb"] for it in items]),
+        )
+
+
 def init_prior_filter(
     renderer: PixelFlowRenderer,
     dataset,
@@ -314,16 +324,8 @@ def init_prior_filter(
         return None
     from image2sim.simulator.renderer.prior_filter import fit_prior_filter
 
-    def pairs():
-        for start in range(0, len(dataset), batch):
-            items = [dataset[i] for i in range(start, min(start + batch, len(dataset)))]
-            yield (
-                torch.stack([it["condition"] for it in items]),
-                torch.stack([it["target_rgb"] for it in items]),
-            )
-
     weight, bias, used = fit_prior_filter(
-        pairs(),
+        _training_pairs(dataset, batch),
         int(dcfg.prior_filter),
         renderer.cfg.meanflow.depth_scale,
         dcfg.depth_bias,
@@ -336,6 +338,21 @@ def init_prior_filter(
         decoder.prior_filter.weight.copy_(weight)
         decoder.prior_filter.bias.copy_(bias)
     return used
+
+
+def init_prior_path(renderer: PixelFlowRenderer, dataset, seed: int = 0) -> dict | None:
+    """Fit the decoder's prior path (linear filter + ``prior_hidden`` MLP) to random pixels of
+    ``dataset``'s pairs for ``decoder.prior_fit_steps`` Adam steps (``renderer.prior_filter.
+    fit_prior_path``); None when the renderer has no prior filter or the config asks for no steps."""
+    decoder = renderer.decoder
+    steps = int(renderer.cfg.decoder.prior_fit_steps)
+    if decoder is None or decoder.prior_filter is None or steps == 0:
+        return None
+    from image2sim.simulator.renderer.prior_filter import fit_prior_path
+
+    return fit_prior_path(
+        decoder, _training_pairs(dataset), steps, generator=torch.Generator().manual_seed(int(seed) + 1)
+    )
 
 
 def fit(
@@ -380,6 +397,16 @@ def fit(
             print(
                 f"prior filter ({cfg.decoder.prior_filter}x{cfg.decoder.prior_filter}): least-squares "
                 f"start from {used} training pixels in {time.perf_counter() - start:.1f} s"
+            )
+        start = time.perf_counter()
+        fitted = init_prior_path(module.renderer, dataset, seed)
+        if fitted is not None:
+            d = cfg.decoder
+            print(
+                f"prior path ({d.prior_filter}x{d.prior_filter}, MLP width {d.prior_hidden}): "
+                f"{d.prior_fit_steps} steps on {fitted['pixels']} pixels of {fitted['images']} pairs, "
+                f"training PSNR {fitted['psnr_start']:.2f} -> {fitted['psnr_end']:.2f} dB "
+                f"in {time.perf_counter() - start:.1f} s"
             )
     data = RendererDataModule(dataset, cfg.curriculum.batch_size, cfg.curriculum.total_steps, seed)
     from image2sim.simulator.tracking import csv_logger, wandb_logger, wandb_mode
