@@ -170,6 +170,20 @@ def test_sim_train_start_fits_the_path_when_asked_and_config_is_checked():
         PixelFlowRenderer(small_cfg(decoder={"prior_fit_steps": -1}))
     with pytest.raises(ValueError, match="odd"):
         PriorNet(4, 8)
+    # a pixel budget: only a random subset of the pairs is loaded, and the fit keeps within it
+    loaded = []
+
+    class Counting(list):
+        def __getitem__(self, i):
+            loaded.append(i)
+            return super().__getitem__(i)
+
+    budget = PixelFlowRenderer(
+        small_cfg(decoder={"prior_filter": 3, "prior_hidden": 4, "prior_fit_steps": 1})
+    )
+    stats = init_prior_path(budget, Counting(dataset), seed=0, max_pixels=2 * H * W + 5)
+    assert stats["images"] == 2 and len(set(loaded)) == 2 and len(loaded) == 2
+    assert fit_prior_path(budget.decoder, [(cond, target)], steps=1, max_pixels=3 * H * W)["images"] == 3
     # files written before the MLP path existed load without it
     assert _saved_config({"decoder": {"prior_filter": 7}})["decoder"]["prior_hidden"] == 0
 

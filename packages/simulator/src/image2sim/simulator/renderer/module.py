@@ -297,10 +297,11 @@ class RendererDataModule(L.LightningDataModule):
         )
 
 
-def _training_pairs(dataset, batch: int = 4):
-    """``(condition, target RGB)`` batches of a renderer dataset, in order."""
-    for start in range(0, len(dataset), batch):
-        items = [dataset[i] for i in range(start, min(start + batch, len(dataset)))]
+def _training_pairs(dataset, batch: int = 4, indices: list[int] | None = None):
+    """``(condition, target RGB)`` batches of a renderer dataset (of its items ``indices``), in order."""
+    indices = list(range(len(dataset))) if indices is None else indices
+    for start in range(0, len(indices), batch):
+        items = [dataset[i] for i in indices[start : start + batch]]
         yield (
             torch.stack([it["condition"] for it in items]),
             torch.stack([it["target_rgb"] for it in items]),
@@ -340,19 +341,27 @@ def init_prior_filter(
     return used
 
 
-def init_prior_path(renderer: PixelFlowRenderer, dataset, seed: int = 0) -> dict | None:
+def init_prior_path(
+    renderer: PixelFlowRenderer, dataset, seed: int = 0, max_pixels: int | None = None
+) -> dict | None:
     """Fit the decoder's prior path (linear filter + ``prior_hidden`` MLP) to random pixels of
     ``dataset``'s pairs for ``decoder.prior_fit_steps`` Adam steps (``renderer.prior_filter.
-    fit_prior_path``); None when the renderer has no prior filter or the config asks for no steps."""
+    fit_prior_path``); None when the renderer has no prior filter or the config asks for no steps.
+    Only a random subset of at most ``max_pixels`` pixels (default ``FIT_MAX_PIXELS``) is loaded."""
     decoder = renderer.decoder
     steps = int(renderer.cfg.decoder.prior_fit_steps)
     if decoder is None or decoder.prior_filter is None or steps == 0:
         return None
-    from image2sim.simulator.renderer.prior_filter import fit_prior_path
+    from image2sim.simulator.renderer.prior_filter import FIT_MAX_PIXELS, fit_prior_path
 
-    return fit_prior_path(
-        decoder, _training_pairs(dataset), steps, generator=torch.Generator().manual_seed(int(seed) + 1)
-    )
+    max_pixels = FIT_MAX_PIXELS if max_pixels is None else int(max_pixels)
+    generator = torch.Generator().manual_seed(int(seed) + 1)
+    keep = max(1, max_pixels // (renderer.cfg.height * renderer.cfg.width))
+    indices = None
+    if len(dataset) > keep:
+        indices = sorted(torch.randperm(len(dataset), generator=generator)[:keep].tolist())
+    pairs = _training_pairs(dataset, indices=indices)
+    return fit_prior_path(decoder, pairs, steps, max_pixels=max_pixels, generator=generator)
 
 
 def fit(

@@ -31,7 +31,11 @@ from image2sim.simulator.renderer.condition import ALPHA
 from image2sim.simulator.renderer.decoder import prior_base
 from image2sim.simulator.renderer.prior_path import pad_prior, prior_net_input
 
-__all__ = ["prior_filter_rows", "fit_prior_filter", "fit_prior_path"]
+__all__ = ["FIT_MAX_PIXELS", "prior_filter_rows", "fit_prior_filter", "fit_prior_path"]
+
+FIT_MAX_PIXELS = 1 << 23
+"""Pixels of training pairs :func:`fit_prior_path` holds at most (8.4 M: 256 pairs at 128 x 256, 16 at
+512 x 1024; with their padded inputs about 0.6 GB of float32)."""
 
 
 def prior_filter_rows(
@@ -147,7 +151,7 @@ def fit_prior_path(
     steps: int,
     batch_pixels: int = 8192,
     lr: float = 1e-3,
-    max_images: int = 256,
+    max_pixels: int = FIT_MAX_PIXELS,
     tile: int = 16,
     generator: torch.Generator | None = None,
 ) -> dict:
@@ -158,8 +162,9 @@ def fit_prior_path(
     Each step reads about ``batch_pixels`` pixels as ``tile x tile`` crops at random places of
     random images (the padded windows around them are gathered, so no full-image forward is
     needed; the tests check that the windowed and the full-image path agree). Non-finite pixels
-    are left out of the loss. At most ``max_images`` pairs are kept (a random
-    subset beyond). Also sets ``prior_net``'s input standardisation from the pairs. Returns
+    are left out of the loss. Pairs beyond ``max_pixels`` pixels in all are dropped (a random
+    subset is kept; :func:`~image2sim.simulator.renderer.module.init_prior_path` draws it before
+    loading them). Also sets ``prior_net``'s input standardisation from the pairs. Returns
     ``{"images", "pixels", "psnr_start", "psnr_end"}``: the PSNR of the prior path on a fixed set
     of training tiles (four batches' worth, drawn once), before and after the fit.
     """
@@ -178,8 +183,9 @@ def fit_prior_path(
     if not lin_in:
         raise ValueError("fit_prior_path: no training pairs")
     x4, x5, lg, tgt = (torch.cat(t) for t in (lin_in, net_in, logits, targets))
-    if x4.shape[0] > max_images:
-        keep = torch.randperm(x4.shape[0], generator=generator)[:max_images]
+    keep_images = max(1, max_pixels // (x4.shape[-2] * x4.shape[-1]))
+    if x4.shape[0] > keep_images:
+        keep = torch.randperm(x4.shape[0], generator=generator)[:keep_images]
         x4, x5, lg, tgt = x4[keep], x5[keep], lg[keep], tgt[keep]
     n_img, _, h, w = x4.shape
     finite = torch.isfinite(x5).all(1) & torch.isfinite(tgt).all(1) & torch.isfinite(x4).all(1)
