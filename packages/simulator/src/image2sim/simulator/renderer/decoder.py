@@ -287,6 +287,22 @@ class RenderingDecoder(nn.Module):
             bias = math.log(cfg.depth_bias) if self.log_depth else cfg.depth_bias
             nn.init.constant_(self.depth_head.bias, bias)
 
+    def prior_path_inputs(
+        self, condition: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """``(base logits, base depth, prior filter input or None, PriorNet input or None)``: the
+        residual heads' prior (:func:`prior_base`) and what the prior path reads of it (the fit of
+        that path, ``renderer.prior_filter.fit_prior_path``, reads the same)."""
+        base_logits, base_depth = prior_base(
+            condition, self.depth_scale, self.depth_fill, fill=self.prior_fill, panoramic=self.panoramic
+        )
+        if self.prior_filter is None:
+            return base_logits, base_depth, None, None
+        alpha = condition[:, ALPHA].clamp(0.0, 1.0).to(base_logits.dtype)
+        filter_in = torch.cat((base_logits, alpha), dim=1)
+        net_in = prior_net_input(base_logits, alpha, base_depth) if self.prior_net is not None else None
+        return base_logits, base_depth, filter_in, net_in
+
     def forward(
         self,
         z: torch.Tensor,
@@ -329,15 +345,12 @@ class RenderingDecoder(nn.Module):
         rgb_logits = self.rgb_head(x)
         depth = self.depth_head(x)
         if self.residual:
-            base_logits, base_depth = prior_base(
-                condition, self.depth_scale, self.depth_fill, fill=self.prior_fill, panoramic=self.panoramic
-            )
+            base_logits, base_depth, filter_in, net_in = self.prior_path_inputs(condition)
             rgb_logits = rgb_logits + base_logits
-            if self.prior_filter is not None:
-                alpha = condition[:, ALPHA].clamp(0.0, 1.0).to(base_logits.dtype)
-                rgb_logits = rgb_logits + self.prior_filter(torch.cat((base_logits, alpha), dim=1))
-                if self.prior_net is not None:
-                    rgb_logits = rgb_logits + self.prior_net(prior_net_input(base_logits, alpha, base_depth))
+            if filter_in is not None:
+                rgb_logits = rgb_logits + self.prior_filter(filter_in)
+            if net_in is not None:
+                rgb_logits = rgb_logits + self.prior_net(net_in)
             if self.log_depth:
                 base_depth = torch.log(base_depth.clamp_min(LOG_DEPTH_RANGE[0]))
             if self.depth_gate:  # keep the splat's range where it covered the pixel

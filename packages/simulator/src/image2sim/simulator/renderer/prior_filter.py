@@ -29,13 +29,20 @@ import torch.nn.functional as F
 from image2sim.simulator.layers import circular_pad_width
 from image2sim.simulator.renderer.condition import ALPHA
 from image2sim.simulator.renderer.decoder import prior_base
-from image2sim.simulator.renderer.prior_path import pad_prior, prior_net_input
+from image2sim.simulator.renderer.prior_path import pad_prior
 
 __all__ = ["FIT_MAX_PIXELS", "prior_filter_rows", "fit_prior_filter", "fit_prior_path"]
 
 FIT_MAX_PIXELS = 1 << 23
 """Pixels of training pairs :func:`fit_prior_path` holds at most (8.4 M: 256 pairs at 128 x 256, 16 at
 512 x 1024; with their padded inputs about 0.6 GB of float32)."""
+
+
+def _pad_as_filter(x: torch.Tensor, k: int, panoramic: bool) -> torch.Tensor:
+    """The filter's own padding (``PanoConv2d``): circular in width on a panorama, zeros otherwise
+    and in latitude."""
+    x = circular_pad_width(x, k, k) if panoramic else F.pad(x, (k, k))
+    return F.pad(x, (0, 0, k, k))
 
 
 def prior_filter_rows(
@@ -53,9 +60,7 @@ def prior_filter_rows(
     logits, _ = prior_base(condition, depth_scale, depth_fill, fill=fill, panoramic=panoramic)
     x = torch.cat((logits, condition[:, ALPHA].clamp(0.0, 1.0).to(logits.dtype)), dim=1)
     k = kernel // 2
-    x = circular_pad_width(x, k, k) if panoramic else F.pad(x, (k, k))
-    x = F.pad(x, (0, 0, k, k))  # zeros in latitude, as the convolution's own padding
-    cols = F.unfold(x, kernel)  # (B, 4 K K, H W)
+    cols = F.unfold(_pad_as_filter(x, k, panoramic), kernel)  # (B, 4 K K, H W)
     return cols.transpose(1, 2).reshape(-1, cols.shape[1]), logits
 
 
@@ -112,20 +117,6 @@ def fit_prior_filter(
     return w[:, :-1].reshape(3, 4, kernel, kernel).float(), w[:, -1].float(), used
 
 
-def _prior_inputs(decoder, condition: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(linear filter input (B, 4, H, W), PriorNet input (B, 5, H, W), base logits)`` of
-    ``decoder`` for ``condition``, as its forward builds them."""
-    logits, depth = prior_base(
-        condition,
-        decoder.depth_scale,
-        decoder.depth_fill,
-        fill=decoder.prior_fill,
-        panoramic=decoder.panoramic,
-    )
-    alpha = condition[:, ALPHA].clamp(0.0, 1.0).to(logits.dtype)
-    return torch.cat((logits, alpha), dim=1), prior_net_input(logits, alpha, depth), logits
-
-
 class _Windows:
     """``size x size`` windows of a ``(B, C, H', W')`` stack, gathered as rows of a pixel-major
     table (one ``index_select`` of contiguous C-vectors; indexing the channel-first tensor
@@ -175,7 +166,9 @@ def fit_prior_path(
     lin_in, net_in, targets, logits = [], [], [], []
     for condition, target in pairs:
         with torch.no_grad():
-            x4, x5, lg = _prior_inputs(decoder, condition.float())
+            lg, _, x4, x5 = decoder.prior_path_inputs(condition.float())
+        if x5 is None:  # no MLP beside the filter: only the filter is fitted
+            x5 = torch.zeros_like(x4[:, :1])
         lin_in.append(x4)
         net_in.append(x5)
         logits.append(lg)
@@ -194,9 +187,7 @@ def fit_prior_path(
     x4, x5, lg, tgt = (torch.nan_to_num(t) for t in (x4, x5, lg, tgt))
     tile = min(tile, h, w)
     size = tile + 2 * k
-    # the linear filter's own padding (PanoConv2d: circular width, zeros in height)
-    x4p = circular_pad_width(x4, k, k) if decoder.panoramic else F.pad(x4, (k, k))
-    lin_windows = _Windows(F.pad(x4p, (0, 0, k, k)), size)
+    lin_windows = _Windows(_pad_as_filter(x4, k, decoder.panoramic), size)
     pixels = _Windows(torch.cat((lg, tgt, finite[:, None].to(lg.dtype)), dim=1), tile)
     params = list(conv.parameters())
     if net is not None:
