@@ -5,12 +5,14 @@
 # eval@neural stage's command). Prints every seed's SR and its paired comparison with forward,
 # seed 0 being the pipeline's own policy.
 #
-#   bash scripts/sim2real_seeds.sh [OUT=/tmp/sim2real-seeds] [SEEDS="1 2"]
+#   bash scripts/sim2real_seeds.sh [OUT=outputs/sim2real/seeds] [SEEDS="1 2"]
 #
 # Needs outputs/sim2real from `make sim2real` (run from the repository root). ~8 min per seed on
-# a 2-core CPU. docs/sim2real.md, "Three training seeds of the neural row".
+# a 2-core CPU. In the default OUT, the pipeline's report reads the runs (`eval sim2real
+# --seed-run`: every seed's SR, their mean and spread); then `dvc repro -f
+# pipelines/sim2real/dvc.yaml:report`. docs/sim2real.md, "Three training seeds of the neural row".
 set -euo pipefail
-OUT=${1:-/tmp/sim2real-seeds}
+OUT=${1:-outputs/sim2real/seeds}
 SEEDS=${2:-"1 2"}
 O=outputs/sim2real
 CONFIG=configs/navpolicy/sim2real.yaml

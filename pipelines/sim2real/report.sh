@@ -67,6 +67,14 @@ if [ -f "$O"/fresh/neural.json ] && [ -f "$O"/fresh/baselines.json ]; then
           --check fresh_seed/random=random@"$O"/fresh/baselines.json
           --check fresh_seed/forward=forward@"$O"/fresh/baselines.json)
 fi
+# Other training seeds of the neural row (scripts/sim2real_seeds.sh, run by hand): read when present.
+seeds=()
+for d in "$O"/seeds/neural_s*; do
+  [ -f "$d/eval_dagger/nav.json" ] && [ -f "$d/eval_bc/nav.json" ] || continue
+  s=${d##*/neural_s}
+  seeds+=(--seed-run "neural/$s=image2nav@$d/eval_dagger/nav.json"
+          --seed-run "neural_bc/$s=image2nav@$d/eval_bc/nav.json")
+done
 budget=()
 for f in "$O"/budget/*.json; do
   budget+=(--budget "$(basename "$f" .json)=$f")
@@ -84,7 +92,7 @@ image2sim eval sim2real \
   --policy neural="$O"/policies/neural/dagger/export \
   --policy splat_only="$O"/policies/splat_only/dagger/export \
   --policy exact="$O"/policies/exact/dagger/export \
-  "${scaling[@]}" "${budget[@]}" ${checks[@]+"${checks[@]}"} \
+  "${scaling[@]}" "${budget[@]}" ${checks[@]+"${checks[@]}"} ${seeds[@]+"${seeds[@]}"} \
   --episodes "$O"/heldout/train/train.json.gz \
   --header pipelines/sim2real/report_header.md \
   --out metrics/sim2real.json --report reports/sim2real.md --plot plots/sim2real_scaling.png

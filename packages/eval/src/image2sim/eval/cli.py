@@ -392,6 +392,13 @@ def sim2real_cmd(
             "(for the paired comparisons)."
         ),
     ] = [],  # noqa: B006
+    seed_run: Annotated[
+        list[str],
+        typer.Option(
+            help="ROW/SEED=AGENT@nav.json: the row's policy retrained with another training seed, "
+            "evaluated on the same episodes (repeatable; the row itself is seed 0)."
+        ),
+    ] = [],  # noqa: B006
     budget: Annotated[
         list[str],
         typer.Option(help="NAME=FILE: a timing record of scripts/timed.py (wall_s, cpu_s) to report."),
@@ -444,6 +451,13 @@ def sim2real_cmd(
         if not sep:
             raise typer.BadParameter(f"expected CHECK/NAME=AGENT@file, got {spec!r}", param_hint="--check")
         checks.setdefault(group, {"rows": {}})["rows"][name] = _nav_source(value, "--check")
+    seed_runs: dict = {}
+    for spec in seed_run:
+        key, value = _split_spec(spec, "--seed-run")
+        name, sep, label = key.partition("/")
+        if not sep or not name or not label:
+            raise typer.BadParameter(f"expected ROW/SEED=AGENT@file, got {spec!r}", param_hint="--seed-run")
+        seed_runs.setdefault(name, {})[label] = _nav_source(value, "--seed-run")
     policies = dict(_split_spec(p, "--policy") for p in policy)
     budgets: dict = {}
     for spec in budget:
@@ -464,7 +478,9 @@ def sim2real_cmd(
             raise typer.BadParameter(str(exc), param_hint="--episodes") from exc
         start_distances = {e.episode_id: e.geodesic_distance for e in eps if e.geodesic_distance is not None}
     try:
-        doc = gather(rows, points, policies, budgets, checks, start_distances=start_distances)
+        doc = gather(
+            rows, points, policies, budgets, checks, start_distances=start_distances, seed_runs=seed_runs
+        )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     if header is not None:

@@ -14,7 +14,9 @@ baselines. Each evaluation writes the usual ``nav.json`` document; this module g
      "scaling": [{"episodes" (training), "houses", "sr", "sr_ci", "spl", "ndtw", "eval_episodes"}, ...],
      "policies": {"neural": "<path relative to the repo root>", ...},
      "budget": {...}, "checks": {...},
-     "by_start_distance": {"bins": [...], "rows": {row: [{"sr", "sr_ci", "episodes"}, ...]}}}  # --episodes
+     "by_start_distance": {"bins": [...], "rows": {row: [{"sr", "sr_ci", "episodes"}, ...]}},  # --episodes
+     "training_seeds": {row: {"seeds": {label: {"sr", "sr_ci", "episodes", "paired"?}}, "mean_sr",
+                              "min_sr", "max_sr", "sd_sr", "pooled_sr_ci", ...}}}  # --seed-run
 
 A check compares the policy with each baseline twice: by the issue's bar on the marginal 95 %
 intervals, and pair by pair on the same episodes (``checks.*.paired``: the SR difference with
@@ -41,6 +43,7 @@ __all__ = [
     "scaling_trend",
     "sim2real_markdown",
     "sr_by_start_distance",
+    "training_seeds",
     "write_outputs",
 ]
 
@@ -107,6 +110,7 @@ def gather(
     budget: Mapping[str, Any] | None = None,
     extra_checks: Mapping[str, Any] | None = None,
     start_distances: Mapping[str, float] | None = None,
+    seed_runs: Mapping[str, Mapping[str, Mapping[str, Any]]] | None = None,
 ) -> dict:
     """The ``metrics/sim2real.json`` document.
 
@@ -120,6 +124,8 @@ def gather(
         start_distances: episode id -> the start's geodesic distance to the goal (m) of the held-out
             episodes; with it, ``by_start_distance`` splits the SR of every row with per-episode
             results by :data:`START_DISTANCE_EDGES`.
+        seed_runs: row -> seed label -> the row's policy retrained with that training seed and
+            evaluated on the same episodes (specs like ``rows``'): :func:`training_seeds`.
     """
     protocol = None
     out_rows = {}
@@ -161,7 +167,73 @@ def gather(
     for name, spec in (extra_checks or {}).items():
         extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
         doc["checks"][name] = {**target_check(extra, successes=_successes_of(spec["rows"])), "rows": extra}
+    if seed_runs:
+        doc["training_seeds"] = training_seeds(out_rows, seed_runs, successes)
     return doc
+
+
+def training_seeds(
+    rows: Mapping[str, Mapping[str, Any]],
+    seed_runs: Mapping[str, Mapping[str, Mapping[str, Any]]],
+    successes: Mapping[str, Mapping[str, bool]] | None = None,
+) -> dict:
+    """A row's SR over training seeds: the same data, retrained with other seeds, evaluated on the
+    same episodes. One training run of the tiny policy moves its SR by several points (docs/sim2real.md,
+    eighth run), so a row's single run says little without its spread.
+
+    ``rows``: the gathered rows (:func:`row_from_nav`); the row itself is seed ``"0"``.
+    ``seed_runs``: row -> seed label -> ``{"doc", "agent", "where", "successes"}`` (as ``rows``' specs
+    in :func:`gather`). Per row: every seed's SR with its Wilson interval and, where both have
+    per-episode results, its paired comparison with the best baseline (:func:`target_check`'s
+    choice); the mean, min, max and standard deviation of the seeds' SRs; the mean over the best
+    baseline's SR; and the pooled SR (every seed's episodes together) with its Wilson interval, which
+    leaves the between-seed variance out and so is read beside min and max.
+    """
+    from statistics import mean, stdev
+
+    from image2sim.eval.nav_summary import wilson_interval
+
+    base = [b for b in BASELINES if b in rows]
+    best = max(base, key=lambda b: rows[b]["sr"]) if base else None
+    out: dict[str, Any] = {}
+    for name, runs in seed_runs.items():
+        if name not in rows:
+            raise ValueError(f"seed runs of {name!r}, which is not a row (rows: {sorted(rows)})")
+        if "0" in runs:
+            raise ValueError(f"seed runs of {name!r}: label '0' is the row itself; give the others")
+        seeds: dict[str, dict] = {"0": rows[name]}
+        succ = {"0": (successes or {}).get(name)}
+        for label, spec in runs.items():
+            r = row_from_nav(spec["doc"], spec["agent"], spec.get("where", f"{name}/{label}"))
+            if r["episodes"] != rows[name]["episodes"]:
+                raise ValueError(
+                    f"seed run {name}/{label} ({spec.get('where', '?')}): {r['episodes']} episodes, "
+                    f"row {name!r} has {rows[name]['episodes']}: not the same evaluation"
+                )
+            seeds[label], succ[label] = r, spec.get("successes")
+        srs = [r["sr"] for r in seeds.values()]
+        n = rows[name]["episodes"]
+        k = sum(round(x * n / 100.0) for x in srs)
+        lo, hi = wilson_interval(k, n * len(srs))
+        entry: dict[str, Any] = {
+            "seeds": {},
+            "mean_sr": mean(srs),
+            "min_sr": min(srs),
+            "max_sr": max(srs),
+            "sd_sr": stdev(srs) if len(srs) > 1 else None,
+            "pooled_sr_ci": [_pct(lo), _pct(hi)],
+            "pooled_episodes": n * len(srs),
+        }
+        if best is not None:
+            entry["best_baseline"] = best
+            entry["mean_ratio_to_best_baseline"] = _sr_ratio({"sr": entry["mean_sr"]}, rows[best])
+        for label, r in seeds.items():
+            one = {"sr": r["sr"], "sr_ci": r["sr_ci"], "episodes": r["episodes"]}
+            if best is not None and succ[label] is not None and (successes or {}).get(best) is not None:
+                one["paired"] = _paired({label: succ[label], best: successes[best]}, label, best)
+            entry["seeds"][label] = one
+        out[name] = entry
+    return out
 
 
 def _successes_of(specs: Mapping[str, Mapping[str, Any]]) -> dict[str, Mapping[str, bool]]:
@@ -392,6 +464,7 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
             out.append(f"- paired (`{name}`): {_paired_text(c, 'neural', base)}.")
         out.append("")
     out += _start_distance_markdown(doc.get("by_start_distance"))
+    out += _seeds_markdown(doc.get("training_seeds"))
     if doc.get("scaling"):
         out += ["## Data scaling (neural simulator data, behaviour cloning only)", ""]
         out += [
@@ -418,6 +491,43 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         out.append("")
     out += budget_markdown(doc.get("budget") or {})
     return "\n".join(out)
+
+
+def _seeds_markdown(seeds: Mapping[str, Any] | None) -> list[str]:
+    """The training-seeds table of :func:`training_seeds` (nothing without one)."""
+    if not seeds:
+        return []
+    best = next((e["best_baseline"] for e in seeds.values() if e.get("best_baseline")), None)
+    vs = f"paired - `{best}`" if best else "paired"
+    out = [
+        "## Training seeds (the same data and episodes, other training seeds)",
+        "",
+        f"| row | seed | SR % [95% CI] | {vs}: points [95% CI], McNemar p |",
+        "|---|---|---|---|",
+    ]
+    for name, e in seeds.items():
+        for label, r in e["seeds"].items():
+            c = r.get("paired")
+            pair = (
+                f"{c['sr_difference']:+.1f} [{c['difference_ci'][0]:+.1f}, {c['difference_ci'][1]:+.1f}], "
+                f"p {c['mcnemar_p']:.2g}"
+                if c
+                else "n/a"
+            )
+            out.append(f"| {name} | {label} | {_fmt(r['sr'])} {_ci(r['sr_ci'])} | {pair} |")
+    out.append("")
+    for name, e in seeds.items():
+        ratio = e.get("mean_ratio_to_best_baseline")
+        sd = "" if e["sd_sr"] is None else f", sd {e['sd_sr']:.1f}"
+        out.append(
+            f"- `{name}` over {len(e['seeds'])} seeds: mean SR {_fmt(e['mean_sr'])} "
+            f"(min {_fmt(e['min_sr'])}, max {_fmt(e['max_sr'])}{sd})"
+            + (f", {_fmt(ratio, 2)}x the best baseline (`{e['best_baseline']}`)" if ratio is not None else "")
+            + f"; pooled over {e['pooled_episodes']} episode runs {_ci(e['pooled_sr_ci'])} (this interval "
+            "leaves out the between-seed variance: read it beside min and max)."
+        )
+    out.append("")
+    return out
 
 
 def _start_distance_markdown(split: Mapping[str, Any] | None) -> list[str]:
