@@ -101,7 +101,8 @@ def test_files_written_before_the_split_still_read(tmp_path):
 
 
 def test_sim2real_writer_splits(tmp_path):
-    from image2sim.eval.sim2real import gather, load_json, write_outputs
+    from image2sim.eval.sim2real import gather, load_json
+    from image2sim.eval.sim2real_report import write_outputs
 
     nav = result_document(
         IMAGE2SIM, {"agents": {n: _agent(s) for n, s in [("image2nav", 0.6), ("random", 0.1)]}}

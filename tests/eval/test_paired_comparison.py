@@ -112,7 +112,8 @@ def _log(folder, agent: str, results: dict[str, bool], protocol: dict) -> None:
 
 def test_sim2real_report_adds_the_paired_comparison_from_the_episode_logs(tmp_path):
     from image2sim.eval.protocols import get_protocol
-    from image2sim.eval.sim2real import episode_successes, gather, write_outputs
+    from image2sim.eval.sim2real import episode_successes, gather
+    from image2sim.eval.sim2real_report import write_outputs
 
     from tests.navpolicy.test_sim2real_loop import _nav_doc
 
@@ -162,7 +163,8 @@ def test_episode_logs_with_a_repeated_episode_are_refused(tmp_path):
 
 
 def test_another_evaluations_check_says_what_its_rows_scored_and_stands_as_its_own_paragraph(tmp_path):
-    from image2sim.eval.sim2real import gather, sim2real_markdown
+    from image2sim.eval.sim2real import gather
+    from image2sim.eval.sim2real_report import sim2real_markdown
 
     from tests.navpolicy.test_sim2real_loop import _nav_doc
 

@@ -9,7 +9,8 @@ from statistics import stdev
 
 import pytest
 from image2sim.eval.nav_summary import wilson_interval
-from image2sim.eval.sim2real import gather, sim2real_markdown, training_seeds
+from image2sim.eval.sim2real import gather, training_seeds
+from image2sim.eval.sim2real_report import sim2real_markdown
 
 from tests.navpolicy.test_sim2real_loop import _nav_doc
 

@@ -7,7 +7,8 @@ import gzip
 import json
 
 import pytest
-from image2sim.eval.sim2real import gather, sim2real_markdown, sr_by_start_distance
+from image2sim.eval.sim2real import gather, sr_by_start_distance
+from image2sim.eval.sim2real_report import sim2real_markdown
 
 # episode -> start distance (m): two per bin of (3, 4, 6, 10), one exactly on each inner edge
 DISTANCES = {"a": 3.0, "b": 3.9, "c": 4.0, "d": 5.5, "e": 6.0, "f": 9.0, "g": 10.0, "h": 14.0}

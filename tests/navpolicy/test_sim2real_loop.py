@@ -256,7 +256,8 @@ def _nav_doc(agents: dict[str, tuple[int, int]]) -> dict:
 
 
 def test_gather_reports_rows_gap_trend_and_the_target(tmp_path):
-    from image2sim.eval.sim2real import gather, write_outputs
+    from image2sim.eval.sim2real import gather
+    from image2sim.eval.sim2real_report import write_outputs
 
     base = _nav_doc({"random": (20, 200), "forward": (26, 200)})
     rows = {
@@ -304,7 +305,8 @@ def test_gather_reports_rows_gap_trend_and_the_target(tmp_path):
 
 
 def test_instruction_check_compares_the_policy_with_its_instruction_blind_control(tmp_path):
-    from image2sim.eval.sim2real import gather, write_outputs
+    from image2sim.eval.sim2real import gather
+    from image2sim.eval.sim2real_report import write_outputs
 
     def rows(policy_hits, blind_hits):
         return {

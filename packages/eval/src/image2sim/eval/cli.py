@@ -417,7 +417,8 @@ def sim2real_cmd(
     plot: Annotated[Path, typer.Option(help="Scaling plot (PNG).")] = Path("plots/sim2real_scaling.png"),
 ) -> None:
     """Gather the sim-to-real experiment's evaluations into metrics/sim2real.json, a report and a plot."""
-    from image2sim.eval.sim2real import episode_successes, gather, load_json, policy_parameters, write_outputs
+    from image2sim.eval.sim2real import episode_successes, gather, load_json, policy_parameters
+    from image2sim.eval.sim2real_report import write_outputs
 
     rows = {}
     for spec in row:
