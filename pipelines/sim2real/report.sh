@@ -67,13 +67,18 @@ if [ -f "$O"/fresh/neural.json ] && [ -f "$O"/fresh/baselines.json ]; then
           --check fresh_seed/random=random@"$O"/fresh/baselines.json
           --check fresh_seed/forward=forward@"$O"/fresh/baselines.json)
 fi
-# Other training seeds of the neural row (scripts/sim2real_seeds.sh, run by hand): read when present.
+# Other training seeds of the trained rows (scripts/sim2real_seeds.sh, run by hand): read when
+# present. The neural row's BC policies are a row of their own (neural_bc); the others' are not.
 seeds=()
-for d in "$O"/seeds/neural_s*; do
-  [ -f "$d/eval_dagger/nav.json" ] && [ -f "$d/eval_bc/nav.json" ] || continue
-  s=${d##*/neural_s}
-  seeds+=(--seed-run "neural/$s=image2nav@$d/eval_dagger/nav.json"
-          --seed-run "neural_bc/$s=image2nav@$d/eval_bc/nav.json")
+for row in neural splat_only exact; do
+  for d in "$O"/seeds/"$row"_s*; do
+    [ -f "$d/eval_dagger/nav.json" ] || continue
+    s=${d##*/"$row"_s}
+    seeds+=(--seed-run "$row/$s=image2nav@$d/eval_dagger/nav.json")
+    if [ "$row" = neural ] && [ -f "$d/eval_bc/nav.json" ]; then
+      seeds+=(--seed-run "neural_bc/$s=image2nav@$d/eval_bc/nav.json")
+    fi
+  done
 done
 budget=()
 for f in "$O"/budget/*.json; do

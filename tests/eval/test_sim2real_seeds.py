@@ -142,3 +142,14 @@ def test_cli_reads_seed_runs_and_refuses_a_malformed_spec(tmp_path):
     assert "| neural | 1 | 30.0 [" in (tmp_path / "r.md").read_text()
     res = CliRunner().invoke(app, ["sim2real", *rows, "--seed-run", "neural=image2nav@x.json", *out])
     assert res.exit_code != 0 and "ROW/SEED" in " ".join(res.output.replace("│", " ").split())
+
+
+def test_the_gap_over_seeds_needs_both_rows_seeded():
+    rows = {**_rows(), "exact": _spec("image2nav", 2)}  # exact seed 0: 10 %
+    runs = {"neural": {"1": _spec("image2nav", 6, offset=1)}}  # neural seeds: 20, 30 -> 25
+    assert "gap_over_seeds" not in gather(rows, seed_runs=runs)
+    runs["exact"] = {"1": _spec("image2nav", 4), "2": _spec("image2nav", 6)}  # 10, 20, 30 -> 20
+    doc = gather(rows, seed_runs=runs)
+    assert doc["gap_over_seeds"] == {"sr": pytest.approx(-5.0), "neural_seeds": 2, "exact_seeds": 3}
+    assert doc["gap"]["sr"] == pytest.approx(-10.0)  # the single runs' gap stays beside it
+    assert "(`exact` mean of 3 - `neural` mean of 2): SR -5.0 points" in sim2real_markdown(doc)

@@ -16,7 +16,8 @@ baselines. Each evaluation writes the usual ``nav.json`` document; this module g
      "budget": {...}, "checks": {...},
      "by_start_distance": {"bins": [...], "rows": {row: [{"sr", "sr_ci", "episodes"}, ...]}},  # --episodes
      "training_seeds": {row: {"seeds": {label: {"sr", "sr_ci", "episodes", "paired"?}}, "mean_sr",
-                              "min_sr", "max_sr", "sd_sr", "pooled_sr_ci", ...}}}  # --seed-run
+                              "min_sr", "max_sr", "sd_sr", "pooled_sr_ci", ...}},  # --seed-run
+     "gap_over_seeds": {"sr": exact mean - neural mean, "neural_seeds", "exact_seeds"}}  # both seeded
 
 A check compares the policy with each baseline twice: by the issue's bar on the marginal 95 %
 intervals, and pair by pair on the same episodes (``checks.*.paired``: the SR difference with
@@ -166,7 +167,15 @@ def gather(
         extra = {k: row_from_nav(v["doc"], v["agent"], v.get("where", k)) for k, v in spec["rows"].items()}
         doc["checks"][name] = {**target_check(extra, successes=_successes_of(spec["rows"])), "rows": extra}
     if seed_runs:
-        doc["training_seeds"] = training_seeds(out_rows, seed_runs, successes)
+        seeds = doc["training_seeds"] = training_seeds(out_rows, seed_runs, successes)
+        if "neural" in seeds and "exact" in seeds:
+            # The gap between the rows' seed means: one seed each moves it by as much as the rows'
+            # own spread (docs/sim2real.md, ninth run).
+            doc["gap_over_seeds"] = {
+                "sr": seeds["exact"]["mean_sr"] - seeds["neural"]["mean_sr"],
+                "neural_seeds": len(seeds["neural"]["seeds"]),
+                "exact_seeds": len(seeds["exact"]["seeds"]),
+            }
     return doc
 
 

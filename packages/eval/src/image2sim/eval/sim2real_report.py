@@ -106,6 +106,13 @@ def sim2real_markdown(doc: Mapping[str, Any], plot_name: str | None = None) -> s
         out.append("")
     out += _start_distance_markdown(doc.get("by_start_distance"))
     out += _seeds_markdown(doc.get("training_seeds"))
+    if doc.get("gap_over_seeds"):
+        g = doc["gap_over_seeds"]
+        out += [
+            f"Sim-to-real gap over training seeds (`exact` mean of {g['exact_seeds']} - `neural` mean of "
+            f"{g['neural_seeds']}): SR {_fmt(g['sr'])} points.",
+            "",
+        ]
     if doc.get("scaling"):
         out += ["## Data scaling (neural simulator data, behaviour cloning only)", ""]
         out += [
