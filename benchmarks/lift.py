@@ -280,7 +280,9 @@ def nav_scores(lifted_dir: Path, lifted_frames: list, reference_frames, sim3) ->
     }
 
 
-def lift_case(name: str, images: Path, out: Path, camera_height: float, depth_kw: dict) -> dict:
+def lift_case(
+    name: str, images: Path, out: Path, camera_height: float, depth_kw: dict, depth: tuple[str, str | None]
+) -> dict:
     from image2sim.simulator.lift.capture import LiftOptions, lift
     from image2sim.simulator.lift.depth import estimate_depth
     from image2sim.simulator.lift.frames import LiftInputError
@@ -295,7 +297,7 @@ def lift_case(name: str, images: Path, out: Path, camera_height: float, depth_kw
         rep = lift(
             images,
             out,
-            LiftOptions(camera_height=camera_height, depth_source="mvs"),
+            LiftOptions(camera_height=camera_height, depth_source=depth[0], depth_model=depth[1]),
             progress=say,
             depth_fn=depth_fn if depth_kw else None,
         )
@@ -328,7 +330,7 @@ def lift_case(name: str, images: Path, out: Path, camera_height: float, depth_kw
     }
 
 
-def run_house(case: dict, seed: int, tmp: Path, depth_kw: dict) -> dict:
+def run_house(case: dict, seed: int, tmp: Path, depth_kw: dict, depth: tuple[str, str | None]) -> dict:
     from image2sim.simulator.io.registry import open_capture
 
     kind = "panorama" if case["camera"] == "equirect" else "pinhole"
@@ -340,7 +342,7 @@ def run_house(case: dict, seed: int, tmp: Path, depth_kw: dict) -> dict:
     meta = json.loads((middle / "manifest.json").read_text())["metadata"]
     images = rgb_folder(middle, tmp / f"{kind}_rgb")
     out = tmp / f"{kind}_lifted"
-    row.update(lift_case(name, images, out, float(meta["eye_height"]), depth_kw))
+    row.update(lift_case(name, images, out, float(meta["eye_height"]), depth_kw, depth))
     if "error" in row:
         return row
     lifted, ids, est, row["frames_refused_by_reader"] = open_lifted(out)
@@ -356,7 +358,7 @@ def run_house(case: dict, seed: int, tmp: Path, depth_kw: dict) -> dict:
     return row
 
 
-def run_hm3d(tmp: Path, every: int, width: int, depth_kw: dict) -> dict:
+def run_hm3d(tmp: Path, every: int, width: int, depth_kw: dict, depth: tuple[str, str | None]) -> dict:
     from image2sim.simulator.io.registry import open_capture
     from image2sim.simulator.navigation import extract_navmap
 
@@ -379,7 +381,7 @@ def run_hm3d(tmp: Path, every: int, width: int, depth_kw: dict) -> dict:
     camera_height = float(np.median(heights))
     images = rgb_folder(HM3D, tmp / "hm3d_rgb", ids=set(ids), width=width)
     out = tmp / "hm3d_lifted"
-    row.update(lift_case(name, images, out, camera_height, depth_kw))
+    row.update(lift_case(name, images, out, camera_height, depth_kw, depth))
     if "error" in row:
         return row
     lifted, lifted_ids, est, row["frames_refused_by_reader"] = open_lifted(out)
@@ -441,13 +443,24 @@ def fmt(key: str, value) -> str:
     return str(value)
 
 
+def depth_text(meta: dict) -> str:
+    """The depth source in words (reports written before `--depth` existed used the plane sweep)."""
+    source = meta.get("depth_source", "mvs")
+    text = f"`{source}` (CPU plane sweep{meta['depth_note']}"
+    if source == "mvs":
+        return text + ")"
+    if source == "model":
+        text = "`model` ("
+    return text + f"; depth model `{meta.get('depth_model')}`, aligned per view)"
+
+
 def markdown(rows: list[dict], checks: list[dict], meta: dict) -> list[str]:
     lines = [
         "# Lifting RGB-only captures: error against seconds per stage (`benchmarks/lift.py`)",
         "",
         f"- Hardware: {meta['hardware']}; load average {meta['load_average']:.1f} at start "
         f"(2 cores shared with other jobs); {meta['date_utc']}.",
-        f"- {meta['mode']}. Depth: `mvs` (CPU plane sweep{meta['depth_note']}); pycolmap SIFT, "
+        f"- {meta['mode']}. Depth: {depth_text(meta)}; pycolmap SIFT, "
         "2 threads; torch 1 thread. Times: one run per case (minutes each), indicative under the load.",
         "- Procedural houses: `preset tiny`, noise tier `middle` (for RGB: colour noise std 2 levels; its "
         "depth noise, holes and pose jitter touch only the stored depth and poses, which lifting ignores), "
@@ -528,6 +541,18 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
     ap.add_argument("--hm3d-every", type=int, default=2, help="keep every N-th HM3D panorama")
     ap.add_argument("--hm3d-width", type=int, default=1024, help="HM3D panoramas downsampled to this width")
     ap.add_argument("--num-planes", type=int, default=None, help="MVS planes (default: the MVS default)")
+    ap.add_argument(
+        "--depth",
+        choices=("mvs", "mvs+model", "model"),
+        default="mvs",
+        help="depth source (model sources need --depth-model)",
+    )
+    ap.add_argument(
+        "--depth-model",
+        type=Path,
+        default=None,
+        help="local transformers depth model folder (e.g. from `image2sim data train-depth-prior`)",
+    )
     ap.add_argument("--only", choices=("pinhole", "panorama", "hm3d"), nargs="+", help="run only these")
     ap.add_argument(
         "--render-only",
@@ -541,6 +566,9 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
         rows = doc.pop("rows")
         write_report("lift", rows, doc, markdown=markdown(rows, doc["checks"], doc), reports=reports)
         return {**doc, "rows": rows}
+    if args.depth != "mvs" and args.depth_model is None:
+        ap.error(f"--depth {args.depth} needs --depth-model DIR")
+    depth = (args.depth, None if args.depth_model is None else str(args.depth_model.resolve()))
     torch.set_num_threads(1)
     depth_kw = {} if args.num_planes is None else {"num_planes": args.num_planes}
     if args.quick and args.num_planes is None:
@@ -555,11 +583,11 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
         for case in house_cases(args.quick):
             kind = "panorama" if case["camera"] == "equirect" else "pinhole"
             if kind in only:
-                rows.append(run_house(case, args.seed, tmp, depth_kw))
+                rows.append(run_house(case, args.seed, tmp, depth_kw, depth))
                 print(json.dumps(rows[-1], default=str), file=sys.stderr, flush=True)
         if "hm3d" in only and not args.quick and not args.no_hm3d:
             if HM3D.is_dir():
-                rows.append(run_hm3d(tmp, args.hm3d_every, args.hm3d_width, depth_kw))
+                rows.append(run_hm3d(tmp, args.hm3d_every, args.hm3d_width, depth_kw, depth))
                 print(json.dumps(rows[-1], default=str), file=sys.stderr, flush=True)
             else:
                 notes.append(f"- HM3D sample absent ({HM3D}): its row is skipped.")
@@ -574,6 +602,8 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
         "quick": args.quick,
         "depth_note": f", {depth_kw}" if depth_kw else ", default MVSConfig",
         "depth_options": depth_kw,
+        "depth_source": depth[0],
+        "depth_model": depth[1],
         "statistic": "one run per case; errors pooled over frames/pixels",
         "notes": notes,
         "checks": checks,

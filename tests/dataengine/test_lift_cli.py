@@ -228,7 +228,8 @@ def test_bad_options_are_one_line_errors(tmp_path, run_main):
     folder = tmp_path / "imgs"
     folder.mkdir()
     cases = [
-        (["--depth", "lidar"], "--depth must be mvs or model"),
+        (["--depth", "lidar"], "--depth must be mvs, model or mvs+model"),
+        (["--depth", "mvs+model"], "--depth mvs+model needs --depth-model"),
         (["--depth", "model"], "--depth model needs --depth-model"),
         (["--baseline", "1.0"], "--baseline needs --baseline-frames"),
         (["--camera-height", "1.5", "--baseline", "1", "--baseline-frames", "a", "b"], "not both"),
@@ -270,3 +271,29 @@ def test_video_frames_skip_blurred_and_redundant_ones(tmp_path):
     assert len(load_frames(video, fps=2.0)) < len(got)  # sampling every other frame
     capped = load_frames(video, fps=4.0, max_frames=3)
     assert len(capped) == 3 and sum(r.startswith("left out") for _, r in capped.rejected) == 4
+
+
+def test_train_depth_prior_cli_trains_saves_and_refuses_bad_input(tmp_path, run_main):
+    house = synth_house(tmp_path / "h", camera="equirect", views=2, height=32, width=64, config=PANO_WALK)
+    out = tmp_path / "prior"
+    small = ["--set", "image_size=28", "--set", "hidden_size=16", "--set", "heads=2", "--set", "batch_size=2"]
+    command = ["data", "train-depth-prior"]
+    code, text = run_main([*command, str(house), "--out", str(out), "--steps", "2", *small])
+    assert code == 0, text
+    assert "depth prior:" in text and "saved to" in text
+    assert (out / "model.safetensors").is_file() and (out / "preprocessor_config.json").is_file()
+    record = json.loads((out / "depth_prior.json").read_text())
+    assert record["config"]["steps"] == 2 and record["config"]["image_size"] == 28
+    cases = [
+        (["--set", "size=3"], "unknown depth-prior option(s) ['size']"),
+        (["--set", "image_size=30"], "multiple of 14"),
+        (["--set", "oops"], "expected KEY=VALUE"),
+    ]
+    for extra, message in cases:
+        code, text = run_main([*command, str(house), "--out", str(tmp_path / "x"), *extra])
+        assert code == 2 and message in text, text
+    code, text = run_main([*command, str(house), "--out", str(out)])
+    assert code == 2 and "already exists" in text
+    code, text = run_main([*command, str(tmp_path / "absent"), "--out", str(tmp_path / "y")])
+    assert code == 2 and "absent" in text
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

@@ -1,4 +1,4 @@
-"""``image2sim data inspect|fuse|ingest``: look at, fuse and convert captures.
+"""``image2sim data inspect|fuse|ingest|lift|train-depth-prior``: look at, fuse, convert and lift captures.
 
 Gathered into the ``data`` Typer app by :mod:`image2sim.dataengine.cli` (this module does not import
 it back). Heavy modules (torch, OpenCV, the readers) are imported inside the commands so
@@ -328,10 +328,19 @@ def lift(
             "(pixel column,row; sets the scale; repeat for several, e.g. a door and a table).",
         ),
     ] = None,
-    depth: Annotated[str, typer.Option("--depth", help="Depth source: mvs (no weights) or model.")] = "mvs",
+    depth: Annotated[
+        str,
+        typer.Option(
+            "--depth",
+            help="Depth source: mvs (no weights), model, or mvs+model (the model fills what the stereo "
+            "leaves empty).",
+        ),
+    ] = "mvs",
     depth_model: Annotated[
         Path | None,
-        typer.Option("--depth-model", help="Local folder of a transformers depth model (--depth model)."),
+        typer.Option(
+            "--depth-model", help="Local folder of a transformers depth model (--depth model or mvs+model)."
+        ),
     ] = None,
     panorama: Annotated[
         bool | None,
@@ -381,10 +390,10 @@ def lift(
     from rich.console import Console
 
     console = Console(stderr=True)
-    if depth not in ("mvs", "model"):
-        _fail(f"--depth must be mvs or model, got {depth!r}")
-    if depth == "model" and depth_model is None:
-        _fail("--depth model needs --depth-model DIR (a local transformers depth model folder)")
+    if depth not in ("mvs", "model", "mvs+model"):
+        _fail(f"--depth must be mvs, model or mvs+model, got {depth!r}")
+    if depth != "mvs" and depth_model is None:
+        _fail(f"--depth {depth} needs --depth-model DIR (a local transformers depth model folder)")
     from image2sim.simulator.lift.measure import parse_object_size
     from image2sim.simulator.lift.scale import scale_sources
     from image2sim.simulator.lift.sfm import SfmOptions
@@ -445,6 +454,82 @@ def lift(
         f"lifted {rec.get('written', rec['registered'])} of {rec['input_frames']} frames into {out} "
         f"(scale {rec['scale_method']}: {rec['scale']:.4g} +- {100 * rec['scale_uncertainty']:.2g} %, "
         f"depth {rec['depth_source']}, SfM reprojection error {reprojection:.3f} px)",
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
+@app.command("train-depth-prior")
+def train_depth_prior(
+    captures: Annotated[
+        list[Path], typer.Argument(help="RGB-D captures to learn from (any readable format).")
+    ],
+    out: Annotated[Path, typer.Option("--out", help="New folder for the model (read by --depth-model).")],
+    val: Annotated[
+        list[Path] | None,
+        typer.Option("--val", help="Held-out captures: the loss on 64 of their views, before and after."),
+    ] = None,
+    steps: Annotated[
+        int | None, typer.Option("--steps", min=1, help="Optimiser steps (default 2000).")
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option("--seed", min=0, help="Seed of weights and views (default 0).")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set", help="A DepthPriorConfig field, KEY=VALUE (e.g. batch_size=8, hidden_size=96)."
+        ),
+    ] = None,
+) -> None:
+    """Train a small monocular depth prior (Depth Anything classes) for `data lift --depth mvs+model`.
+
+    It learns inverse depth up to scale and shift from the captures' views (panoramas: random pinhole
+    views; pinhole frames: random crops). It knows the kind of scene it was trained on, nothing more.
+    """
+    import json
+
+    from image2sim.simulator.lift.depth_prior import DepthPriorConfig
+    from image2sim.simulator.lift.depth_prior import train_depth_prior as run_training
+    from rich.console import Console
+
+    fields_: dict = {}
+    for item in set_ or ():
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            _fail(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            fields_[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            fields_[key.strip()] = value
+    if steps is not None:
+        fields_["steps"] = steps
+    if seed is not None:
+        fields_["seed"] = seed
+    try:
+        config = DepthPriorConfig.from_dict(fields_)
+    except (TypeError, ValueError) as exc:
+        _fail(f"--set: {exc}")
+    if out.exists():
+        _fail(f"{out}: already exists (choose a new folder)")
+    for path in [*captures, *(val or [])]:
+        _open(path, None)  # a clear error for an unreadable capture before any training
+    console = Console(stderr=True)
+    record = run_training(
+        captures,
+        out,
+        config,
+        val_captures=val or (),
+        progress=True,
+        log=lambda message: console.print(message, highlight=False),
+    )
+    after = record["val_loss_after"]
+    Console().print(
+        f"depth prior: {record['parameters']:,} parameters, {record['views_seen']:,} views in "
+        f"{record['train_seconds'] / 60:.1f} min, loss {record['loss_first_tenth']:.3f} -> "
+        f"{record['loss_last_tenth']:.3f}"
+        + ("" if after is None else f", held-out {record['val_loss_before']:.3f} -> {after:.3f}")
+        + f"; saved to {out}",
         highlight=False,
         soft_wrap=True,
     )

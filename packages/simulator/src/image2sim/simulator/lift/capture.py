@@ -45,9 +45,10 @@ class LiftOptions:
     """Settings of :func:`lift` (the ``image2sim data lift`` options)."""
 
     depth_source: str = "mvs"
-    """"mvs" (plane-sweep multi-view stereo, no weights) or "model" (a depth model from ``depth_model``)."""
+    """"mvs" (plane-sweep multi-view stereo, no weights), "model" (a depth model from ``depth_model``)
+    or "mvs+model" (the stereo, with the model filling the pixels it leaves empty)."""
     depth_model: str | None = None
-    """Local folder of a transformers depth model (``depth_source="model"``)."""
+    """Local folder of a transformers depth model (``depth_source`` "model" or "mvs+model")."""
     camera_height: float | None = None
     """Camera height above the floor in metres: sets the metric scale."""
     baseline: float | None = None

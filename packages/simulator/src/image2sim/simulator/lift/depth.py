@@ -9,6 +9,9 @@
   shift fitted in inverse depth, ``1/z = s * pred + t``; a metric model (config
   ``depth_estimation_type == "metric"``) gets a scale only, ``z = s * pred``. The fit is RANSAC
   over minimal samples followed by Huber IRLS on the inliers (:func:`fit_alignment`).
+- ``"mvs+model"``: the stereo first; then the network, aligned to the SfM depths *and* the stereo's
+  confident pixels (many more points than SfM gives), fills the pixels the stereo left without
+  depth, at a confidence below every stereo pixel's (:data:`MODEL_FILL_CONFIDENCE`).
 
 Confidence of a model's depth: the frame's fit quality (inlier fraction, and the inliers' robust
 relative residual against ``inlier_threshold``) times a per-pixel term that falls at depth
@@ -41,10 +44,17 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SOURCES = ("mvs", "model")
+SOURCES = ("mvs", "model", "mvs+model")
 """Depth sources :func:`estimate_depth` knows."""
 MIN_FIT_POINTS = 8
 """A view needs at least this many sparse depths to align a model's prediction."""
+MODEL_FILL_CONFIDENCE = 0.4
+"""``source="mvs+model"``: a model-filled pixel's confidence is its own times this, so it stays below
+the 0.5 at which dense depth joins the floor search (``LiftOptions.min_confidence_floor``)."""
+STEREO_FIT_CONFIDENCE = 0.5
+"""``source="mvs+model"``: stereo pixels at or above this confidence join the model's alignment."""
+STEREO_FIT_POINTS = 4000
+"""At most this many stereo pixels per view join the alignment (a seeded random subset)."""
 
 
 # ----------------------------------------------------------------------------------------- alignment
@@ -289,6 +299,41 @@ def align_prediction(
 # ----------------------------------------------------------------------------------------- entry point
 
 
+def stereo_fit_points(
+    sparse: SparseDepth | None, stereo: DepthEstimate, seed: int, max_points: int = STEREO_FIT_POINTS
+) -> SparseDepth:
+    """The view's SfM depths plus up to ``max_points`` of its confident stereo pixels (centres at +0.5)."""
+    v, u = np.nonzero((stereo.depth > 0) & (stereo.confidence >= STEREO_FIT_CONFIDENCE))
+    if u.size > max_points:
+        pick = np.sort(np.random.default_rng(seed).choice(u.size, max_points, replace=False))
+        u, v = u[pick], v[pick]
+    uv = np.stack([u + 0.5, v + 0.5], axis=1).astype(np.float64)
+    depth = stereo.depth[v, u].astype(np.float64)
+    if sparse is not None and sparse.depth.size:
+        uv = np.concatenate([np.asarray(sparse.uv, np.float64), uv])
+        depth = np.concatenate([np.asarray(sparse.depth, np.float64), depth])
+    return SparseDepth(uv, depth)
+
+
+def fill_from_model(stereo: DepthEstimate, model: DepthEstimate) -> tuple[DepthEstimate, int]:
+    """Stereo depth kept where it exists; elsewhere the aligned model's depth at
+    :data:`MODEL_FILL_CONFIDENCE` times its confidence. Returns the fused estimate and the filled count."""
+    fill = (stereo.depth <= 0) & (model.depth > 0) & (model.confidence > 0)
+    depth = np.where(fill, model.depth, stereo.depth).astype(np.float32)
+    conf = np.where(fill, np.float32(MODEL_FILL_CONFIDENCE) * model.confidence, stereo.confidence)
+    return DepthEstimate(depth, conf.astype(np.float32)), int(fill.sum())
+
+
+def _model_options(kw: dict) -> tuple[str, float]:
+    unknown = sorted(set(kw) - {"device", "inlier_threshold"})
+    if unknown:
+        raise ValueError(f"unknown depth-model option(s) {unknown}; known: ['device', 'inlier_threshold']")
+    threshold = float(kw.get("inlier_threshold", 0.1))
+    if not (math.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"inlier_threshold must be finite and > 0, got {threshold}")
+    return str(kw.get("device", "cpu")), threshold
+
+
 def estimate_depth(
     views: list[PinholeView],
     *,
@@ -305,8 +350,10 @@ def estimate_depth(
     fields (unknown names are an error). Needs two or more overlapping views and a depth range
     (``sparse``, or ``near=`` and ``far=``). ``source="model"``: the depth network in ``model_dir``
     aligned to ``sparse`` (required for a relative model); ``kw``: ``device`` (default ``"cpu"``),
-    ``inlier_threshold`` (0.1). ``stats``, when given, receives one dict per view (timings, sources
-    or fit: scale, shift, inliers, residual).
+    ``inlier_threshold`` (0.1). ``source="mvs+model"``: both, the model aligned to the SfM and
+    confident stereo depths and filling what the stereo left empty; ``kw`` may hold either's
+    options. ``stats``, when given, receives one dict per view (timings, sources or fit: scale,
+    shift, inliers, residual; for ``mvs+model`` the stereo's record with ``model_*`` keys added).
     """
     if source not in SOURCES:
         raise ValueError(f"unknown depth source {source!r}; expected one of {list(SOURCES)}")
@@ -314,24 +361,27 @@ def estimate_depth(
     sparse = validate_sparse(sparse, views)
     if source == "mvs":
         if model_dir is not None:
-            raise ValueError("model_dir is only used by source='model'")
+            raise ValueError("model_dir is only used by source='model' or 'mvs+model'")
         config = MVSConfig.from_kwargs(**kw)
         return run_mvs(views, sparse, config, progress=progress, stats=stats)
 
     if model_dir is None:
-        raise ValueError("source='model' needs model_dir: a local folder with a transformers depth model")
-    unknown = sorted(set(kw) - {"device", "inlier_threshold"})
-    if unknown:
-        raise ValueError(f"unknown depth-model option(s) {unknown}; known: ['device', 'inlier_threshold']")
-    model = load_depth_model(model_dir, device=kw.get("device", "cpu"))
-    threshold = float(kw.get("inlier_threshold", 0.1))
-    if not (math.isfinite(threshold) and threshold > 0):
-        raise ValueError(f"inlier_threshold must be finite and > 0, got {threshold}")
+        raise ValueError(f"source={source!r} needs model_dir: a local folder with a transformers depth model")
+    model_kw = {k: kw.pop(k) for k in ("device", "inlier_threshold") if k in kw}
+    device, threshold = _model_options(model_kw)
+    if source == "model":
+        _model_options(kw)  # anything left is unknown to the model source
+    mvs_config = MVSConfig.from_kwargs(**kw) if source == "mvs+model" else None
+    model = load_depth_model(model_dir, device=device)
     if not model.metric and (sparse is None or not any(sp.depth.size >= MIN_FIT_POINTS for sp in sparse)):
         raise ValueError(
             f"a relative depth model ({model_dir}) needs sparse SfM depths to fix its scale and shift "
             f"(at least {MIN_FIT_POINTS} points in a view)"
         )
+    stereo: list[DepthEstimate] | None = None
+    stereo_stats: list[dict] = []
+    if mvs_config is not None:
+        stereo = run_mvs(views, sparse, mvs_config, progress=progress, stats=stereo_stats)
     iterator = range(len(views))
     if progress:
         from rich.progress import track
@@ -341,13 +391,13 @@ def estimate_depth(
     for i in iterator:
         t0 = time.perf_counter()
         pred = model.predict(np.asarray(views[i].image))
-        est, fit = align_prediction(
-            pred,
-            None if sparse is None else sparse[i],
-            metric=model.metric,
-            inlier_threshold=threshold,
-            seed=i,
-        )
+        points = None if sparse is None else sparse[i]
+        if stereo is not None:
+            points = stereo_fit_points(points, stereo[i], seed=i)
+        est, fit = align_prediction(pred, points, metric=model.metric, inlier_threshold=threshold, seed=i)
+        filled = None
+        if stereo is not None:
+            est, filled = fill_from_model(stereo[i], est)
         record = {
             "view": i,
             "seconds": time.perf_counter() - t0,
@@ -365,6 +415,14 @@ def estimate_depth(
                 points=fit.num_points,
                 residual=fit.residual,
             )
+        if stereo is not None:
+            base = dict(stereo_stats[i]) if i < len(stereo_stats) else {"view": i}
+            record = {
+                **base,
+                **{f"model_{k}": v for k, v in record.items() if k != "view"},
+                "model_filled_px": filled,
+                "confident_fraction": record["confident_fraction"],
+            }
         if stats is not None:
             stats.append(record)
         out.append(est)
