@@ -41,17 +41,25 @@ __all__ = [
     "train_depth_prior",
 ]
 
-IMAGE_MEAN = (0.485, 0.456, 0.406)
-IMAGE_STD = (0.229, 0.224, 0.225)
-"""The image normalisation of the saved processor (ImageNet's, as Depth Anything's)."""
+ARCHITECTURES = {
+    "depth_anything": {"multiple": 14, "mean": (0.485, 0.456, 0.406), "std": (0.229, 0.224, 0.225)},
+    "glpn": {"multiple": 32, "mean": (0.0, 0.0, 0.0), "std": (1.0, 1.0, 1.0)},
+}
+"""The transformers depth models a prior can be: the side multiple their image processor resizes to,
+and the colour normalisation it applies after scaling to [0, 1] (Depth Anything: ImageNet's; GLPN:
+none). Training normalises the crops the same way."""
 
 
 @dataclass
 class DepthPriorConfig:
     """Model size and training schedule of a depth prior (:func:`train_depth_prior`)."""
 
+    architecture: str = "depth_anything"
+    """``depth_anything`` (a DINOv2 ViT with patch 14 and a DPT head) or ``glpn`` (a hierarchical
+    SegFormer encoder with strides 4-32 and a light decoder at full resolution)."""
     image_size: int = 140
-    """Training crop side in pixels, and the processor's resize height (a multiple of 14)."""
+    """Training crop side in pixels, and the processor's resize height (a multiple of 14 for
+    ``depth_anything``, of 32 for ``glpn``)."""
     hidden_size: int = 64
     """Width of the DINOv2 backbone."""
     layers: int = 4
@@ -86,8 +94,16 @@ class DepthPriorConfig:
     """Seed of the initial weights and of the view sampling."""
 
     def __post_init__(self) -> None:
-        if self.image_size < 28 or self.image_size % 14:
-            raise ValueError(f"image_size must be a multiple of 14 and >= 28, got {self.image_size}")
+        if self.architecture not in ARCHITECTURES:
+            raise ValueError(
+                f"architecture must be one of {sorted(ARCHITECTURES)}, got {self.architecture!r}"
+            )
+        multiple = ARCHITECTURES[self.architecture]["multiple"]
+        if self.image_size < 2 * multiple or self.image_size % multiple:
+            raise ValueError(
+                f"image_size must be a multiple of {multiple} and >= {2 * multiple} for {self.architecture}, "
+                f"got {self.image_size}"
+            )
         for name in ("hidden_size", "layers", "heads", "steps", "batch_size"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -116,8 +132,33 @@ class DepthPriorConfig:
         return cls(**data)
 
 
+def _build_glpn(cfg: DepthPriorConfig):
+    from transformers import GLPNConfig, GLPNForDepthEstimation
+
+    w = cfg.hidden_size
+    widths = [max(8, w // 4), max(8, w // 2), w, 2 * w]
+    heads = [max(1, min(cfg.heads, c // 16)) for c in widths]
+    config = GLPNConfig(
+        num_encoder_blocks=4,
+        depths=[1, 1, max(1, cfg.layers - 3), 1],
+        sr_ratios=[8, 4, 2, 1],
+        hidden_sizes=widths,
+        patch_sizes=[7, 3, 3, 3],
+        strides=[4, 2, 2, 2],
+        num_attention_heads=heads,
+        mlp_ratios=[2, 2, 2, 2],
+        decoder_hidden_size=max(16, w // 2),
+        max_depth=10,
+        head_in_index=-1,
+    )
+    torch.manual_seed(cfg.seed)
+    return GLPNForDepthEstimation(config)
+
+
 def build_depth_prior(cfg: DepthPriorConfig):
-    """A randomly initialised relative Depth Anything model of ``cfg``'s size."""
+    """A randomly initialised relative depth model of ``cfg``'s architecture and size."""
+    if cfg.architecture == "glpn":
+        return _build_glpn(cfg)
     from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
 
     layers = int(cfg.layers)
@@ -153,10 +194,22 @@ def build_depth_prior(cfg: DepthPriorConfig):
     return model
 
 
-def save_processor(folder: Path, image_size: int) -> None:
-    """The image processor the lift's :class:`DepthModel` runs: resize to ``image_size`` high
-    (keeping the aspect ratio, multiples of 14) and ImageNet normalisation, as in training."""
+def save_processor(folder: Path, cfg: DepthPriorConfig) -> None:
+    """The image processor the lift's :class:`DepthModel` runs, normalising as training did.
+
+    Depth Anything: resize to ``image_size`` high keeping the aspect ratio (multiples of 14),
+    ImageNet normalisation. GLPN: its processor keeps the image size (rounded down to multiples of
+    32) and only scales to [0, 1]; a view is seen at its own resolution.
+    """
+    if cfg.architecture == "glpn":
+        from transformers.models.glpn.image_processing_pil_glpn import GLPNImageProcessorPil
+
+        GLPNImageProcessorPil(do_resize=True, size_divisor=32, do_rescale=True).save_pretrained(folder)
+        return
     from transformers.models.dpt.image_processing_pil_dpt import DPTImageProcessorPil
+
+    image_size = cfg.image_size
+    norm = ARCHITECTURES[cfg.architecture]
 
     DPTImageProcessorPil(
         do_resize=True,
@@ -164,8 +217,8 @@ def save_processor(folder: Path, image_size: int) -> None:
         keep_aspect_ratio=True,
         ensure_multiple_of=14,
         do_pad=False,
-        image_mean=list(IMAGE_MEAN),
-        image_std=list(IMAGE_STD),
+        image_mean=list(norm["mean"]),
+        image_std=list(norm["std"]),
     ).save_pretrained(folder)
 
 
@@ -322,7 +375,8 @@ class ViewPool:
             if cfg.colour_noise > 0:
                 colour = colour + self.rng.normal(0.0, cfg.colour_noise, colour.shape)
             colour = np.clip(colour, 0, 255) / 255.0
-            colour = (colour - np.asarray(IMAGE_MEAN)) / np.asarray(IMAGE_STD)
+            norm = ARCHITECTURES[cfg.architecture]
+            colour = (colour - np.asarray(norm["mean"])) / np.asarray(norm["std"])
             images.append(torch.from_numpy(colour.astype(np.float32)).permute(2, 0, 1))
             depths.append(torch.from_numpy(z))
         return torch.stack(images), torch.stack(depths)
@@ -427,7 +481,7 @@ def train_depth_prior(
     try:
         model.eval()
         model.save_pretrained(tmp, safe_serialization=True)
-        save_processor(tmp, cfg.image_size)
+        save_processor(tmp, cfg)
         (tmp / "depth_prior.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
         os.replace(tmp, out)
     except BaseException:
