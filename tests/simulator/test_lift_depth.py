@@ -238,3 +238,21 @@ def test_model_source_errors_are_clear(tiny_relative, tmp_path):
         estimate_depth(bad, source="model", model_dir=tiny_relative, progress=False)
     with pytest.raises(ValueError, match="2 entries for 3 views"):
         estimate_depth(_views(3), sparse=[None, None], progress=False)
+
+
+def test_a_fit_that_leaves_the_scale_free_is_not_used():
+    """Points on one surface facing the camera share one depth: any scale fits them, so the view
+    keeps no depth (a ceiling seen straight up gave a constant depth to a whole cube face)."""
+    rng = np.random.default_rng(3)
+    pred = rng.uniform(1.0, 5.0, (H, W))
+    sp = _sparse_from(pred, lambda x: np.full_like(x, 2.0) + 1e-3 * rng.standard_normal(x.shape), k=80)
+    est, fit = align_prediction(pred, sp, metric=False)
+    assert fit is not None and fit.spread < 0.1 and not fit.usable
+    assert not est.depth.any() and not est.confidence.any()
+    # A spread of depths that grows with the output fixes it.
+    good = _sparse_from(pred, lambda x: 1.0 / (0.5 * x + 0.1), k=80)
+    est, fit = align_prediction(pred, good, metric=False)
+    assert fit.usable and fit.spread > 0.5 and est.depth.all()
+    # A metric model's scale-only fit is fixed by any one depth.
+    est, fit = align_prediction(pred, sp, metric=True)
+    assert fit.usable and est.depth.any()

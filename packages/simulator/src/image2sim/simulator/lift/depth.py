@@ -48,6 +48,9 @@ SOURCES = ("mvs", "model", "mvs+model")
 """Depth sources :func:`estimate_depth` knows."""
 MIN_FIT_POINTS = 8
 """A view needs at least this many sparse depths to align a model's prediction."""
+MIN_FIT_SPREAD = 0.1
+"""A relative model's fit needs its inliers' inverse depths to spread by this much
+(:attr:`AlignmentFit.usable`)."""
 MODEL_FILL_CONFIDENCE = 0.4
 """``source="mvs+model"``: a model-filled pixel's confidence is its own times this, so it stays below
 the 0.5 at which dense depth joins the floor search (``LiftOptions.min_confidence_floor``)."""
@@ -74,6 +77,17 @@ class AlignmentFit:
     space: str
     inliers: np.ndarray
     residual: float
+    spread: float = math.inf
+    """The inliers' spread of the fitted target, (90th - 10th percentile) / median of ``1/z``
+    (``inverse``; infinite for ``depth``, whose scale-only fit is fixed by any one point)."""
+
+    @property
+    def usable(self) -> bool:
+        """Whether the fit fixes the model's depth: a positive scale (a disparity-like output grows
+        as things come nearer) and, in inverse depth, targets that spread by at least
+        :data:`MIN_FIT_SPREAD`. Points on one surface facing the camera (a ceiling or a floor seen
+        straight on) share one depth and leave the scale free: any scale fits them."""
+        return math.isfinite(self.scale) and self.scale > 0 and self.spread >= MIN_FIT_SPREAD
 
     @property
     def num_points(self) -> int:
@@ -187,7 +201,15 @@ def fit_alignment(
     full = np.zeros(ok.size, dtype=bool)
     full[np.flatnonzero(ok)] = inliers
     residual = float(np.median(residuals(s, t)[inliers])) if inliers.any() else math.inf
-    return AlignmentFit(scale=float(s), shift=float(t), space=space, inliers=full, residual=residual)
+    spread = math.inf
+    if shift:
+        spread = 0.0
+        if inliers.sum() >= 2:
+            lo, mid, hi = np.percentile(y[inliers], [10, 50, 90])
+            spread = float((hi - lo) / mid)
+    return AlignmentFit(
+        scale=float(s), shift=float(t), space=space, inliers=full, residual=residual, spread=spread
+    )
 
 
 # ------------------------------------------------------------------------------------------- model
@@ -276,6 +298,8 @@ def align_prediction(
 
     A relative model needs at least :data:`MIN_FIT_POINTS` sparse depths (else depth 0, no fit);
     a metric model without them is used as it is (confidence from the edge term alone, halved).
+    A fit that does not fix the depth (:attr:`AlignmentFit.usable`) leaves depth 0 and is returned
+    for the record.
     """
     pred = np.asarray(pred, np.float64)
     n = 0 if sparse is None else int(sparse.depth.size)
@@ -290,6 +314,9 @@ def align_prediction(
     fit = fit_alignment(
         at, sparse.depth, space="depth" if metric else "inverse", inlier_threshold=inlier_threshold, seed=seed
     )
+    if not fit.usable:
+        zero = np.zeros(pred.shape, np.float32)
+        return DepthEstimate(zero, zero.copy()), fit
     depth = fit.apply(pred)
     quality = fit.inlier_fraction * math.exp(-((fit.residual / inlier_threshold) ** 2))
     conf = np.clip(quality * _edge_confidence(depth), 0.0, 1.0)
@@ -406,7 +433,7 @@ def estimate_depth(
         if fit is None:
             if not model.metric:
                 log.warning("view %d: too few sparse depths to align the model; its depth is left invalid", i)
-            record.update(scale=None, shift=None, inliers=0, points=0, residual=None)
+            record.update(scale=None, shift=None, inliers=0, points=0, residual=None, usable=False)
         else:
             record.update(
                 scale=fit.scale,
@@ -414,6 +441,8 @@ def estimate_depth(
                 inliers=fit.num_inliers,
                 points=fit.num_points,
                 residual=fit.residual,
+                spread=fit.spread if math.isfinite(fit.spread) else None,
+                usable=fit.usable,
             )
         if stereo is not None:
             base = dict(stereo_stats[i]) if i < len(stereo_stats) else {"view": i}

@@ -229,9 +229,11 @@ def ssi_loss(pred: torch.Tensor, depth: torch.Tensor, eps: float = 1e-6) -> torc
     """Scale-and-shift-invariant loss of predicted inverse depth against z-depth (0 = invalid).
 
     ``pred`` and ``depth`` are (B, H, W). Per image, ``s, t`` minimise ``sum (s pred + t - 1/z)^2``
-    over the valid pixels (closed form, differentiable); the loss is the mean over images of
-    ``mean |s pred + t - 1/z| / mean(1/z)``. Images with fewer than 2 valid pixels, or a
-    prediction without spread there, add 0.
+    over the valid pixels (closed form, differentiable); the image's loss is
+    ``mean |s pred + t - 1/z| / mean(1/z)`` plus ``max(0, -corr(pred, 1/z))``. The second term fixes
+    the sign: the output must grow as things come nearer (disparity-like, as Depth Anything's relative
+    output, and as the lift's alignment assumes: a positive scale). The loss is the mean over images;
+    images with fewer than 2 valid pixels, or a prediction without spread there, add 0.
     """
     if pred.shape != depth.shape or pred.ndim != 3:
         raise ValueError(
@@ -253,7 +255,9 @@ def ssi_loss(pred: torch.Tensor, depth: torch.Tensor, eps: float = 1e-6) -> torc
     s = torch.where(usable, cov / torch.where(usable, var, torch.ones_like(var)), torch.zeros_like(var))
     t = mean_y[:, 0, 0] - s * mean_x[:, 0, 0]
     err = (m * (s[:, None, None] * pred + t[:, None, None] - disp).abs()).sum((1, 2))
-    per_image = err / n.clamp(min=1) / mean_y[:, 0, 0].clamp(min=eps)
+    var_y = (m * (disp - mean_y) ** 2).sum((1, 2))
+    corr = cov / torch.sqrt(torch.where(usable, var, torch.ones_like(var)) * var_y.clamp(min=eps * eps))
+    per_image = err / n.clamp(min=1) / mean_y[:, 0, 0].clamp(min=eps) + torch.relu(-corr)
     return torch.where(usable, per_image, torch.zeros_like(per_image)).mean()
 
 
