@@ -214,14 +214,25 @@ def test_lift_panorama_house_writes_an_equirect_capture(tmp_path, run_main, monk
     scene = synth_house(
         tmp_path / "pano", camera="equirect", views=8, height=256, width=512, config=PANO_WALK
     )
-    monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: truth_depth_fn(scene))
+    truth = truth_depth_fn(scene)
+    asked: list[dict] = []
+
+    def depth_fn(views, **kw):
+        asked.append({k: kw.get(k) for k in ("source", "model_dir")})
+        return truth(views, **kw)
+
+    monkeypatch.setattr(lift_capture, "_default_depth_fn", lambda: depth_fn)
     out = tmp_path / "lifted"
     args = ["data", "lift", str(rgb_folder(scene, tmp_path / "panos")), "--out", str(out)]
+    args += ["--depth", "mvs+model", "--depth-model", str(tmp_path / "prior")]
     code, text = run_main([*args, "--camera-height", f"{eye_height(scene)}", "--mapper", mapper])
     assert code == 0, text
+    assert asked == [{"source": "mvs+model", "model_dir": str(tmp_path / "prior")}]
     cap = _check_lifted(out, scene, max_scale_error=0.03, max_abs_rel=0.05)
     assert cap.camera.model == "equirect" and (cap.camera.height, cap.camera.width) == (256, 512)
-    assert json.loads((out / "manifest.json").read_text())["metadata"]["lift"]["sfm"]["mapper"] == mapper
+    record = json.loads((out / "manifest.json").read_text())["metadata"]["lift"]
+    assert record["sfm"]["mapper"] == mapper and record["depth_source"] == "mvs+model"
+    assert record["depth_model"] == str(tmp_path / "prior") and "depth mvs+model" in text
 
 
 def test_bad_options_are_one_line_errors(tmp_path, run_main):
