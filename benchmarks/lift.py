@@ -16,8 +16,9 @@ Cases:
   the given depth of the same frames.
 
 Per case: ``image2sim.simulator.lift.lift`` with ``--depth mvs`` (the CPU plane sweep; no depth-model
-weights on this machine; ``--depth mvs+model --depth-model DIR`` tries a depth model) and ``--camera-height`` (the synth config's eye height from the capture's
-manifest; for HM3D the median height of the given cameras above the given map's floor). Scores:
+weights on this machine; ``--depth mvs+model --depth-model DIR`` tries a depth model) and
+``--camera-height`` (the synth config's eye height from the capture's manifest; for HM3D the median
+height of the given cameras above the given map's floor). Scores:
 
 - poses: ATE after the Sim(3) (Umeyama) alignment of the lifted camera centres to the exact ones,
   rotation error after that alignment (median and max), scale error ``|1/s - 1|`` of the alignment
