@@ -487,21 +487,15 @@ def train_depth_prior(
     It learns inverse depth up to scale and shift from the captures' views (panoramas: random pinhole
     views; pinhole frames: random crops). It knows the kind of scene it was trained on, nothing more.
     """
-    import json
-
+    from image2sim.simulator.config import parse_overrides
     from image2sim.simulator.lift.depth_prior import DepthPriorConfig
     from image2sim.simulator.lift.depth_prior import train_depth_prior as run_training
     from rich.console import Console
 
-    fields_: dict = {}
-    for item in set_ or ():
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            _fail(f"--set {item!r}: expected KEY=VALUE")
-        try:
-            fields_[key.strip()] = json.loads(value)
-        except json.JSONDecodeError:
-            fields_[key.strip()] = value
+    try:
+        fields_ = parse_overrides(set_ or ())  # its errors name --set and the item
+    except ValueError as exc:
+        _fail(str(exc))
     if steps is not None:
         fields_["steps"] = steps
     if seed is not None:

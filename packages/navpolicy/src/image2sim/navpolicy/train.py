@@ -15,7 +15,6 @@ as a function of (seed, position) only.
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass
 from datetime import timedelta
@@ -30,6 +29,7 @@ from image2sim.navpolicy.data import InMemoryNavDataset, NavShardDataset, sample
 from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler
+from image2sim.simulator.schedules import warmup_cosine
 
 
 def repo_file(path: str | Path) -> Path:
@@ -229,14 +229,6 @@ def make_strategy(tc: TrainConfig):
 
 
 # ----------------------------------------------------------------------------------- Lightning module
-
-
-def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float:
-    """LR multiplier: linear warm-up to 1, then cosine to ``min_ratio`` at ``total``."""
-    if step < warmup:
-        return (step + 1) / max(1, warmup)
-    progress = min(1.0, (step - warmup) / max(1, total - warmup))
-    return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
 def action_accuracy(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:

@@ -165,8 +165,8 @@ def pretrain_vision(
     from image2sim.dataengine.procedural.views import load_views
     from image2sim.navpolicy.collate import patchify_batch
     from image2sim.navpolicy.model import MERGE_SIZE, base_qwen, build_policy
-    from image2sim.navpolicy.train import warmup_cosine
     from image2sim.simulator.io.atomic import atomic_dir
+    from image2sim.simulator.schedules import warmup_cosine
 
     cfg = (config or VisionPretrainConfig()).validate()
     rgb, sem, manifest = load_views(views)

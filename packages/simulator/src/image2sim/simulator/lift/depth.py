@@ -351,14 +351,13 @@ def fill_from_model(stereo: DepthEstimate, model: DepthEstimate) -> tuple[DepthE
     return DepthEstimate(depth, conf.astype(np.float32)), int(fill.sum())
 
 
-def _model_options(kw: dict) -> tuple[str, float]:
-    unknown = sorted(set(kw) - {"device", "inlier_threshold"})
-    if unknown:
-        raise ValueError(f"unknown depth-model option(s) {unknown}; known: ['device', 'inlier_threshold']")
-    threshold = float(kw.get("inlier_threshold", 0.1))
+def _pop_model_options(kw: dict) -> tuple[str, float]:
+    """The depth model's own options (``device``, ``inlier_threshold``), taken out of ``kw``."""
+    device = str(kw.pop("device", "cpu"))
+    threshold = float(kw.pop("inlier_threshold", 0.1))
     if not (math.isfinite(threshold) and threshold > 0):
         raise ValueError(f"inlier_threshold must be finite and > 0, got {threshold}")
-    return str(kw.get("device", "cpu")), threshold
+    return device, threshold
 
 
 def estimate_depth(
@@ -394,10 +393,9 @@ def estimate_depth(
 
     if model_dir is None:
         raise ValueError(f"source={source!r} needs model_dir: a local folder with a transformers depth model")
-    model_kw = {k: kw.pop(k) for k in ("device", "inlier_threshold") if k in kw}
-    device, threshold = _model_options(model_kw)
-    if source == "model":
-        _model_options(kw)  # anything left is unknown to the model source
+    device, threshold = _pop_model_options(kw)
+    if source == "model" and kw:
+        raise ValueError(f"unknown depth-model option(s) {sorted(kw)}; known: ['device', 'inlier_threshold']")
     mvs_config = MVSConfig.from_kwargs(**kw) if source == "mvs+model" else None
     model = load_depth_model(model_dir, device=device)
     if not model.metric and (sparse is None or not any(sp.depth.size >= MIN_FIT_POINTS for sp in sparse)):

@@ -27,16 +27,16 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from image2sim.simulator.io.atomic import atomic_dir
+from image2sim.simulator.lift.types import options_from_kwargs
+from image2sim.simulator.schedules import warmup_cosine
 
 __all__ = [
     "DepthPriorConfig",
@@ -99,21 +99,17 @@ class DepthPriorConfig:
     """Seed of the initial weights and of the view sampling."""
 
     def __post_init__(self) -> None:
-        if self.architecture not in ARCHITECTURES:
-            raise ValueError(
-                f"architecture must be one of {sorted(ARCHITECTURES)}, got {self.architecture!r}"
-            )
+        from image2sim.simulator.config import require_at_least, require_in_range, require_one_of
+
+        require_one_of(self, "architecture", sorted(ARCHITECTURES))
         multiple = ARCHITECTURES[self.architecture]["multiple"]
         if self.image_size < 2 * multiple or self.image_size % multiple:
             raise ValueError(
                 f"image_size must be a multiple of {multiple} and >= {2 * multiple} for {self.architecture}, "
                 f"got {self.image_size}"
             )
-        for name in ("hidden_size", "layers", "heads", "steps", "batch_size"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.layers < 4:
-            raise ValueError(f"layers must be >= 4 (the DPT head reads the last four), got {self.layers}")
+        require_at_least(self, ("hidden_size", "heads", "steps", "batch_size"), 1)
+        require_at_least(self, "layers", 4)  # the DPT head reads the last four
         if self.hidden_size % self.heads:
             raise ValueError(f"hidden_size ({self.hidden_size}) must be a multiple of heads ({self.heads})")
         if not (0 < self.hfov_min_deg <= self.hfov_max_deg < 180):
@@ -123,18 +119,13 @@ class DepthPriorConfig:
         fractions = (self.level_fraction, self.vertical_fraction)
         if min(fractions) < 0 or sum(fractions) > 1:
             raise ValueError("level_fraction and vertical_fraction must be >= 0 and sum to at most 1")
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise ValueError(f"lr must be finite and > 0, got {self.lr}")
-        if not (0 <= self.min_valid_fraction < 1):
-            raise ValueError(f"min_valid_fraction must be in [0, 1), got {self.min_valid_fraction}")
+        require_in_range(self, "lr", 0.0, math.inf, low_open=True, high_open=True)
+        require_in_range(self, "min_valid_fraction", 0.0, 1.0, high_open=True)
 
     @classmethod
     def from_dict(cls, data: dict) -> DepthPriorConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown depth-prior option(s) {unknown}; known: {sorted(known)}")
-        return cls(**data)
+        """The config from field values; an unknown name is an error listing the known ones."""
+        return options_from_kwargs(cls, dict(data), "depth-prior")
 
 
 def _build_glpn(cfg: DepthPriorConfig):
@@ -394,14 +385,6 @@ class ViewPool:
 # --------------------------------------------------------------------------------------- training
 
 
-def _lr_factor(step: int, steps: int) -> float:
-    warm = max(1, steps // 20)
-    if step < warm:
-        return (step + 1) / warm
-    progress = (step - warm) / max(1, steps - warm)
-    return 0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * progress))
-
-
 def train_depth_prior(
     captures: Sequence[str | Path],
     out: str | Path,
@@ -448,7 +431,8 @@ def train_depth_prior(
 
     before = val_loss()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: _lr_factor(step, cfg.steps))
+    warm = max(1, cfg.steps // 20)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: warmup_cosine(step, warm, cfg.steps, 0.05))
     model.train()
     losses: list[float] = []
     t0 = time.perf_counter()
@@ -485,15 +469,9 @@ def train_depth_prior(
         "val_loss_after": val_loss(),
         "views_seen": cfg.steps * cfg.batch_size,
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+    with atomic_dir(out) as tmp:
         model.eval()
         model.save_pretrained(tmp, safe_serialization=True)
         save_processor(tmp, cfg)
         (tmp / "depth_prior.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return record

@@ -30,6 +30,7 @@ from image2sim.simulator.layers import circular_pad_width
 from image2sim.simulator.renderer.condition import ALPHA
 from image2sim.simulator.renderer.decoder import prior_base
 from image2sim.simulator.renderer.prior_path import pad_prior
+from image2sim.simulator.schedules import warmup_cosine
 
 __all__ = ["FIT_MAX_PIXELS", "prior_filter_rows", "fit_prior_filter", "fit_prior_path"]
 
@@ -200,12 +201,8 @@ def fit_prior_path(
     opt = torch.optim.Adam(params, lr=lr)
     warm = max(1, steps // 20)
 
-    def schedule(step: int) -> float:  # linear warm-up over 5 % of the steps, then cosine to zero
-        if step < warm:
-            return (step + 1) / warm
-        return 0.5 * (1.0 + math.cos(math.pi * (step - warm) / max(1, steps - warm)))
-
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, schedule)
+    # Linear warm-up over 5 % of the steps, then cosine to zero.
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: warmup_cosine(step, warm, steps, 0.0))
     n_tiles = max(1, batch_pixels // (tile * tile))
 
     def draw(n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
