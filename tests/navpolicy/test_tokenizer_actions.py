@@ -104,3 +104,18 @@ def test_saved_tokenizer_reloads_from_a_local_folder_only(tok, tmp_path):
     assert again(s)["input_ids"] == tok(s)["input_ids"]
     with pytest.raises(FileNotFoundError, match="hub ids"):
         load_tokenizer("Qwen/Qwen3-VL-4B-Instruct")
+
+
+def test_instruction_corpus_makes_the_task_words_whole_tokens(tok):
+    """``extra_corpus`` (``model.tiny.tokenizer_corpus: instructions``): the task's words become
+    single tokens; the special tokens keep ids 0..6 and every action stays one token."""
+    corpus = [f"Walk past the {w} and stop next to the toilet." for w in ("bookshelf", "vase", "armchair")]
+    words = (" toilet", " bookshelf", " vase", " armchair")
+    assert all(len(tok(w)["input_ids"]) > 1 for w in words)  # the built-in corpus splits them
+    task = build_tiny_tokenizer(768, extra_corpus=corpus)
+    assert all(len(task(w)["input_ids"]) == 1 for w in words)
+    check_special_tokens(task)
+    assert ActionCodec.from_tokenizer(task).single_token
+    assert task.decode(task("stop next to the vase")["input_ids"]) == "stop next to the vase"
+    # Deterministic: the same corpus gives the same vocabulary (a resumed run rebuilds it).
+    assert build_tiny_tokenizer(768, extra_corpus=corpus).get_vocab() == task.get_vocab()

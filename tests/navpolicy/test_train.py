@@ -255,3 +255,37 @@ def test_repo_file_resolves_from_any_directory_and_reports_missing_files(tmp_pat
     pytest.importorskip("deepspeed")
     with pytest.raises(FileNotFoundError, match="deepspeed_config configs/absent.json"):
         make_strategy(TrainConfig(strategy="deepspeed_zero2", deepspeed_config="configs/absent.json"))
+
+
+def test_a_tokenizer_learned_on_the_training_instructions_is_exported(tiny_cfg, tmp_path):
+    """``model.tiny.tokenizer_corpus: instructions``: BC builds the tiny tokenizer on its shards'
+    instructions, the export carries it, and the reloaded policy tokenizes the task's words whole.
+    Without any instructions the policy is refused, and unknown corpora are config errors."""
+    from image2sim.navpolicy.data import shard_instructions, write_shard
+    from image2sim.navpolicy.model import build_policy, tokenizer_corpus
+    from image2sim.navpolicy.tokenizer import load_tokenizer
+
+    trajs = synthetic_trajectories(6, min_len=6, max_len=12, seed=3)
+    goals = ["toilet", "bookshelf", "armchair"]
+    for k, t in enumerate(trajs):
+        t.instruction = f"Find the {goals[k % 3]} in the bathroom and stop next to the {goals[k % 3]}."
+    shard = write_shard(tmp_path / "shard", trajs)
+    assert shard_instructions([shard]) == [t.instruction for t in trajs]
+    cfg = _cfg(tiny_cfg, 2)
+    cfg.model.tiny.tokenizer_corpus = "instructions"
+    cfg.model.tiny.tokenizer_vocab_size = 768
+    cfg.data.shards = [str(shard)]
+    assert tokenizer_corpus(cfg) == [t.instruction for t in trajs]
+    res = train_bc(cfg, tmp_path / "run")
+    tok = load_tokenizer(res.export_dir)
+    assert all(len(tok(" " + g)["input_ids"]) == 1 for g in goals)
+    reloaded = copy.deepcopy(cfg)
+    reloaded.model.source = str(res.export_dir)
+    assert build_policy(reloaded).tokenizer.get_vocab() == tok.get_vocab()
+    empty = copy.deepcopy(cfg)
+    empty.data.shards = []
+    with pytest.raises(ValueError, match="tokenizer_corpus"):
+        build_policy(empty, corpus=tokenizer_corpus(empty))
+    empty.model.tiny.tokenizer_corpus = "wikipedia"
+    with pytest.raises(ConfigError, match="model.tiny.tokenizer_corpus"):
+        empty.validate()

@@ -22,6 +22,9 @@ from image2sim.simulator.config import (  # one error type and field checks repo
 )
 from image2sim.simulator.markers import GoalMarker
 
+TOKENIZER_CORPORA = ("builtin", "instructions")
+"""Values of ``model.tiny.tokenizer_corpus``."""
+
 
 @dataclass
 class TinyModelConfig:
@@ -57,6 +60,12 @@ class TinyModelConfig:
     """Vision layers whose features are added to the first decoder layers (DeepStack)."""
     tokenizer_vocab_size: int = 512
     """Target BPE vocabulary of the offline tokenizer."""
+    tokenizer_corpus: str = "builtin"
+    """What the offline tokenizer's merges are learned on. ``builtin``: a few lines of navigation
+    prose, so most words of a task's instructions split into bytes ("toilet" -> to/i/le/t, "vase"
+    -> v/a/s/e) that a 2-layer model must put back together. ``instructions``: that prose plus the
+    instructions of the training shards (``data.shards``), so the task's words are whole tokens,
+    as they are in a pretrained tokenizer. The tokenizer is saved with every export."""
 
 
 @dataclass
@@ -373,6 +382,7 @@ class NavPolicyConfig:
         require_in_range(self, "train.goal_aux_layer", float("-inf"), -1)  # a negative hidden-state index
         require_at_least(self, ("train.val_every", "train.val_batches", "data.observation_stride"), 1)
         require_one_of(self, "data.sampling", ("uniform", "streaming"))
+        require_one_of(self, "model.tiny.tokenizer_corpus", TOKENIZER_CORPORA)
         if self.data.max_trajectories is not None and (
             self.data.max_trajectories < 1 or self.data.shard_weights
         ):

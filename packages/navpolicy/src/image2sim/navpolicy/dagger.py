@@ -470,7 +470,7 @@ def run_dagger(
     """
     from image2sim.navpolicy.agent import Image2NavAgent
     from image2sim.navpolicy.data import InMemoryNavDataset, ShardWriter, sample_options
-    from image2sim.navpolicy.model import build_policy, export_policy
+    from image2sim.navpolicy.model import build_policy, export_policy, tokenizer_corpus
     from image2sim.navpolicy.train import train_bc
     from image2sim.simulator.config import save_config
     from rich.progress import Progress
@@ -482,7 +482,7 @@ def run_dagger(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     state_path, log_path = out / STATE_FILE, out / "episodes.jsonl"
-    policy = policy or build_policy(cfg, seed=cfg.train.seed)
+    policy = policy or build_policy(cfg, seed=cfg.train.seed, corpus=tokenizer_corpus(cfg))
     fingerprint = run_fingerprint(cfg, scenes, base_trajectories, policy.model)
     state = _load_state(state_path, fingerprint) if resume else None
     if state is None:  # a fresh run: clear what an earlier run left in this folder

@@ -411,6 +411,11 @@ class ShardReader:
         ).validate(f"{self.root} line {i + 1}")
 
 
+def shard_instructions(shards: Sequence[str | Path]) -> list[str]:
+    """Every trajectory's instruction in ``shards``, in order (records only; no frames are read)."""
+    return [str(rec["instruction"]) for root in shards for rec in ShardReader(root).records]
+
+
 @dataclass(frozen=True)
 class SampleLayout:
     """How a dataset turns a trajectory into a training sample: the arguments of

@@ -11,6 +11,7 @@ unless ``train_merger`` is off.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -187,13 +188,36 @@ def apply_lora(model: torch.nn.Module, cfg: ModelConfig) -> torch.nn.Module:
     return get_peft_model(model, lcfg)
 
 
-def build_policy(cfg: NavPolicyConfig, seed: int | None = None) -> NavPolicy:
-    """Model + tokenizer + image processor + action codec for ``cfg`` (frozen parts applied)."""
+def tokenizer_corpus(cfg: NavPolicyConfig, dataset=None) -> list[str]:
+    """The training instructions a tiny policy's tokenizer learns from (``model.tiny.tokenizer_corpus
+    == "instructions"``): those of ``dataset`` when given, else of ``cfg.data.shards``; empty for
+    the built-in corpus or a pretrained source, whose tokenizer is fixed."""
+    if cfg.model.source != "tiny" or cfg.model.tiny.tokenizer_corpus != "instructions":
+        return []
+    if dataset is not None:
+        return [dataset.instruction_of(i) for i in range(len(dataset))]
+    from image2sim.navpolicy.data import shard_instructions
+
+    return shard_instructions(cfg.data.shards)
+
+
+def build_policy(cfg: NavPolicyConfig, seed: int | None = None, corpus: Sequence[str] = ()) -> NavPolicy:
+    """Model + tokenizer + image processor + action codec for ``cfg`` (frozen parts applied).
+
+    ``corpus``: the training instructions, which the tiny tokenizer's merges learn from when
+    ``model.tiny.tokenizer_corpus == "instructions"`` (:func:`tokenizer_corpus` gathers them).
+    """
     from transformers import Qwen3VLForConditionalGeneration
 
     mc = cfg.model
     if mc.source == "tiny":
-        tokenizer = build_tiny_tokenizer(mc.tiny.tokenizer_vocab_size)
+        if mc.tiny.tokenizer_corpus == "instructions" and not corpus:
+            raise ValueError(
+                "model.tiny.tokenizer_corpus='instructions' needs the training instructions to learn "
+                "the tokenizer from; none were given (no data.shards?)"
+            )
+        extra = corpus if mc.tiny.tokenizer_corpus == "instructions" else ()
+        tokenizer = build_tiny_tokenizer(mc.tiny.tokenizer_vocab_size, extra_corpus=extra)
         if seed is not None:
             torch.manual_seed(seed)
         qcfg = tiny_qwen3vl_config(mc.tiny, tokenizer)

@@ -26,7 +26,7 @@ import torch
 from image2sim.navpolicy.collate import NavCollator, model_inputs
 from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
 from image2sim.navpolicy.data import InMemoryNavDataset, NavShardDataset, sample_options
-from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy
+from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy, tokenizer_corpus
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler
 from image2sim.simulator.schedules import warmup_cosine
@@ -495,7 +495,7 @@ def train_bc(
     save_config(cfg, out / "config.yaml")
 
     L.seed_everything(tc.seed, workers=True, verbose=False)
-    policy = policy or build_policy(cfg, seed=tc.seed)
+    policy = policy or build_policy(cfg, seed=tc.seed, corpus=tokenizer_corpus(cfg, dataset))
     policy.model.train()
     module = NavBCModule(policy, cfg, dataset)
     loggers = [csv_logger(out, resume=resume is not None)]

@@ -164,7 +164,7 @@ def pretrain_vision(
     every evaluation) and returns the latter."""
     from image2sim.dataengine.procedural.views import load_views
     from image2sim.navpolicy.collate import patchify_batch
-    from image2sim.navpolicy.model import MERGE_SIZE, base_qwen, build_policy
+    from image2sim.navpolicy.model import MERGE_SIZE, base_qwen, build_policy, tokenizer_corpus
     from image2sim.simulator.io.atomic import atomic_dir
     from image2sim.simulator.schedules import warmup_cosine
 
@@ -173,7 +173,7 @@ def pretrain_vision(
     table = json.loads((Path(views) / "categories.json").read_text())["categories"]
     num_classes = max(int(c["id"]) for c in table) + 1
     objects = [int(c["id"]) for c in table if c["name"] not in ("floor", "wall", "ceiling")]
-    policy = build_policy(policy_config, seed=cfg.seed)
+    policy = build_policy(policy_config, seed=cfg.seed, corpus=tokenizer_corpus(policy_config))
     processor = policy.image_processor
     size = rgb.shape[1]
     if patchify_batch([rgb[0]], processor) is None:
@@ -345,7 +345,7 @@ def pretrain_grounding(
 
     from image2sim.dataengine.procedural.views import load_views
     from image2sim.navpolicy.data import NavSample
-    from image2sim.navpolicy.model import build_policy, export_policy
+    from image2sim.navpolicy.model import build_policy, export_policy, tokenizer_corpus
     from image2sim.navpolicy.train import NavBCModule
 
     cfg = (config or GroundingConfig()).validate()
@@ -358,7 +358,7 @@ def pretrain_grounding(
     pcfg = copy.deepcopy(policy_config)
     pcfg.train.goal_aux_weight = max(pcfg.train.goal_aux_weight, 1.0)  # the module builds its head
     torch.manual_seed(cfg.seed)
-    policy = build_policy(pcfg, seed=cfg.seed)
+    policy = build_policy(pcfg, seed=cfg.seed, corpus=tokenizer_corpus(pcfg))
     module = NavBCModule(policy, pcfg)
     rng = np.random.default_rng(cfg.seed)
 
