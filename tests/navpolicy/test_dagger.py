@@ -86,6 +86,9 @@ def test_dagger_config_is_validated():
         load_config("tiny", {"dagger": {"schedule": "cosine"}})
     with pytest.raises(ConfigError, match="dagger.bogus"):
         load_config("tiny", {"dagger": {"bogus": 1}})
+    assert load_config("tiny").dagger.lr is None  # rounds train at train.lr
+    with pytest.raises(ConfigError, match="dagger.lr"):
+        load_config("tiny", {"dagger": {"lr": 0.0}})
 
 
 def test_goal_instruction_is_egocentric():
@@ -320,6 +323,7 @@ def test_tiny_dagger_run_adds_samples_and_trains_on_them(scene, tiny_cfg, tiny_p
         max_steps=16,
         model_probability=0.5,
         chunk_min=4,
+        lr=1e-3,
     )
     policy = copy.deepcopy(tiny_policy)
     before = {k: v.clone() for k, v in policy.model.state_dict().items()}
@@ -342,6 +346,10 @@ def test_tiny_dagger_run_adds_samples_and_trains_on_them(scene, tiny_cfg, tiny_p
         t = reader[0]
         assert len(t.extra["oracle_labels"]) == len(t.actions) == lines[r]["steps"]
     assert (res.export_dir / "config.json").is_file()
+    # Each round trains at dagger.lr (its own warm-up cosine); the run's train.lr is untouched.
+    for r in range(2):
+        assert load_config(tmp_path / "dagger" / f"round_{r:02d}" / "train" / "config.yaml").train.lr == 1e-3
+    assert load_config(tmp_path / "dagger" / "config.yaml").train.lr == 3e-3
 
 
 def test_dagger_needs_tasks(tiny_cfg, tmp_path):

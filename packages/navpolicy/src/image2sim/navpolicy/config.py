@@ -295,6 +295,10 @@ class DaggerConfig:
     """Episodes rolled out per round."""
     train_steps_per_round: int = 10
     """Optimizer steps on the aggregated dataset after each collection."""
+    lr: float | None = None
+    """Peak learning rate of each round's updates (``None``: ``train.lr``). Every round restarts
+    the warm-up cosine schedule, so at ``train.lr`` each round moves the policy as fast as the
+    start of behaviour cloning did (docs/sim2real.md, "DAgger's learning rate")."""
     model_probability: float = 0.5
     """Probability that a control chunk is driven by the model (else by the oracle) in round 0."""
     final_model_probability: float = 0.9
@@ -413,6 +417,8 @@ class NavPolicyConfig:
         require_render_device(self, "dagger.render_device")
         require_at_least(self, ("dagger.rounds", "dagger.episodes_per_round", "dagger.max_steps"), 1)
         require_at_least(self, "dagger.train_steps_per_round", 0)
+        if self.dagger.lr is not None:
+            require_at_least(self, "dagger.lr", 1e-12)
         require_at_least(self, "train.max_minutes", 0.0)
         require_one_of(self, "model.dtype", ("float32", "bfloat16", "float16"))
         return self

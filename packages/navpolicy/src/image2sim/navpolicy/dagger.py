@@ -578,6 +578,7 @@ def run_dagger(
         if dc.train_steps_per_round > 0:
             rc = copy.deepcopy(cfg)
             rc.train.max_steps = dc.train_steps_per_round
+            rc.train.lr = cfg.train.lr if dc.lr is None else dc.lr
             rc.train.seed = cfg.train.seed + r
             rc.train.checkpoint_every = max(1, min(rc.train.checkpoint_every, dc.train_steps_per_round))
             ds = InMemoryNavDataset(aggregated, seed=rc.train.seed, **sample_options(cfg))
