@@ -382,6 +382,8 @@ def test_sim2real_config_and_scaling_points_compose():
     cfg = load_config(str(root / "configs/navpolicy/sim2real.yaml"))
     assert cfg.data.sampling == "streaming" and 0 < cfg.data.end_cut_probability < 1
     assert sample_options(cfg)["context"] == (cfg.agent.sparse_frames, cfg.agent.dense_frames)
+    # DAgger's rounds peak below behaviour cloning's rate (at it, two seeds collapsed: docs/sim2real.md).
+    assert cfg.dagger.lr is not None and cfg.dagger.lr < cfg.train.lr
     params = yaml.safe_load((root / "pipelines/sim2real/params.yaml").read_text())
     points = [p.split(":") for p in str(params["scaling"]["points"]).split()]
     capped = [int(p[1]) for p in points if len(p) == 2]
