@@ -282,6 +282,17 @@ def test_a_tokenizer_learned_on_the_training_instructions_is_exported(tiny_cfg, 
     reloaded = copy.deepcopy(cfg)
     reloaded.model.source = str(res.export_dir)
     assert build_policy(reloaded).tokenizer.get_vocab() == tok.get_vocab()
+    # `nav tokenizer --config` shows the tokenizer such a config trains with.
+    import json
+
+    import yaml
+    from image2sim.navpolicy.cli import app
+    from typer.testing import CliRunner
+
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+    shown = CliRunner().invoke(app, ["tokenizer", "--config", str(tmp_path / "cfg.yaml")])
+    assert shown.exit_code == 0, shown.output
+    assert json.loads(shown.output)["vocab_size"] == len(tok)
     empty = copy.deepcopy(cfg)
     empty.data.shards = []
     with pytest.raises(ValueError, match="tokenizer_corpus"):
