@@ -29,15 +29,11 @@ def tokenizer_cmd(
 ) -> None:
     """Show the special-token ids and how each action tokenizes (single token or not)."""
     from image2sim.navpolicy.actions import ActionCodec
-    from image2sim.navpolicy.model import tokenizer_corpus
-    from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
+    from image2sim.navpolicy.model import policy_tokenizer, tokenizer_corpus
+    from image2sim.navpolicy.tokenizer import check_special_tokens
 
     cfg = _config(config)
-    tok = (  # model.tiny.tokenizer_corpus=instructions: learned on the config's data.shards too
-        build_tiny_tokenizer(cfg.model.tiny.tokenizer_vocab_size, extra_corpus=tokenizer_corpus(cfg))
-        if cfg.model.source == "tiny"
-        else load_tokenizer(cfg.model.source)
-    )
+    tok = policy_tokenizer(cfg, tokenizer_corpus(cfg))  # instructions: the config's data.shards too
     codec = ActionCodec.from_tokenizer(tok)
     typer.echo(
         json.dumps(

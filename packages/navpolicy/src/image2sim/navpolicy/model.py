@@ -201,6 +201,16 @@ def tokenizer_corpus(cfg: NavPolicyConfig, dataset=None) -> list[str]:
     return shard_instructions(cfg.data.shards)
 
 
+def policy_tokenizer(cfg: NavPolicyConfig, corpus: Sequence[str] = ()):
+    """The tokenizer of ``cfg``'s policy: the offline tiny BPE (its merges also learned on
+    ``corpus`` when ``model.tiny.tokenizer_corpus == "instructions"``), or a local checkpoint's."""
+    mc = cfg.model
+    if mc.source != "tiny":
+        return load_tokenizer(mc.source)
+    extra = corpus if mc.tiny.tokenizer_corpus == "instructions" else ()
+    return build_tiny_tokenizer(mc.tiny.tokenizer_vocab_size, extra_corpus=extra)
+
+
 def build_policy(cfg: NavPolicyConfig, seed: int | None = None, corpus: Sequence[str] = ()) -> NavPolicy:
     """Model + tokenizer + image processor + action codec for ``cfg`` (frozen parts applied).
 
@@ -216,8 +226,7 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None, corpus: Sequence
                 "model.tiny.tokenizer_corpus='instructions' needs the training instructions to learn "
                 "the tokenizer from; none were given (no data.shards?)"
             )
-        extra = corpus if mc.tiny.tokenizer_corpus == "instructions" else ()
-        tokenizer = build_tiny_tokenizer(mc.tiny.tokenizer_vocab_size, extra_corpus=extra)
+        tokenizer = policy_tokenizer(cfg, corpus)
         if seed is not None:
             torch.manual_seed(seed)
         qcfg = tiny_qwen3vl_config(mc.tiny, tokenizer)
@@ -230,7 +239,7 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None, corpus: Sequence
             raise FileNotFoundError(
                 f"model.source {mc.source!r} is neither 'tiny' nor a local folder (hub ids are refused)"
             )
-        tokenizer = load_tokenizer(path)
+        tokenizer = policy_tokenizer(cfg)
         model = Qwen3VLForConditionalGeneration.from_pretrained(
             str(path),
             local_files_only=True,
