@@ -9,7 +9,7 @@
 #
 # Needs outputs/sim2real from `make sim2real` (run from the repository root). ~8 min per seed on
 # a 2-core CPU. In the default OUT, the pipeline's report reads the runs (`eval sim2real
-# --seed-run`: every seed's SR, their mean and spread); then `dvc repro -f
+# --seed-run`: every seed's SR, their mean and spread); then `dvc repro -s -f
 # pipelines/sim2real/dvc.yaml:report`. docs/sim2real.md, "Three training seeds of the neural row".
 set -euo pipefail
 OUT=${1:-outputs/sim2real/seeds}
