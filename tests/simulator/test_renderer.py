@@ -748,6 +748,9 @@ def test_tiny_model_overfits_one_target(residual):
     )
     noise = torch.randn(1, 4, h, w, generator=g)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    # At a constant 3e-3 the absolute heads' PSNR swings by 10+ dB from step to step (27.9 at the
+    # last step, 42.0 fifty steps before, on an Intel Xeon): decay the rate so the end is settled.
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=600)
     for _step in range(600):
         r, t = mf.sample_time_pairs(1, 0.5, generator=g)
         out = model.losses(cond, target_rgb, target_depth, noise, r, t)
@@ -755,6 +758,7 @@ def test_tiny_model_overfits_one_target(residual):
         opt.zero_grad()
         loss.backward()
         opt.step()
+        schedule.step()
     pred = model.render(cond, steps=1, noise=noise)
     mse = (pred.rgb - target_rgb).pow(2).mean()
     psnr = -10 * torch.log10(mse)
