@@ -11,7 +11,10 @@ that reads its instruction stops more under its own; one that acts on the view a
     .venv/bin/python scripts/stop_probe.py --model <export> --config <policy yaml> \\
         --shard <episodes>/scenes/scene_000/shard [--shard ...] [--out probe.json]
 
-Prints and writes: mean P(STOP) own / other, the share of ends where own > other, and n.
+Prints and writes: mean P(STOP) own / other, the share of ends where own > other, and n. For a
+policy exported with its goal head (``agent.stop_gate``), also the head's probability that the named
+goal is in view at the end's last image, own / other (``goal_p_own``, ``goal_p_other``, and the share
+where own > other): what the STOP gate reads there.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ def main() -> None:
 
     import numpy as np
     import torch
-    from image2sim.navpolicy.collate import NavCollator, model_inputs
+    from image2sim.navpolicy.collate import NavCollator, image_end_positions, model_inputs
     from image2sim.navpolicy.config import load_config
     from image2sim.navpolicy.data import NavShardDataset, sample_options
     from image2sim.navpolicy.model import build_policy
@@ -59,23 +62,35 @@ def main() -> None:
         end = ds.wrong_goal_sample(ds.trajectory(i), ds.instruction_of(i), None)  # marks its STOP
         pairs.append((end, dataclasses.replace(end, instruction=ds.instruction_of(other))))
 
-    def p_stop(samples) -> list[float]:
-        out = []
+    head = policy.goal_head
+
+    def p_stop(samples) -> tuple[list[float], list[float]]:
+        """P(STOP) at each sample's end, and the goal head's probability at its last image (nan
+        without a head)."""
+        out, goal = [], []
         for k in range(0, len(samples), args.batch):
             chunk = samples[k : k + args.batch]
             batch = col(chunk)
             with torch.no_grad():
-                logits = policy.model(**model_inputs(batch)).logits
+                res = policy.model(**model_inputs(batch), output_hidden_states=head is not None)
+                if head is not None:
+                    ends = image_end_positions(batch["mm_token_type_ids"])
+                    last = [ends[ends[:, 0] == b][-1] for b in range(len(chunk))]
+                    rows = torch.tensor([int(e[0]) for e in last])
+                    cols = torch.tensor([int(e[1]) for e in last])
+                    goal += torch.sigmoid(head(head.state_at(res.hidden_states, rows, cols))).tolist()
+                else:
+                    goal += [float("nan")] * len(chunk)
             mask = batch["stop_negative_mask"]
             for b in range(len(chunk)):
-                res = stop_unlikelihood(logits[b : b + 1], batch["input_ids"][b : b + 1], mask[b : b + 1])
-                out.append(float("nan") if res is None else float(res[1]))  # no STOP in view: skipped
-        return out
+                r = stop_unlikelihood(res.logits[b : b + 1], batch["input_ids"][b : b + 1], mask[b : b + 1])
+                out.append(float("nan") if r is None else float(r[1]))  # no STOP in view: skipped
+        return out, goal
 
-    own = np.array(p_stop([a for a, _ in pairs]))
-    oth = np.array(p_stop([b for _, b in pairs]))
+    own, goal_own = map(np.array, p_stop([a for a, _ in pairs]))
+    oth, goal_oth = map(np.array, p_stop([b for _, b in pairs]))
     keep = np.isfinite(own) & np.isfinite(oth)
-    own, oth = own[keep], oth[keep]
+    own, oth, goal_own, goal_oth = own[keep], oth[keep], goal_own[keep], goal_oth[keep]
     result = {
         "model": args.model,
         "n": int(keep.sum()),
@@ -84,6 +99,12 @@ def main() -> None:
         "own_greater_share": round(float((own > oth).mean()), 4) if len(own) else None,
         "mean_difference": round(float((own - oth).mean()), 4) if len(own) else None,
     }
+    if head is not None and len(own):
+        result |= {
+            "goal_p_own": round(float(goal_own.mean()), 4),
+            "goal_p_other": round(float(goal_oth.mean()), 4),
+            "goal_own_greater_share": round(float((goal_own > goal_oth).mean()), 4),
+        }
     print(json.dumps(result))
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")

@@ -159,3 +159,44 @@ def test_batched_agents_equal_independent_agents(tiny_policy, tiny_cfg):
     assert len(all_actions) > 1  # the comparison is not between constant outputs
     with pytest.raises(ValueError, match="expected 3 observations"):
         batched.act([None])
+
+
+def test_stop_can_be_withheld(tiny_policy, tiny_cfg):
+    # A policy biased to say STOP: with allow_stop=False it returns its best other action instead.
+    frames = synthetic_trajectories(1, 3, 3, seed=9)[0].frames
+    pol = copy.deepcopy(tiny_policy)
+    bias = torch.zeros(pol.model.lm_head.out_features)
+    for t in {*pol.codec.first[Action.STOP], *pol.codec.following[Action.STOP]}:
+        bias[t] = 100.0
+    bias[pol.codec.first[Action.TURN_LEFT][0]] = 50.0  # the runner-up once STOP is out
+    pol.model.lm_head.register_forward_hook(lambda m, i, o: o + bias)
+    agent = Image2NavAgent(pol, tiny_cfg.agent, tiny_cfg.system_prompt)
+    agent.reset("find the sofa")
+    assert agent.act(frames[0])[0] == Action.STOP
+    agent.reset("find the sofa")
+    for f in frames:
+        acts = agent.act(f, allow_stop=False)
+        assert Action.STOP not in acts and acts[0] == Action.TURN_LEFT
+
+
+def test_unconstrained_stop_withheld_falls_back(tiny_policy, tiny_cfg):
+    frames = synthetic_trajectories(1, 2, 2, seed=9)[0].frames
+    pol = copy.deepcopy(tiny_policy)
+    im_end = pol.tokenizer.convert_tokens_to_ids("<|im_end|>")
+    seq = [pol.codec.first[Action.STOP][0], pol.codec.following[Action.MOVE_FORWARD][0], im_end]
+    state = {"i": 0}
+
+    def force(module, inputs, out):  # emit "STOP FORWARD" then end, whatever the context
+        bias = torch.zeros_like(out)
+        bias[..., seq[state["i"] % 3]] = 100.0
+        state["i"] += 1
+        return out + bias
+
+    pol.model.lm_head.register_forward_hook(force)
+    acfg = copy.deepcopy(tiny_cfg.agent)
+    acfg.constrained = False
+    agent = Image2NavAgent(pol, acfg, tiny_cfg.system_prompt)
+    agent.reset("find the sofa")
+    assert agent.act(frames[0]) == [Action.STOP, Action.MOVE_FORWARD] and not agent.history[-1].fallback
+    assert agent.act(frames[1], allow_stop=False) == [Action(acfg.fallback_action), Action.MOVE_FORWARD]
+    assert agent.history[-1].fallback

@@ -76,7 +76,7 @@ def test_bad_labels_are_refused_and_borrowed_instructions_drop_them(trajs, tmp_p
 def head_loss_by_hand(module, batch, out, layer: int) -> torch.Tensor:
     """The grounding loss written out: the head on hidden state ``layer`` at each image's last token."""
     h = out.hidden_states[layer][batch["image_end"][:, 0], batch["image_end"][:, 1]]
-    logits = module.goal_head(h).squeeze(-1)
+    logits = module.goal_head.linear(h).squeeze(-1)
     return torch.nn.functional.binary_cross_entropy_with_logits(logits, batch["goal_in_view"])
 
 
@@ -108,7 +108,8 @@ def test_training_adds_the_heads_loss_and_learns_it(tiny_cfg, trajs, tmp_path):
     from safetensors import safe_open
 
     with safe_open(str(res.export_dir / "model.safetensors"), "pt") as f:
-        assert not any("goal_head" in k for k in f.keys())  # training-only head
+        assert not any("goal_head" in k for k in f.keys())  # the head is its own file, not the model's
+    assert (res.export_dir / "goal_head.safetensors").is_file()
 
 
 def test_without_the_weight_there_is_no_head(tiny_cfg, tiny_policy):

@@ -82,6 +82,23 @@ def test_codec_handles_multi_token_actions():
     assert tk.QWEN_SPECIAL_TOKENS  # module import sanity
 
 
+def test_codec_excluded_actions_are_unreachable():
+    # Walking the trie without STOP reaches every other action and never STOP (multi-token words, so
+    # the exclusion must prune shared prefixes only where they lead to STOP alone).
+    codec = ActionCodec.from_tokenizer(build_tiny_tokenizer(action_texts={}))
+    for pos in (0, 1):
+
+        def reachable(prefix, pos=pos):
+            done = codec.match(pos, prefix)
+            if done is not None:
+                return {done}
+            nxt = codec.allowed_next(pos, prefix, exclude=(Action.STOP,))
+            return set().union(*(reachable([*prefix, t]) for t in nxt)) if nxt else set()
+
+        assert reachable([]) == set(Action) - {Action.STOP}
+        assert codec.allowed_next(pos, [], exclude=()) == codec.allowed_next(pos, [])
+
+
 def test_codec_rejects_ambiguous_vocabulary(tok):
     texts = dict(ACTION_TEXT)
     texts[Action.TURN_RIGHT] = "LEFTX"  # "LEFT" + "X": LEFT is a prefix of it

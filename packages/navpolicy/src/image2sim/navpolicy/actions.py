@@ -11,7 +11,7 @@ token trie is unambiguous, and says whether every action is a single token.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 from image2sim.simulator.conventions import Action
@@ -123,13 +123,16 @@ class ActionCodec:
         """Token ids of each action of one reply, in order (their concatenation is the reply)."""
         return [list(self.table(i)[Action(int(a))]) for i, a in enumerate(actions)]
 
-    def allowed_next(self, position: int, prefix: Sequence[int]) -> list[int]:
-        """Token ids that extend ``prefix`` towards some action at ``position`` (trie children)."""
+    def allowed_next(
+        self, position: int, prefix: Sequence[int], exclude: Collection[Action] = ()
+    ) -> list[int]:
+        """Token ids that extend ``prefix`` towards some action at ``position`` (trie children),
+        leaving out the paths that lead only to actions in ``exclude``."""
         n = len(prefix)
         out = {
             seq[n]
-            for seq in self.table(position).values()
-            if len(seq) > n and tuple(seq[:n]) == tuple(prefix)
+            for a, seq in self.table(position).items()
+            if a not in exclude and len(seq) > n and tuple(seq[:n]) == tuple(prefix)
         }
         return sorted(out)
 

@@ -39,6 +39,27 @@ class StepInfo:
     reused_tokens: int
     fallback: bool
     step_logits: list[torch.Tensor] = field(default_factory=list)
+    goal_probability: float | None = None
+    """The goal head's probability that the instruction's goal is in view (``agent.stop_gate`` on)."""
+    stop_allowed: bool = True
+    """Whether STOP could be decoded at this step (the caller's ``allow_stop`` and the gate)."""
+
+
+def check_stop_gate(policy: NavPolicy, cfg: AgentConfig) -> None:
+    """``agent.stop_gate`` needs a policy with a goal head; refuse it by name otherwise."""
+    if cfg.stop_gate is not None and policy.goal_head is None:
+        raise ValueError(
+            f"agent.stop_gate={cfg.stop_gate} needs a policy with a goal head (an export with "
+            "goal_head.safetensors: train with train.goal_aux_weight > 0); this policy has none"
+        )
+
+
+def last_image_position(mm: list[int]) -> int:
+    """Index of the last image token of a prompt (the newest observation's last token)."""
+    for j in range(len(mm) - 1, -1, -1):
+        if mm[j] == IMAGE_TOKEN:
+            return j
+    raise ValueError("the prompt holds no image")
 
 
 class Image2NavAgent:
@@ -50,6 +71,8 @@ class Image2NavAgent:
         self.qwen = base_qwen(policy.model)
         self.prompts = PromptBuilder(policy.tokenizer, policy.codec, system_prompt)
         self.im_end_id = self.prompts.im_end_id
+        check_stop_gate(policy, cfg)
+        self._goal_logit: float | None = None
         self.history: list[StepInfo] = []
         self.reset("")
 
@@ -97,8 +120,10 @@ class Image2NavAgent:
         )
         return rope[:, 0]
 
-    def _run(self, ids, mm, keys, frame_idx: list[int], start: int):
-        """Feed tokens ``[start:]`` given a cache holding ``[:start]``; returns last-position logits."""
+    def _run(self, ids, mm, keys, frame_idx: list[int], start: int, goal_at: int | None = None):
+        """Feed tokens ``[start:]`` given a cache holding ``[:start]``; returns last-position logits.
+        With ``goal_at`` (a position among the fed tokens) the goal head's logit there is kept in
+        ``self._goal_logit``."""
         # Never split an image block: move ``start`` back to the block's first token.
         while 0 < start < len(mm) and mm[start] == IMAGE_TOKEN and mm[start - 1] == IMAGE_TOKEN:
             start -= 1
@@ -143,8 +168,14 @@ class Image2NavAgent:
             past_key_values=self._cache,
             use_cache=True,
             logits_to_keep=1,
+            output_hidden_states=goal_at is not None,
             **kwargs,
         )
+        if goal_at is not None:
+            if goal_at < start:
+                raise ValueError(f"goal_at={goal_at} lies in the cached prefix (fed from {start})")
+            head = self.policy.goal_head
+            self._goal_logit = float(head(head.state_at(out.hidden_states, 0, goal_at - start)))
         self._cache_keys = list(keys)
         return out.logits[0, -1].float(), start
 
@@ -164,17 +195,30 @@ class Image2NavAgent:
         return frame_idx, self.prompts.encode(self.instruction, turns, add_generation_prompt=True)
 
     @torch.no_grad()
-    def act(self, rgb: np.ndarray, executed: list[int] | None = None) -> list[Action]:
+    def act(
+        self, rgb: np.ndarray, executed: list[int] | None = None, allow_stop: bool = True
+    ) -> list[Action]:
         """Observe ``rgb`` (H, W, 3 uint8) and return the next two actions.
 
         ``executed`` lists the actions actually carried out since the previous call (default: the
-        previous reply, cut after a STOP).
+        previous reply, cut after a STOP). ``allow_stop=False`` decodes the best actions other than
+        STOP (a stop gate decided outside the language model; unconstrained decoding replaces a
+        STOP by ``fallback_action``).
         """
         frame_idx, enc = self._observe(rgb, executed)
         ids, mm, keys = list(enc.input_ids), list(enc.mm_token_type_ids), list(enc.keys)
         reuse = common_prefix_length(self._cache_keys, keys) if self.cfg.reuse_cache else 0
         reuse = min(reuse, len(ids) - 1)  # always run at least one token to get logits
-        logits, start = self._run(ids, mm, keys, frame_idx, reuse)
+        gate = self.cfg.stop_gate
+        # The newest frame's tokens are never cached (it was just appended), so the head's position
+        # is always among the fed ones.
+        goal_at = last_image_position(mm) if gate is not None else None
+        logits, start = self._run(ids, mm, keys, frame_idx, reuse, goal_at)
+        goal_p = None
+        if gate is not None:
+            goal_p = float(torch.sigmoid(torch.tensor(self._goal_logit)))
+            allow_stop = allow_stop and goal_p >= gate
+        exclude = () if allow_stop else (Action.STOP,)
         generated, step_logits = [], [logits]
         actions: list[Action] = []
         fallback = False
@@ -182,7 +226,7 @@ class Image2NavAgent:
             for position in range(ACTIONS_PER_STEP):
                 prefix: list[int] = []
                 while True:
-                    allowed = self.policy.codec.allowed_next(position, prefix)
+                    allowed = self.policy.codec.allowed_next(position, prefix, exclude)
                     tok = allowed[int(torch.argmax(logits[allowed]))]
                     prefix.append(tok)
                     generated.append(tok)
@@ -206,6 +250,9 @@ class Image2NavAgent:
                 step_logits.append(logits)
             text = self.policy.tokenizer.decode([t for t in generated if t != self.im_end_id])
             actions = parse_actions(text, self.policy.codec.texts)[:ACTIONS_PER_STEP]
+            if exclude and Action.STOP in actions:
+                fallback = True
+                actions = [Action(self.cfg.fallback_action) if a in exclude else a for a in actions]
             if len(actions) < ACTIONS_PER_STEP:
                 fallback = True
                 actions = actions + [Action(self.cfg.fallback_action)] * (ACTIONS_PER_STEP - len(actions))
@@ -218,6 +265,8 @@ class Image2NavAgent:
                 reused_tokens=start,
                 fallback=fallback,
                 step_logits=step_logits,
+                goal_probability=goal_p,
+                stop_allowed=allow_stop,
             )
         )
         return list(actions)
@@ -239,19 +288,24 @@ class BatchedImage2NavAgent:
         self.policy = policy
         self.qwen = self.agents[0].qwen
         self.pad_id = int(policy.tokenizer.pad_token_id)
+        self.gate = cfg.stop_gate
 
     def reset(self, index: int, instruction: str, seed: int = 0) -> None:
         """Start a new episode for agent ``index``."""
         self.agents[index].reset(instruction, seed)
 
     @torch.no_grad()
-    def act(self, observations, executed=None) -> list[list[Action] | None]:
-        """Two actions for every agent whose observation is not None (None for the others)."""
+    def act(self, observations, executed=None, allow_stop=None) -> list[list[Action] | None]:
+        """Two actions for every agent whose observation is not None (None for the others);
+        ``allow_stop`` (one bool per agent) withholds STOP like :meth:`Image2NavAgent.act`'s."""
         from transformers import DynamicCache
 
         n = len(self.agents)
         if len(observations) != n:
             raise ValueError(f"expected {n} observations, got {len(observations)}")
+        if allow_stop is not None and len(allow_stop) != n:
+            raise ValueError(f"expected {n} allow_stop flags, got {len(allow_stop)}")
+        gate = self.gate
         active = [i for i, o in enumerate(observations) if o is not None]
         out: list[list[Action] | None] = [None] * n
         if not active:
@@ -266,9 +320,10 @@ class BatchedImage2NavAgent:
         attn = torch.zeros((B, L), dtype=torch.long)
         mm = torch.zeros((B, L), dtype=torch.long)
         pos = torch.zeros((4, B, L), dtype=torch.long)
-        pixels, grids, next_rope = [], [], []
+        pixels, grids, next_rope, goal_at = [], [], [], []
         for b, (i, enc, fi) in enumerate(zip(active, encs, frames, strict=True)):
             agent, m, off = self.agents[i], len(enc), L - len(enc)
+            goal_at.append(off + last_image_position(list(enc.mm_token_type_ids)))
             ids[b, off:] = torch.tensor(enc.input_ids)
             attn[b, off:] = 1
             mm[b, off:] = torch.tensor(enc.mm_token_type_ids)
@@ -290,8 +345,18 @@ class BatchedImage2NavAgent:
             past_key_values=cache,
             use_cache=True,
             logits_to_keep=1,
+            output_hidden_states=gate is not None,
         )
         logits = res.logits[:, -1].float()
+        allowed_stop = [True if allow_stop is None else bool(allow_stop[i]) for i in active]
+        goal_p: list[float | None] = [None] * B
+        if gate is not None:
+            head = self.policy.goal_head
+            states = head.state_at(res.hidden_states, torch.arange(B), torch.tensor(goal_at))
+            probs = torch.sigmoid(head(states))
+            goal_p = [float(v) for v in probs]
+            allowed_stop = [a and p >= gate for a, p in zip(allowed_stop, goal_p, strict=True)]
+        exclude = [() if a else (Action.STOP,) for a in allowed_stop]
         codec = self.policy.codec
         position, prefix = [0] * B, [[] for _ in range(B)]
         actions: list[list[Action]] = [[] for _ in range(B)]
@@ -305,7 +370,7 @@ class BatchedImage2NavAgent:
                 if position[b] >= ACTIONS_PER_STEP:
                     toks.append(self.pad_id)  # finished: a dummy token whose output is never read
                     continue
-                allowed = codec.allowed_next(position[b], prefix[b])
+                allowed = codec.allowed_next(position[b], prefix[b], exclude[b])
                 seen_logits[b].append(logits[b])
                 tok = allowed[int(torch.argmax(logits[b, allowed]))]
                 prefix[b].append(tok)
@@ -341,6 +406,8 @@ class BatchedImage2NavAgent:
                     reused_tokens=0,
                     fallback=False,
                     step_logits=seen_logits[b],
+                    goal_probability=goal_p[b],
+                    stop_allowed=allowed_stop[b],
                 )
             )
             out[i] = list(actions[b])

@@ -219,7 +219,8 @@ class TrainConfig:
     image's last token predicts whether the instruction's goal is in that view (binary
     cross-entropy; labels from the shard records' ``goal_in_view``; samples without them add
     nothing). Only a model that ties the instruction's words to the image can lower it. The head is
-    for training only and is not exported. 0: off."""
+    exported with the policy (``goal_head.safetensors``, which ``agent.stop_gate`` reads), and a
+    source export's head trains on. 0: off (a source's head is then dropped from the export)."""
     goal_aux_layer: int = -1
     """Which language-model state the grounding head reads, as an index into the model's hidden
     states (embeddings, then each layer's output): -1 the final state, -2 the output of the layer
@@ -283,6 +284,11 @@ class AgentConfig:
     """Action used when the output cannot be parsed (default TURN_RIGHT: safe and explores)."""
     reuse_cache: bool = True
     """Reuse the KV cache of the unchanged context prefix between steps."""
+    stop_gate: float | None = None
+    """STOP gated by the policy's goal head (``train.goal_aux_weight``; exported as
+    ``goal_head.safetensors``): at each observation the head gives the probability that the
+    instruction's goal is in view, and below this value the agent decodes its best actions other
+    than STOP. ``None``: off (STOP is the language model's alone)."""
 
 
 @dataclass
@@ -392,6 +398,8 @@ class NavPolicyConfig:
         ):
             raise ConfigError("data.max_trajectories must be >= 1 and cannot be used with data.shard_weights")
         require_in_range(self, "data.end_cut_probability", 0.0, 1.0)
+        if self.agent.stop_gate is not None:
+            require_in_range(self, "agent.stop_gate", 0.0, 1.0)
         require_in_range(self, ("data.late_start_probability", "data.wrong_goal_stop_probability"), 0.0, 1.0)
         if self.data.sampling == "streaming" and (
             self.agent.sparse_frames + self.agent.dense_frames

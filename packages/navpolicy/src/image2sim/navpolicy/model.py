@@ -19,7 +19,7 @@ import torch
 from image2sim.navpolicy.actions import ActionCodec
 from image2sim.navpolicy.config import ModelConfig, NavPolicyConfig, ObservationConfig
 from image2sim.navpolicy.tokenizer import build_tiny_tokenizer, check_special_tokens, load_tokenizer
-from image2sim.simulator.io.atomic import atomic_dir
+from image2sim.simulator.io.atomic import atomic_dir, atomic_path
 
 MERGE_SIZE = 2
 """Qwen3-VL merges 2x2 patches into one language token."""
@@ -42,10 +42,69 @@ class NavPolicy:
     """``Qwen2VLImageProcessorPil`` (no torchvision)."""
     codec: ActionCodec
     """Action <-> token sequences for ``tokenizer``."""
+    goal_head: GoalHead | None = None
+    """The grounding head trained with the language model (``train.goal_aux_weight``), when the
+    policy has one: it reads "the named goal is in view" off an image's last token, and
+    ``agent.stop_gate`` lets STOP through only where it says so."""
 
     @property
     def patch_size(self) -> int:
         return int(self.image_processor.patch_size)
+
+
+GOAL_HEAD_FILE = "goal_head.safetensors"
+"""File of an export holding its :class:`GoalHead` (absent when the policy has none)."""
+
+
+class GoalHead(torch.nn.Module):
+    """Linear probe of "the instruction's goal is in this view" on the language model's hidden state
+    ``layer`` (an index into ``hidden_states``: -1 the final state) at an image's last token."""
+
+    def __init__(self, hidden_size: int, layer: int = -1) -> None:
+        super().__init__()
+        if layer > -1:
+            raise ValueError(f"GoalHead layer must be a negative hidden-state index, got {layer}")
+        self.layer = int(layer)
+        self.linear = torch.nn.Linear(hidden_size, 1)
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(..., hidden) states -> (...) logits."""
+        return self.linear(hidden.to(self.linear.weight.dtype)).squeeze(-1)
+
+    def state_at(self, hidden_states: Sequence[torch.Tensor], rows, positions) -> torch.Tensor:
+        """The states this head reads, at ``(rows, positions)`` of a model output's ``hidden_states``."""
+        if -self.layer > len(hidden_states) - 1:  # index 0 holds the embeddings, not a layer's output
+            raise ValueError(
+                f"the goal head reads hidden state {self.layer} (train.goal_aux_layer), but the "
+                f"language model has {len(hidden_states) - 1} layers"
+            )
+        return hidden_states[self.layer][rows, positions]
+
+    def save(self, path: str | Path) -> None:
+        """safetensors, its layer in the metadata; written atomically."""
+        from safetensors.torch import save_file
+
+        tensors = {k: v.detach().float().contiguous() for k, v in self.linear.state_dict().items()}
+        with atomic_path(path) as tmp:
+            save_file(tensors, str(tmp), metadata={"format": "image2sim-goal-head", "layer": str(self.layer)})
+
+    @classmethod
+    def load(cls, path: str | Path) -> GoalHead:
+        """A head written by :meth:`save`; a malformed file is an error naming it."""
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open has no iterator)
+        w = tensors.get("weight")
+        if meta.get("format") != "image2sim-goal-head" or w is None or w.ndim != 2 or w.shape[0] != 1:
+            raise ValueError(f"{path}: not an image2sim goal head (format metadata, a (1, hidden) 'weight')")
+        try:
+            head = cls(int(w.shape[1]), int(meta.get("layer", "-1")))
+            head.linear.load_state_dict(tensors)
+        except (ValueError, RuntimeError) as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+        return head
 
 
 def tiny_qwen3vl_config(tiny, tokenizer):
@@ -260,7 +319,17 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None, corpus: Sequence
     if mc.lora.enabled:
         model = apply_lora(model, mc)
     codec = ActionCodec.from_tokenizer(tokenizer)
-    return NavPolicy(model=model, tokenizer=tokenizer, image_processor=image_processor, codec=codec)
+    goal_head = None
+    if mc.source != "tiny" and (Path(mc.source) / GOAL_HEAD_FILE).is_file():
+        goal_head = GoalHead.load(Path(mc.source) / GOAL_HEAD_FILE)
+        if goal_head.linear.in_features != int(base_qwen(model).config.text_config.hidden_size):
+            raise ValueError(
+                f"{Path(mc.source) / GOAL_HEAD_FILE}: {goal_head.linear.in_features} inputs, but the "
+                f"language model's hidden size is {base_qwen(model).config.text_config.hidden_size}"
+            )
+    return NavPolicy(
+        model=model, tokenizer=tokenizer, image_processor=image_processor, codec=codec, goal_head=goal_head
+    )
 
 
 def enable_checkpointing(model: torch.nn.Module) -> None:
@@ -310,7 +379,8 @@ def export_policy(
     ``AutoModelForImageTextToText.from_pretrained``. With LoRA the unmerged adapter is saved first to
     ``<out_dir>/adapter`` (``PeftModel.from_pretrained(base, <out_dir>/adapter)``); then the adapters
     are merged in place (peft's ``merge_and_unload``) and ``policy.model`` becomes the merged plain
-    model: export at the end of training. ``cfg`` (the run's config), ``data`` (the training shards
+    model: export at the end of training. The policy's goal head, if any, goes to
+    ``goal_head.safetensors``. ``cfg`` (the run's config), ``data`` (the training shards
     and files; default ``cfg.data.shards``) and ``metrics`` (a metrics JSON) go into the card. The
     folder is written whole (temp folder + rename), so a crash never leaves a half-written export.
     """
@@ -328,6 +398,8 @@ def export_policy(
         policy.tokenizer.save_pretrained(str(tmp))
         # The processor object cannot save itself without a video processor; write its config alone.
         policy.image_processor.save_pretrained(str(tmp))
+        if policy.goal_head is not None:
+            policy.goal_head.save(tmp / GOAL_HEAD_FILE)
         write_model_card(tmp, policy.model, cfg, metrics=metrics, adapter=adapter is not None, data=data)
     return Path(out_dir)
 

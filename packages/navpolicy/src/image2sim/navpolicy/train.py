@@ -26,7 +26,14 @@ import torch
 from image2sim.navpolicy.collate import NavCollator, model_inputs
 from image2sim.navpolicy.config import NavPolicyConfig, TrainConfig
 from image2sim.navpolicy.data import InMemoryNavDataset, NavShardDataset, sample_options
-from image2sim.navpolicy.model import NavPolicy, build_policy, export_policy, tokenizer_corpus
+from image2sim.navpolicy.model import (
+    GoalHead,
+    NavPolicy,
+    base_qwen,
+    build_policy,
+    export_policy,
+    tokenizer_corpus,
+)
 from image2sim.navpolicy.prompting import IGNORE_INDEX, PromptBuilder
 from image2sim.simulator.sampling import StepSampler
 from image2sim.simulator.schedules import warmup_cosine
@@ -295,10 +302,17 @@ class NavBCModule(L.LightningModule):
         """Training loss per step, whole run (restored from the checkpoint on a resume)."""
         self.goal_head = None
         if cfg.train.goal_aux_weight > 0:
-            from image2sim.navpolicy.model import base_qwen
-
-            hidden = int(base_qwen(policy.model).config.text_config.hidden_size)
-            self.goal_head = torch.nn.Linear(hidden, 1)
+            self.goal_head = policy.goal_head or GoalHead(
+                int(base_qwen(policy.model).config.text_config.hidden_size), cfg.train.goal_aux_layer
+            )
+            if self.goal_head.layer != cfg.train.goal_aux_layer:
+                raise ValueError(
+                    f"train.goal_aux_layer={cfg.train.goal_aux_layer}, but the goal head of "
+                    f"{cfg.model.source} reads hidden state {self.goal_head.layer}: set them alike"
+                )
+        # The export carries the head only when it trained with this language model: one the
+        # source had, left untrained while the model moves, would no longer read its states.
+        policy.goal_head = self.goal_head
 
     def train_dataloader(self):
         tc = self.cfg.train
@@ -374,13 +388,8 @@ class NavBCModule(L.LightningModule):
         known = y >= 0
         if not bool(known.any()):
             return None
-        layer = self.cfg.train.goal_aux_layer
-        if -layer > len(out.hidden_states) - 1:  # index 0 holds the embeddings, not a layer's output
-            raise ValueError(
-                f"train.goal_aux_layer={layer}: the language model has {len(out.hidden_states) - 1} layers"
-            )
-        h = out.hidden_states[layer][ends[known, 0], ends[known, 1]]
-        logits = self.goal_head(h.to(self.goal_head.weight.dtype)).squeeze(-1)
+        h = self.goal_head.state_at(out.hidden_states, ends[known, 0], ends[known, 1])
+        logits = self.goal_head(h)
         loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[known])
         acc = ((logits.detach() > 0).float() == y[known]).float().mean()
         return loss, acc
