@@ -468,6 +468,42 @@ def test_image2nav_adapter_executes_action_pairs_and_observes_only_when_needed(s
         run_episode(NeuralSimBackend(sim, PROTO), Image2NavAdapter.from_agent(fake), episodes[0], PROTO, 1)
 
 
+def test_image2nav_adapter_can_withhold_stop(scene):
+    # A subclass's stop_allowed() reaches the streaming agent as allow_stop=False; agents without the
+    # keyword (remote ones) are called as before while STOP is allowed.
+    from image2sim.eval.runner import Image2NavAdapter
+    from image2sim.simulator.sim import NeuralSimulator
+
+    _, sim, episodes = scene
+
+    class Obeying(_ScriptedStreamingAgent):
+        def act(self, rgb, executed=None, allow_stop=True):
+            self.allowed = [*getattr(self, "allowed", []), allow_stop]
+            self._k %= len(self.replies)  # the script repeats
+            reply = super().act(rgb, executed)
+            return [Action.TURN_LEFT if (a == Action.STOP and not allow_stop) else a for a in reply]
+
+    class FarFromGoal(Image2NavAdapter):
+        def stop_allowed(self, obs):
+            return obs.distance_to_goal < 0.5
+
+    def render_fn(camera, pose):
+        return {
+            "rgb": np.zeros((camera.height, camera.width, 3), np.float32),
+            "depth": np.ones((camera.height, camera.width), np.float32),
+        }
+
+    backend = NeuralSimBackend(NeuralSimulator(sim.navmap, sim.graph, render_fn), PROTO)
+    F, L, S = int(Action.MOVE_FORWARD), int(Action.TURN_LEFT), int(Action.STOP)
+    agent = Obeying([[S, F], [F, S]])
+    res, actions = run_episode(backend, FarFromGoal.from_agent(agent), episodes[0], PROTO, 1)
+    assert actions[:4] == [L, F, F, L] and agent.allowed[:2] == [False, False]
+    assert S not in actions and len(actions) == PROTO.max_steps  # never near enough to be let stop
+    plain = _ScriptedStreamingAgent([[F, S]])  # no allow_stop keyword: never passed when allowed
+    _, actions = run_episode(backend, Image2NavAdapter.from_agent(plain), episodes[0], PROTO, 1)
+    assert actions == [F, S]
+
+
 @pytest.mark.slow
 def test_image2nav_adapter_runs_the_tiny_navpolicy_model(scene):
     pytest.importorskip("image2sim.navpolicy")

@@ -194,3 +194,45 @@ def test_head_is_exported_reloaded_and_trained_on(tiny_cfg, tmp_path):
     cfg3.train.goal_aux_weight, cfg3.train.goal_aux_layer = 0.0, -1
     res3 = train_bc(cfg3, tmp_path / "b", dataset=data, policy=build_policy(cfg3), export=True)
     assert not (res3.export_dir / GOAL_HEAD_FILE).exists()
+
+
+def test_near_end_labels_count_the_forward_moves_left():
+    from image2sim.navpolicy.data import Trajectory, frame_goal_labels, make_sample
+
+    F, L, S = int(Action.MOVE_FORWARD), int(Action.TURN_LEFT), int(Action.STOP)
+    actions = [F, F, L, F, F, F, L, L, F, S]  # forward moves left from step t: 6 5 4 4 3 2 1 1 1 0
+    frames = np.zeros((5, 8, 8, 3), np.uint8)
+    traj = Trajectory(
+        "find the sofa", actions, frames, [0, 2, 4, 6, 9], extra={GOAL_IN_VIEW: [0, 0, 1, 1, 0]}
+    )
+    assert frame_goal_labels(traj, "near_end", 3) == [0, 0, 1, 1, 1]
+    assert frame_goal_labels(traj, "near_end", 0) == [0, 0, 0, 0, 1]
+    assert frame_goal_labels(traj, "in_view") == [0, 0, 1, 1, 0]
+    unfinished = Trajectory("x", actions[:-1], frames[:4], [0, 2, 4, 6])
+    assert (
+        frame_goal_labels(unfinished, "near_end") is None and frame_goal_labels(unfinished, "in_view") is None
+    )
+    with pytest.raises(ValueError, match="goal label"):
+        frame_goal_labels(traj, "nearby")
+    sample = make_sample(traj, 5, 10, None, goal_label="near_end", near_end_forward_steps=3)
+    assert sample.goal_in_view == [0, 0, 1, 1, 1]
+
+
+def test_goal_label_reaches_the_dataset_and_is_validated(tiny_cfg):
+    from image2sim.navpolicy.config import ConfigError, from_dict
+    from image2sim.navpolicy.data import sample_options
+
+    cfg = copy.deepcopy(tiny_cfg)
+    cfg.data.goal_label, cfg.data.near_end_forward_steps = "near_end", 4
+    trajs = synthetic_trajectories(3, min_len=8, max_len=12, seed=15)  # they end in STOP, no in-view labels
+    data = InMemoryNavDataset(trajs, **(sample_options(cfg) | {"jitter": False}))
+    from image2sim.navpolicy.data import frame_goal_labels
+
+    for i, t in enumerate(trajs):
+        labels = dict(zip(t.frame_steps, frame_goal_labels(t, "near_end", 4), strict=True))
+        s = data[i]
+        assert s.goal_in_view == [labels[k] for k in s.steps] and s.goal_in_view[-1] == 1
+    with pytest.raises(ConfigError, match="data.goal_label"):
+        from_dict({"data": {"goal_label": "nearby"}})
+    with pytest.raises(ConfigError, match="near_end_forward_steps"):
+        from_dict({"data": {"near_end_forward_steps": -1}})

@@ -161,11 +161,17 @@ class Image2NavAdapter:
         self._agent.reset(episode.instruction.text, seed=seed)
         self._queue, self._executed = [], None
 
+    def stop_allowed(self, obs: StepObservation) -> bool:
+        """Whether the policy may say STOP at this observation (always; a subclass may withhold it,
+        e.g. a privileged measurement of how much a better STOP would gain)."""
+        return True
+
     def act(self, obs: StepObservation) -> int:
         if not self._queue:
             if obs.rgb is None:
                 raise RunnerError("image2nav: no image in the observation")
-            self._queue = [int(a) for a in self._agent.act(obs.rgb, executed=self._executed)]
+            withheld = {} if self.stop_allowed(obs) else {"allow_stop": False}
+            self._queue = [int(a) for a in self._agent.act(obs.rgb, executed=self._executed, **withheld)]
             self._executed = []
         a = self._queue.pop(0)
         self._executed.append(a)

@@ -23,6 +23,8 @@ from image2sim.simulator.config import (  # one error type and field checks repo
 from image2sim.simulator.markers import GoalMarker
 
 TOKENIZER_CORPORA = ("builtin", "instructions")
+GOAL_LABELS = ("in_view", "near_end")
+"""What the grounding head learns per frame (``data.goal_label``)."""
 """Values of ``model.tiny.tokenizer_corpus``."""
 
 
@@ -185,6 +187,15 @@ class DataConfig:
     makes STOP depend on the instruction, not only on the view. Needs the data engine's
     ``extra.goal_category`` in the shard records (written since 2026-11-28); trajectories without
     one are never swapped. 0 = off."""
+    goal_label: str = "in_view"
+    """What ``train.goal_aux_weight``'s head learns per frame: ``in_view`` (the data engine's
+    ``goal_in_view``: the goal object within 5 m, in the view and unoccluded) or ``near_end`` (at most
+    ``near_end_forward_steps`` forward moves remain before the trajectory's final STOP: "the goal is
+    reached", what ``agent.stop_gate`` asks; computed from the actions, so DAgger's finished
+    trajectories have it too, and it does not depend on the instruction)."""
+    near_end_forward_steps: int = 10
+    """``near_end``'s reach in forward moves (10 x 0.25 m = 2.5 m of path, inside the 3 m success
+    radius of the evaluation)."""
     num_workers: int = 0
     """DataLoader worker processes."""
     cache_frames: bool = False
@@ -398,6 +409,8 @@ class NavPolicyConfig:
         ):
             raise ConfigError("data.max_trajectories must be >= 1 and cannot be used with data.shard_weights")
         require_in_range(self, "data.end_cut_probability", 0.0, 1.0)
+        require_one_of(self, "data.goal_label", GOAL_LABELS)
+        require_at_least(self, "data.near_end_forward_steps", 0)
         if self.agent.stop_gate is not None:
             require_in_range(self, "agent.stop_gate", 0.0, 1.0)
         require_in_range(self, ("data.late_start_probability", "data.wrong_goal_stop_probability"), 0.0, 1.0)

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from image2sim.navpolicy.actions import ACTIONS_PER_STEP
+from image2sim.navpolicy.config import GOAL_LABELS
 from image2sim.simulator.conventions import Action
 from image2sim.simulator.io.atomic import write_bytes_atomic
 
@@ -115,7 +116,8 @@ class NavSample:
     targets: list[tuple[int, ...]]
     episode_id: str = ""
     goal_in_view: list[int] | None = None
-    """Per observation: 1 if the goal is in view, 0 if not (None: the trajectory has no such labels)."""
+    """Per observation, the grounding head's 0/1 target (``data.goal_label``: the goal is in view, or
+    the trajectory's end is near); None: the trajectory has no such labels."""
     stop_negative: bool = False
     """A wrong-goal end sample: the instruction names a goal that is not where the trajectory ends,
     so its actions are not labels; only STOP at the last observation is penalised."""
@@ -185,6 +187,8 @@ def sample_options(cfg) -> dict:
         "end_cut_probability": d.end_cut_probability,
         "late_start_probability": d.late_start_probability,
         "wrong_goal_stop_probability": d.wrong_goal_stop_probability,
+        "goal_label": d.goal_label,
+        "near_end_forward_steps": d.near_end_forward_steps,
     }
 
 
@@ -197,6 +201,8 @@ def make_sample(
     context: tuple[int, int] | None = None,
     end_cut_probability: float = 0.0,
     late_start_probability: float = 0.0,
+    goal_label: str = "in_view",
+    near_end_forward_steps: int = 10,
 ) -> NavSample:
     """Sample observations of ``traj`` and pair each with its next two actions.
 
@@ -256,7 +262,7 @@ def make_sample(
     for s in steps:
         executed.append(() if prev is None else tuple(int(a) for a in traj.actions[prev:s]))
         prev = s
-    seen = traj.extra.get(GOAL_IN_VIEW) if isinstance(traj.extra, dict) else None
+    seen = frame_goal_labels(traj, goal_label, near_end_forward_steps)
     return NavSample(
         instruction=traj.instruction,
         observations=np.asarray(traj.frames)[idx],
@@ -266,6 +272,25 @@ def make_sample(
         episode_id=traj.episode_id,
         goal_in_view=None if seen is None else [int(seen[i]) for i in idx],
     )
+
+
+def frame_goal_labels(
+    traj: Trajectory, goal_label: str, near_end_forward_steps: int = 10
+) -> list[int] | None:
+    """The grounding head's target for each stored frame of ``traj`` (``data.goal_label``), or None
+    when the trajectory has none: ``in_view`` reads the record's ``goal_in_view``; ``near_end`` is 1
+    where at most ``near_end_forward_steps`` MOVE_FORWARD actions remain before the final STOP (the
+    path left to the goal, 0.25 m each; None for a trajectory that does not end in STOP)."""
+    if goal_label == "in_view":
+        seen = traj.extra.get(GOAL_IN_VIEW) if isinstance(traj.extra, dict) else None
+        return None if seen is None else [int(v) for v in seen]
+    if goal_label != "near_end":
+        raise ValueError(f"goal label {goal_label!r}: expected one of {GOAL_LABELS}")
+    if not traj.actions or int(traj.actions[-1]) != int(Action.STOP):
+        return None
+    forward = np.asarray(traj.actions) == int(Action.MOVE_FORWARD)
+    remaining = np.cumsum(forward[::-1])[::-1]  # forward moves from step t to the end
+    return [int(remaining[int(s)] <= near_end_forward_steps) for s in traj.frame_steps]
 
 
 def oracle_targets(traj: Trajectory, step: int) -> tuple[int, ...]:
@@ -427,6 +452,8 @@ class SampleLayout:
     context: tuple[int, int] | None = None
     end_cut_probability: float = 0.0
     late_start_probability: float = 0.0
+    goal_label: str = "in_view"
+    near_end_forward_steps: int = 10
 
     def sample(self, traj: Trajectory, rng: np.random.Generator | None) -> NavSample:
         return make_sample(
@@ -438,7 +465,14 @@ class SampleLayout:
             self.context,
             self.end_cut_probability,
             self.late_start_probability,
+            self.goal_label,
+            self.near_end_forward_steps,
         )
+
+
+def layout_of(arguments: dict) -> SampleLayout:
+    """The :class:`SampleLayout` named by a dataset constructor's arguments (its fields, by name)."""
+    return SampleLayout(**{f.name: arguments[f.name] for f in dataclasses.fields(SampleLayout)})
 
 
 class _SamplingDataset(torch.utils.data.Dataset):
@@ -534,10 +568,10 @@ class NavShardDataset(_SamplingDataset):
         cache_frames: bool = False,
         shuffle_instructions: bool = False,
         wrong_goal_stop_probability: float = 0.0,
+        goal_label: str = "in_view",
+        near_end_forward_steps: int = 10,
     ) -> None:
-        layout = SampleLayout(
-            max_observations, max_action_labels, stride, context, end_cut_probability, late_start_probability
-        )
+        layout = layout_of(locals())
         super().__init__(layout, jitter, seed, wrong_goal_stop_probability)
         if not shards:
             raise ShardError("no shard folders given")
@@ -592,10 +626,10 @@ class InMemoryNavDataset(_SamplingDataset):
         end_cut_probability: float = 0.0,
         late_start_probability: float = 0.0,
         wrong_goal_stop_probability: float = 0.0,
+        goal_label: str = "in_view",
+        near_end_forward_steps: int = 10,
     ) -> None:
-        layout = SampleLayout(
-            max_observations, max_action_labels, stride, context, end_cut_probability, late_start_probability
-        )
+        layout = layout_of(locals())
         super().__init__(layout, jitter, seed, wrong_goal_stop_probability)
         self.trajectories = list(trajectories)
 
