@@ -369,3 +369,56 @@ def test_bucket_of_names_the_bucket_or_rejects_a_too_short_path():
     cfg = SamplingConfig()
     assert [bucket_of(x, cfg) for x in (3.0, 7.5, 14.9)] == ["short", "medium", "long"]
     assert bucket_of(16.0, cfg) == "fallback" and bucket_of(2.9, cfg) is None
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 90.0, 170.0, -100.0, 179.0])
+def test_face_target_turns_the_fewest_steps_towards_the_object(heading_deg):
+    from image2sim.dataengine.rollout import Rollout, face_target
+    from image2sim.simulator.navigation.agent import wrap_angle
+
+    turn = np.radians(15.0)
+    h0 = np.radians(heading_deg)
+    pos = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    r = Rollout([int(Action.MOVE_FORWARD), int(Action.STOP)], pos, np.array([h0, h0, h0]), [False, False])
+    target = np.array([1.0, -2.0, 0.5])  # straight "down" (-y) from the end: bearing -90 degrees
+    out = face_target(r, target, turn)
+    n = out.extra.get("face_goal_turns", 0)
+    want = wrap_angle(-np.pi / 2 - h0)
+    assert n == round(abs(want) / turn) and n <= 12  # the shorter way round
+    assert out.actions[0] == int(Action.MOVE_FORWARD) and out.actions[-1] == int(Action.STOP)
+    turn_action = int(Action.TURN_LEFT if want > 0 else Action.TURN_RIGHT)
+    assert out.actions[1:-1] == [turn_action] * n
+    assert len(out.positions) == len(out.actions) + 1 == len(out.headings)
+    assert np.all(out.positions[1:] == pos[-1]) and out.collided == [False] * len(out.actions)
+    assert abs(wrap_angle(out.headings[-1] - (-np.pi / 2))) <= turn / 2 + 1e-9
+    assert abs(wrap_angle(out.headings[-1] - out.headings[-2])) == 0.0  # STOP keeps the heading
+    with pytest.raises(ValueError, match="ends in STOP"):
+        face_target(Rollout([1], pos[:2], np.zeros(2), [False]), target, turn)
+
+
+def test_facing_rollouts_replay_exactly_in_the_simulator(world):
+    # The inserted turns are what the simulator does: replaying the actions reaches every recorded
+    # heading, and the expert's last view points at its goal object.
+    from image2sim.dataengine.rollout import face_target
+    from image2sim.simulator.navigation.agent import wrap_angle
+    from image2sim.simulator.navigation.follower import OracleFollower
+    from image2sim.simulator.sim import NeuralSimulator
+
+    m, g, planner = world
+    plans, _ = sample_plans(g, planner, OBJECTS, 12, SamplingConfig(), np.random.default_rng(1))
+    sim = NeuralSimulator(m, g)
+    fol = OracleFollower(sim.planner)
+    turned = 0
+    for p in plans:
+        r = rollout_plan(sim, fol, p, RolloutConfig())
+        if not r.ok or not p.goal_object:
+            continue
+        target = m.to_map(np.asarray(p.goal_object["position"], float).reshape(1, 3))[0]
+        f = face_target(r, target, sim.embodiment.turn_angle)
+        turned += f.extra.get("face_goal_turns", 0)
+        pos, head, col = replay(sim, p.start, p.heading, f.actions)
+        assert np.abs(pos - f.positions).max() <= 1e-6 and not any(col)
+        assert max(abs(wrap_angle(a - b)) for a, b in zip(head, f.headings, strict=True)) <= 1e-9
+        bearing = np.arctan2(target[1] - pos[-1, 1], target[0] - pos[-1, 0])
+        assert abs(wrap_angle(bearing - head[-1])) <= sim.embodiment.turn_angle / 2 + 1e-9
+    assert turned > 0

@@ -143,6 +143,12 @@ def episodes_command(
     workers: int = typer.Option(2, "--workers", min=1, help="Parallel scene workers (processes)."),
     address: str | None = typer.Option(None, "--address", help="Join a Ray cluster at this address."),
     min_steps: int | None = typer.Option(None, "--min-steps", help="Drop episodes with fewer actions."),
+    face_goal: bool = typer.Option(
+        False,
+        "--face-goal",
+        help="The expert turns towards its goal object before it stops, so its last views show what it "
+        "stops beside (RolloutConfig.face_goal).",
+    ),
     detector: str = typer.Option(
         "gt",
         "--detector",
@@ -211,7 +217,8 @@ def episodes_command(
             device=device,
             gaussians=gaussians,
             refine_steps=refine_steps,
-            rollout={} if min_steps is None else {"min_steps": min_steps},
+            rollout=({} if min_steps is None else {"min_steps": min_steps})
+            | ({"face_goal": True} if face_goal else {}),
             sampling=_parse_options(sampling),
             approach={"views": approach_views} if approach_views else {},
             detector=detector,

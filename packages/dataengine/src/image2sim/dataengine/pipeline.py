@@ -38,6 +38,7 @@ from image2sim.dataengine.frames import (
 from image2sim.dataengine.rollout import (
     RolloutConfig,
     closest_approach_cut,
+    face_target,
     replay,
     rollout_plan,
     truncate_rollout,
@@ -80,11 +81,20 @@ def _stop_at_the_goal(sim, plan, r, navmap, scfg, rcfg):
     """A rollout that walks past the goal object (its end is more than ``rcfg.overshoot`` farther from
     the object than its closest approach) stops at the closest approach instead; the episode's goal and
     length follow. Dropped (reason ``overshoot_too_short``) when the cut path is no longer a valid
-    episode (shorter than the sampling config allows, or than ``rcfg.min_steps``)."""
+    episode (shorter than the sampling config allows, or than ``rcfg.min_steps``). With
+    ``rcfg.face_goal`` the expert then turns towards the goal object before it stops."""
     if plan.goal_object:
         target = navmap.to_map(np.asarray(plan.goal_object["position"], dtype=np.float64).reshape(1, 3))[0]
     else:  # a path episode: its goal is a point
         target = np.asarray(plan.goal, dtype=np.float64)
+    r, plan = _cut_at_closest_approach(sim, plan, r, target, scfg, rcfg)
+    if r.ok and rcfg.face_goal and plan.goal_object:
+        r = face_target(r, target, sim.embodiment.turn_angle)
+    return r, plan
+
+
+def _cut_at_closest_approach(sim, plan, r, target, scfg, rcfg):
+    """The overshoot cut of :func:`_stop_at_the_goal` (see there)."""
     k = closest_approach_cut(r.positions, target, rcfg.overshoot)
     if k is None:
         return r, plan
@@ -146,13 +156,17 @@ def _approach_rollouts(sim, follower, graph, objects, navmap, occupancy, cfg, sc
 def _checked_rollout(sim, follower, plan, rcfg, cut=None):
     """(plan, rollout) of the oracle on ``plan``, then ``cut(plan, rollout) -> (rollout, plan)`` when
     given (stopping at the goal), then the replay check: re-executing the actions from the start must
-    reach the same end without a collision. A rejected rollout says why in ``reason``."""
+    reach the same end, facing the same way, without a collision. A rejected rollout says why in
+    ``reason``."""
+    from image2sim.simulator.navigation.agent import wrap_angle
+
     r = rollout_plan(sim, follower, plan, rcfg)
     if r.ok and cut is not None:
         r, plan = cut(plan, r)
     if r.ok:
-        pos, _, col = replay(sim, plan.start, plan.heading, r.actions)
-        if np.abs(pos[-1] - r.positions[-1]).max() > 1e-6 or any(col):
+        pos, head, col = replay(sim, plan.start, plan.heading, r.actions)
+        turned = abs(wrap_angle(float(head[-1]) - float(r.headings[-1])))
+        if np.abs(pos[-1] - r.positions[-1]).max() > 1e-6 or turned > 1e-6 or any(col):
             r.reason = "replay_mismatch"
     return plan, r
 

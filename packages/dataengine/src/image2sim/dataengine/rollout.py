@@ -10,12 +10,21 @@ start in a fresh simulator (the executability test every written episode passes)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from image2sim.simulator.conventions import Action
 
-__all__ = ["RolloutConfig", "Rollout", "closest_approach_cut", "rollout_plan", "replay", "truncate_rollout"]
+__all__ = [
+    "RolloutConfig",
+    "Rollout",
+    "closest_approach_cut",
+    "face_target",
+    "rollout_plan",
+    "replay",
+    "truncate_rollout",
+]
 
 
 @dataclass(frozen=True)
@@ -31,6 +40,11 @@ class RolloutConfig:
     overshoot: float = 1.0
     """A rollout that ends more than this (metres) farther from the goal object than its closest
     approach is cut there and stops there: paths stop at the goal, not past it."""
+    face_goal: bool = False
+    """Before its final STOP the expert turns in place towards the goal object (to within half a
+    turn), so that its last views show what it stops beside. Off: it stops with the heading of its
+    last move, which at the data engine's defaults leaves the goal outside the last stored view in
+    most episodes (docs/sim2real.md, session 47)."""
 
     def __post_init__(self) -> None:
         if not self.overshoot >= 0:
@@ -126,6 +140,42 @@ def closest_approach_cut(positions: np.ndarray, target: np.ndarray, overshoot: f
     if d[-1] - d.min() <= overshoot:
         return None
     return int(np.argmin(d))
+
+
+def face_target(r: Rollout, target: np.ndarray, turn_angle: float) -> Rollout:
+    """``r`` with in-place turns (``turn_angle`` radians each, left = counter-clockwise) inserted
+    before its final STOP, the fewest that point its heading at ``target`` (map frame, horizontal)
+    to within half a turn. Turns move nobody, so positions repeat; headings follow the simulator's
+    wrapping (:func:`~image2sim.simulator.navigation.agent.wrap_angle`)."""
+    from image2sim.simulator.navigation.agent import wrap_angle
+
+    if not r.actions or int(r.actions[-1]) != int(Action.STOP):
+        raise ValueError("face_target needs a rollout that ends in STOP")
+    if not turn_angle > 0:
+        raise ValueError(f"turn_angle must be > 0, got {turn_angle!r}")
+    end = r.positions[-1]
+    offset = np.asarray(target, dtype=np.float64).reshape(-1)[:2] - end[:2]
+    if float(np.hypot(*offset)) < 1e-9:  # standing on the target: any heading faces it
+        return r
+    error = wrap_angle(math.atan2(offset[1], offset[0]) - float(r.headings[-1]))
+    n = int(round(abs(error) / turn_angle))
+    if n == 0:
+        return r
+    sign = 1.0 if error > 0 else -1.0
+    action = int(Action.TURN_LEFT if error > 0 else Action.TURN_RIGHT)
+    heads, h = [], float(r.headings[-1])
+    for _ in range(n):
+        h = wrap_angle(h + sign * turn_angle)
+        heads.append(h)
+    keep = len(r.actions) - 1  # states 0..keep, then the turns, then STOP's repeated final state
+    return Rollout(
+        [int(a) for a in r.actions[:-1]] + [action] * n + [int(Action.STOP)],
+        np.concatenate((r.positions[: keep + 1], np.repeat(end[None], n + 1, axis=0))),
+        np.concatenate((r.headings[: keep + 1], heads, heads[-1:])),
+        list(r.collided[:-1]) + [False] * (n + 1),
+        truncated_stuck=r.truncated_stuck,
+        extra=dict(r.extra) | {"face_goal_turns": n},
+    )
 
 
 def truncate_rollout(r: Rollout, k: int) -> Rollout:
