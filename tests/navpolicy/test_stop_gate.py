@@ -177,6 +177,7 @@ def test_head_is_exported_reloaded_and_trained_on(tiny_cfg, tmp_path):
     data = InMemoryNavDataset(trajs, 4, 8)
     res = train_bc(cfg, tmp_path / "a", dataset=data, policy=build_policy(cfg, seed=0), export=True)
     assert (res.export_dir / GOAL_HEAD_FILE).is_file()
+    assert "goal_head.safetensors" in (res.export_dir / "README.md").read_text()  # the card says so
     trained = res.module.goal_head
     cfg2 = copy.deepcopy(cfg)
     cfg2.model.source = str(res.export_dir)
@@ -194,6 +195,7 @@ def test_head_is_exported_reloaded_and_trained_on(tiny_cfg, tmp_path):
     cfg3.train.goal_aux_weight, cfg3.train.goal_aux_layer = 0.0, -1
     res3 = train_bc(cfg3, tmp_path / "b", dataset=data, policy=build_policy(cfg3), export=True)
     assert not (res3.export_dir / GOAL_HEAD_FILE).exists()
+    assert "goal_head.safetensors" not in (res3.export_dir / "README.md").read_text()
 
 
 def test_near_end_labels_count_the_forward_moves_left():

@@ -150,7 +150,7 @@ def _model_section(model, cfg, adapter: bool) -> list[str]:
     return ["## Model", "", *_table(("property", "value"), rows), ""]
 
 
-def _usage_section(adapter: bool) -> list[str]:
+def _usage_section(adapter: bool, goal_head: bool = False) -> list[str]:
     """How to load the folder and build the prompt."""
     lines = [
         "## Use",
@@ -180,6 +180,14 @@ def _usage_section(adapter: bool) -> list[str]:
             "```",
             "",
             "`base_model` is the checkpoint training started from (see *initialised from*).",
+            "",
+        ]
+    if goal_head:
+        lines += [
+            "`goal_head.safetensors` is the grounding head trained with the language model (a linear",
+            "probe, at an image's last token, of whether the instruction's goal is in view; the hidden",
+            "state it reads is in its metadata). `build_policy` loads it with the model, and the agent's",
+            "`agent.stop_gate` lets STOP through only where it says so.",
             "",
         ]
     return lines
@@ -238,7 +246,12 @@ _LIMITATIONS = [
 
 
 def model_card(
-    model, cfg=None, lineage: list[dict[str, Any]] | None = None, metrics=None, adapter: bool = False
+    model,
+    cfg=None,
+    lineage: list[dict[str, Any]] | None = None,
+    metrics=None,
+    adapter: bool = False,
+    goal_head: bool = False,
 ) -> str:
     """The card's Markdown text (front matter first)."""
     name = cfg.name if cfg is not None else "export"
@@ -249,7 +262,7 @@ def model_card(
         "",
     ]
     lines += _model_section(model, cfg, adapter)
-    lines += _usage_section(adapter)
+    lines += _usage_section(adapter, goal_head)
     lines += _data_section(lineage or [], cfg)
     lines += _metrics_section(metrics)
     lines += _LIMITATIONS
@@ -263,6 +276,7 @@ def write_model_card(
     metrics: str | Path | None = None,
     adapter: bool = False,
     data: Iterable[str | Path] | None = None,
+    goal_head: bool = False,
 ) -> Path:
     """Write ``<folder>/README.md`` and ``<folder>/training_run.json`` (config + lineage), each
     atomically; ``data`` lists the training sources (default: the config's ``data.shards``). Returns
@@ -273,7 +287,8 @@ def write_model_card(
     lineage = data_lineage(sources)
     run = {"config": cfg.to_dict() if cfg is not None else None, "data": lineage, "adapter": adapter}
     write_json_atomic(Path(folder) / RUN_FILE, run)
-    return write_text_atomic(Path(folder) / CARD_FILE, model_card(model, cfg, lineage, metrics, adapter))
+    card = model_card(model, cfg, lineage, metrics, adapter, goal_head)
+    return write_text_atomic(Path(folder) / CARD_FILE, card)
 
 
 def update_model_card(
@@ -293,5 +308,8 @@ def update_model_card(
         metric_rows(metrics)  # a bad metrics file fails before the model is loaded
     cfg = from_dict(run["config"]) if run.get("config") else None
     model = AutoModelForImageTextToText.from_pretrained(str(folder), local_files_only=True)
-    text = model_card(model, cfg, run.get("data") or [], metrics, bool(run.get("adapter")))
+    from image2sim.navpolicy.model import GOAL_HEAD_FILE
+
+    head = (folder / GOAL_HEAD_FILE).is_file()
+    text = model_card(model, cfg, run.get("data") or [], metrics, bool(run.get("adapter")), head)
     return write_text_atomic(folder / CARD_FILE if out is None else Path(out), text)

@@ -400,7 +400,15 @@ def export_policy(
         policy.image_processor.save_pretrained(str(tmp))
         if policy.goal_head is not None:
             policy.goal_head.save(tmp / GOAL_HEAD_FILE)
-        write_model_card(tmp, policy.model, cfg, metrics=metrics, adapter=adapter is not None, data=data)
+        write_model_card(
+            tmp,
+            policy.model,
+            cfg,
+            metrics=metrics,
+            adapter=adapter is not None,
+            data=data,
+            goal_head=policy.goal_head is not None,
+        )
     return Path(out_dir)
 
 
