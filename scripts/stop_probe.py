@@ -78,7 +78,7 @@ def main() -> None:
                     last = [ends[ends[:, 0] == b][-1] for b in range(len(chunk))]
                     rows = torch.tensor([int(e[0]) for e in last])
                     cols = torch.tensor([int(e[1]) for e in last])
-                    goal += torch.sigmoid(head(head.state_at(res.hidden_states, rows, cols))).tolist()
+                    goal += head.probability(res.hidden_states, rows, cols).tolist()
                 else:
                     goal += [float("nan")] * len(chunk)
             mask = batch["stop_negative_mask"]

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from image2sim.navpolicy.actions import ACTIONS_PER_STEP, parse_actions
-from image2sim.navpolicy.collate import image_token_counts
+from image2sim.navpolicy.collate import image_end_positions, image_token_counts
 from image2sim.navpolicy.config import AgentConfig
 from image2sim.navpolicy.data import select_context_frames
 from image2sim.navpolicy.model import NavPolicy, base_qwen
@@ -55,11 +55,12 @@ def check_stop_gate(policy: NavPolicy, cfg: AgentConfig) -> None:
 
 
 def last_image_position(mm: list[int]) -> int:
-    """Index of the last image token of a prompt (the newest observation's last token)."""
-    for j in range(len(mm) - 1, -1, -1):
-        if mm[j] == IMAGE_TOKEN:
-            return j
-    raise ValueError("the prompt holds no image")
+    """Index of the last image token of a prompt (the newest observation's last token: the last of
+    the collator's :func:`~image2sim.navpolicy.collate.image_end_positions`)."""
+    ends = image_end_positions(torch.tensor([mm]))
+    if not len(ends):
+        raise ValueError("the prompt holds no image")
+    return int(ends[-1, 1])
 
 
 class Image2NavAgent:
@@ -72,7 +73,6 @@ class Image2NavAgent:
         self.prompts = PromptBuilder(policy.tokenizer, policy.codec, system_prompt)
         self.im_end_id = self.prompts.im_end_id
         check_stop_gate(policy, cfg)
-        self._goal_logit: float | None = None
         self.history: list[StepInfo] = []
         self.reset("")
 
@@ -121,9 +121,9 @@ class Image2NavAgent:
         return rope[:, 0]
 
     def _run(self, ids, mm, keys, frame_idx: list[int], start: int, goal_at: int | None = None):
-        """Feed tokens ``[start:]`` given a cache holding ``[:start]``; returns last-position logits.
-        With ``goal_at`` (a position among the fed tokens) the goal head's logit there is kept in
-        ``self._goal_logit``."""
+        """Feed tokens ``[start:]`` given a cache holding ``[:start]``; returns last-position logits,
+        the start actually used and, with ``goal_at`` (a position among the fed tokens), the goal
+        head's probability there (else None)."""
         # Never split an image block: move ``start`` back to the block's first token.
         while 0 < start < len(mm) and mm[start] == IMAGE_TOKEN and mm[start - 1] == IMAGE_TOKEN:
             start -= 1
@@ -171,13 +171,13 @@ class Image2NavAgent:
             output_hidden_states=goal_at is not None,
             **kwargs,
         )
+        goal_p = None
         if goal_at is not None:
             if goal_at < start:
                 raise ValueError(f"goal_at={goal_at} lies in the cached prefix (fed from {start})")
-            head = self.policy.goal_head
-            self._goal_logit = float(head(head.state_at(out.hidden_states, 0, goal_at - start)))
+            goal_p = float(self.policy.goal_head.probability(out.hidden_states, 0, goal_at - start))
         self._cache_keys = list(keys)
-        return out.logits[0, -1].float(), start
+        return out.logits[0, -1].float(), start, goal_p
 
     # ------------------------------------------------------------------------------------------ act
     def _observe(self, rgb: np.ndarray, executed: list[int] | None):
@@ -213,10 +213,8 @@ class Image2NavAgent:
         # The newest frame's tokens are never cached (it was just appended), so the head's position
         # is always among the fed ones.
         goal_at = last_image_position(mm) if gate is not None else None
-        logits, start = self._run(ids, mm, keys, frame_idx, reuse, goal_at)
-        goal_p = None
+        logits, start, goal_p = self._run(ids, mm, keys, frame_idx, reuse, goal_at)
         if gate is not None:
-            goal_p = float(torch.sigmoid(torch.tensor(self._goal_logit)))
             allow_stop = allow_stop and goal_p >= gate
         exclude = () if allow_stop else (Action.STOP,)
         generated, step_logits = [], [logits]
@@ -234,7 +232,7 @@ class Image2NavAgent:
                     last = done is not None and position == ACTIONS_PER_STEP - 1
                     if not last:
                         ids, mm, keys = ids + [tok], mm + [0], keys + [(tok, None, 0)]
-                        logits, _ = self._run(ids, mm, keys, frame_idx, len(ids) - 1)
+                        logits, _, _ = self._run(ids, mm, keys, frame_idx, len(ids) - 1)
                         step_logits.append(logits)
                     if done is not None:
                         actions.append(done)
@@ -246,7 +244,7 @@ class Image2NavAgent:
                 if tok == self.im_end_id:
                     break
                 ids, mm, keys = ids + [tok], mm + [0], keys + [(tok, None, 0)]
-                logits, _ = self._run(ids, mm, keys, frame_idx, len(ids) - 1)
+                logits, _, _ = self._run(ids, mm, keys, frame_idx, len(ids) - 1)
                 step_logits.append(logits)
             text = self.policy.tokenizer.decode([t for t in generated if t != self.im_end_id])
             actions = parse_actions(text, self.policy.codec.texts)[:ACTIONS_PER_STEP]
@@ -289,6 +287,7 @@ class BatchedImage2NavAgent:
         self.qwen = self.agents[0].qwen
         self.pad_id = int(policy.tokenizer.pad_token_id)
         self.gate = cfg.stop_gate
+        """``agent.stop_gate`` of every row (None: off)."""
 
     def reset(self, index: int, instruction: str, seed: int = 0) -> None:
         """Start a new episode for agent ``index``."""
@@ -352,9 +351,9 @@ class BatchedImage2NavAgent:
         goal_p: list[float | None] = [None] * B
         if gate is not None:
             head = self.policy.goal_head
-            states = head.state_at(res.hidden_states, torch.arange(B), torch.tensor(goal_at))
-            probs = torch.sigmoid(head(states))
-            goal_p = [float(v) for v in probs]
+            goal_p = [
+                float(v) for v in head.probability(res.hidden_states, torch.arange(B), torch.tensor(goal_at))
+            ]
             allowed_stop = [a and p >= gate for a, p in zip(allowed_stop, goal_p, strict=True)]
         exclude = [() if a else (Action.STOP,) for a in allowed_stop]
         codec = self.policy.codec

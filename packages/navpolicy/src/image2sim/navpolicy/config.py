@@ -23,9 +23,9 @@ from image2sim.simulator.config import (  # one error type and field checks repo
 from image2sim.simulator.markers import GoalMarker
 
 TOKENIZER_CORPORA = ("builtin", "instructions")
+"""Values of ``model.tiny.tokenizer_corpus``."""
 GOAL_LABELS = ("in_view", "near_end")
 """What the grounding head learns per frame (``data.goal_label``)."""
-"""Values of ``model.tiny.tokenizer_corpus``."""
 
 
 @dataclass

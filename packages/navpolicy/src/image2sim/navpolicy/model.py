@@ -80,6 +80,10 @@ class GoalHead(torch.nn.Module):
             )
         return hidden_states[self.layer][rows, positions]
 
+    def probability(self, hidden_states: Sequence[torch.Tensor], rows, positions) -> torch.Tensor:
+        """P(the instruction's goal is in view) at ``(rows, positions)`` of ``hidden_states``."""
+        return torch.sigmoid(self(self.state_at(hidden_states, rows, positions)))
+
     def save(self, path: str | Path) -> None:
         """safetensors, its layer in the metadata; written atomically."""
         from safetensors.torch import save_file
@@ -320,12 +324,14 @@ def build_policy(cfg: NavPolicyConfig, seed: int | None = None, corpus: Sequence
         model = apply_lora(model, mc)
     codec = ActionCodec.from_tokenizer(tokenizer)
     goal_head = None
-    if mc.source != "tiny" and (Path(mc.source) / GOAL_HEAD_FILE).is_file():
-        goal_head = GoalHead.load(Path(mc.source) / GOAL_HEAD_FILE)
-        if goal_head.linear.in_features != int(base_qwen(model).config.text_config.hidden_size):
+    head_file = Path(mc.source) / GOAL_HEAD_FILE
+    if mc.source != "tiny" and head_file.is_file():
+        goal_head = GoalHead.load(head_file)
+        hidden = int(base_qwen(model).config.text_config.hidden_size)
+        if goal_head.linear.in_features != hidden:
             raise ValueError(
-                f"{Path(mc.source) / GOAL_HEAD_FILE}: {goal_head.linear.in_features} inputs, but the "
-                f"language model's hidden size is {base_qwen(model).config.text_config.hidden_size}"
+                f"{head_file}: {goal_head.linear.in_features} inputs, but the language model's "
+                f"hidden size is {hidden}"
             )
     return NavPolicy(
         model=model, tokenizer=tokenizer, image_processor=image_processor, codec=codec, goal_head=goal_head
