@@ -6,7 +6,9 @@ agent may decode STOP only while its geodesic distance to the goal is below ``--
 protocol's success radius by default); elsewhere it takes its best actions other than STOP
 (``Image2NavAgent.act(allow_stop=False)``). With ``--gate none`` it is the plain policy, which must
 reproduce the evaluation's per-episode results. The gate reads the goal, so this is a ceiling for
-any learned STOP decision on top of the same walking, not an agent.
+any learned STOP decision on top of the same walking, not an agent. ``--gate detector`` lets a
+goal detector saved by ``scripts/goal_detector_probe.py`` decide instead (a learned gate; the goal
+category is read from the episodes' extras, which the template instruction names).
 
     .venv/bin/python scripts/oracle_stop_gate.py --model <export> --config <policy yaml> \\
         --scenes outputs/sim2real/captures/heldout --episodes outputs/sim2real/heldout/train/train.json.gz \\
@@ -33,7 +35,11 @@ def main() -> None:
     ap.add_argument("--protocol-from", required=True, help="an eval run.json whose protocol to use")
     ap.add_argument("--scene", required=True, help="scene folder name to run")
     ap.add_argument("--out", required=True, help="JSONL file of per-episode results")
-    ap.add_argument("--gate", choices=("oracle", "none"), default="oracle")
+    ap.add_argument("--gate", choices=("oracle", "none", "detector"), default="oracle")
+    ap.add_argument("--detector", default=None, help="--gate detector: folder of goal_detector_probe.py")
+    ap.add_argument("--threshold", type=float, default=0.5, help="--gate detector: least probability")
+    ap.add_argument("--memory", type=int, default=1, help="--gate detector: max over the last N views")
+    ap.add_argument("--extras", default=None, help="--gate detector: episodes' extras (goal category)")
     ap.add_argument("--radius", type=float, default=None, help="metres (default: the success radius)")
     ap.add_argument("--seed", type=int, default=0, help="run seed (episode seeds as eval nav's)")
     args = ap.parse_args()
@@ -62,12 +68,49 @@ def main() -> None:
         done = {json.loads(line)["episode_id"] for line in out.read_text().splitlines() if line.strip()}
     cfg = load_config(args.config, {"model": {"source": args.model}})
 
+    detector = None
+    if args.gate == "detector":
+        import importlib.util
+
+        import numpy as np
+        import torch
+
+        # The detector lives in its probe script (a measurement, not a package feature).
+        spec = importlib.util.spec_from_file_location(
+            "goal_detector_probe", Path(__file__).with_name("goal_detector_probe.py")
+        )
+        probe = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(probe)
+        if args.detector is None or args.extras is None:
+            raise SystemExit("--gate detector needs --detector and --extras")
+        detector = probe.load_detector(args.detector)
+        extras = json.loads(Path(args.extras).read_text())
+
     class Gated(Image2NavAdapter):
-        """The runner's Image2Nav adapter, asking for STOP only within ``radius`` of the goal."""
+        """The runner's Image2Nav adapter with a STOP gate: ``oracle``, STOP only within ``radius``
+        of the goal; ``detector``, only while the detector's probability for the episode's goal
+        category (its extras) reached ``threshold`` in one of the last ``memory`` views it was
+        asked about; ``none``, always."""
+
+        def reset(self, episode, backend, seed):
+            self.history: list[float] = []
+            self.category = None
+            if detector is not None:
+                name = extras[episode.episode_id]["goal_object"]["category"]
+                self.category = detector.categories.index(name) if name in detector.categories else None
+            return super().reset(episode, backend, seed)
 
         def stop_allowed(self, obs) -> bool:
-            near = obs.distance_to_goal is not None and obs.distance_to_goal < radius
-            return args.gate == "none" or near
+            if args.gate == "none":
+                return True
+            if args.gate == "oracle":
+                return obs.distance_to_goal is not None and obs.distance_to_goal < radius
+            if self.category is None:  # a category the detector never saw: no gate
+                return True
+            with torch.no_grad():
+                img = torch.from_numpy(np.ascontiguousarray(obs.rgb)).permute(2, 0, 1)[None].float()
+                self.history.append(float(torch.sigmoid(detector(img / 255.0))[0, self.category]))
+            return max(self.history[-args.memory :]) >= args.threshold
 
     agent = Gated.from_agent(Image2NavAgent(build_policy(cfg, seed=0), cfg.agent, cfg.system_prompt))
     backend = load_exact_backend(Path(args.scenes) / args.scene, proto, render=True)
