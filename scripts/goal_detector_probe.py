@@ -48,6 +48,11 @@ class GoalDetector(nn.Module):
         return self.head(pooled)
 
 
+def as_batch(frames: np.ndarray) -> torch.Tensor:
+    """(N, H, W, 3) uint8 views -> (N, 3, H, W) float in [0, 1], the detector's input."""
+    return torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float() / 255.0
+
+
 def load_detector(folder: str | Path) -> GoalDetector:
     """The detector a run of this script saved in ``folder`` (``detector.safetensors``, its
     categories and width in the metadata), in eval mode."""
@@ -106,8 +111,7 @@ def probabilities(model: GoalDetector, x: np.ndarray, batch: int = 512) -> np.nd
     model.eval()
     out = []
     for k in range(0, len(x), batch):
-        t = torch.from_numpy(x[k : k + batch]).permute(0, 3, 1, 2).float() / 255.0
-        out.append(torch.sigmoid(model(t)).numpy())
+        out.append(torch.sigmoid(model(as_batch(x[k : k + batch]))).numpy())
     return np.concatenate(out)
 
 
@@ -145,7 +149,6 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--augment", action="store_true", help="colour jitter and 4 px shifts")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -161,14 +164,9 @@ def main() -> None:
     for step in range(args.steps):
         model.train()
         idx = rng.integers(0, len(y), args.batch)
-        img = torch.from_numpy(x[idx]).permute(0, 3, 1, 2).float() / 255.0
+        img = as_batch(x[idx])
         if rng.random() < 0.5:
             img = img.flip(3)  # a mirrored room holds the same objects
-        if args.augment:
-            gain = torch.empty(args.batch, 3, 1, 1).uniform_(0.8, 1.2)
-            img = (img * gain + torch.empty(args.batch, 1, 1, 1).uniform_(-0.1, 0.1)).clamp(0, 1)
-            dy, dx = (int(v) for v in rng.integers(-4, 5, 2))
-            img = torch.roll(img, (dy, dx), dims=(2, 3))
         logits = model(img)[torch.arange(args.batch), torch.from_numpy(c[idx])]
         loss = nn.functional.binary_cross_entropy_with_logits(
             logits, torch.from_numpy(y[idx]).float(), pos_weight=pos_weight

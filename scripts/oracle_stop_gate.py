@@ -72,7 +72,6 @@ def main() -> None:
     if args.gate == "detector":
         import importlib.util
 
-        import numpy as np
         import torch
 
         # The detector lives in its probe script (a measurement, not a package feature).
@@ -108,8 +107,8 @@ def main() -> None:
             if self.category is None:  # a category the detector never saw: no gate
                 return True
             with torch.no_grad():
-                img = torch.from_numpy(np.ascontiguousarray(obs.rgb)).permute(2, 0, 1)[None].float()
-                self.history.append(float(torch.sigmoid(detector(img / 255.0))[0, self.category]))
+                logits = detector(probe.as_batch(obs.rgb[None]))
+            self.history.append(float(torch.sigmoid(logits)[0, self.category]))
             return max(self.history[-args.memory :]) >= args.threshold
 
     agent = Gated.from_agent(Image2NavAgent(build_policy(cfg, seed=0), cfg.agent, cfg.system_prompt))
