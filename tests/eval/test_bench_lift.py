@@ -50,3 +50,20 @@ def test_quick_run_writes_scored_rows(bench, tmp_path):
     (tmp_path / "lift.md").unlink()
     bench.main(["--render-only"], reports=tmp_path)
     assert (tmp_path / "lift.md").read_text() == text
+
+
+@pytest.mark.parametrize(
+    ("item", "message"),
+    [
+        ("nope=1", "unknown multi-view stereo option"),
+        ("best_k", "NAME=VALUE with a JSON value"),
+        ("best_k=one", "NAME=VALUE with a JSON value"),
+        ("best_k=0", "best_k must be a positive integer"),
+    ],
+)
+def test_bad_mvs_options_stop_before_any_work(bench, tmp_path, capsys, item, message):
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--quick", "--only", "pinhole", "--mvs", item], reports=tmp_path)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # no report written
