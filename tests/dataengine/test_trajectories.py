@@ -422,3 +422,26 @@ def test_facing_rollouts_replay_exactly_in_the_simulator(world):
         bearing = np.arctan2(target[1] - pos[-1, 1], target[0] - pos[-1, 0])
         assert abs(wrap_angle(bearing - head[-1])) <= sim.embodiment.turn_angle / 2 + 1e-9
     assert turned > 0
+
+
+def test_a_start_the_agent_cannot_stand_on_drops_the_episode_not_the_scene(world):
+    """A graph node whose footprint grazes an obstacle point (seen on 2 of 40 houses of seed 3000)
+    is a rejected rollout, so the scene's other episodes survive."""
+    from image2sim.dataengine.trajectories import EpisodePlan
+    from image2sim.simulator.navigation.agent import PlacementError
+    from image2sim.simulator.navigation.follower import OracleFollower
+    from image2sim.simulator.sim import NeuralSimulator
+
+    m, g, _ = world
+    sim = NeuralSimulator(m, g)
+    inside_wall = np.array([4.0, 0.6, 0.0])  # on the wall x = 4, away from its door
+    with pytest.raises(PlacementError, match="cannot place the agent"):
+        sim.reset(inside_wall[None], np.zeros(1), observe=False)
+    plan = EpisodePlan(inside_wall, 0.0, np.array([1.0, 1.0, 0.0]), {}, 3.0, "short", 1.0)
+    r = rollout_plan(sim, OracleFollower(sim.planner), plan, RolloutConfig())
+    assert not r.ok and r.reason == "start_blocked" and r.actions == []
+    np.testing.assert_array_equal(r.positions, inside_wall[None])
+    # The simulator is still usable for the next plan.
+    ok_plan = EpisodePlan(np.array([1.0, 1.0, 0.0]), 0.0, np.array([2.5, 3.0, 0.0]), {}, 1.0, "short", 1.0)
+    again = rollout_plan(sim, OracleFollower(sim.planner), ok_plan, RolloutConfig(min_steps=1))
+    assert again.ok, again.reason

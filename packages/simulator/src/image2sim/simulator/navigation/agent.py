@@ -23,12 +23,26 @@ from image2sim.simulator.navigation.embodiment import Embodiment
 from image2sim.simulator.navigation.navmap import HEIGHT_TOLERANCE, NavMap
 from scipy.spatial import cKDTree
 
-__all__ = ["AgentState", "StepInfo", "CollisionWorld", "Kinematics", "StuckDetector", "Agent", "wrap_angle"]
+__all__ = [
+    "AgentState",
+    "StepInfo",
+    "CollisionWorld",
+    "Kinematics",
+    "StuckDetector",
+    "Agent",
+    "PlacementError",
+    "wrap_angle",
+]
 
 _EPS = 1e-9
 _HEAD_ON = math.sin(math.radians(5.0))
 """Below 5 degrees of incidence a wall counts as head-on: no slide (the normal from a voxelised
 surface's centroid is only accurate to a few degrees)."""
+
+
+class PlacementError(ValueError):
+    """The agent cannot stand where it was placed: no floor within the step height, or obstacle points
+    inside its footprint."""
 
 
 def wrap_angle(a: float) -> float:
@@ -241,7 +255,7 @@ class Agent:
                 if not math.isfinite(z)
                 else f"{len(hits)} obstacle points in the footprint"
             )
-            raise ValueError(f"cannot place the agent at {np.round(p, 3).tolist()}: {why}")
+            raise PlacementError(f"cannot place the agent at {np.round(p, 3).tolist()}: {why}")
         self.state = AgentState(np.array([p[0], p[1], z]), wrap_angle(float(heading)))
         self.stuck_detector.reset(self.state)
         return self.state.copy()
