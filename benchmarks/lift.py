@@ -576,12 +576,10 @@ def main(argv: Sequence[str] | None = None, reports: str | Path | None = None) -
     if args.quick and args.num_planes is None:
         depth_kw = {"num_planes": 24}
     for item in args.mvs:
-        name, sep, value = item.partition("=")
+        name, _, value = item.partition("=")  # no "=": an empty value, which is not JSON
         try:
-            depth_kw[name] = json.loads(value) if sep else None
+            depth_kw[name] = json.loads(value)
         except json.JSONDecodeError:
-            sep = ""
-        if not sep:
             ap.error(f"--mvs takes NAME=VALUE with a JSON value, got {item!r}")
     if args.mvs:
         from image2sim.simulator.lift.mvs import MVSConfig
