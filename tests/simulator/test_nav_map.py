@@ -43,7 +43,10 @@ def analytic_navigable(w: syn.SyntheticWorld, xy: np.ndarray) -> np.ndarray:
 
 
 def iou_against_analytic(name: str) -> float:
-    w, m = world(name), navmap(name)
+    return iou_against_analytic_world(world(name), navmap(name))
+
+
+def iou_against_analytic_world(w: syn.SyntheticWorld, m: NavMap) -> float:
     lo, hi = w.bounds
     xs = np.arange(lo[0] + 0.025, hi[0], 0.05)
     ys = np.arange(lo[1] + 0.025, hi[1], 0.05)
@@ -84,6 +87,39 @@ def test_tabletop_is_an_obstacle_not_floor():
     assert not top.any()
     assert np.all(np.abs(m.points[:, 2]) < 0.02)
     assert m.num_levels == 1
+
+
+@pytest.mark.parametrize("cameras", ["none", "unsupported"])
+def test_a_bed_is_not_floor_when_no_camera_stands_above_the_floor(cameras):
+    # A forward-looking capture rarely sees the floor within a metre below its cameras: the
+    # components are then kept by area, and a bed (3.2 m^2 at 0.5 m) passes that test.
+    bed_lo, bed_hi = (1.5, 1.0, 0.0), (3.5, 2.6, 0.5)
+    w = syn.box_room(boxes=[(bed_lo, bed_hi)], spacing=SPACING)
+    # "unsupported": cameras outside the room's floor (none has a floor cell within a metre below)
+    cams = None if cameras == "none" else np.array([[-2.0, -2.0, 1.5], [8.0, -2.0, 1.5]])
+    m = extract_navmap_from_points(w.points, w.normals, camera_positions=cams)
+    on_bed = (
+        (m.points[:, 0] > bed_lo[0])
+        & (m.points[:, 0] < bed_hi[0])
+        & (m.points[:, 1] > bed_lo[1])
+        & (m.points[:, 1] < bed_hi[1])
+    )
+    assert not on_bed.any()
+    assert np.all(np.abs(m.points[:, 2]) < 0.02)
+    assert m.num_levels == 1
+    assert any("furniture tops" in n for n in m.notes)
+    assert iou_against_analytic_world(w, m) >= 0.97
+
+
+def test_storeys_a_body_height_apart_stay_without_camera_support():
+    # Two large floors 2.6 m apart are storeys, not a floor and a table: both are kept.
+    a = syn.box_room(size_x=6.0, size_y=4.0, spacing=SPACING)
+    b = syn.box_room(size_x=6.0, size_y=4.0, spacing=SPACING)
+    pts = np.concatenate((a.points, b.points + np.array([8.0, 0.0, 2.6])))
+    nrm = np.concatenate((a.normals, b.normals))
+    m = extract_navmap_from_points(pts, nrm, camera_positions=None)
+    assert m.num_levels == 2
+    assert np.allclose(sorted(m.level_heights), [0.0, 2.6], atol=0.02)
 
 
 def test_narrow_gap_has_no_navigable_cell_inside():

@@ -9,7 +9,8 @@ Pipeline (seed paper, appendix "Navigable Area Extraction and Denoising"):
 3. 0.05 m voxels; floor voxels stacked in a column within one voxel merge into one *floor cell*;
 4. floor components: cells connected where neighbouring heights differ by at most the maximum step
    height; components under the capture cameras are kept (tabletops, ceilings seen as floors and
-   other islands are dropped and become obstacles);
+   other islands are dropped and become obstacles); without camera support, the large components,
+   less those standing a step to a body height above another (beds, tables);
 5. storeys by height clustering, one RANSAC plane per storey; morphological closing of each storey's
    2D floor mask fills occlusion holes, the filled cells are re-projected onto the storey plane;
 6. radius outlier removal of obstacle voxels; per floor-height band, the clearance is the distance
@@ -335,7 +336,7 @@ def _build_navmap(
 
     # 4. Components connected within the step height; keep those under cameras (or large ones).
     comp = floor_components(c_ij, c_z, emb.max_step_height)
-    keep_comp = select_components(comp, c_ij, c_z, cams, lo, vox, cfg, notes)
+    keep_comp = select_components(comp, c_ij, c_z, cams, lo, vox, cfg, notes, emb)
     keep_cell = np.isin(comp, keep_comp)
     if not keep_cell.any():
         raise NavMapError("no floor component survived (no camera above a floor and none large enough)")

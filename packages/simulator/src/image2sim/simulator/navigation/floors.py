@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "cluster_levels",
     "covered_from_above",
+    "drop_furniture_tops",
     "fill_holes",
     "floor_components",
     "merge_floor_columns",
@@ -114,8 +115,10 @@ def select_components(
     vox: float,
     cfg: NavMapConfig,
     notes: list[str],
+    emb: Embodiment | None = None,
 ) -> np.ndarray:
-    """Component ids to keep: those supporting a capture camera, else all large enough."""
+    """Component ids to keep: those supporting a capture camera, else the large enough ones that
+    are not furniture tops (:func:`drop_furniture_tops`)."""
     xy = origin[:2] + (c_ij + 0.5) * vox
     if cams is not None and len(cams):
         tree = cKDTree(xy)
@@ -158,7 +161,27 @@ def select_components(
     keep = np.flatnonzero(area >= cfg.min_component_area)
     if len(keep) == 0 and len(area):
         keep = np.array([int(np.argmax(area))])
-    return keep
+    return drop_furniture_tops(keep, comp, c_z, emb or Embodiment(), notes)
+
+
+def drop_furniture_tops(
+    keep: np.ndarray, comp: np.ndarray, c_z: np.ndarray, emb: Embodiment, notes: list[str]
+) -> np.ndarray:
+    """``keep`` without the components that stand above another kept one by more than a step and
+    less than the body height: a bed or a large table passes an area test, but no storey is that
+    close above another floor (the body would not fit between them). Stairs joining two storeys
+    make them one component, so they stay."""
+    if len(keep) < 2:
+        return keep
+    height = np.array([float(np.median(c_z[comp == k])) for k in keep])
+    rise = height[:, None] - height[None, :]  # row above column
+    tops = ((rise > emb.max_step_height) & (rise < emb.height)).any(axis=1)
+    if tops.any():
+        notes.append(
+            f"dropped {int(tops.sum())} large floor-like component(s) {emb.max_step_height}-{emb.height} m "
+            "above another (furniture tops)"
+        )
+    return keep[~tops]
 
 
 def cluster_levels(c_z: np.ndarray, vox: float, min_area: float, min_separation: float) -> np.ndarray:
