@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from image2sim.simulator.geometry.cameras import EquirectCamera, PinholeCamera
 from image2sim.simulator.geometry.normals import (
     SurfaceNormalEstimator,
+    hole_normals,
     pad_equirect,
     point_normals,
     sobel_kernels,
@@ -315,3 +316,113 @@ def test_point_normals_find_the_floor_in_a_real_panorama(hm3d_scene_dir):
     assert valid.float().mean() > 0.9
     up = near_nadir[1][valid] < -0.95
     assert up.float().mean() > 0.95, float(up.float().mean())  # measured 0.987 on frame 00000
+
+
+# --- hole_normals: completing point_normals next to missing depth ----------------------------------
+
+
+def ref_hole_normals(
+    depth: np.ndarray, camera, base: np.ndarray, radius=2, min_valid=8, rel=0.1, planar=0.05
+):
+    """One pixel at a time: the PCA normal of the valid, depth-consistent window points of every
+    valid pixel whose ``base`` normal is 0 (the same padding as the images)."""
+    H, W = depth.shape
+    circular = isinstance(camera, EquirectCamera)
+    good = np.isfinite(depth) & (depth > 0)
+    clean = np.where(good, depth, 0.0)
+    pts = camera.unproject(torch.from_numpy(clean)[None]).numpy()[0]  # (H, W, 3)
+    out = base.copy()
+    for i in range(H):
+        for j in range(W):
+            if not good[i, j] or np.abs(base[:, i, j]).sum() > 0:
+                continue
+            window = [
+                ref_source_index(i + a, j + b, H, W, circular)
+                for a in range(-radius, radius + 1)
+                for b in range(-radius, radius + 1)
+                if circular or (0 <= i + a < H and 0 <= j + b < W)  # nothing beyond a pinhole image
+            ]
+            near = [
+                pts[si, sj]
+                for si, sj in window
+                if clean[si, sj] > 0 and abs(clean[si, sj] - clean[i, j]) <= rel * clean[i, j]
+            ]
+            out[:, i, j] = 0.0
+            if len(near) < min_valid:
+                continue
+            q = np.array(near) - np.mean(near, axis=0)
+            evals, evecs = np.linalg.eigh(q.T @ q)
+            if evals[0] > planar * evals[1]:
+                continue
+            n = evecs[:, 0]
+            out[:, i, j] = -n if n @ pts[i, j] > 0 else n
+    return out
+
+
+def holed(depth: torch.Tensor, fraction: float, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    return torch.where(torch.rand(depth.shape, generator=gen, dtype=depth.dtype) < fraction, 0.0, depth)
+
+
+@pytest.mark.parametrize("camera", [PINHOLE, EQUIRECT], ids=["pinhole", "equirect"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_hole_normals_on_a_holed_plane_are_exact_and_keep_the_sobel_ones(camera, seed):
+    gen = torch.Generator().manual_seed(seed)
+    normal = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=F64), dim=0)
+    if isinstance(camera, PinholeCamera):
+        normal[2] = abs(normal[2]) + 0.5
+        normal = normal / normal.norm()
+    plane = plane_depth(camera, normal, 1.5)
+    depth = holed(plane, 0.05, seed)
+    base = point_normals(depth, camera)
+    n = hole_normals(depth, camera, base)
+    seen = (depth > 0)[:, 0]
+    had = base.norm(dim=1) > 0
+    got = n.norm(dim=1) > 0
+    assert torch.equal(n[:, :, had[0]], base[:, :, had[0]])  # the Sobel normals stay as they were
+    # 5 % holes leave the Sobel estimator few pixels; the fitted planes cover nearly all the rest
+    # where the plane is not seen at a grazing angle (there, neighbours differ by > 10 % in depth).
+    facing = seen & (plane[:, 0] < 3.0)
+    assert had[seen].float().mean() < 0.5 and got[facing].float().mean() > 0.9
+    expected = (-normal)[None, :, None, None].expand_as(n)
+    assert torch.allclose(n.permute(0, 2, 3, 1)[got], expected.permute(0, 2, 3, 1)[got], atol=1e-9)
+    assert not got[~seen].any()  # no normal where there is no depth
+
+
+@pytest.mark.parametrize("camera", [PINHOLE, EQUIRECT], ids=["pinhole", "equirect"])
+def test_hole_normals_match_the_slow_reference(camera):
+    # A floor and a wall a depth edge apart, holes, and one noisy patch: every branch of the rule.
+    H, W = camera.height, camera.width
+    floor = plane_depth(camera, torch.tensor([0.0, 1.0, 0.0], dtype=F64), 1.2)[0, 0]
+    wall = plane_depth(camera, torch.tensor([0.3, 0.0, 1.0], dtype=F64), 2.0)[0, 0]
+    depth = torch.where((floor > 0) & ((wall == 0) | (floor < wall)), floor, wall)
+    gen = torch.Generator().manual_seed(3)
+    depth[H // 4 : H // 4 + 6, W // 3 : W // 3 + 8] *= 1 + 0.3 * torch.rand(6, 8, generator=gen, dtype=F64)
+    depth = holed(depth[None, None], 0.08, 4)
+    base = point_normals(depth, camera)
+    fast = hole_normals(depth, camera, base)
+    slow = ref_hole_normals(depth[0, 0].numpy(), camera, base[0].numpy())
+    assert np.allclose(fast[0].numpy(), slow, atol=1e-9)
+    completed = (fast.norm(dim=1) > 0) & (base.norm(dim=1) == 0)
+    refused = (fast.norm(dim=1) == 0) & (depth[:, 0] > 0)
+    assert completed.sum() > 50 and refused.sum() > 5  # both outcomes are exercised
+
+
+def test_hole_normals_refuse_a_rough_window_and_survive_bad_values():
+    gen = torch.Generator().manual_seed(0)
+    # +-5 % noise at 2 m: every neighbour is depth-consistent, none lies on a plane (a 0.2 m thick
+    # slab across a 0.17 m window)
+    rough = 2.0 * (1.0 + 0.1 * (torch.rand(1, 1, 48, 64, generator=gen, dtype=F64) - 0.5))
+    rough = holed(rough, 0.2, 1)
+    assert not point_normals(rough, PINHOLE).any()
+    completed = int((hole_normals(rough, PINHOLE).norm(dim=1) > 0).sum())
+    assert completed <= 0.002 * int((rough > 0).sum())  # a chance plane of few border points at most
+    depth = plane_depth(PINHOLE, torch.tensor([0.0, 0.6, 0.8], dtype=F64), 1.5).float()
+    depth[0, 0, 10, 20] = float("nan")
+    depth[0, 0, 30, 40] = float("inf")
+    depth[0, 0, 5, 5] = -1.0
+    n = hole_normals(depth, PINHOLE)
+    assert n.dtype == torch.float32 and torch.isfinite(n).all()
+    around = n.norm(dim=1)[0, 9:12, 19:22] > 0
+    assert around.sum() == 8 and not around[1, 1]  # around the NaN (from the plane there), not on it
+    assert torch.equal(hole_normals(torch.zeros(1, 1, 48, 64), PINHOLE), torch.zeros(1, 3, 48, 64))

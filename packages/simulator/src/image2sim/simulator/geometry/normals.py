@@ -12,6 +12,9 @@ Two estimators with different jobs:
   along u and v (two tangents) and crossed. For a plane this is exact (averages and differences of
   coplanar points stay in the plane), whatever the camera model. Normals face the camera; pixels
   whose 7x7 receptive field touches invalid depth get 0. Navigation uses these to find floors.
+* :func:`hole_normals` completes those zeros where depth has holes (stereo, sensors): a valid
+  pixel whose window touched a hole gets the normal of a plane fitted (PCA) to its valid,
+  depth-consistent neighbours, when they are planar.
 
 Border handling: images are edge-replicated; panoramas (``circular=True`` / an
 :class:`EquirectCamera`) wrap across the longitude seam and, for even widths, continue across the
@@ -31,6 +34,7 @@ __all__ = [
     "pad_image",
     "sobel_normals",
     "point_normals",
+    "hole_normals",
     "SurfaceNormalEstimator",
 ]
 
@@ -199,6 +203,58 @@ def point_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
         invalid = F.max_pool2d(pad_image(invalid, _SOBEL, circular), kernel_size=5, stride=1)
         keep = keep & (invalid == 0)
     return torch.where(keep, n, torch.zeros_like(n))
+
+
+def hole_normals(
+    depth: torch.Tensor,
+    camera: Camera,
+    normals: torch.Tensor | None = None,
+    radius: int = 2,
+    min_valid: int = 8,
+    max_rel_depth: float = 0.1,
+    planarity: float = 0.05,
+) -> torch.Tensor:
+    """:func:`point_normals`, completed at valid pixels whose receptive field touched a hole.
+
+    Such a pixel (its normal is 0 in ``normals``, computed here when None) gets the smallest
+    principal axis of the camera-frame points of its ``(2 radius + 1)^2`` window (inside the image;
+    across the seam and poles of a panorama) that have depth
+    within ``max_rel_depth`` of its own (the other side of a depth edge is left out), oriented
+    towards the camera; it stays 0 with fewer than ``min_valid`` such points or when they are not
+    planar (smallest eigenvalue above ``planarity`` x the middle one). On a plane the result is
+    exact. Stereo depth with holes would otherwise lose every normal within 3 pixels of a hole:
+    on a lifted capture most floor pixels (docs/navigation.md).
+    """
+    n = point_normals(depth, camera) if normals is None else normals
+    valid = torch.isfinite(depth) & (depth > 0)
+    need = valid & (n.abs().sum(dim=1, keepdim=True) == 0)
+    if not bool(need.any()):
+        return n
+    B, _, H, W = depth.shape
+    circular = isinstance(camera, EquirectCamera)
+    clean = torch.where(valid, depth, torch.zeros_like(depth))
+    points = camera.unproject(clean[:, 0]).permute(0, 3, 1, 2)  # (B, 3, H, W)
+    k = 2 * radius + 1
+    # Panoramas continue across the seam and the poles; beyond a pinhole image there is no depth
+    # (replicated border points would count twice and look planar).
+    pad = (lambda x: pad_equirect(x, radius)) if circular else (lambda x: F.pad(x, (radius,) * 4))
+    window_points = F.unfold(pad(points), k).view(B, 3, k * k, H, W)
+    window_depth = F.unfold(pad(clean), k).view(B, k * k, H, W)
+    b, _, v, u = need.nonzero(as_tuple=True)
+    p = window_points[b, :, :, v, u]  # (M, 3, K)
+    d = window_depth[b, :, v, u]  # (M, K)
+    centre = clean[b, 0, v, u][:, None]
+    w = ((d > 0) & ((d - centre).abs() <= max_rel_depth * centre)).to(p.dtype)
+    count = w.sum(dim=1)
+    mean = (p * w[:, None]).sum(dim=2) / count.clamp_min(1.0)[:, None]
+    centred = (p - mean[:, :, None]) * w[:, None]
+    evals, evecs = torch.linalg.eigh((centred @ centred.transpose(1, 2)).double())
+    normal = evecs[:, :, 0].to(p.dtype)
+    normal = torch.where((normal * points[b, :, v, u]).sum(dim=1, keepdim=True) > 0, -normal, normal)
+    ok = (count >= min_valid) & (evals[:, 0] <= planarity * evals[:, 1])
+    out = n.clone()
+    out[b, :, v, u] = torch.where(ok[:, None], normal, torch.zeros_like(normal))
+    return out
 
 
 class SurfaceNormalEstimator(torch.nn.Module):

@@ -3,7 +3,8 @@
 Pipeline (seed paper, appendix "Navigable Area Extraction and Denoising"):
 
 1. floor candidates: semantic floor labels when given, and upward normals (n_z >= 0.5; the 5x5 Sobel
-   estimator of :func:`image2sim.simulator.geometry.normals.point_normals` for captures);
+   estimator of :func:`image2sim.simulator.geometry.normals.point_normals` for captures, completed
+   next to depth holes by :func:`~image2sim.simulator.geometry.normals.hole_normals`);
 2. RANSAC ground plane -> gravity alignment (rotate so the ground normal is +Z; skipped when the
    tilt is below 0.5 degrees, the usual case for Z-up captures);
 3. 0.05 m voxels; floor voxels stacked in a column within one voxel merge into one *floor cell*;
@@ -169,7 +170,7 @@ def extract_navmap(
     Points are pre-merged into 0.05 m voxels per frame so memory stays bounded.
     """
     import torch
-    from image2sim.simulator.geometry.normals import point_normals
+    from image2sim.simulator.geometry.normals import hole_normals, point_normals
 
     emb = embodiment or Embodiment()
     cfg = config or NavMapConfig()
@@ -196,7 +197,10 @@ def extract_navmap(
             )
             d_t = torch.from_numpy(np.where(np.isfinite(depth_s), depth_s, 0.0).astype(np.float32))
             # Normals on the strided grid (the paper's 5x5 Sobel estimator); points from exact rays.
-            nrm_s = point_normals(d_t[None, None], small_camera)[0].permute(1, 2, 0).numpy()
+            nrm_t = point_normals(d_t[None, None], small_camera)
+            if cfg.hole_normals:
+                nrm_t = hole_normals(d_t[None, None], small_camera, nrm_t)
+            nrm_s = nrm_t[0].permute(1, 2, 0).numpy()
             pts_s = depth_s[..., None] * unit_points
             valid = np.isfinite(depth_s) & (depth_s > 0) & (depth_s <= cfg.max_range)
             pose = np.asarray(frame.cam_to_world, dtype=np.float64)
