@@ -33,14 +33,27 @@ import torch
 from harness import hardware, load_average, time_it, write_report
 from scipy import ndimage
 
+_BEFORE_HOLES = {"hole_normals": False}
 VARIANTS: dict[str, dict] = {
     "default": {},
-    "before 2026-11-28: closing 2, unseen = buffer": {"closing_radius_cells": 2, "unknown_clearance": None},
-    "closing 4 only": {"unknown_clearance": None},
-    "unknown clearance 0 only": {"closing_radius_cells": 2},
-    "before + pixel stride 1": {"closing_radius_cells": 2, "unknown_clearance": None, "pixel_stride": 1},
+    "no hole normals (before 2026-12-07)": _BEFORE_HOLES,
+    "before 2026-11-28: closing 2, unseen = buffer": {
+        **_BEFORE_HOLES,
+        "closing_radius_cells": 2,
+        "unknown_clearance": None,
+    },
+    "closing 4 only": {**_BEFORE_HOLES, "unknown_clearance": None},
+    "unknown clearance 0 only": {**_BEFORE_HOLES, "closing_radius_cells": 2},
+    "before + pixel stride 1": {
+        **_BEFORE_HOLES,
+        "closing_radius_cells": 2,
+        "unknown_clearance": None,
+        "pixel_stride": 1,
+    },
 }
-"""Extraction settings compared with the defaults (``NavMapConfig`` field overrides)."""
+"""Extraction settings compared with the defaults (``NavMapConfig`` field overrides). The variants
+of session 30 (2026-11-28) ablate its two changes from the default of their time, which had no
+hole normals (session 50)."""
 
 FLOOR_TOLERANCE = 0.02
 """A back-projected exact-depth pixel within this height (metres) of the floor plane sees floor."""

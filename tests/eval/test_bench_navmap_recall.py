@@ -36,6 +36,9 @@ def test_quick_run_scores_every_variant_against_the_exact_floor(bench, tmp_path)
     by_name = {r["variant"]: r for r in rows}
     before = by_name["before 2026-11-28: closing 2, unseen = buffer"]
     assert by_name["default"]["R seen"] > before["R seen"] + 0.1
+    # Exact depth has no holes: the hole normals change nothing there.
+    no_holes = by_name["no hole normals (before 2026-12-07)"]
+    assert all(no_holes[k] == by_name["default"][k] for k in ("P", "R", "R seen"))
     assert "R seen" in (tmp_path / "navmap_recall.md").read_text()
 
 
