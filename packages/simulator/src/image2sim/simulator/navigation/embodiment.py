@@ -134,10 +134,11 @@ class NavMapConfig(_DictMixin):
     pixel_stride: int = 2
     """Back-project every n-th pixel in each image direction (speed; the 0.05 m voxels are coarser)."""
     hole_normals: bool = True
-    """Pixels whose 5x5 Sobel window (on the strided grid) touches missing depth get the normal of a
-    plane fitted to their valid neighbours (:func:`~image2sim.simulator.geometry.normals.hole_normals`)
-    instead of none; False: the paper's estimator alone, under which such pixels are never floor
-    (most of a stereo capture's floor, whose depth has holes)."""
+    """Pixels whose Sobel receptive field (7x7 on the strided grid) touches missing depth get the
+    normal of a plane fitted to their valid neighbours
+    (:func:`~image2sim.simulator.geometry.normals.hole_normals`) instead of none; False: the
+    paper's estimator alone, under which such pixels are never floor (most of a stereo capture's
+    floor, whose depth has holes)."""
     outlier_radius: float = 0.1
     """Radius (metres) of the radius outlier removal applied to obstacle voxels."""
     outlier_min_neighbors: int = 2
