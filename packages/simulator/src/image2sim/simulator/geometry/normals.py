@@ -182,9 +182,7 @@ def point_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
     if (H, W) != (camera.height, camera.width):
         raise ValueError(f"point_normals: depth is {H}x{W} but the camera is {camera.height}x{camera.width}")
     circular = isinstance(camera, EquirectCamera)
-    valid = torch.isfinite(depth) & (depth > 0)
-    clean = torch.where(valid, depth, torch.zeros_like(depth))
-    points = camera.unproject(clean[:, 0]).permute(0, 3, 1, 2)  # (B, 3, H, W)
+    valid, clean, points = _point_map(depth, camera)
     tu, tv = _smooth_and_sobel(points, circular)
     n = _cross_channels(tu, tv)
     norm = _channel_norm(n)
@@ -203,6 +201,13 @@ def point_normals(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
         invalid = F.max_pool2d(pad_image(invalid, _SOBEL, circular), kernel_size=5, stride=1)
         keep = keep & (invalid == 0)
     return torch.where(keep, n, torch.zeros_like(n))
+
+
+def _point_map(depth: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(valid (B, 1, H, W), depth with 0 where invalid, camera-frame points (B, 3, H, W))."""
+    valid = torch.isfinite(depth) & (depth > 0)
+    clean = torch.where(valid, depth, torch.zeros_like(depth))
+    return valid, clean, camera.unproject(clean[:, 0]).permute(0, 3, 1, 2)
 
 
 def hole_normals(
@@ -232,8 +237,7 @@ def hole_normals(
         return n
     B, _, H, W = depth.shape
     circular = isinstance(camera, EquirectCamera)
-    clean = torch.where(valid, depth, torch.zeros_like(depth))
-    points = camera.unproject(clean[:, 0]).permute(0, 3, 1, 2)  # (B, 3, H, W)
+    _, clean, points = _point_map(depth, camera)
     k = 2 * radius + 1
     # Panoramas continue across the seam and the poles; beyond a pinhole image there is no depth
     # (replicated border points would count twice and look planar).

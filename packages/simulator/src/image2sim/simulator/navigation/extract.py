@@ -197,10 +197,8 @@ def extract_navmap(
             )
             d_t = torch.from_numpy(np.where(np.isfinite(depth_s), depth_s, 0.0).astype(np.float32))
             # Normals on the strided grid (the paper's 5x5 Sobel estimator); points from exact rays.
-            nrm_t = point_normals(d_t[None, None], small_camera)
-            if cfg.hole_normals:
-                nrm_t = hole_normals(d_t[None, None], small_camera, nrm_t)
-            nrm_s = nrm_t[0].permute(1, 2, 0).numpy()
+            estimator = hole_normals if cfg.hole_normals else point_normals
+            nrm_s = estimator(d_t[None, None], small_camera)[0].permute(1, 2, 0).numpy()
             pts_s = depth_s[..., None] * unit_points
             valid = np.isfinite(depth_s) & (depth_s > 0) & (depth_s <= cfg.max_range)
             pose = np.asarray(frame.cam_to_world, dtype=np.float64)

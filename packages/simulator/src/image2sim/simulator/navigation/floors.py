@@ -115,7 +115,7 @@ def select_components(
     vox: float,
     cfg: NavMapConfig,
     notes: list[str],
-    emb: Embodiment | None = None,
+    emb: Embodiment,
 ) -> np.ndarray:
     """Component ids to keep: those supporting a capture camera, else the large enough ones that
     are not furniture tops (:func:`drop_furniture_tops`)."""
@@ -161,7 +161,7 @@ def select_components(
     keep = np.flatnonzero(area >= cfg.min_component_area)
     if len(keep) == 0 and len(area):
         keep = np.array([int(np.argmax(area))])
-    return drop_furniture_tops(keep, comp, c_z, emb or Embodiment(), notes)
+    return drop_furniture_tops(keep, comp, c_z, emb, notes)
 
 
 def drop_furniture_tops(
