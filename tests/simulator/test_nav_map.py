@@ -11,6 +11,7 @@ import pytest
 from image2sim.simulator.navigation import synthetic as syn
 from image2sim.simulator.navigation.embodiment import ConfigError, Embodiment, NavMapConfig
 from image2sim.simulator.navigation.extract import extract_navmap_from_points
+from image2sim.simulator.navigation.floors import typical_camera_height
 from image2sim.simulator.navigation.navmap import NavMap, NavMapError
 from image2sim.simulator.navigation.pointcloud import fit_plane_ransac, rotation_aligning
 from image2sim.simulator.navigation.topdown import render_topdown
@@ -109,6 +110,40 @@ def test_a_bed_is_not_floor_when_no_camera_stands_above_the_floor(cameras):
     assert m.num_levels == 1
     assert any("furniture tops" in n for n in m.notes)
     assert iou_against_analytic_world(w, m) >= 0.97
+
+
+def test_a_bed_beside_forward_looking_cameras_is_not_floor():
+    # A walking pinhole capture sees no floor at its cameras' feet: within a camera's reach the
+    # nearest cell is often the bed beside it. Three cameras stand beside the bed with the floor
+    # within 0.9 m of them unseen (a ring of floor still within reach), one stands over the bed
+    # with no floor within its reach at all: the bed must not become floor.
+    bed_lo, bed_hi = (1.5, 1.0, 0.0), (3.5, 2.6, 0.5)
+    w = syn.box_room(boxes=[(bed_lo, bed_hi)], spacing=SPACING)
+    cams = np.array([[1.2, 1.8, 1.5], [2.5, 0.7, 1.5], [3.8, 1.8, 1.5], [2.5, 1.8, 1.5]])
+    seen = np.ones(len(w.points), dtype=bool)
+    on_floor = np.abs(w.points[:, 2]) < 1e-6
+    for cam, r in zip(cams, (0.9, 0.9, 0.9, 1.2), strict=True):
+        seen &= ~(on_floor & (np.linalg.norm(w.points[:, :2] - cam[:2], axis=1) < r))
+    m = extract_navmap_from_points(w.points[seen], w.normals[seen], camera_positions=cams)
+    on_bed = (
+        (m.points[:, 0] > bed_lo[0])
+        & (m.points[:, 0] < bed_hi[0])
+        & (m.points[:, 1] > bed_lo[1])
+        & (m.points[:, 1] < bed_hi[1])
+    )
+    assert not on_bed.any()
+    assert np.all(np.abs(m.points[:, 2]) < 0.02)
+    assert m.navigable_area() > 10.0
+
+
+def test_typical_camera_height_is_the_drop_to_the_lowest_surface_within_reach():
+    z = np.array([0.0] * 6 + [0.5] * 40 + [0.75] * 30 + [-0.3])  # floor, bed, table, one stray cell
+    cams = np.array([[0.0, 0.0, 1.5]] * 3)
+    cands = [np.arange(46), np.arange(6, 76), np.arange(0, 6)]  # floor + bed, bed + table, floor
+    assert typical_camera_height(cands, cams, z, 0.05) == pytest.approx(1.5)
+    # With the stray cell below the floor (fewer than min_cells) the floor still wins.
+    assert typical_camera_height([np.arange(77)], cams[:1], z, 0.05) == pytest.approx(1.5)
+    assert typical_camera_height([np.zeros(0, dtype=np.int64)], cams[:1], z, 0.05) is None
 
 
 def test_storeys_a_body_height_apart_stay_without_camera_support():

@@ -126,42 +126,71 @@ def select_components(
         for cam in cams:
             cand = np.asarray(tree.query_ball_point(cam[:2], r=cfg.camera_support_radius), dtype=np.int64)
             cands.append(cand[c_z[cand] <= cam[2] - cfg.min_camera_height])
-        # Pass 1: the nearest floor below each camera gives the typical camera height of the capture.
-        first = [
-            c[np.argmin(np.linalg.norm(xy[c] - cam[:2], axis=1))]
-            for c, cam in zip(cands, cams, strict=True)
-            if len(c)
-        ]
-        heights = [
-            cam[2] - c_z[f]
-            for f, cam in zip(first, [cm for c, cm in zip(cands, cams, strict=True) if len(c)], strict=True)
-        ]
-        typical = float(np.median(heights)) if heights else None
+        # Pass 1: the typical camera height of the capture, from each camera's drop to the lowest
+        # surface within reach. Not the drop to its nearest cell: a forward-looking camera often
+        # sees no floor at its feet, and its nearest cell is then a bed or a table beside it.
+        typical = typical_camera_height(cands, cams, c_z, vox)
         # Pass 2: prefer cells at that height below the camera (on stairs the nearest cell may be
         # another flight); fall back to the nearest cell.
-        seeds = []
+        seeds, fallback = [], []
         for cand, cam in zip(cands, cams, strict=True):
             if not len(cand):
                 continue
             d = np.linalg.norm(xy[cand] - cam[:2], axis=1)
-            if typical is not None:
-                ok = np.abs(cam[2] - c_z[cand] - typical) <= 0.3
-                if ok.any():
-                    cand, d = cand[ok], d[ok]
-            seeds.append(comp[cand[np.argmin(d)]])
-        missing = len(cams) - len(seeds)
+            at_typical = typical is not None and bool(
+                (ok := np.abs(cam[2] - c_z[cand] - typical) <= 0.3).any()
+            )
+            if at_typical:
+                cand, d = cand[ok], d[ok]
+            (seeds if at_typical or typical is None else fallback).append(comp[cand[np.argmin(d)]])
+        missing = len(cams) - len(seeds) - len(fallback)
         if missing:
             notes.append(
                 f"{missing} of {len(cams)} cameras have no floor below within {cfg.camera_support_radius} m"
             )
-        if seeds:
-            return np.unique(seeds)
+        if seeds or fallback:
+            return _keep_seeded(np.unique(seeds), np.unique(fallback), comp, c_z, emb, notes)
         notes.append("no camera lies above a floor: kept components by area instead")
     area = np.bincount(comp) * vox * vox
     keep = np.flatnonzero(area >= cfg.min_component_area)
     if len(keep) == 0 and len(area):
         keep = np.array([int(np.argmax(area))])
     return drop_furniture_tops(keep, comp, c_z, emb, notes)
+
+
+def typical_camera_height(
+    cands: list[np.ndarray], cams: np.ndarray, c_z: np.ndarray, vox: float, min_cells: int = 5
+) -> float | None:
+    """The height of the capture's cameras above their floor, or None without candidates.
+
+    Per camera, its drop to the lowest surface among the floor cells ``cands`` within its reach that
+    holds at least ``min_cells`` cells in a band of three ``vox`` bins (a floor is the lowest surface
+    under a camera; the count keeps stray cells below it out), as the median drop in that band;
+    the median over the cameras (a camera beside a stairwell sees a lower storey)."""
+    per_camera = []
+    for c, cam in zip(cands, cams, strict=True):
+        if not len(c):
+            continue
+        d = cam[2] - c_z[c]
+        bins = np.floor((d - d.min()) / vox).astype(np.int64)
+        counts = np.convolve(np.bincount(bins), np.ones(3))[1:-1]  # cells in bins b-1..b+1
+        lowest = int(np.flatnonzero(counts >= min(min_cells, len(d))).max())
+        per_camera.append(float(np.median(d[np.abs(bins - lowest) <= 1])))
+    return float(np.median(per_camera)) if per_camera else None
+
+
+def _keep_seeded(
+    seeds: np.ndarray, fallback: np.ndarray, comp: np.ndarray, c_z: np.ndarray, emb: Embodiment, notes: list
+) -> np.ndarray:
+    """Components seeded at the capture's typical camera height, and those seeded by the nearest
+    cell of a camera that has no floor at that height within reach, unless they are furniture tops
+    above a typically seeded one. A forward-looking camera often sees no floor near its feet, and
+    its nearest cell is then a bed or a table beside it."""
+    extra = np.setdiff1d(fallback, seeds)
+    if not len(extra) or not len(seeds):
+        return np.union1d(seeds, fallback)
+    kept = drop_furniture_tops(np.concatenate((seeds, extra)), comp, c_z, emb, notes)
+    return np.union1d(seeds, kept)
 
 
 def drop_furniture_tops(
