@@ -43,6 +43,13 @@ def analytic_navigable(w: syn.SyntheticWorld, xy: np.ndarray) -> np.ndarray:
     return np.isfinite(w.floor_height(xy)) & (w.obstacle_distance(xy) >= RADIUS - 1e-9)
 
 
+def over_box(points: np.ndarray, lo, hi) -> np.ndarray:
+    """Which points lie over the box's footprint (x and y strictly inside)."""
+    return (
+        (points[:, 0] > lo[0]) & (points[:, 0] < hi[0]) & (points[:, 1] > lo[1]) & (points[:, 1] < hi[1])
+    )
+
+
 def iou_against_analytic(name: str) -> float:
     return iou_against_analytic_world(world(name), navmap(name))
 
@@ -84,7 +91,7 @@ def test_navigable_cells_are_safe_and_on_the_floor(name):
 
 def test_tabletop_is_an_obstacle_not_floor():
     m = navmap("table")
-    top = (m.points[:, 0] > 2.0) & (m.points[:, 0] < 3.2) & (m.points[:, 1] > 1.5) & (m.points[:, 1] < 2.3)
+    top = over_box(m.points, (2.0, 1.5), (3.2, 2.3))
     assert not top.any()
     assert np.all(np.abs(m.points[:, 2]) < 0.02)
     assert m.num_levels == 1
@@ -99,13 +106,7 @@ def test_a_bed_is_not_floor_when_no_camera_stands_above_the_floor(cameras):
     # "unsupported": cameras outside the room's floor (none has a floor cell within a metre below)
     cams = None if cameras == "none" else np.array([[-2.0, -2.0, 1.5], [8.0, -2.0, 1.5]])
     m = extract_navmap_from_points(w.points, w.normals, camera_positions=cams)
-    on_bed = (
-        (m.points[:, 0] > bed_lo[0])
-        & (m.points[:, 0] < bed_hi[0])
-        & (m.points[:, 1] > bed_lo[1])
-        & (m.points[:, 1] < bed_hi[1])
-    )
-    assert not on_bed.any()
+    assert not over_box(m.points, bed_lo, bed_hi).any()
     assert np.all(np.abs(m.points[:, 2]) < 0.02)
     assert m.num_levels == 1
     assert any("furniture tops" in n for n in m.notes)
@@ -125,13 +126,7 @@ def test_a_bed_beside_forward_looking_cameras_is_not_floor():
     for cam, r in zip(cams, (0.9, 0.9, 0.9, 1.2), strict=True):
         seen &= ~(on_floor & (np.linalg.norm(w.points[:, :2] - cam[:2], axis=1) < r))
     m = extract_navmap_from_points(w.points[seen], w.normals[seen], camera_positions=cams)
-    on_bed = (
-        (m.points[:, 0] > bed_lo[0])
-        & (m.points[:, 0] < bed_hi[0])
-        & (m.points[:, 1] > bed_lo[1])
-        & (m.points[:, 1] < bed_hi[1])
-    )
-    assert not on_bed.any()
+    assert not over_box(m.points, bed_lo, bed_hi).any()
     assert np.all(np.abs(m.points[:, 2]) < 0.02)
     assert m.navigable_area() > 10.0
 
