@@ -33,9 +33,11 @@ import torch
 from harness import hardware, load_average, time_it, write_report
 from scipy import ndimage
 
-_BEFORE_HOLES = {"hole_normals": False}
+_BEFORE_CARVING = {"carve_min_views": 0}
+_BEFORE_HOLES = {**_BEFORE_CARVING, "hole_normals": False}
 VARIANTS: dict[str, dict] = {
     "default": {},
+    "no visibility carving (before 2026-12-07, session 51)": _BEFORE_CARVING,
     "no hole normals (before 2026-12-07)": _BEFORE_HOLES,
     "before 2026-11-28: closing 2, unseen = buffer": {
         **_BEFORE_HOLES,
@@ -53,7 +55,8 @@ VARIANTS: dict[str, dict] = {
 }
 """Extraction settings compared with the defaults (``NavMapConfig`` field overrides). The variants
 of session 30 (2026-11-28) ablate its two changes from the default of their time, which had no
-hole normals (session 50)."""
+hole normals (session 50) and no visibility carving (session 51). The typical camera height of
+session 51 (``floors.typical_camera_height``) has no switch: the rerun after it is its measure."""
 
 FLOOR_TOLERANCE = 0.02
 """A back-projected exact-depth pixel within this height (metres) of the floor plane sees floor."""

@@ -36,9 +36,12 @@ def test_quick_run_scores_every_variant_against_the_exact_floor(bench, tmp_path)
     by_name = {r["variant"]: r for r in rows}
     before = by_name["before 2026-11-28: closing 2, unseen = buffer"]
     assert by_name["default"]["R seen"] > before["R seen"] + 0.1
-    # Exact depth has no holes: the hole normals change nothing there.
+    # Exact depth has no holes: the hole normals change nothing there, and nothing floats for the
+    # visibility carving to drop (a few voxels at most).
+    no_carving = by_name["no visibility carving (before 2026-12-07, session 51)"]
     no_holes = by_name["no hole normals (before 2026-12-07)"]
-    assert all(no_holes[k] == by_name["default"][k] for k in ("P", "R", "R seen"))
+    assert all(no_holes[k] == no_carving[k] for k in ("P", "R", "R seen"))
+    assert all(abs(no_carving[k] - by_name["default"][k]) <= 0.01 for k in ("P", "R", "R seen"))
     assert "R seen" in (tmp_path / "navmap_recall.md").read_text()
 
 

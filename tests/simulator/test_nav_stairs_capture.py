@@ -20,6 +20,7 @@ from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
 from image2sim.simulator.navigation.extract import extract_navmap
 from image2sim.simulator.navigation.graph import NavGraph, joined_storeys
 from image2sim.simulator.navigation.navmap import NavMap
+from scipy.spatial import cKDTree
 
 pytest.importorskip("image2sim.dataengine.procedural")
 from image2sim.dataengine.procedural.raycast import BoxCaster  # noqa: E402 (optional package)
@@ -175,3 +176,42 @@ def test_depth_holes_keep_the_floor_with_hole_normals():
         iou[on] = len(full & cells(m)) / len(full | cells(m))
         assert not any(_plateau_cells(m, name).any() for name in FURNITURE)
     assert iou[True] >= 0.85 and iou[True] > iou[False] + 0.5, iou  # measured: 0.89 vs 0.20
+
+
+def test_floating_wrong_depth_is_carved_and_the_floor_comes_back():
+    # Wrong depth (a mismatched stereo patch) puts a blob of points 0.6 m above the floor in one
+    # panorama; the other views see the floor through it. Without carving the blob is an obstacle
+    # whose buffer cuts the floor around it; with it (the default) the map is the clean one.
+    lo, hi, cams, _ = _stair_world(0.14)
+    frames = _panoramas(lo, hi, cams)
+    f = frames[1]
+    pose = f.cam_to_world
+    pts = f.camera.unproject(torch.from_numpy(f.depth)).numpy() @ pose[:3, :3].T + pose[:3, 3]
+    blob = (np.abs(pts[..., 0] - 1.5) < 0.4) & (np.abs(pts[..., 1] - 2.0) < 0.4)
+    blob &= np.abs(pts[..., 2]) < 0.01
+    assert blob.sum() > 200
+    shrink = np.where(blob, 0.6, 1.0).astype(np.float32)  # 0.6 of the range: 0.6 m above the floor
+    frames[1] = Frame(f.rgb, f.depth * shrink, f.camera, pose, frame_id=f.frame_id)
+    floater = pose[:3, 3] + 0.6 * (pts[blob] - pose[:3, 3])
+
+    def cells(m: NavMap) -> set:
+        return set(map(tuple, np.floor(m.points[:, :2] / m.voxel_size).astype(int).tolist()))
+
+    clean = cells(extract_navmap(_panoramas(lo, hi, cams)))
+    near, _ = cKDTree(floater[:, :2]).query((np.array(sorted(clean)) + 0.5) * 0.05)
+    under = {c for c, d in zip(sorted(clean), near, strict=True) if d < 0.1}
+    assert len(under) > 50
+    off = extract_navmap(frames, config=NavMapConfig(carve_min_views=0))
+    on = extract_navmap(frames)
+    assert len(under & cells(off)) < 0.5 * len(under)  # the floater blocks the floor under it
+    assert len(under & cells(on)) >= 0.95 * len(under)
+    assert len(clean ^ cells(on)) <= 0.02 * len(clean)
+    assert any("visibility carving" in n for n in on.notes)
+    assert not any(_plateau_cells(on, name).any() for name in FURNITURE)
+
+
+def test_carving_leaves_exact_depth_alone():
+    lo, hi, cams, _ = _stair_world(0.14)
+    frames = _panoramas(lo, hi, cams)
+    on, off = extract_navmap(frames), extract_navmap(frames, config=NavMapConfig(carve_min_views=0))
+    np.testing.assert_array_equal(np.sort(on.points, axis=0), np.sort(off.points, axis=0))

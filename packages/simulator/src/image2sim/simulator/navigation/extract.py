@@ -33,6 +33,7 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
+from image2sim.simulator.navigation.carving import DepthView, floater_mask
 from image2sim.simulator.navigation.clearance import floor_clearance
 from image2sim.simulator.navigation.embodiment import Embodiment, NavMapConfig
 from image2sim.simulator.navigation.floors import (
@@ -175,7 +176,7 @@ def extract_navmap(
     emb = embodiment or Embodiment()
     cfg = config or NavMapConfig()
     vox = cfg.voxel_size
-    acc_keys, acc_vals, acc_w, cams = [], [], [], []
+    acc_keys, acc_vals, acc_w, acc_view, cams, views = [], [], [], [], [], []
     ray_cache: dict = {}
     frames = capture
     bar = None
@@ -210,6 +211,8 @@ def extract_navmap(
                 sem_s = np.asarray(sem)[off::s, off::s][: unit_points.shape[0], : unit_points.shape[1]]
                 is_floor &= np.isin(sem_s[valid], cfg.floor_labels)
             cams.append(pose[:3, 3])
+            if cfg.carve_min_views:
+                views.append(DepthView(_nearest_per_block(depth, s, valid.shape, cfg), small_camera, pose))
             # Pre-merge per frame: key = (voxel ijk, floor flag) in a fixed world lattice.
             ijk = np.floor(p_w / vox).astype(np.int64)
             key = np.column_stack((ijk[:, 0], ijk[:, 1], ijk[:, 2] * 2 + is_floor))
@@ -217,6 +220,7 @@ def extract_navmap(
             acc_keys.append((uk[:, 2] % 2).astype(bool))
             acc_vals.append(mean)
             acc_w.append(wsum)
+            acc_view.append(np.full(len(mean), len(cams) - 1))
             if bar is not None:
                 bar.advance(task)
     finally:
@@ -227,7 +231,45 @@ def extract_navmap(
     pts = np.concatenate(acc_vals)
     floor = np.concatenate(acc_keys)
     w = np.concatenate(acc_w)
-    return _build_navmap(pts, floor, w, np.asarray(cams), emb, cfg)
+    notes: list[str] = []
+    if cfg.carve_min_views and len(views) > 1:
+        keep = _carve_floaters(pts, np.concatenate(acc_view), views, cfg, notes)
+        pts, floor, w = pts[keep], floor[keep], w[keep]
+    return _build_navmap(pts, floor, w, np.asarray(cams), emb, cfg, notes)
+
+
+def _nearest_per_block(
+    depth: np.ndarray, stride: int, shape: tuple[int, int], cfg: NavMapConfig
+) -> np.ndarray:
+    """(h, w) float32: the nearest valid depth of each ``stride`` x ``stride`` block of pixels (0
+    where none), on the strided grid: carving then sees an obstacle thinner than the stride that
+    the strided samples miss (a table leg between them)."""
+    import torch
+    import torch.nn.functional as F
+
+    ok = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_range)
+    far = torch.from_numpy(np.where(ok, depth, np.inf).astype(np.float32))[None, None]
+    near = -F.max_pool2d(-far, stride, stride, ceil_mode=True)[0, 0].numpy()[: shape[0], : shape[1]]
+    return np.where(np.isfinite(near), near, 0.0).astype(np.float32)
+
+
+def _carve_floaters(
+    pts: np.ndarray, view_of: np.ndarray, views: list, cfg: NavMapConfig, notes: list[str]
+) -> np.ndarray:
+    """Which of the per-view pre-merged points to keep: points in voxels that other views see
+    through are dropped, floor candidates as well as obstacles (a wrong-depth patch of floor is a
+    level plateau in the air) (:func:`~image2sim.simulator.navigation.carving.floater_mask`)."""
+    voxels, inverse = np.unique(np.floor(pts / cfg.voxel_size).astype(np.int64), axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    # Views that put a point in each voxel (a view may hold a floor and an obstacle point there).
+    pairs = np.unique(np.column_stack((inverse, view_of)), axis=0)
+    support = np.bincount(pairs[:, 0], minlength=len(voxels))
+    count = np.bincount(inverse, minlength=len(voxels))[:, None]
+    mean = np.stack([np.bincount(inverse, pts[:, k], len(voxels)) for k in range(3)], axis=1) / count
+    drop = floater_mask(mean, support, views, min_views=int(cfg.carve_min_views), ratio=cfg.carve_ratio)
+    if drop.any():
+        notes.append(f"visibility carving dropped {int(drop.sum())} of {len(voxels)} voxels")
+    return ~drop[inverse]
 
 
 def _strided_rays(camera, stride: int, cache: dict):
@@ -270,9 +312,10 @@ def _build_navmap(
     cams: np.ndarray | None,
     emb: Embodiment,
     cfg: NavMapConfig,
+    notes: list[str] | None = None,
 ) -> NavMap:
     """Core of the extraction on points already classified as floor candidates or not."""
-    notes: list[str] = []
+    notes = [] if notes is None else notes
     vox = cfg.voxel_size
     rng = np.random.default_rng(cfg.seed)
     if len(pts) == 0:
