@@ -48,6 +48,7 @@ from image2sim.simulator.navigation.navmap import NavMap, NavMapError
 from image2sim.simulator.navigation.pointcloud import (
     estimate_normals_pca,
     fit_plane_ransac,
+    pack_keys,
     radius_outlier_mask,
     rotation_aligning,
     voxel_reduce,
@@ -259,16 +260,18 @@ def _carve_floaters(
     """Which of the per-view pre-merged points to keep: points in voxels that other views see
     through are dropped, floor candidates as well as obstacles (a wrong-depth patch of floor is a
     level plateau in the air) (:func:`~image2sim.simulator.navigation.carving.floater_mask`)."""
-    voxels, inverse = np.unique(np.floor(pts / cfg.voxel_size).astype(np.int64), axis=0, return_inverse=True)
+    # The same grouping as voxel_reduce (one packed int64 key per voxel, not a row-wise unique),
+    # keeping the inverse to map the verdict back to the points.
+    keys, inverse = np.unique(pack_keys(np.floor(pts / cfg.voxel_size).astype(np.int64)), return_inverse=True)
     inverse = inverse.reshape(-1)
     # Views that put a point in each voxel (a view may hold a floor and an obstacle point there).
-    pairs = np.unique(np.column_stack((inverse, view_of)), axis=0)
-    support = np.bincount(pairs[:, 0], minlength=len(voxels))
-    count = np.bincount(inverse, minlength=len(voxels))[:, None]
-    mean = np.stack([np.bincount(inverse, pts[:, k], len(voxels)) for k in range(3)], axis=1) / count
+    pairs = np.unique(inverse * len(views) + view_of)
+    support = np.bincount(pairs // len(views), minlength=len(keys))
+    count = np.bincount(inverse, minlength=len(keys))[:, None]
+    mean = np.stack([np.bincount(inverse, pts[:, k], len(keys)) for k in range(3)], axis=1) / count
     drop = floater_mask(mean, support, views, min_views=int(cfg.carve_min_views), ratio=cfg.carve_ratio)
     if drop.any():
-        notes.append(f"visibility carving dropped {int(drop.sum())} of {len(voxels)} voxels")
+        notes.append(f"visibility carving dropped {int(drop.sum())} of {len(keys)} voxels")
     return ~drop[inverse]
 
 
