@@ -139,6 +139,12 @@ def test_typical_camera_height_is_the_drop_to_the_lowest_surface_within_reach():
     # With the stray cell below the floor (fewer than min_cells) the floor still wins.
     assert typical_camera_height([np.arange(77)], cams[:1], z, 0.05) == pytest.approx(1.5)
     assert typical_camera_height([np.zeros(0, dtype=np.int64)], cams[:1], z, 0.05) is None
+    # A camera whose few cells lie decimetres apart shows no surface: it says nothing (it crashed
+    # the extraction of a pinhole capture of procedural house 9202 at tier middle, session 52).
+    scattered = np.array([0.0, 0.3, 0.6, 0.9, 1.2, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert typical_camera_height([np.arange(5)], cams[:1], scattered, 0.05) is None
+    two = [np.arange(5), np.arange(5, 10)]  # the scattered camera and one over a floor
+    assert typical_camera_height(two, cams[:2], scattered, 0.05) == pytest.approx(1.5)
 
 
 def test_storeys_a_body_height_apart_stay_without_camera_support():

@@ -166,7 +166,8 @@ def typical_camera_height(
     Per camera, its drop to the lowest surface among the floor cells ``cands`` within its reach that
     holds at least ``min_cells`` cells in a band of three ``vox`` bins (a floor is the lowest surface
     under a camera; the count keeps stray cells below it out), as the median drop in that band;
-    the median over the cameras (a camera beside a stairwell sees a lower storey)."""
+    the median over the cameras (a camera beside a stairwell sees a lower storey). A camera whose
+    cells are too few or too scattered to form such a surface says nothing."""
     per_camera = []
     for c, cam in zip(cands, cams, strict=True):
         if not len(c):
@@ -174,7 +175,10 @@ def typical_camera_height(
         d = cam[2] - c_z[c]
         bins = np.floor((d - d.min()) / vox).astype(np.int64)
         counts = np.convolve(np.bincount(bins), np.ones(3))[1:-1]  # cells in bins b-1..b+1
-        lowest = int(np.flatnonzero(counts >= min(min_cells, len(d))).max())
+        surfaces = np.flatnonzero(counts >= min(min_cells, len(d)))
+        if not len(surfaces):
+            continue
+        lowest = int(surfaces.max())
         per_camera.append(float(np.median(d[np.abs(bins - lowest) <= 1])))
     return float(np.median(per_camera)) if per_camera else None
 
