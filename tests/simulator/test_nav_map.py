@@ -131,6 +131,21 @@ def test_a_bed_beside_forward_looking_cameras_is_not_floor():
     assert m.navigable_area() > 10.0
 
 
+def test_a_raised_camera_over_a_bed_does_not_seed_it():
+    # As above, but the camera over the bed stands 0.25 m higher than the others: its drop to the
+    # bed, 1.25 m, must not count as the typical 1.5 m (it did within a 0.3 m band, session 52).
+    bed_lo, bed_hi = (1.5, 1.0, 0.0), (3.5, 2.6, 0.5)
+    w = syn.box_room(boxes=[(bed_lo, bed_hi)], spacing=SPACING)
+    cams = np.array([[1.2, 1.8, 1.5], [2.5, 0.7, 1.5], [3.8, 1.8, 1.5], [2.5, 1.8, 1.75]])
+    seen = np.ones(len(w.points), dtype=bool)
+    on_floor = np.abs(w.points[:, 2]) < 1e-6
+    for cam, r in zip(cams, (0.9, 0.9, 0.9, 1.2), strict=True):
+        seen &= ~(on_floor & (np.linalg.norm(w.points[:, :2] - cam[:2], axis=1) < r))
+    m = extract_navmap_from_points(w.points[seen], w.normals[seen], camera_positions=cams)
+    assert not over_box(m.points, bed_lo, bed_hi).any()
+    assert np.all(np.abs(m.points[:, 2]) < 0.02)
+
+
 def test_typical_camera_height_is_the_drop_to_the_lowest_surface_within_reach():
     z = np.array([0.0] * 6 + [0.5] * 40 + [0.75] * 30 + [-0.3])  # floor, bed, table, one stray cell
     cams = np.array([[0.0, 0.0, 1.5]] * 3)

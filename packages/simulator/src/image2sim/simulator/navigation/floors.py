@@ -106,6 +106,14 @@ def floor_components(
     return labels
 
 
+TYPICAL_HEIGHT_BAND = 0.2
+"""Metres a camera's drop to a cell may differ from the typical camera height for the cell to seed
+at that height. It covers cameras held higher or lower than the others; a bed or a sofa top
+(0.4-0.6 m) must stay outside it for a camera raised by a decimetre or two: at 0.3 m, a camera
+0.12 m above the others over a bed with noisy low cells seeded the bed (procedural house 9202,
+pinhole, tier middle; docs/navigation.md, session 52)."""
+
+
 def select_components(
     comp: np.ndarray,
     c_ij: np.ndarray,
@@ -138,7 +146,7 @@ def select_components(
                 continue
             d = np.linalg.norm(xy[cand] - cam[:2], axis=1)
             at_typical = typical is not None and bool(
-                (ok := np.abs(cam[2] - c_z[cand] - typical) <= 0.3).any()
+                (ok := np.abs(cam[2] - c_z[cand] - typical) <= TYPICAL_HEIGHT_BAND).any()
             )
             if at_typical:
                 cand, d = cand[ok], d[ok]
